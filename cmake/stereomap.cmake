@@ -1,0 +1,36 @@
+# Shared settings for every stereomap target (not applied to generated IDL code).
+
+function(stereomap_target_defaults target)
+  target_compile_options(${target} PRIVATE -Wall -Wextra -Werror)
+endfunction()
+
+# stereomap_library(NAME SOURCES ... DEPS ...): one library per concern, explicit sources.
+function(stereomap_library name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;PRIVATE_DEPS" ${ARGN})
+  add_library(${name} STATIC ${ARG_SOURCES})
+  target_include_directories(${name} PUBLIC ${PROJECT_SOURCE_DIR})
+  target_link_libraries(${name} PUBLIC ${ARG_DEPS} PRIVATE ${ARG_PRIVATE_DEPS})
+  stereomap_target_defaults(${name})
+endfunction()
+
+# stereomap_test(NAME SOURCES ... DEPS ...): a GoogleTest binary registered with CTest.
+function(stereomap_test name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  add_executable(${name} ${ARG_SOURCES})
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gtest_main GTest::gmock)
+  target_compile_definitions(${name} PRIVATE
+    STEREOMAP_DATA_DIR="${STEREOMAP_DATA_DIR}"
+    STEREOMAP_DDS_CONFIG="${STEREOMAP_DDS_CONFIG}"
+    STEREOMAP_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
+  set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
+  stereomap_target_defaults(${name})
+  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300)
+endfunction()
+
+# stereomap_app(NAME SOURCES ... DEPS ...): a stereomap-<verb> binary in build/bin.
+function(stereomap_app name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  add_executable(${name} ${ARG_SOURCES})
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS} CLI11::CLI11)
+  stereomap_target_defaults(${name})
+endfunction()

@@ -1,0 +1,17 @@
+// Wall-clock time as int64 nanoseconds since the Unix epoch (the stamp on every sample).
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+
+namespace stereomap::common {
+
+inline int64_t nowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+inline double nsToSeconds(int64_t ns) { return static_cast<double>(ns) * 1e-9; }
+
+}  // namespace stereomap::common

@@ -1,0 +1,441 @@
+#include "proto/dds.hpp"
+
+#include <dds/dds.h>
+
+#include <cstdlib>
+#include <cstring>
+#include <map>
+#include <mutex>
+
+#include "proto/qos.hpp"
+#include "stereomap.h"
+
+namespace stereomap::proto {
+
+using common::Error;
+using common::ErrorCode;
+using common::makeError;
+using common::Result;
+using common::Status;
+
+namespace {
+
+Error ddsError(const std::string& what, dds_return_t rc) {
+  return makeError(ErrorCode::kUnavailable, what + ": " + dds_strretcode(-rc));
+}
+
+// A Cyclone domain created with an explicit configuration, shared by every Participant of
+// this process on that domain id (deleting a domain deletes all its participants).
+class DomainHandle {
+ public:
+  explicit DomainHandle(dds_entity_t domain) : domain_(domain) {}
+  ~DomainHandle() {
+    if (domain_ > 0) dds_delete(domain_);
+  }
+
+ private:
+  dds_entity_t domain_;
+};
+
+Result<std::shared_ptr<DomainHandle>> acquireDomain(const DdsOptions& options) {
+  static std::mutex mutex;
+  static std::map<uint32_t, std::weak_ptr<DomainHandle>> domains;
+  std::lock_guard lock(mutex);
+  if (auto existing = domains[options.domain_id].lock()) return existing;
+
+  std::string config;
+  if (!options.config_file.empty()) {
+    config = "file://" + options.config_file;
+  } else if (const char* uri = std::getenv("CYCLONEDDS_URI"); uri != nullptr && *uri != '\0') {
+    config = uri;
+  } else {
+    config = loopbackConfigXml();
+  }
+  const dds_entity_t domain = dds_create_domain(options.domain_id, config.c_str());
+  if (domain < 0) {
+    return ddsError("cannot create DDS domain " + std::to_string(options.domain_id) +
+                        " with configuration '" +
+                        (options.config_file.empty() ? std::string("default") : config) + "'",
+                    domain);
+  }
+  auto handle = std::make_shared<DomainHandle>(domain);
+  domains[options.domain_id] = handle;
+  return handle;
+}
+
+// --- conversion between our structs and the generated C types -------------------------
+
+Status copyId(const std::string& value, char (&out)[kMaxIdLength + 1], const char* field) {
+  if (value.size() > kMaxIdLength) {
+    return makeError(ErrorCode::kTooLarge, std::string(field) + " is longer than " +
+                                               std::to_string(kMaxIdLength) + " characters");
+  }
+  std::memset(out, 0, sizeof(out));
+  std::memcpy(out, value.data(), value.size());
+  return common::Ok{};
+}
+
+std::string readId(const char (&in)[kMaxIdLength + 1]) {
+  return std::string(in, strnlen(in, kMaxIdLength));
+}
+
+template <typename E>
+Result<E> checkedEnum(int value, int count, const char* field) {
+  if (value < 0 || value >= count) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     std::string(field) + " has unknown value " + std::to_string(value));
+  }
+  return static_cast<E>(value);
+}
+
+template <typename T>
+struct Topic;
+
+template <>
+struct Topic<PoseMsg> {
+  using C = stereomap_msg_Pose;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_Pose_desc; }
+  static constexpr const char* kName = "stereomap_Pose";
+  static dds_qos_t* qos() { return poseQos(); }
+
+  static Status toC(const PoseMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    c.seq = m.seq;
+    c.stamp_ns = m.stamp_ns;
+    std::copy(m.position.begin(), m.position.end(), c.position);
+    std::copy(m.orientation.begin(), m.orientation.end(), c.orientation);
+    std::copy(m.velocity.begin(), m.velocity.end(), c.velocity);
+    std::copy(m.covariance.begin(), m.covariance.end(), c.covariance);
+    c.tracking_state = static_cast<stereomap_msg_TrackingState>(m.tracking_state);
+    c.source = static_cast<stereomap_msg_PoseSource>(m.source);
+    return common::Ok{};
+  }
+  static Result<PoseMsg> fromC(const C& c) {
+    PoseMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.seq = c.seq;
+    m.stamp_ns = c.stamp_ns;
+    std::copy(std::begin(c.position), std::end(c.position), m.position.begin());
+    std::copy(std::begin(c.orientation), std::end(c.orientation), m.orientation.begin());
+    std::copy(std::begin(c.velocity), std::end(c.velocity), m.velocity.begin());
+    std::copy(std::begin(c.covariance), std::end(c.covariance), m.covariance.begin());
+    auto state = checkedEnum<TrackingState>(c.tracking_state, 4, "tracking_state");
+    if (!state) return state.error();
+    auto source = checkedEnum<PoseSource>(c.source, 3, "source");
+    if (!source) return source.error();
+    m.tracking_state = *state;
+    m.source = *source;
+    return m;
+  }
+};
+
+template <>
+struct Topic<CloudFrameMsg> {
+  using C = stereomap_msg_CloudFrame;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_CloudFrame_desc; }
+  static constexpr const char* kName = "stereomap_CloudFrame";
+  static dds_qos_t* qos() { return cloudQos(); }
+
+  // The payload is borrowed from `m` (not copied): dds_write serialises before returning.
+  static Status toC(const CloudFrameMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    if (m.payload.size() > kMaxPayloadBytes) {
+      return makeError(ErrorCode::kTooLarge, "payload of " + std::to_string(m.payload.size()) +
+                                                 " bytes exceeds the IDL bound of " +
+                                                 std::to_string(kMaxPayloadBytes));
+    }
+    c.seq = m.seq;
+    c.stamp_ns = m.stamp_ns;
+    std::copy(m.sensor_position.begin(), m.sensor_position.end(), c.sensor_position);
+    std::copy(m.sensor_orientation.begin(), m.sensor_orientation.end(), c.sensor_orientation);
+    c.max_range = m.max_range;
+    c.point_count = m.point_count;
+    c.encoding = static_cast<stereomap_msg_CloudEncoding>(m.encoding);
+    c.quantization_bits = m.quantization_bits;
+    c.has_intensity = m.has_intensity;
+    c.payload._maximum = c.payload._length = static_cast<uint32_t>(m.payload.size());
+    c.payload._buffer = const_cast<uint8_t*>(m.payload.data());
+    c.payload._release = false;
+    return common::Ok{};
+  }
+  static Result<CloudFrameMsg> fromC(const C& c) {
+    CloudFrameMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.seq = c.seq;
+    m.stamp_ns = c.stamp_ns;
+    std::copy(std::begin(c.sensor_position), std::end(c.sensor_position),
+              m.sensor_position.begin());
+    std::copy(std::begin(c.sensor_orientation), std::end(c.sensor_orientation),
+              m.sensor_orientation.begin());
+    m.max_range = c.max_range;
+    m.point_count = c.point_count;
+    auto encoding = checkedEnum<CloudEncoding>(c.encoding, 2, "encoding");
+    if (!encoding) return encoding.error();
+    m.encoding = *encoding;
+    m.quantization_bits = c.quantization_bits;
+    m.has_intensity = c.has_intensity;
+    m.payload.assign(c.payload._buffer, c.payload._buffer + c.payload._length);
+    return m;
+  }
+};
+
+template <>
+struct Topic<SessionEventMsg> {
+  using C = stereomap_msg_SessionEvent;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_SessionEvent_desc; }
+  static constexpr const char* kName = "stereomap_SessionEvent";
+  static dds_qos_t* qos() { return sessionEventQos(); }
+
+  static Status toC(const SessionEventMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    c.stamp_ns = m.stamp_ns;
+    c.kind = static_cast<stereomap_msg_SessionEventKind>(m.kind);
+    c.width = m.width;
+    c.height = m.height;
+    c.fx = m.fx;
+    c.fy = m.fy;
+    c.cx = m.cx;
+    c.cy = m.cy;
+    c.baseline = m.baseline;
+    c.resolution_hint = m.resolution_hint;
+    return common::Ok{};
+  }
+  static Result<SessionEventMsg> fromC(const C& c) {
+    SessionEventMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.stamp_ns = c.stamp_ns;
+    auto kind = checkedEnum<SessionEventKind>(c.kind, 2, "kind");
+    if (!kind) return kind.error();
+    m.kind = *kind;
+    m.width = c.width;
+    m.height = c.height;
+    m.fx = c.fx;
+    m.fy = c.fy;
+    m.cx = c.cx;
+    m.cy = c.cy;
+    m.baseline = c.baseline;
+    m.resolution_hint = c.resolution_hint;
+    return m;
+  }
+};
+
+struct QosDeleter {
+  void operator()(dds_qos_t* qos) const { dds_delete_qos(qos); }
+};
+using QosPtr = std::unique_ptr<dds_qos_t, QosDeleter>;
+
+template <typename T>
+Result<dds_entity_t> createTopic(dds_entity_t participant) {
+  const dds_entity_t topic =
+      dds_create_topic(participant, Topic<T>::descriptor(), Topic<T>::kName, nullptr, nullptr);
+  if (topic < 0) return ddsError(std::string("cannot create topic ") + Topic<T>::kName, topic);
+  return topic;
+}
+
+// Waits on `waitset` until `done()` or the deadline; the waitset wakes on status changes.
+template <typename Done>
+bool waitUntil(dds_entity_t waitset, std::chrono::milliseconds timeout, Done done) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  while (!done()) {
+    const auto left = deadline - std::chrono::steady_clock::now();
+    if (left <= std::chrono::nanoseconds::zero()) return false;
+    dds_waitset_wait(waitset, nullptr, 0,
+                     std::chrono::duration_cast<std::chrono::nanoseconds>(left).count());
+  }
+  return true;
+}
+
+}  // namespace
+
+// --- Participant ------------------------------------------------------------------------
+
+struct Participant::Impl {
+  std::shared_ptr<DomainHandle> domain;
+  dds_entity_t participant = 0;
+  ~Impl() {
+    if (participant > 0) dds_delete(participant);
+  }
+};
+
+Participant::Participant(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Participant::~Participant() = default;
+int32_t Participant::handle() const { return impl_->participant; }
+
+Result<std::shared_ptr<Participant>> Participant::create(const DdsOptions& options) {
+  auto impl = std::make_unique<Impl>();
+  auto domain = acquireDomain(options);
+  if (!domain) return domain.error();
+  impl->domain = *domain;
+  impl->participant = dds_create_participant(options.domain_id, nullptr, nullptr);
+  if (impl->participant < 0) {
+    const dds_return_t rc = impl->participant;
+    impl->participant = 0;
+    return ddsError("cannot create DDS participant on domain " + std::to_string(options.domain_id),
+                    rc);
+  }
+  return std::shared_ptr<Participant>(new Participant(std::move(impl)));
+}
+
+// --- Writer -----------------------------------------------------------------------------
+
+template <typename T>
+struct Writer<T>::Impl {
+  std::shared_ptr<Participant> participant;
+  dds_entity_t writer = 0;
+  dds_entity_t waitset = 0;
+  ~Impl() {
+    if (waitset > 0) dds_delete(waitset);
+    if (writer > 0) dds_delete(writer);
+  }
+};
+
+template <typename T>
+Writer<T>::Writer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+template <typename T>
+Writer<T>::~Writer() = default;
+
+template <typename T>
+Result<std::unique_ptr<Writer<T>>> Writer<T>::create(std::shared_ptr<Participant> participant) {
+  auto impl = std::make_unique<Impl>();
+  impl->participant = participant;
+  auto topic = createTopic<T>(participant->handle());
+  if (!topic) return topic.error();
+  QosPtr qos(Topic<T>::qos());
+  impl->writer = dds_create_writer(participant->handle(), *topic, qos.get(), nullptr);
+  if (impl->writer < 0) {
+    const dds_return_t rc = impl->writer;
+    impl->writer = 0;
+    return ddsError(std::string("cannot create writer for ") + Topic<T>::kName, rc);
+  }
+  dds_set_status_mask(impl->writer, DDS_PUBLICATION_MATCHED_STATUS);
+  impl->waitset = dds_create_waitset(participant->handle());
+  dds_waitset_attach(impl->waitset, impl->writer, impl->writer);
+  return std::unique_ptr<Writer>(new Writer(std::move(impl)));
+}
+
+template <typename T>
+Status Writer<T>::write(const T& message) {
+  typename Topic<T>::C sample{};
+  if (auto status = Topic<T>::toC(message, sample); !status) return status;
+  const dds_return_t rc = dds_write(impl_->writer, &sample);
+  if (rc != DDS_RETCODE_OK) return ddsError(std::string("write on ") + Topic<T>::kName, rc);
+  return common::Ok{};
+}
+
+template <typename T>
+int Writer<T>::matchedReaders() const {
+  dds_publication_matched_status_t status{};
+  dds_get_publication_matched_status(impl_->writer, &status);
+  return static_cast<int>(status.current_count);
+}
+
+template <typename T>
+bool Writer<T>::waitForReaders(int count, std::chrono::milliseconds timeout) const {
+  return waitUntil(impl_->waitset, timeout, [&] { return matchedReaders() >= count; });
+}
+
+// --- Reader -----------------------------------------------------------------------------
+
+template <typename T>
+struct Reader<T>::Impl {
+  std::shared_ptr<Participant> participant;
+  dds_entity_t reader = 0;
+  dds_entity_t waitset = 0;
+  dds_entity_t guard = 0;
+  ~Impl() {
+    if (waitset > 0) dds_delete(waitset);
+    if (guard > 0) dds_delete(guard);
+    if (reader > 0) dds_delete(reader);
+  }
+};
+
+template <typename T>
+Reader<T>::Reader(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+template <typename T>
+Reader<T>::~Reader() = default;
+
+template <typename T>
+Result<std::unique_ptr<Reader<T>>> Reader<T>::create(std::shared_ptr<Participant> participant) {
+  auto impl = std::make_unique<Impl>();
+  impl->participant = participant;
+  auto topic = createTopic<T>(participant->handle());
+  if (!topic) return topic.error();
+  QosPtr qos(Topic<T>::qos());
+  impl->reader = dds_create_reader(participant->handle(), *topic, qos.get(), nullptr);
+  if (impl->reader < 0) {
+    const dds_return_t rc = impl->reader;
+    impl->reader = 0;
+    return ddsError(std::string("cannot create reader for ") + Topic<T>::kName, rc);
+  }
+  impl->waitset = dds_create_waitset(participant->handle());
+  impl->guard = dds_create_guardcondition(participant->handle());
+  const dds_entity_t condition = dds_create_readcondition(impl->reader, DDS_ANY_STATE);
+  dds_waitset_attach(impl->waitset, condition, impl->reader);
+  dds_waitset_attach(impl->waitset, impl->guard, impl->guard);
+  return std::unique_ptr<Reader>(new Reader(std::move(impl)));
+}
+
+template <typename T>
+size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout) {
+  dds_waitset_wait(impl_->waitset, nullptr, 0,
+                   std::chrono::duration_cast<std::chrono::nanoseconds>(timeout).count());
+  bool woken = false;
+  dds_take_guardcondition(impl_->guard, &woken);
+
+  constexpr size_t kBatch = 16;
+  size_t appended = 0;
+  for (;;) {
+    void* samples[kBatch] = {nullptr};
+    dds_sample_info_t infos[kBatch];
+    const dds_return_t n = dds_take(impl_->reader, samples, infos, kBatch, kBatch);
+    if (n <= 0) break;
+    for (dds_return_t i = 0; i < n; ++i) {
+      if (!infos[i].valid_data) continue;
+      // Cyclone has already checked the IDL bounds when deserialising; enum ranges are ours.
+      auto message = Topic<T>::fromC(*static_cast<const typename Topic<T>::C*>(samples[i]));
+      if (message) {
+        out.push_back(std::move(message).value());
+        ++appended;
+      }
+    }
+    dds_return_loan(impl_->reader, samples, n);
+  }
+  return appended;
+}
+
+template <typename T>
+void Reader<T>::wake() {
+  dds_set_guardcondition(impl_->guard, true);
+}
+
+template <typename T>
+int Reader<T>::matchedWriters() const {
+  dds_subscription_matched_status_t status{};
+  dds_get_subscription_matched_status(impl_->reader, &status);
+  return static_cast<int>(status.current_count);
+}
+
+template class Writer<PoseMsg>;
+template class Writer<CloudFrameMsg>;
+template class Writer<SessionEventMsg>;
+template class Reader<PoseMsg>;
+template class Reader<CloudFrameMsg>;
+template class Reader<SessionEventMsg>;
+
+const char* loopbackConfigXml() {
+  return R"(<CycloneDDS><Domain Id="any"><General>
+<Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
+<AllowMulticast>false</AllowMulticast>
+<MaxMessageSize>65500B</MaxMessageSize><FragmentSize>65000B</FragmentSize></General>
+<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>64</MaxAutoParticipantIndex>
+<Peers><Peer address="127.0.0.1"/></Peers></Discovery>
+<Internal><SocketReceiveBufferSize min="4MB"/></Internal></Domain></CycloneDDS>)";
+}
+
+}  // namespace stereomap::proto

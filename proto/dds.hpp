@@ -1,0 +1,86 @@
+// RAII wrappers over Cyclone DDS's C API for stereomap's three topics: a Participant on a
+// domain (configured from an XML file, never multicast by default), typed Writers and
+// Readers whose take() waits on a WaitSet (no sleep-polling) and can be woken for shutdown.
+// Cyclone's return codes become common::Error values; nothing of Cyclone leaks out.
+//
+//   auto participant = Participant::create({.domain_id = 7, .config_file = "cfg.xml"});
+//   auto writer = Writer<PoseMsg>::create(*participant);
+//   writer->write(pose);
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "common/result.hpp"
+#include "proto/messages.hpp"
+
+namespace stereomap::proto {
+
+struct DdsOptions {
+  uint32_t domain_id = 0;
+  // Cyclone XML configuration file. Empty: $CYCLONEDDS_URI if set, else the built-in
+  // loopback-only configuration (unicast on 127.0.0.1), so nothing leaves the host by accident.
+  std::string config_file;
+};
+
+class Participant {
+ public:
+  static common::Result<std::shared_ptr<Participant>> create(const DdsOptions& options);
+  ~Participant();
+  Participant(const Participant&) = delete;
+  Participant& operator=(const Participant&) = delete;
+
+  int32_t handle() const;  // dds_entity_t, for the typed wrappers in proto only
+
+ private:
+  struct Impl;
+  explicit Participant(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// One writer of topic T (PoseMsg, CloudFrameMsg or SessionEventMsg) with T's QoS preset.
+template <typename T>
+class Writer {
+ public:
+  static common::Result<std::unique_ptr<Writer>> create(std::shared_ptr<Participant> participant);
+  ~Writer();
+  // Copies `message` into a DDS sample and writes it; fails (without throwing) on a bound
+  // violation or a DDS error.
+  common::Status write(const T& message);
+  // Number of matched readers (for waiting on discovery before the first sample).
+  int matchedReaders() const;
+  // Waits until at least `count` readers matched or `timeout` passed; true if matched.
+  bool waitForReaders(int count, std::chrono::milliseconds timeout) const;
+
+ private:
+  struct Impl;
+  explicit Writer(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// One reader of topic T with T's QoS preset.
+template <typename T>
+class Reader {
+ public:
+  static common::Result<std::unique_ptr<Reader>> create(std::shared_ptr<Participant> participant);
+  ~Reader();
+  // Waits up to `timeout` for samples (or wake()), then appends every available valid sample
+  // to `out`. Returns the number appended. Thread-safe against wake() only.
+  size_t take(std::vector<T>& out, std::chrono::milliseconds timeout);
+  // Makes a blocked take() return now (for shutdown). Callable from any thread.
+  void wake();
+  int matchedWriters() const;
+
+ private:
+  struct Impl;
+  explicit Reader(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// The built-in loopback-only configuration (also in config/cyclonedds-loopback.xml).
+const char* loopbackConfigXml();
+
+}  // namespace stereomap::proto

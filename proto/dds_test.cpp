@@ -1,0 +1,153 @@
+#include "proto/dds.hpp"
+
+#include <gtest/gtest.h>
+
+#include <thread>
+
+namespace stereomap::proto {
+namespace {
+
+using namespace std::chrono_literals;
+
+// Each test binary uses its own DDS domain id so parallel tests never cross-talk.
+constexpr uint32_t kDomain = 61;
+
+std::shared_ptr<Participant> makeParticipant() {
+  auto participant = Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
+  EXPECT_TRUE(participant.ok()) << participant.error().message;
+  return *participant;
+}
+
+template <typename T>
+std::vector<T> takeAtLeast(Reader<T>& reader, size_t count) {
+  std::vector<T> out;
+  const auto deadline = std::chrono::steady_clock::now() + 10s;
+  while (out.size() < count && std::chrono::steady_clock::now() < deadline) {
+    reader.take(out, 500ms);
+  }
+  return out;
+}
+
+TEST(Dds, PoseRoundTripsEveryField) {
+  auto participant = makeParticipant();
+  auto reader = Reader<PoseMsg>::create(participant);
+  auto writer = Writer<PoseMsg>::create(participant);
+  ASSERT_TRUE(reader.ok() && writer.ok());
+  ASSERT_TRUE((*writer)->waitForReaders(1, 5s));
+
+  PoseMsg pose;
+  pose.vehicle_id = "uav-7";
+  pose.session_id = "flight-42";
+  pose.seq = 9;
+  pose.stamp_ns = 1'700'000'000'123'456'789;
+  pose.position = {1.5, -2.25, 3.0};
+  pose.orientation = {0.0, 0.0, 0.70710678, 0.70710678};
+  pose.velocity = {0.1, 0.2, 0.3};
+  for (size_t i = 0; i < 36; ++i) pose.covariance[i] = static_cast<double>(i) * 0.01;
+  pose.tracking_state = TrackingState::kDegraded;
+  pose.source = PoseSource::kVisualOdometry;
+  ASSERT_TRUE((*writer)->write(pose).ok());
+
+  auto got = takeAtLeast(**reader, 1);
+  ASSERT_EQ(got.size(), 1u);
+  EXPECT_EQ(got[0].vehicle_id, pose.vehicle_id);
+  EXPECT_EQ(got[0].session_id, pose.session_id);
+  EXPECT_EQ(got[0].seq, pose.seq);
+  EXPECT_EQ(got[0].stamp_ns, pose.stamp_ns);
+  EXPECT_EQ(got[0].position, pose.position);
+  EXPECT_EQ(got[0].orientation, pose.orientation);
+  EXPECT_EQ(got[0].velocity, pose.velocity);
+  EXPECT_EQ(got[0].covariance, pose.covariance);
+  EXPECT_EQ(got[0].tracking_state, pose.tracking_state);
+  EXPECT_EQ(got[0].source, pose.source);
+}
+
+TEST(Dds, CloudFramePayloadOfFourMegabytesArrivesIntact) {
+  auto participant = makeParticipant();
+  auto reader = Reader<CloudFrameMsg>::create(participant);
+  auto writer = Writer<CloudFrameMsg>::create(participant);
+  ASSERT_TRUE(reader.ok() && writer.ok());
+  ASSERT_TRUE((*writer)->waitForReaders(1, 5s));
+
+  CloudFrameMsg frame;
+  frame.vehicle_id = "v";
+  frame.session_id = "s";
+  frame.point_count = 123;
+  frame.max_range = 7.5f;
+  frame.quantization_bits = 14;
+  frame.has_intensity = true;
+  frame.payload.resize(4u << 20);
+  for (size_t i = 0; i < frame.payload.size(); ++i) frame.payload[i] = static_cast<uint8_t>(i * 31);
+  for (uint64_t seq = 0; seq < 3; ++seq) {
+    frame.seq = seq;
+    ASSERT_TRUE((*writer)->write(frame).ok());
+  }
+  auto got = takeAtLeast(**reader, 3);
+  ASSERT_EQ(got.size(), 3u);
+  for (uint64_t seq = 0; seq < 3; ++seq) {
+    EXPECT_EQ(got[seq].seq, seq);
+    EXPECT_EQ(got[seq].payload, frame.payload);
+    EXPECT_EQ(got[seq].point_count, 123u);
+    EXPECT_TRUE(got[seq].has_intensity);
+  }
+}
+
+TEST(Dds, OverBoundValuesAreRefusedByTheWriter) {
+  auto participant = makeParticipant();
+  auto writer = Writer<CloudFrameMsg>::create(participant);
+  ASSERT_TRUE(writer.ok());
+  CloudFrameMsg frame;
+  frame.vehicle_id = std::string(65, 'x');
+  auto status = (*writer)->write(frame);
+  ASSERT_FALSE(status.ok());
+  EXPECT_NE(status.error().message.find("vehicle_id"), std::string::npos);
+  frame.vehicle_id = "v";
+  frame.payload.resize(kMaxPayloadBytes + 1);
+  EXPECT_FALSE((*writer)->write(frame).ok());
+}
+
+TEST(Dds, SessionEventReachesALateJoiningReader) {
+  auto participant = makeParticipant();
+  auto writer = Writer<SessionEventMsg>::create(participant);
+  ASSERT_TRUE(writer.ok());
+  SessionEventMsg event;
+  event.vehicle_id = "v1";
+  event.session_id = "late";
+  event.width = 640;
+  event.fx = 492.45;
+  event.baseline = 0.120081;
+  ASSERT_TRUE((*writer)->write(event).ok());
+
+  auto reader = Reader<SessionEventMsg>::create(participant);  // joins after the write
+  ASSERT_TRUE(reader.ok());
+  auto got = takeAtLeast(**reader, 1);
+  ASSERT_EQ(got.size(), 1u);
+  EXPECT_EQ(got[0].session_id, "late");
+  EXPECT_EQ(got[0].kind, SessionEventKind::kStarted);
+  EXPECT_DOUBLE_EQ(got[0].baseline, 0.120081);
+}
+
+TEST(Dds, WakeReturnsABlockedTakeAtOnce) {
+  auto participant = makeParticipant();
+  auto reader = Reader<PoseMsg>::create(participant);
+  ASSERT_TRUE(reader.ok());
+  std::vector<PoseMsg> out;
+  const auto start = std::chrono::steady_clock::now();
+  std::thread waker([&] {
+    std::this_thread::sleep_for(100ms);
+    (*reader)->wake();
+  });
+  (*reader)->take(out, 10s);
+  waker.join();
+  EXPECT_LT(std::chrono::steady_clock::now() - start, 5s);
+  EXPECT_TRUE(out.empty());
+}
+
+TEST(Dds, BadConfigFileIsAClearError) {
+  auto participant = Participant::create({.domain_id = kDomain + 1, .config_file = "/nonexistent.xml"});
+  ASSERT_FALSE(participant.ok());
+  EXPECT_NE(participant.error().message.find("/nonexistent.xml"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace stereomap::proto

@@ -1,0 +1,61 @@
+// The C++ side of stereomap's DDS topics (proto/idl/stereomap.idl): plain structs that the
+// rest of the code uses, so that Cyclone's generated C types never leak past proto/.
+// Field meanings and units follow ARCHITECTURE.md.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace stereomap::proto {
+
+// Bounds shared with the IDL (checked again on receipt).
+inline constexpr size_t kMaxIdLength = 64;
+inline constexpr size_t kMaxPayloadBytes = 8u << 20;
+
+enum class TrackingState : uint8_t { kInit, kOk, kDegraded, kLost };
+enum class PoseSource : uint8_t { kGroundTruth, kVisualOdometry, kExternal };
+enum class CloudEncoding : uint8_t { kDraco, kRawF32 };
+enum class SessionEventKind : uint8_t { kStarted, kEnded };
+
+struct PoseMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t seq = 0;
+  int64_t stamp_ns = 0;
+  std::array<double, 3> position{};
+  std::array<double, 4> orientation{0, 0, 0, 1};  // T_map_body, x y z w
+  std::array<double, 3> velocity{};
+  std::array<double, 36> covariance{};
+  TrackingState tracking_state = TrackingState::kInit;
+  PoseSource source = PoseSource::kGroundTruth;
+};
+
+struct CloudFrameMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t seq = 0;
+  int64_t stamp_ns = 0;
+  std::array<double, 3> sensor_position{};            // T_map_camera translation
+  std::array<double, 4> sensor_orientation{0, 0, 0, 1};  // T_map_camera rotation, x y z w
+  float max_range = 0;
+  uint32_t point_count = 0;
+  CloudEncoding encoding = CloudEncoding::kDraco;
+  uint8_t quantization_bits = 0;
+  bool has_intensity = false;
+  std::vector<uint8_t> payload;
+};
+
+struct SessionEventMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  int64_t stamp_ns = 0;
+  SessionEventKind kind = SessionEventKind::kStarted;
+  uint32_t width = 0;
+  uint32_t height = 0;
+  double fx = 0, fy = 0, cx = 0, cy = 0, baseline = 0;
+  double resolution_hint = 0;
+};
+
+}  // namespace stereomap::proto

@@ -1,0 +1,28 @@
+#include "proto/qos.hpp"
+
+namespace stereomap::proto {
+
+namespace {
+dds_qos_t* reliable(int depth) {
+  dds_qos_t* qos = dds_create_qos();
+  dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_SECS(2));
+  dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, depth);
+  return qos;
+}
+}  // namespace
+
+dds_qos_t* sessionEventQos() {
+  dds_qos_t* qos = reliable(4);
+  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
+  return qos;
+}
+
+dds_qos_t* poseQos() { return reliable(10); }
+
+dds_qos_t* cloudQos() {
+  dds_qos_t* qos = reliable(kCloudHistory);
+  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
+  return qos;
+}
+
+}  // namespace stereomap::proto

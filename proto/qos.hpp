@@ -1,0 +1,19 @@
+// QoS presets for stereomap's topics (see ARCHITECTURE.md, "DDS topics"). Internal to proto:
+// the returned dds_qos_t is owned by the caller (dds_delete_qos).
+#pragma once
+
+#include <dds/dds.h>
+
+namespace stereomap::proto {
+
+// Reliable, transient-local: a late-joining server learns the live sessions.
+dds_qos_t* sessionEventQos();
+// Reliable, keep-last 10.
+dds_qos_t* poseQos();
+// Reliable, transient-local, keep-last kCloudHistory: a restarted server catches up on the
+// most recent frames.
+dds_qos_t* cloudQos();
+
+inline constexpr int kCloudHistory = 32;
+
+}  // namespace stereomap::proto
