@@ -1,0 +1,43 @@
+// Renders exact rectified stereo pairs of a Scene: left and right grey images, plus the
+// left camera's true depth (z, metres; 0 where the ray hits nothing). Uses both cores.
+#pragma once
+
+#include <opencv2/core.hpp>
+
+#include "common/geometry.hpp"
+#include "onboard/camera/stereo_camera.hpp"
+#include "onboard/sim/scene.hpp"
+
+namespace stereomap::sim {
+
+struct StereoFrame {
+  cv::Mat left;   // CV_8UC1
+  cv::Mat right;  // CV_8UC1
+  cv::Mat depth;  // CV_32FC1, left camera z in metres, 0 = no surface
+  common::Rigid3 T_map_camera;  // left camera
+};
+
+struct RenderOptions {
+  double max_depth = 40.0;     // metres; farther surfaces are not rendered
+  double noise_sigma = 0.0;    // grey levels of Gaussian image noise (0 = exact images)
+  uint32_t noise_seed = 1;
+};
+
+class Renderer {
+ public:
+  Renderer(const Scene& scene, camera::StereoCamera camera, RenderOptions options = {});
+  StereoFrame render(const common::Rigid3& T_map_camera) const;
+  // Only the left camera's true depth (CV_32FC1), e.g. for ground-truth coverage.
+  cv::Mat renderDepth(const common::Rigid3& T_map_camera) const;
+  const camera::StereoCamera& camera() const { return camera_; }
+
+ private:
+  // Renders one camera: grey image and (if depth != nullptr) its depth.
+  void renderView(const common::Rigid3& T_map_camera, cv::Mat* image, cv::Mat* depth) const;
+
+  const Scene& scene_;
+  camera::StereoCamera camera_;
+  RenderOptions options_;
+};
+
+}  // namespace stereomap::sim

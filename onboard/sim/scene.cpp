@@ -1,0 +1,152 @@
+#include "onboard/sim/scene.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "onboard/sim/flight.hpp"
+
+namespace stereomap::sim {
+
+using common::Vec3;
+
+namespace {
+
+uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+  uint32_t h = seed * 0x9E3779B1u;
+  h ^= static_cast<uint32_t>(x) * 0x85EBCA77u;
+  h = (h << 13) | (h >> 19);
+  h ^= static_cast<uint32_t>(y) * 0xC2B2AE3Du;
+  h = (h << 13) | (h >> 19);
+  h ^= static_cast<uint32_t>(z) * 0x27D4EB2Fu;
+  // murmur3 finaliser
+  h ^= h >> 16;
+  h *= 0x85EBCA6Bu;
+  h ^= h >> 13;
+  h *= 0xC2B2AE35u;
+  h ^= h >> 16;
+  return h;
+}
+
+float lattice(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+  return static_cast<float>(hash3(x, y, z, seed) & 0xFFFFu) * (1.0f / 65535.0f);
+}
+
+// Trilinear value noise in [0, 1] with unit lattice spacing.
+float valueNoise(const Vec3& p, uint32_t seed) {
+  const double fx = std::floor(p.x()), fy = std::floor(p.y()), fz = std::floor(p.z());
+  const auto x = static_cast<int32_t>(fx), y = static_cast<int32_t>(fy),
+             z = static_cast<int32_t>(fz);
+  const float tx = static_cast<float>(p.x() - fx), ty = static_cast<float>(p.y() - fy),
+              tz = static_cast<float>(p.z() - fz);
+  auto lerp = [](float a, float b, float t) { return a + (b - a) * t; };
+  const float c00 = lerp(lattice(x, y, z, seed), lattice(x + 1, y, z, seed), tx);
+  const float c10 = lerp(lattice(x, y + 1, z, seed), lattice(x + 1, y + 1, z, seed), tx);
+  const float c01 = lerp(lattice(x, y, z + 1, seed), lattice(x + 1, y, z + 1, seed), tx);
+  const float c11 = lerp(lattice(x, y + 1, z + 1, seed), lattice(x + 1, y + 1, z + 1, seed), tx);
+  return lerp(lerp(c00, c10, ty), lerp(c01, c11, ty), tz);
+}
+
+// Distance in the xy plane from point (px, py) to the rectangle of `box`.
+double footprintDistance(const SceneBox& box, double px, double py) {
+  const double dx = std::max({box.min.x() - px, 0.0, px - box.max.x()});
+  const double dy = std::max({box.min.y() - py, 0.0, py - box.max.y()});
+  return std::hypot(dx, dy);
+}
+
+}  // namespace
+
+Scene::Scene(std::vector<SceneBox> boxes, uint32_t texture_seed)
+    : boxes_(std::move(boxes)), texture_seed_(texture_seed) {}
+
+Scene Scene::makeRoom(const RoomOptions& options) {
+  const double hx = options.length / 2, hy = options.width / 2, h = options.wall_height;
+  constexpr double kWall = 0.2;
+  std::vector<SceneBox> boxes = {
+      {Vec3(-hx - kWall, -hy - kWall, -kWall), Vec3(hx + kWall, hy + kWall, 0.0), 0.55f},  // floor
+      {Vec3(-hx - kWall, -hy - kWall, 0), Vec3(-hx, hy + kWall, h), 0.75f},  // wall at -x
+      {Vec3(hx, -hy - kWall, 0), Vec3(hx + kWall, hy + kWall, h), 0.7f},     // wall at +x
+      {Vec3(-hx, -hy - kWall, 0), Vec3(hx, -hy, h), 0.8f},                   // wall at -y
+      {Vec3(-hx, hy, 0), Vec3(hx, hy + kWall, h), 0.65f},                    // wall at +y
+  };
+
+  const FlightOptions path;
+  std::mt19937 rng(options.seed);
+  std::uniform_real_distribution<double> ux(-hx + 0.3, hx - 0.3), uy(-hy + 0.3, hy - 0.3);
+  std::uniform_real_distribution<double> side(0.4, 1.2), height(0.5, 2.2), albedo(0.4, 0.9);
+  int placed = 0;
+  for (int attempt = 0; attempt < 2000 && placed < options.obstacles; ++attempt) {
+    const double cx = ux(rng), cy = uy(rng), sx = side(rng) / 2, sy = side(rng) / 2;
+    SceneBox box{Vec3(cx - sx, cy - sy, 0), Vec3(cx + sx, cy + sy, height(rng)),
+                 static_cast<float>(albedo(rng))};
+    if (box.min.x() < -hx + 0.3 || box.max.x() > hx - 0.3 || box.min.y() < -hy + 0.3 ||
+        box.max.y() > hy - 0.3) {
+      continue;
+    }
+    bool clear = true;
+    for (int i = 0; i < 360 && clear; ++i) {
+      const double a = 2 * M_PI * i / 360;
+      clear = footprintDistance(box, path.radius_x * std::cos(a), path.radius_y * std::sin(a)) >=
+              options.path_clearance;
+    }
+    for (size_t j = 5; j < boxes.size() && clear; ++j) {  // keep obstacles apart
+      clear = footprintDistance(boxes[j], cx, cy) > std::max(sx, sy) + 0.3;
+    }
+    if (!clear) continue;
+    boxes.push_back(box);
+    ++placed;
+  }
+  return Scene(std::move(boxes), options.seed);
+}
+
+common::Box3 Scene::bounds() const {
+  common::Box3 bounds;
+  for (const auto& box : boxes_) {
+    bounds.extend(box.min);
+    bounds.extend(box.max);
+  }
+  return bounds;
+}
+
+std::optional<RayHit> Scene::intersect(const Vec3& origin, const Vec3& direction,
+                                       double max_t) const {
+  const Vec3 inv = direction.cwiseInverse();
+  std::optional<RayHit> best;
+  double best_t = max_t;
+  for (size_t i = 0; i < boxes_.size(); ++i) {
+    // Slab test; an origin inside a box sees nothing of that box (t_near < 0).
+    const Vec3 t0 = (boxes_[i].min - origin).cwiseProduct(inv);
+    const Vec3 t1 = (boxes_[i].max - origin).cwiseProduct(inv);
+    const double t_near = t0.cwiseMin(t1).maxCoeff();
+    const double t_far = t0.cwiseMax(t1).minCoeff();
+    if (t_near <= t_far && t_near > 0 && t_near <= best_t) {
+      best_t = t_near;
+      best = RayHit{t_near, static_cast<int>(i)};
+    }
+  }
+  return best;
+}
+
+double Scene::distanceToSurface(const Vec3& p) const {
+  double best = std::numeric_limits<double>::infinity();
+  for (const auto& box : boxes_) {
+    const Vec3 outside = (box.min - p).cwiseMax(p - box.max).cwiseMax(Vec3::Zero());
+    double d = outside.norm();
+    if (d == 0) {  // inside: distance to the nearest face
+      d = std::min((p - box.min).minCoeff(), (box.max - p).minCoeff());
+    }
+    best = std::min(best, d);
+  }
+  return best;
+}
+
+uint8_t Scene::textureAt(const Vec3& p, int box) const {
+  const uint32_t seed = texture_seed_ * 131u + static_cast<uint32_t>(box);
+  // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away.
+  const float fine = valueNoise(p * (1.0 / 0.06), seed);
+  const float coarse = valueNoise(p * (1.0 / 0.25), seed ^ 0x5bd1e995u);
+  const float value = boxes_[box].albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
+  return static_cast<uint8_t>(std::clamp(value * 255.0f, 0.0f, 255.0f));
+}
+
+}  // namespace stereomap::sim
