@@ -30,7 +30,7 @@ TEST(Renderer, DepthOfATiltedPlaneMatchesTheRayIntersection) {
   const camera::StereoCamera camera;
   const Renderer renderer(scene, camera);
   const cv::Mat depth = renderer.renderDepth(Rigid3::identity());
-  for (int v : {300, 400, 479})  // nearer than max_depth {
+  for (int v : {300, 400, 479}) {  // nearer than max_depth
     const double expected = 1.5 * camera.fy / (v - camera.cy);
     EXPECT_NEAR(depth.at<float>(v, 100), expected, 1e-5 * expected) << "row " << v;
   }
