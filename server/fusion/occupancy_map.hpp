@@ -1,0 +1,71 @@
+// One session's occupancy map: an OctoMap octree behind a small interface (OctoMap's API
+// does not leak). Clouds are inserted with their sensor pose; the map answers which voxels
+// are occupied, their bounds, and exports OctoMap's binary .bt format.
+//
+//   OccupancyMap map({.resolution = 0.1});
+//   map.insertCloud(cloud_camera, T_map_camera, /*max_range=*/6.0);
+//   for (VoxelIndex v : map.occupiedVoxels()) ...
+#pragma once
+
+#include <compare>
+#include <cstdint>
+#include <iosfwd>
+#include <memory>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+
+namespace stereomap::fusion {
+
+// A voxel at the map's finest resolution: its centre is ((x + 0.5) * r, (y + 0.5) * r, ...)
+// in the map frame for resolution r.
+struct VoxelIndex {
+  int32_t x = 0, y = 0, z = 0;
+  auto operator<=>(const VoxelIndex&) const = default;
+};
+
+enum class Occupancy { kUnknown, kFree, kOccupied };
+
+class OccupancyMap {
+ public:
+  // Sensor model; the defaults are OctoMap's (hit 0.7, miss 0.4, clamping 0.1192/0.971).
+  struct Options {
+    double resolution = 0.1;  // metres, finest voxel edge
+    double prob_hit = 0.7;
+    double prob_miss = 0.4;
+    double clamp_min = 0.1192;
+    double clamp_max = 0.971;
+    double occupancy_threshold = 0.5;
+  };
+
+  explicit OccupancyMap(const Options& options);
+  ~OccupancyMap();
+  OccupancyMap(const OccupancyMap&) = delete;
+  OccupancyMap& operator=(const OccupancyMap&) = delete;
+
+  // Inserts `cloud_sensor` (points in the sensor frame) seen from T_map_sensor: the voxels
+  // along each ray become more free, the end voxel more occupied; rays longer than
+  // `max_range_m` only clear free space up to that range. Uses OctoMap's insertPointCloud.
+  void insertCloud(const common::PointCloud& cloud_sensor, const common::Rigid3& T_map_sensor,
+                   double max_range_m);
+
+  Occupancy query(const common::Vec3& p_map) const;
+  // Occupied voxels at the finest resolution, sorted (pruned nodes are expanded).
+  std::vector<VoxelIndex> occupiedVoxels() const;
+  size_t occupiedCount() const;
+  // Bounds of the occupied voxels' cells; empty when nothing is occupied.
+  common::Box3 occupiedBounds() const;
+  common::Vec3 voxelCentre(const VoxelIndex& index) const;
+  double resolution() const;
+  // OctoMap binary (.bt, opens in octovis); the live tree is not pruned or modified.
+  bool writeBinary(std::ostream& out) const;
+  // Number of bytes the tree occupies in memory (OctoMap's estimate).
+  size_t memoryBytes() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace stereomap::fusion

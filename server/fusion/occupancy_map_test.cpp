@@ -1,0 +1,80 @@
+#include "server/fusion/occupancy_map.hpp"
+
+#include <gtest/gtest.h>
+#include <octomap/OcTree.h>
+
+#include <sstream>
+
+namespace stereomap::fusion {
+namespace {
+
+using common::Vec3;
+
+// A 2 m x 2 m wall of points at x = 3 (map frame), seen from the origin, 2 cm apart.
+common::PointCloud wall(double x) {
+  common::PointCloud cloud;
+  for (double y = -1; y <= 1; y += 0.02) {
+    for (double z = -1; z <= 1; z += 0.02) cloud.points.emplace_back(x, y, z);
+  }
+  return cloud;
+}
+
+TEST(OccupancyMap, WallIsOccupiedAndTheSpaceBeforeItFree) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
+  EXPECT_EQ(map.query(Vec3(3.05, 0.05, 0.05)), Occupancy::kOccupied);
+  EXPECT_EQ(map.query(Vec3(1.5, 0.05, 0.05)), Occupancy::kFree);
+  EXPECT_EQ(map.query(Vec3(5.0, 0.05, 0.05)), Occupancy::kUnknown);
+
+  const auto voxels = map.occupiedVoxels();
+  EXPECT_EQ(voxels.size(), map.occupiedCount());
+  ASSERT_GT(voxels.size(), 300u);  // 20 x 20 voxels of wall, less edge effects
+  EXPECT_TRUE(std::is_sorted(voxels.begin(), voxels.end()));
+  for (const auto& v : voxels) {
+    EXPECT_EQ(v.x, 30);  // 3.0 <= x < 3.1
+    EXPECT_NEAR(map.voxelCentre(v).x(), 3.05, 1e-9);
+  }
+  const auto bounds = map.occupiedBounds();
+  EXPECT_NEAR(bounds.min.x(), 3.0, 1e-6);
+  EXPECT_NEAR(bounds.max.x(), 3.1, 1e-6);
+}
+
+TEST(OccupancyMap, SensorPoseTransformsTheCloud) {
+  OccupancyMap map({.resolution = 0.1});
+  // Sensor at (0, 0, 1) yawed by 90°: its x axis is the map's y.
+  const common::Rigid3 T_map_sensor{common::Quat(Eigen::AngleAxisd(M_PI / 2, Vec3::UnitZ())),
+                                    Vec3(0, 0, 1)};
+  map.insertCloud(wall(3.05), T_map_sensor, 10.0);
+  EXPECT_EQ(map.query(Vec3(0.05, 3.05, 1.05)), Occupancy::kOccupied);
+  EXPECT_EQ(map.query(Vec3(3.05, 0.05, 1.05)), Occupancy::kUnknown);
+}
+
+TEST(OccupancyMap, RaysBeyondMaxRangeOnlyClearFreeSpace) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(wall(8.05), common::Rigid3::identity(), 5.0);
+  EXPECT_EQ(map.occupiedCount(), 0u);
+  EXPECT_EQ(map.query(Vec3(4.0, 0.05, 0.05)), Occupancy::kFree);
+  EXPECT_TRUE(map.occupiedBounds().empty());
+}
+
+TEST(OccupancyMap, BinaryExportLoadsInOctoMapWithTheSameOccupiedVoxels) {
+  OccupancyMap map({.resolution = 0.05});
+  map.insertCloud(wall(2.0), common::Rigid3::identity(), 10.0);
+  std::stringstream bt;
+  ASSERT_TRUE(map.writeBinary(bt));
+  octomap::OcTree loaded(0.1);
+  ASSERT_TRUE(loaded.readBinary(bt));
+  EXPECT_DOUBLE_EQ(loaded.getResolution(), 0.05);
+  size_t occupied = 0;
+  for (auto it = loaded.begin_leafs(); it != loaded.end_leafs(); ++it) {
+    if (loaded.isNodeOccupied(*it)) {
+      const size_t span = size_t{1} << (16 - it.getDepth());
+      occupied += span * span * span;
+    }
+  }
+  EXPECT_EQ(occupied, map.occupiedCount());
+  EXPECT_EQ(map.occupiedVoxels().size(), map.occupiedCount());  // export did not prune ours
+}
+
+}  // namespace
+}  // namespace stereomap::fusion

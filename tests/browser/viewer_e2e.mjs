@@ -1,0 +1,269 @@
+#!/usr/bin/env node
+// End-to-end test of the browser viewer: a real stereomap-server and stereomap-onboard (sim
+// source) over DDS on loopback, the built viewer in headless Debian chromium. Checks that the
+// page ends up drawing exactly the server's occupied voxels, frame count and trajectory.
+//
+// Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P
+//                       --screenshot FILE [--frames 60]
+// Prints "1 passed, 0 failed" and exits 0, or "0 passed, 1 failed" and exits 1; 2 on bad usage.
+
+import { spawn } from 'node:child_process';
+import { mkdtemp, mkdir, rm } from 'node:fs/promises';
+import { tmpdir } from 'node:os';
+import path from 'node:path';
+import { pathToFileURL } from 'node:url';
+import { parseArgs } from 'node:util';
+
+const kOverallTimeoutMs = 240_000;
+const kHealthTimeoutMs = 20_000;
+const kFirstVoxelsTimeoutMs = 60_000;
+const kServerSettleTimeoutMs = 60_000;
+const kPageCatchUpTimeoutMs = 30_000;
+const kStablePolls = 3; // occupied_voxels unchanged over this many polls = fusion finished
+const kChromiumFlags = ['--headless', '--no-sandbox', '--disable-gpu', '--use-angle=swiftshader',
+  '--enable-unsafe-swiftshader', '--disable-background-networking', '--disable-component-update', '--no-first-run'];
+
+class TestFailure extends Error {}
+
+function usage(message) {
+  console.error(`viewer_e2e: ${message}\nusage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P --screenshot FILE [--frames 60]`);
+  process.exit(2);
+}
+
+function readOptions() {
+  let values;
+  try {
+    ({ values } = parseArgs({
+      options: Object.fromEntries(['bin-dir', 'web-root', 'dds-config', 'domain', 'port', 'screenshot', 'frames']
+        .map((name) => [name, { type: 'string' }])),
+    }));
+  } catch (error) {
+    usage(error.message);
+  }
+  for (const name of ['bin-dir', 'web-root', 'dds-config', 'domain', 'port', 'screenshot']) {
+    if (!values[name]) usage(`--${name} is required`);
+  }
+  const integer = (name, fallback) => {
+    const n = Number(values[name] ?? fallback);
+    if (!Number.isInteger(n) || n < 0) usage(`--${name} must be a non-negative integer, got "${values[name]}"`);
+    return n;
+  };
+  return {
+    binDir: path.resolve(values['bin-dir']),
+    webRoot: path.resolve(values['web-root']),
+    ddsConfig: path.resolve(values['dds-config']),
+    domain: integer('domain'),
+    port: integer('port'),
+    screenshot: path.resolve(values.screenshot),
+    frames: integer('frames', 60),
+  };
+}
+
+// A child process whose output is kept (last lines shown on failure) and whose exit is awaitable.
+function start(name, command, args, env) {
+  const child = spawn(command, args, { env: { ...process.env, ...env }, stdio: ['ignore', 'pipe', 'pipe'] });
+  const proc = { name, child, output: [], exit: null };
+  const keep = (chunk) => {
+    proc.output.push(...chunk.toString().split('\n').filter(Boolean));
+    proc.output.splice(0, Math.max(0, proc.output.length - 40));
+  };
+  child.stdout.on('data', keep);
+  child.stderr.on('data', keep);
+  proc.exited = new Promise((resolve) => {
+    child.on('error', (error) => {
+      proc.exit = { code: null, error: error.message };
+      resolve(proc.exit);
+    });
+    child.on('exit', (code, signal) => {
+      proc.exit = { code, signal };
+      resolve(proc.exit);
+    });
+  });
+  console.log(`started ${name}: ${command} ${args.join(' ')}`);
+  return proc;
+}
+
+// Fails unless `proc` is still running, or (with `mayExit`) has exited with code 0.
+function expectRunningOrSuccess(proc, { mayExit = false } = {}) {
+  if (!proc.exit || (mayExit && proc.exit.code === 0)) return;
+  const { code, signal, error } = proc.exit;
+  const how = error ? `failed to start (${error})` : signal ? `was killed by ${signal}` : `exited with code ${code}`;
+  throw new TestFailure(`expected ${proc.name} to ${mayExit ? 'exit with code 0' : 'keep running'}, but it ${how}`);
+}
+
+async function stop(proc) {
+  if (!proc || proc.exit) return;
+  proc.child.kill('SIGTERM');
+  const killed = setTimeout(() => proc.child.kill('SIGKILL'), 5000);
+  await proc.exited;
+  clearTimeout(killed);
+}
+
+const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
+
+/**
+ * Polls `probe` (returning {ok, seen}) every `intervalMs` until ok; on timeout fails with
+ * "expected <what> within N s; last seen <seen>". `check` runs before each poll and throws to
+ * fail early (a process died, the page reported an error).
+ */
+async function waitUntil(what, timeoutMs, intervalMs, probe, check) {
+  const deadline = Date.now() + timeoutMs;
+  let seen = 'nothing yet';
+  for (;;) {
+    check();
+    const result = await probe();
+    if (result.ok) return result;
+    seen = result.seen;
+    if (Date.now() >= deadline) throw new TestFailure(`expected ${what} within ${timeoutMs / 1000} s; last seen ${seen}`);
+    await sleep(intervalMs);
+  }
+}
+
+function expectEqual(what, expected, seen) {
+  if (expected !== seen) throw new TestFailure(`expected ${what} = ${expected}, seen ${seen}`);
+}
+
+async function loadChromium() {
+  // Relative to this script, so any clone works once `npm ci` has run in web/.
+  const modulePath = new URL('../../web/node_modules/playwright-core/index.mjs', import.meta.url);
+  try {
+    return (await import(modulePath.href)).chromium;
+  } catch (error) {
+    throw new TestFailure(`expected playwright-core at ${modulePath.pathname} (run "npm ci" in web/), but importing it failed: ${error.message}`);
+  }
+}
+
+async function run(options, resources, progress) {
+  const { binDir, webRoot, ddsConfig, domain, port, frames } = options;
+  const ddsEnv = { CYCLONEDDS_URI: pathToFileURL(ddsConfig).href };
+  const base = `http://127.0.0.1:${port}`;
+  const ddsArgs = ['--dds-config', ddsConfig, '--domain', String(domain)];
+
+  progress.step = 'starting the server';
+  resources.store = await mkdtemp(path.join(tmpdir(), 'stereomap-e2e-store-'));
+  const server = start('stereomap-server', path.join(binDir, 'stereomap-server'),
+    ['--http', `127.0.0.1:${port}`, '--store', resources.store, ...ddsArgs, '--web-root', webRoot], ddsEnv);
+  resources.procs.push(server);
+  const serverAlive = () => expectRunningOrSuccess(server);
+  const get = async (urlPath) => {
+    try {
+      const response = await fetch(`${base}${urlPath}`, { signal: AbortSignal.timeout(2000) });
+      return { status: response.status, body: await response.text() };
+    } catch (error) {
+      return { status: null, body: error.cause?.code ?? error.message };
+    }
+  };
+  await waitUntil(`GET /healthz to answer 200`, kHealthTimeoutMs, 200, async () => {
+    const { status, body } = await get('/healthz');
+    return { ok: status === 200, seen: status === null ? `no answer (${body})` : `status ${status}` };
+  }, serverAlive);
+
+  progress.step = 'opening the viewer in chromium';
+  const chromium = await loadChromium();
+  resources.browser = await chromium.launch({ executablePath: '/usr/bin/chromium', args: kChromiumFlags });
+  const page = await resources.browser.newPage({ viewport: { width: 1280, height: 800 } });
+  const pageErrors = [];
+  page.on('pageerror', (error) => pageErrors.push(`uncaught: ${error.message}`));
+  page.on('console', (message) => {
+    if (message.type() === 'error') pageErrors.push(`console.error: ${message.text()}`);
+  });
+  const pageHealthy = () => {
+    serverAlive();
+    if (pageErrors.length) throw new TestFailure(`expected no page errors, seen ${pageErrors.length}:\n  ${pageErrors.join('\n  ')}`);
+  };
+  const response = await page.goto(`${base}/`);
+  expectEqual('GET / status', 200, response?.status());
+  const hook = () => page.evaluate(() => {
+    const s = window.__stereomap;
+    return s ? { connected: s.connected, session: s.session, voxels: s.renderedVoxels(), poses: s.trajectoryLength(), frames: s.frames() } : null;
+  });
+  const shown = (h) => (h ? JSON.stringify(h) : 'no window.__stereomap');
+
+  progress.step = 'running the onboard pipeline';
+  const onboard = start('stereomap-onboard', path.join(binDir, 'stereomap-onboard'),
+    ['--source', 'sim', '--frames', String(frames), '--rate', '10', '--session', 'e2e', '--vehicle', 'sim-1', ...ddsArgs], ddsEnv);
+  resources.procs.push(onboard);
+  const onboardHealthy = () => {
+    pageHealthy();
+    expectRunningOrSuccess(onboard, { mayExit: true });
+  };
+
+  const first = await waitUntil('the page to render voxels (renderedVoxels() > 0)', kFirstVoxelsTimeoutMs, 250, async () => {
+    const h = await hook();
+    return { ok: h !== null && h.voxels > 0, seen: shown(h), h };
+  }, onboardHealthy);
+  const firstPoses = first.h.poses;
+  console.log(`first voxels on the page: ${first.h.voxels} voxels, trajectory ${firstPoses} poses, session ${first.h.session}`);
+
+  progress.step = 'waiting for stereomap-onboard to finish';
+  // At --rate 10 the frames take frames / 10 s; the rest is start-up and DDS discovery.
+  await waitUntil('stereomap-onboard to exit', (frames / 10) * 1000 + 60_000, 250,
+    async () => ({ ok: onboard.exit !== null, seen: 'it still running' }), onboardHealthy);
+
+  progress.step = 'waiting for the server to fuse every frame';
+  let previousVoxels = null;
+  let stable = 0;
+  const settled = await waitUntil(`session "e2e" in GET /api/sessions with frames = ${frames} and occupied_voxels unchanged over ${kStablePolls} polls`,
+    kServerSettleTimeoutMs, 500, async () => {
+      const { status, body } = await get('/api/sessions');
+      if (status !== 200) return { ok: false, seen: `GET /api/sessions status ${status}: ${body.slice(0, 200)}` };
+      let session;
+      try {
+        session = JSON.parse(body).find((s) => s.id === 'e2e');
+      } catch (error) {
+        return { ok: false, seen: `GET /api/sessions body that is not JSON (${error.message}): ${body.slice(0, 200)}` };
+      }
+      if (!session) return { ok: false, seen: `no session "e2e" in ${body.slice(0, 200)}` };
+      stable = session.occupied_voxels === previousVoxels ? stable + 1 : 1;
+      previousVoxels = session.occupied_voxels;
+      return { ok: session.frames === frames && stable >= kStablePolls, seen: `${JSON.stringify(session)} (unchanged over ${stable} polls)`, session };
+    }, pageHealthy);
+  const serverSession = settled.session;
+
+  progress.step = 'waiting for the page to catch up';
+  const last = await waitUntil(`the page to show session "e2e" with renderedVoxels() = ${serverSession.occupied_voxels} and frames() = ${frames}`,
+    kPageCatchUpTimeoutMs, 250, async () => {
+      const h = await hook();
+      return { ok: h !== null && h.session === 'e2e' && h.voxels === serverSession.occupied_voxels && h.frames === frames, seen: shown(h), h };
+    }, pageHealthy);
+  const figures = `server: ${serverSession.occupied_voxels} voxels, ${serverSession.frames} frames, ${serverSession.poses} poses; ` +
+    `page: ${last.h.voxels} voxels, ${last.h.frames} frames, trajectory ${firstPoses} poses at first voxels and ${last.h.poses} at the end`;
+  console.log(figures);
+  if (!(last.h.poses > firstPoses)) throw new TestFailure(`expected the trajectory to grow after the first voxels (> ${firstPoses} poses), seen ${last.h.poses}`);
+  expectEqual('the page trajectoryLength() (the server\'s "poses" for "e2e")', serverSession.poses, last.h.poses);
+  if (!last.h.connected) throw new TestFailure('expected the page to be connected at the end, seen connected = false');
+
+  progress.step = 'saving the screenshot';
+  await page.waitForTimeout(300); // let the status line refresh its age before the picture
+  await mkdir(path.dirname(options.screenshot), { recursive: true });
+  await page.screenshot({ path: options.screenshot });
+  console.log(`screenshot: ${options.screenshot}`);
+  pageHealthy();
+}
+
+async function main() {
+  const options = readOptions();
+  const resources = { procs: [], browser: null, store: null };
+  const progress = { step: 'starting' };
+  let passed = false;
+  let timer;
+  try {
+    const timeout = new Promise((_, reject) => {
+      timer = setTimeout(() => reject(new TestFailure(`expected the test to finish within ${kOverallTimeoutMs / 1000} s; it was still ${progress.step}`)), kOverallTimeoutMs);
+    });
+    await Promise.race([run(options, resources, progress), timeout]);
+    passed = true;
+  } catch (error) {
+    console.error(`FAILED while ${progress.step}: ${error instanceof TestFailure ? error.message : error.stack}`);
+    for (const proc of resources.procs) console.error(`--- ${proc.name}, last output:\n  ${proc.output.join('\n  ') || '(none)'}`);
+  } finally {
+    clearTimeout(timer);
+    await resources.browser?.close().catch((error) => console.error(`closing chromium: ${error.message}`));
+    await Promise.all(resources.procs.reverse().map(stop));
+    if (resources.store) await rm(resources.store, { recursive: true, force: true });
+  }
+  console.log(passed ? '1 passed, 0 failed' : '0 passed, 1 failed');
+  process.exit(passed ? 0 : 1);
+}
+
+main();
