@@ -108,20 +108,25 @@ common::Box3 Scene::bounds() const {
   return bounds;
 }
 
+double Scene::entryDistance(size_t box, const Vec3& origin, const Vec3& inverse_direction) const {
+  // Slab test; an origin inside the box sees nothing of it (returns a negative value).
+  const Vec3 t0 = (boxes_[box].min - origin).cwiseProduct(inverse_direction);
+  const Vec3 t1 = (boxes_[box].max - origin).cwiseProduct(inverse_direction);
+  const double t_near = t0.cwiseMin(t1).maxCoeff();
+  const double t_far = t0.cwiseMax(t1).minCoeff();
+  return t_near <= t_far ? t_near : -1.0;
+}
+
 std::optional<RayHit> Scene::intersect(const Vec3& origin, const Vec3& direction,
                                        double max_t) const {
-  const Vec3 inv = direction.cwiseInverse();
+  const Vec3 inverse = direction.cwiseInverse();
   std::optional<RayHit> best;
   double best_t = max_t;
   for (size_t i = 0; i < boxes_.size(); ++i) {
-    // Slab test; an origin inside a box sees nothing of that box (t_near < 0).
-    const Vec3 t0 = (boxes_[i].min - origin).cwiseProduct(inv);
-    const Vec3 t1 = (boxes_[i].max - origin).cwiseProduct(inv);
-    const double t_near = t0.cwiseMin(t1).maxCoeff();
-    const double t_far = t0.cwiseMax(t1).minCoeff();
-    if (t_near <= t_far && t_near > 0 && t_near <= best_t) {
-      best_t = t_near;
-      best = RayHit{t_near, static_cast<int>(i)};
+    const double t = entryDistance(i, origin, inverse);
+    if (t > 0 && t <= best_t) {
+      best_t = t;
+      best = RayHit{t, static_cast<int>(i)};
     }
   }
   return best;

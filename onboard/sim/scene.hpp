@@ -47,6 +47,10 @@ class Scene {
   // Nearest hit of origin + t * direction with t in (0, max_t]; nullopt when nothing is hit.
   std::optional<RayHit> intersect(const common::Vec3& origin, const common::Vec3& direction,
                                   double max_t) const;
+  // Ray parameter t where origin + t * direction enters box `box` (direction given by its
+  // component-wise inverse); negative when the ray misses it or starts inside.
+  double entryDistance(size_t box, const common::Vec3& origin,
+                       const common::Vec3& inverse_direction) const;
   // Distance from `p` to the nearest box surface (0 on a surface, inside counts as well).
   double distanceToSurface(const common::Vec3& p) const;
   // Grey value (0..255) of the solid texture at a surface point of box `box`.

@@ -1,0 +1,122 @@
+// stereomap-onboard: the vehicle side. Reads stereo frames from a source, computes depth,
+// and streams compressed clouds and poses to stereomap-server over DDS.
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include <ctime>
+#include <filesystem>
+
+#include "common/shutdown.hpp"
+#include "onboard/pipeline/pipeline.hpp"
+#include "onboard/sim/sim_source.hpp"
+
+namespace {
+
+std::string defaultSessionName() {
+  const std::time_t now = std::time(nullptr);
+  char text[32];
+  std::strftime(text, sizeof(text), "sim-%Y%m%d-%H%M%S", std::gmtime(&now));
+  return text;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace stereomap;
+  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
+
+  CLI::App app{"stereomap-onboard: stream a vehicle's stereo depth and pose to the server"};
+  std::string source_spec = "sim";
+  uint64_t frames = 0;
+  double rate_hz = 10.0;
+  pipeline::PipelineOptions options;
+  options.session_id = defaultSessionName();
+  std::string dds_config;
+  uint32_t domain = 0;
+  uint32_t seed = 1;
+  std::string matcher = "bm";
+  double noise_sigma = 0;
+  double wait_s = 3.0;
+  app.add_option("--source", source_spec, "Frame source: sim")->capture_default_str();
+  app.add_option("--frames", frames, "Stop after N frames (0: run until Ctrl-C)")
+      ->capture_default_str();
+  app.add_option("--rate", rate_hz, "Frames per second (0: as fast as possible)")
+      ->check(CLI::Range(0.0, 1000.0))
+      ->capture_default_str();
+  app.add_option("--session", options.session_id, "Session name (letters, digits, . _ -)")
+      ->capture_default_str();
+  app.add_option("--vehicle", options.vehicle_id, "Vehicle id")->capture_default_str();
+  app.add_option("--dds-config", dds_config,
+                 "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232))->capture_default_str();
+  app.add_option("--seed", seed, "Simulated room's seed")->capture_default_str();
+  app.add_option("--matcher", matcher, "Stereo matcher: bm (fast) or sgbm")
+      ->check(CLI::IsMember({"bm", "sgbm"}))
+      ->capture_default_str();
+  app.add_option("--max-range", options.cloud.max_range_m, "Cloud range limit, metres")
+      ->check(CLI::Range(0.5, 100.0))
+      ->capture_default_str();
+  app.add_option("--quantization-bits", options.codec.quantization_bits,
+                 "Draco position quantisation bits")
+      ->check(CLI::Range(6, 20))
+      ->capture_default_str();
+  app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")
+      ->check(CLI::Range(0.0, 50.0))
+      ->capture_default_str();
+  app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
+      ->check(CLI::Range(0.0, 600.0))
+      ->capture_default_str();
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;
+  }
+
+  if (source_spec != "sim") {
+    spdlog::error("--source '{}' is not supported yet; available: sim", source_spec);
+    return 2;
+  }
+  if (options.session_id.empty() || options.session_id.size() > proto::kMaxIdLength ||
+      options.session_id.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
+                                           "0123456789._-") != std::string::npos) {
+    spdlog::error("--session '{}' must be 1-64 letters, digits, '.', '_' or '-'",
+                  options.session_id);
+    return 2;
+  }
+  options.rate_hz = rate_hz;
+  options.matcher.kind =
+      matcher == "sgbm" ? stereo::MatcherKind::kSemiGlobal : stereo::MatcherKind::kBlockMatching;
+  options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
+
+  sim::SimSource source({.seed = seed,
+                         .rate_hz = rate_hz > 0 ? rate_hz : 10.0,
+                         .max_frames = frames,
+                         .render = {.noise_sigma = noise_sigma}});
+
+  if (!dds_config.empty()) dds_config = std::filesystem::absolute(dds_config).string();
+  auto participant = proto::Participant::create({.domain_id = domain, .config_file = dds_config});
+  if (!participant) {
+    spdlog::error("{}", participant.error().message);
+    return 1;
+  }
+  auto publisher = pipeline::VehiclePublisher::create(*participant);
+  if (!publisher) {
+    spdlog::error("{}", publisher.error().message);
+    return 1;
+  }
+
+  spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}", options.vehicle_id,
+               options.session_id, domain, source.describe(), rate_hz,
+               frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"));
+  const auto summary = pipeline::runPipeline(source, publisher->get(), options, shutdown);
+  spdlog::info(
+      "done: {} frames{}, {} points ({:.0f} per frame), {:.1f} KiB per frame, depth {:.1f} ms, "
+      "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors",
+      summary.frames, summary.stopped ? " (stopped)" : "", summary.points,
+      summary.frames ? static_cast<double>(summary.points) / summary.frames : 0.0,
+      summary.frames ? summary.payload_bytes / 1024.0 / summary.frames : 0.0,
+      summary.median_depth_ms, summary.median_encode_ms, summary.median_frame_ms,
+      summary.late_frames, summary.publish_errors);
+  return summary.publish_errors == 0 ? 0 : 1;
+}

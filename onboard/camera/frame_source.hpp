@@ -1,0 +1,35 @@
+// Where stereo frames come from on board: the simulator now, datasets and real cameras later.
+// A source hands out rectified grey pairs in order, with a ground-truth pose when it has one.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include <opencv2/core.hpp>
+
+#include "common/geometry.hpp"
+#include "onboard/camera/stereo_camera.hpp"
+
+namespace stereomap::camera {
+
+struct SourceFrame {
+  uint64_t index = 0;
+  int64_t stamp_ns = 0;
+  cv::Mat left;   // CV_8UC1, rectified
+  cv::Mat right;  // CV_8UC1, rectified
+  std::optional<common::Rigid3> T_map_body;    // ground truth, when the source knows it
+  std::optional<common::Rigid3> T_body_camera; // the left camera's mount on the body
+};
+
+class FrameSource {
+ public:
+  virtual ~FrameSource() = default;
+  virtual const StereoCamera& camera() const = 0;
+  // The next frame, or nullopt at the end of the stream.
+  virtual std::optional<SourceFrame> next() = 0;
+  // One line for logs, e.g. "sim (seed 1, room 12 x 10 m)".
+  virtual std::string describe() const = 0;
+};
+
+}  // namespace stereomap::camera

@@ -1,0 +1,219 @@
+#include "onboard/pipeline/pipeline.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <vector>
+
+#include "common/time.hpp"
+
+namespace stereomap::pipeline {
+
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+template <typename T>
+common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
+    const std::shared_ptr<proto::Participant>& participant) {
+  return proto::Writer<T>::create(participant);
+}
+
+double median(std::vector<double> values) {
+  if (values.empty()) return 0;
+  auto middle = values.begin() + values.size() / 2;
+  std::nth_element(values.begin(), middle, values.end());
+  return *middle;
+}
+
+double msSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+void copyPose(const common::Rigid3& T, std::array<double, 3>& position,
+              std::array<double, 4>& orientation) {
+  const common::Quat q = T.rotation.normalized();
+  position = {T.translation.x(), T.translation.y(), T.translation.z()};
+  orientation = {q.x(), q.y(), q.z(), q.w()};
+}
+
+}  // namespace
+
+common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
+    std::shared_ptr<proto::Participant> participant) {
+  auto publisher = std::unique_ptr<VehiclePublisher>(new VehiclePublisher());
+  auto events = makeWriter<proto::SessionEventMsg>(participant);
+  if (!events) return events.error();
+  auto poses = makeWriter<proto::PoseMsg>(participant);
+  if (!poses) return poses.error();
+  auto clouds = makeWriter<proto::CloudFrameMsg>(participant);
+  if (!clouds) return clouds.error();
+  publisher->events_ = std::move(events).value();
+  publisher->poses_ = std::move(poses).value();
+  publisher->clouds_ = std::move(clouds).value();
+  return publisher;
+}
+
+common::Status VehiclePublisher::publish(const proto::SessionEventMsg& event) {
+  return events_->write(event);
+}
+common::Status VehiclePublisher::publish(const proto::PoseMsg& pose) { return poses_->write(pose); }
+common::Status VehiclePublisher::publish(const proto::CloudFrameMsg& frame) {
+  return clouds_->write(frame);
+}
+bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
+  return clouds_->waitForReaders(1, timeout);
+}
+
+proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
+                           const common::Rigid3& T_map_body, const common::Vec3& velocity) {
+  proto::PoseMsg pose;
+  pose.vehicle_id = options.vehicle_id;
+  pose.session_id = options.session_id;
+  pose.seq = seq;
+  pose.stamp_ns = stamp_ns;
+  copyPose(T_map_body, pose.position, pose.orientation);
+  pose.velocity = {velocity.x(), velocity.y(), velocity.z()};
+  pose.tracking_state = proto::TrackingState::kOk;
+  pose.source = proto::PoseSource::kGroundTruth;
+  return pose;
+}
+
+common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options,
+                                                       uint64_t seq, int64_t stamp_ns,
+                                                       const common::Rigid3& T_map_camera,
+                                                       const common::PointCloud& cloud_camera) {
+  auto payload = proto::encodeCloud(cloud_camera, options.codec);
+  if (!payload) return payload.error();
+  proto::CloudFrameMsg frame;
+  frame.vehicle_id = options.vehicle_id;
+  frame.session_id = options.session_id;
+  frame.seq = seq;
+  frame.stamp_ns = stamp_ns;
+  copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
+  frame.max_range = static_cast<float>(options.cloud.max_range_m);
+  frame.point_count = static_cast<uint32_t>(cloud_camera.size());
+  frame.encoding = proto::CloudEncoding::kDraco;
+  frame.quantization_bits = static_cast<uint8_t>(options.codec.quantization_bits);
+  frame.has_intensity = cloud_camera.hasIntensity();
+  frame.payload = std::move(payload).value();
+  return frame;
+}
+
+proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
+                                        const camera::StereoCamera& camera,
+                                        proto::SessionEventKind kind) {
+  proto::SessionEventMsg event;
+  event.vehicle_id = options.vehicle_id;
+  event.session_id = options.session_id;
+  event.stamp_ns = common::nowNs();
+  event.kind = kind;
+  event.width = static_cast<uint32_t>(camera.width);
+  event.height = static_cast<uint32_t>(camera.height);
+  event.fx = camera.fx;
+  event.fy = camera.fy;
+  event.cx = camera.cx;
+  event.cy = camera.cy;
+  event.baseline = camera.baseline;
+  return event;
+}
+
+PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publisher,
+                            const PipelineOptions& options, const common::Shutdown& shutdown) {
+  PipelineSummary summary;
+  const stereo::StereoMatcher matcher(options.matcher);
+  auto report = [&](const common::Status& status, const char* what) {
+    if (status.ok()) return;
+    ++summary.publish_errors;
+    spdlog::warn("could not publish {}: {}", what, status.error().message);
+  };
+
+  if (publisher != nullptr) {
+    if (!publisher->waitForServer(options.wait_for_server)) {
+      spdlog::warn("no server has subscribed after {} ms; publishing anyway (the last frames "
+                   "stay available to a server that joins later)",
+                   options.wait_for_server.count());
+    }
+    report(publisher->publish(makeSessionEvent(options, source.camera(),
+                                               proto::SessionEventKind::kStarted)),
+           "SessionEvent");
+  }
+
+  std::vector<double> depth_ms, encode_ms, frame_ms;
+  std::optional<common::Rigid3> previous_pose;
+  int64_t previous_stamp = 0;
+  const auto start = Clock::now();
+  const auto period = options.rate_hz > 0
+                          ? std::chrono::duration_cast<Clock::duration>(
+                                std::chrono::duration<double>(1.0 / options.rate_hz))
+                          : Clock::duration::zero();
+  for (uint64_t i = 0;; ++i) {
+    const auto slot = start + period * static_cast<long>(i);
+    if (shutdown.waitFor(slot - Clock::now())) {
+      summary.stopped = true;
+      break;
+    }
+    if (Clock::now() - slot > period && period > Clock::duration::zero()) ++summary.late_frames;
+
+    const auto frame_start = Clock::now();
+    auto frame = source.next();
+    if (!frame) break;
+    if (!frame->T_map_body || !frame->T_body_camera) {
+      spdlog::warn("frame {} has no pose; skipped (visual odometry is not built yet)",
+                   frame->index);
+      continue;
+    }
+    const auto depth_start = Clock::now();
+    const cv::Mat disparity = matcher.compute(frame->left, frame->right);
+    const auto cloud = stereo::cloudFromDisparity(disparity, frame->left, source.camera(),
+                                                  options.cloud);
+    depth_ms.push_back(msSince(depth_start));
+
+    const common::Rigid3 T_map_body = *frame->T_map_body;
+    common::Vec3 velocity = common::Vec3::Zero();
+    if (previous_pose && frame->stamp_ns > previous_stamp) {
+      velocity = (T_map_body.translation - previous_pose->translation) /
+                 common::nsToSeconds(frame->stamp_ns - previous_stamp);
+    }
+    previous_pose = T_map_body;
+    previous_stamp = frame->stamp_ns;
+
+    const auto encode_start = Clock::now();
+    auto cloud_msg = makeCloudFrameMsg(options, summary.frames, frame->stamp_ns,
+                                       T_map_body * *frame->T_body_camera, cloud);
+    encode_ms.push_back(msSince(encode_start));
+    if (!cloud_msg) {
+      spdlog::error("frame {}: cannot encode the cloud: {}", frame->index,
+                    cloud_msg.error().message);
+      continue;
+    }
+    if (publisher != nullptr) {
+      report(publisher->publish(
+                 makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body, velocity)),
+             "Pose");
+      report(publisher->publish(*cloud_msg), "CloudFrame");
+    }
+    ++summary.frames;
+    summary.points += cloud.size();
+    summary.payload_bytes += cloud_msg->payload.size();
+    frame_ms.push_back(msSince(frame_start));
+
+    if (options.progress_every != 0 && summary.frames % options.progress_every == 0) {
+      spdlog::info("frame {}: {} points, {:.1f} KiB, depth {:.1f} ms, encode {:.1f} ms",
+                   summary.frames, cloud.size(), cloud_msg->payload.size() / 1024.0,
+                   depth_ms.back(), encode_ms.back());
+    }
+  }
+
+  if (publisher != nullptr) {
+    report(publisher->publish(makeSessionEvent(options, source.camera(),
+                                               proto::SessionEventKind::kEnded)),
+           "SessionEvent");
+  }
+  summary.median_depth_ms = median(depth_ms);
+  summary.median_encode_ms = median(encode_ms);
+  summary.median_frame_ms = median(frame_ms);
+  return summary;
+}
+
+}  // namespace stereomap::pipeline

@@ -1,0 +1,64 @@
+#include "onboard/pipeline/pipeline.hpp"
+
+#include <gtest/gtest.h>
+
+#include "onboard/sim/sim_source.hpp"
+
+namespace stereomap::pipeline {
+namespace {
+
+using namespace std::chrono_literals;
+
+TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
+  sim::SimSource source({.seed = 3, .max_frames = 1});
+  auto frame = source.next();
+  ASSERT_TRUE(frame.has_value());
+  const PipelineOptions options{.vehicle_id = "uav", .session_id = "s1"};
+  const stereo::StereoMatcher matcher;
+  const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
+                                                frame->left, source.camera(), options.cloud);
+  ASSERT_GT(cloud.size(), 5000u);
+  const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
+  auto msg = makeCloudFrameMsg(options, 4, frame->stamp_ns, T_map_camera, cloud);
+  ASSERT_TRUE(msg.ok());
+  EXPECT_EQ(msg->point_count, cloud.size());
+  EXPECT_EQ(msg->seq, 4u);
+  EXPECT_TRUE(msg->has_intensity);
+  EXPECT_FLOAT_EQ(msg->max_range, 6.0f);
+  const common::Quat q(msg->sensor_orientation[3], msg->sensor_orientation[0],
+                       msg->sensor_orientation[1], msg->sensor_orientation[2]);
+  EXPECT_NEAR(q.angularDistance(T_map_camera.rotation), 0.0, 1e-9);
+  auto decoded = proto::decodeCloud(msg->payload);
+  ASSERT_TRUE(decoded.ok());
+  EXPECT_EQ(decoded->size(), cloud.size());
+  // About 4 bytes per point at 14 bits (Draco kd-tree): the link budget of a vehicle.
+  EXPECT_LT(static_cast<double>(msg->payload.size()) / cloud.size(), 6.0);
+}
+
+TEST(Pipeline, RunsASourceToTheEndWithoutPublishing) {
+  sim::SimSource source({.seed = 1, .max_frames = 3});
+  common::Shutdown shutdown;
+  const auto summary =
+      runPipeline(source, nullptr, {.rate_hz = 0, .progress_every = 0}, shutdown);
+  EXPECT_EQ(summary.frames, 3u);
+  EXPECT_GT(summary.points, 15000u);
+  EXPECT_FALSE(summary.stopped);
+  EXPECT_EQ(summary.publish_errors, 0u);
+}
+
+TEST(Pipeline, StopRequestEndsAPacedRun) {
+  sim::SimSource source({.seed = 1});
+  common::Shutdown shutdown;
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(300ms);
+    shutdown.requestStop();
+  });
+  const auto summary = runPipeline(source, nullptr, {.rate_hz = 5, .progress_every = 0}, shutdown);
+  stopper.join();
+  EXPECT_TRUE(summary.stopped);
+  EXPECT_GE(summary.frames, 1u);
+  EXPECT_LE(summary.frames, 3u);
+}
+
+}  // namespace
+}  // namespace stereomap::pipeline

@@ -1,0 +1,42 @@
+#include "onboard/sim/sim_source.hpp"
+
+#include <cmath>
+#include <sstream>
+
+#include "common/time.hpp"
+
+namespace stereomap::sim {
+
+SimSource::SimSource(const SimSourceOptions& options)
+    : options_(options),
+      scene_(Scene::makeRoom({.seed = options.seed})),
+      flight_(options.flight),
+      renderer_(scene_, camera_, options.render) {
+  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
+}
+
+std::optional<camera::SourceFrame> SimSource::next() {
+  if (options_.max_frames != 0 && index_ >= options_.max_frames) return std::nullopt;
+  const double t_s = static_cast<double>(index_) / options_.rate_hz;
+  camera::SourceFrame frame;
+  frame.index = index_++;
+  frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t_s * 1e9));
+  frame.T_map_body = flight_.T_map_body(t_s);
+  frame.T_body_camera = flight_.T_body_camera();
+  StereoFrame rendered = renderer_.render(*frame.T_map_body * *frame.T_body_camera);
+  frame.left = std::move(rendered.left);
+  frame.right = std::move(rendered.right);
+  return frame;
+}
+
+std::string SimSource::describe() const {
+  std::ostringstream out;
+  const auto bounds = scene_.bounds();
+  out << "sim (seed " << options_.seed << ", " << scene_.boxes().size() << " boxes in "
+      << bounds.max.x() - bounds.min.x() << " x " << bounds.max.y() - bounds.min.y()
+      << " m, loop of " << flight_.options().period_s << " s, " << camera_.width << "x"
+      << camera_.height << ")";
+  return out.str();
+}
+
+}  // namespace stereomap::sim

@@ -1,0 +1,40 @@
+// The simulated vehicle as a FrameSource: renders the scripted flight through a seeded room
+// at a fixed frame rate, with ground-truth poses.
+#pragma once
+
+#include "onboard/camera/frame_source.hpp"
+#include "onboard/sim/flight.hpp"
+#include "onboard/sim/renderer.hpp"
+#include "onboard/sim/scene.hpp"
+
+namespace stereomap::sim {
+
+struct SimSourceOptions {
+  uint32_t seed = 1;
+  double rate_hz = 10.0;  // simulated time between frames is 1 / rate_hz
+  uint64_t max_frames = 0;  // 0: unlimited (the flight loops)
+  int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = now
+  RenderOptions render;
+  FlightOptions flight;
+};
+
+class SimSource : public camera::FrameSource {
+ public:
+  explicit SimSource(const SimSourceOptions& options);
+  const camera::StereoCamera& camera() const override { return camera_; }
+  std::optional<camera::SourceFrame> next() override;
+  std::string describe() const override;
+
+  const Scene& scene() const { return scene_; }
+  const Flight& flight() const { return flight_; }
+
+ private:
+  SimSourceOptions options_;
+  camera::StereoCamera camera_;
+  Scene scene_;
+  Flight flight_;
+  Renderer renderer_;
+  uint64_t index_ = 0;
+};
+
+}  // namespace stereomap::sim
