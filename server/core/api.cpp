@@ -1,0 +1,112 @@
+#include "server/core/api.hpp"
+
+#include <nlohmann/json.hpp>
+
+namespace stereomap::core {
+
+namespace {
+
+using nlohmann::json;
+
+HttpAnswer error(int status, const std::string& message) {
+  return {status, "application/json", json{{"error", message}}.dump() + "\n", ""};
+}
+
+json boundsJson(const common::Box3& bounds) {
+  if (bounds.empty()) return nullptr;
+  return {{"min", {bounds.min.x(), bounds.min.y(), bounds.min.z()}},
+          {"max", {bounds.max.x(), bounds.max.y(), bounds.max.z()}}};
+}
+
+json statusJson(const SessionStatus& s) {
+  return {{"id", s.id},
+          {"vehicle", s.vehicles.empty() ? "" : s.vehicles.front()},
+          {"vehicles", s.vehicles},
+          {"state", s.ended ? "ended" : "live"},
+          {"resolution", s.resolution},
+          {"frames", s.frames_fused},
+          {"frames_received", s.frames_received},
+          {"dropped_frames", s.frames_dropped},
+          {"fusion_backlog", s.backlog},
+          {"occupied_voxels", s.occupied_voxels},
+          {"poses", s.poses},
+          {"bounds", boundsJson(s.bounds)}};
+}
+
+// Splits "/api/sessions/x/y?q" into path segments (query dropped).
+std::vector<std::string> segments(std::string_view target) {
+  target = target.substr(0, target.find('?'));
+  std::vector<std::string> parts;
+  size_t start = 1;
+  while (start <= target.size()) {
+    const size_t end = std::min(target.find('/', start), target.size());
+    if (end > start) parts.emplace_back(target.substr(start, end - start));
+    start = end + 1;
+  }
+  return parts;
+}
+
+std::string queryValue(std::string_view target, std::string_view key) {
+  const size_t question = target.find('?');
+  if (question == std::string_view::npos) return "";
+  std::string_view query = target.substr(question + 1);
+  while (!query.empty()) {
+    const size_t amp = query.find('&');
+    const std::string_view pair = query.substr(0, amp);
+    if (pair.substr(0, key.size()) == key && pair.size() > key.size() && pair[key.size()] == '=') {
+      return std::string(pair.substr(key.size() + 1));
+    }
+    if (amp == std::string_view::npos) break;
+    query = query.substr(amp + 1);
+  }
+  return "";
+}
+
+}  // namespace
+
+std::string sessionJson(const SessionStatus& status) { return statusJson(status).dump(); }
+
+std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
+                                    std::string_view target) {
+  const auto parts = segments(target);
+  if (parts.empty()) return std::nullopt;
+  const bool is_api = parts[0] == "api" || (parts.size() == 1 && (parts[0] == "healthz" ||
+                                                                   parts[0] == "metrics"));
+  if (!is_api) return std::nullopt;
+  if (method != "GET" && method != "HEAD") return error(405, "only GET is supported here");
+
+  if (parts[0] == "healthz") return HttpAnswer{200, "text/plain", "ok\n", ""};
+  if (parts[0] == "metrics") {
+    return HttpAnswer{200, "text/plain; version=0.0.4", server.metricsText(), ""};
+  }
+  if (parts.size() < 2 || parts[1] != "sessions") {
+    return error(404, "unknown API path '" + std::string(target) + "'");
+  }
+  if (parts.size() == 2) {
+    json list = json::array();
+    for (const auto& session : server.sessions()) list.push_back(statusJson(session->status()));
+    return HttpAnswer{200, "application/json", list.dump() + "\n", ""};
+  }
+  const auto session = server.find(parts[2]);
+  if (!session) return error(404, "no session '" + parts[2] + "'");
+  if (parts.size() == 3) {
+    return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
+  }
+  if (parts.size() == 4 && parts[3] == "trajectory.tum") {
+    const std::string vehicle = queryValue(target, "vehicle");
+    auto vehicles = session->status().vehicles;
+    if (!vehicle.empty() && std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
+      return error(404, "session '" + parts[2] + "' has no vehicle '" + vehicle + "'");
+    }
+    // One vehicle per file: the given one, else the session's first.
+    const std::string chosen = !vehicle.empty() ? vehicle : vehicles.empty() ? "" : vehicles[0];
+    return HttpAnswer{200, "text/plain", session->trajectoryTum(chosen),
+                      parts[2] + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
+  }
+  if (parts.size() == 4 && parts[3] == "map.bt") {
+    return HttpAnswer{200, "application/octet-stream", session->mapBinary(), parts[2] + ".bt"};
+  }
+  return error(404, "unknown session resource '" + std::string(target) + "'");
+}
+
+}  // namespace stereomap::core

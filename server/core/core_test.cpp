@@ -1,0 +1,185 @@
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <set>
+
+#include "proto/cloud_codec.hpp"
+#include "server/core/api.hpp"
+#include "server/core/map_server.hpp"
+#include "server/core/viewer_feed.hpp"
+
+namespace stereomap::core {
+namespace {
+
+using nlohmann::json;
+
+common::PointCloud wallCloud(double x) {
+  common::PointCloud cloud;
+  for (double y = -0.5; y <= 0.5; y += 0.03) {
+    for (double z = -0.5; z <= 0.5; z += 0.03) cloud.points.emplace_back(x, y, z);
+  }
+  return cloud;
+}
+
+proto::CloudFrameMsg cloudFrame(const std::string& session, double wall_x, uint64_t seq = 0) {
+  const auto cloud = wallCloud(wall_x);
+  proto::CloudFrameMsg frame;
+  frame.vehicle_id = "v1";
+  frame.session_id = session;
+  frame.seq = seq;
+  frame.max_range = 10;
+  frame.point_count = static_cast<uint32_t>(cloud.size());
+  frame.payload = proto::encodeCloud(cloud).value();
+  return frame;
+}
+
+proto::PoseMsg pose(const std::string& session, double x, int64_t stamp_ns) {
+  proto::PoseMsg msg;
+  msg.vehicle_id = "v1";
+  msg.session_id = session;
+  msg.stamp_ns = stamp_ns;
+  msg.position = {x, 0, 0};
+  return msg;
+}
+
+TEST(Validate, RejectsEachKindOfBadSampleWithItsReason) {
+  const IngestLimits limits{.max_payload_bytes = 1000};
+  ValidCloud cloud;
+  auto frame = cloudFrame("s", 3.0);
+  frame.payload.resize(frame.payload.size() / 2);  // truncated Draco
+  EXPECT_EQ(validateCloudFrame(frame, {}, cloud)->reason, "decode_failed");
+  frame = cloudFrame("s", 3.0);
+  EXPECT_EQ(validateCloudFrame(frame, limits, cloud)->reason, "oversize");
+  frame.sensor_position[1] = std::nan("");
+  EXPECT_EQ(validateCloudFrame(frame, {}, cloud)->reason, "non_finite");
+  frame = cloudFrame("s", 3.0);
+  frame.sensor_orientation = {0, 0, 0, 2};
+  EXPECT_EQ(validateCloudFrame(frame, {}, cloud)->reason, "bad_quaternion");
+  frame = cloudFrame("s", 3.0);
+  frame.point_count += 1;
+  EXPECT_EQ(validateCloudFrame(frame, {}, cloud)->reason, "point_count_mismatch");
+  frame = cloudFrame("../etc", 3.0);
+  EXPECT_EQ(validateCloudFrame(frame, {}, cloud)->reason, "bad_id");
+  frame = cloudFrame("s", 3.0);
+  EXPECT_FALSE(validateCloudFrame(frame, {}, cloud).has_value());
+  EXPECT_EQ(cloud.cloud_camera.size(), frame.point_count);
+
+  ValidPose valid_pose;
+  auto bad_pose = pose("s", 1.0, 5);
+  bad_pose.position[2] = std::numeric_limits<double>::infinity();
+  EXPECT_EQ(validatePose(bad_pose, valid_pose)->reason, "non_finite");
+  bad_pose = pose("s", 1.0, 5);
+  bad_pose.orientation = {std::nan(""), 0, 0, 1};
+  EXPECT_EQ(validatePose(bad_pose, valid_pose)->reason, "non_finite");
+  EXPECT_FALSE(validatePose(pose("s", 1.0, 5), valid_pose).has_value());
+}
+
+TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
+  MapServer server({.resolution = 0.1});
+  EXPECT_TRUE(server.ingest(cloudFrame("a", 2.05)));
+  auto bad = cloudFrame("a", 2.05);
+  bad.payload.resize(10);
+  EXPECT_FALSE(server.ingest(bad));
+  EXPECT_TRUE(server.ingest(pose("a", 0.5, 1'000'000'000)));
+  auto session = server.find("a");
+  ASSERT_TRUE(session);
+  session->waitUntilIdle();
+  const auto status = session->status();
+  EXPECT_EQ(status.frames_fused, 1u);
+  EXPECT_GT(status.occupied_voxels, 50u);
+  EXPECT_EQ(status.poses, 1u);
+  EXPECT_EQ(server.metrics().get("stereomap_samples_rejected_total",
+                                 {{"topic", "CloudFrame"}, {"reason", "decode_failed"}}),
+            1.0);
+  EXPECT_NE(server.metricsText().find("stereomap_session_occupied_voxels{session=\"a\"}"),
+            std::string::npos);
+}
+
+TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
+  MapServer server({.resolution = 0.1});
+  ASSERT_TRUE(server.ingest(cloudFrame("flight-1", 2.05)));
+  ASSERT_TRUE(server.ingest(pose("flight-1", 0.5, 1'700'000'000'250'000'000)));
+  server.find("flight-1")->waitUntilIdle();
+
+  auto list = answerApi(server, "GET", "/api/sessions");
+  ASSERT_TRUE(list && list->status == 200);
+  const auto sessions = json::parse(list->body);
+  ASSERT_EQ(sessions.size(), 1u);
+  EXPECT_EQ(sessions[0]["id"], "flight-1");
+  EXPECT_EQ(sessions[0]["vehicle"], "v1");
+  EXPECT_EQ(sessions[0]["frames"], 1);
+  EXPECT_GT(sessions[0]["occupied_voxels"].get<int>(), 50);
+  EXPECT_NEAR(sessions[0]["bounds"]["min"][0].get<double>(), 2.0, 1e-9);
+
+  auto tum = answerApi(server, "GET", "/api/sessions/flight-1/trajectory.tum");
+  ASSERT_TRUE(tum && tum->status == 200);
+  EXPECT_EQ(tum->body, "1700000000.250000000 0.500000 0.000000 0.000000 0.000000000 "
+                       "0.000000000 0.000000000 1.000000000\n");
+  auto bt = answerApi(server, "GET", "/api/sessions/flight-1/map.bt");
+  ASSERT_TRUE(bt && bt->status == 200);
+  EXPECT_EQ(bt->body.rfind("# Octomap OcTree binary file", 0), 0u);
+
+  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/nope/map.bt")->status, 404);
+  EXPECT_EQ(answerApi(server, "POST", "/api/sessions")->status, 405);
+  EXPECT_EQ(answerApi(server, "GET", "/api/other")->status, 404);
+  EXPECT_EQ(answerApi(server, "GET", "/healthz")->body, "ok\n");
+  EXPECT_FALSE(answerApi(server, "GET", "/index.html").has_value());
+}
+
+// Applying the feed's messages in order must reproduce the server's voxel set exactly.
+TEST(ViewerFeed, DiffsReproduceTheOccupiedSetForOldAndNewViewers) {
+  MapServer server({.resolution = 0.1});
+  ViewerFeed feed(server);
+  std::set<std::tuple<int, int, int>> early_viewer;
+  auto apply = [](std::set<std::tuple<int, int, int>>& viewer, const std::string& text) {
+    const auto message = json::parse(text);
+    if (message["type"] != "voxels") return;
+    if (message["reset"].get<bool>()) viewer.clear();
+    const auto add = message["add"].get<std::vector<int>>();
+    for (size_t i = 0; i < add.size(); i += 3) viewer.insert({add[i], add[i + 1], add[i + 2]});
+    const auto remove = message["remove"].get<std::vector<int>>();
+    for (size_t i = 0; i < remove.size(); i += 3) {
+      viewer.erase({remove[i], remove[i + 1], remove[i + 2]});
+    }
+  };
+  for (const auto& m : feed.welcome()) apply(early_viewer, m);
+  for (int frame = 0; frame < 4; ++frame) {
+    ASSERT_TRUE(server.ingest(cloudFrame("s", 2.05 + 0.3 * frame, frame)));
+    ASSERT_TRUE(server.ingest(pose("s", 0.1 * frame, 1000 + frame)));
+    server.find("s")->waitUntilIdle();
+    for (const auto& m : feed.poll()) apply(early_viewer, m);
+  }
+  std::set<std::tuple<int, int, int>> late_viewer;
+  for (const auto& m : feed.welcome()) apply(late_viewer, m);
+
+  std::set<std::tuple<int, int, int>> truth;
+  for (const auto& v : server.find("s")->voxels()->voxels) truth.insert({v.x, v.y, v.z});
+  EXPECT_GT(truth.size(), 200u);
+  EXPECT_EQ(early_viewer, truth);
+  EXPECT_EQ(late_viewer, truth);
+
+  size_t poses = 0;
+  for (const auto& m : feed.welcome()) {
+    const auto message = json::parse(m);
+    if (message["type"] == "poses") poses += message["poses"].size();
+  }
+  EXPECT_EQ(poses, 4u);
+}
+
+TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
+  Session session("q", {.resolution = 0.1, .queue_capacity = 1});
+  size_t accepted = 0;
+  for (int i = 0; i < 20; ++i) {
+    FusionJob job{"v", static_cast<uint64_t>(i), wallCloud(3.0), common::Rigid3::identity(), 10};
+    accepted += session.enqueue(std::move(job));
+  }
+  session.waitUntilIdle();
+  const auto status = session.status();
+  EXPECT_EQ(status.frames_received, 20u);
+  EXPECT_EQ(status.frames_dropped + status.frames_fused, 20u);
+  EXPECT_EQ(status.frames_fused, accepted);
+  EXPECT_GT(status.frames_dropped, 0u);
+}
+
+}  // namespace
+}  // namespace stereomap::core

@@ -1,0 +1,146 @@
+#include "server/core/map_server.hpp"
+
+#include <spdlog/spdlog.h>
+
+namespace stereomap::core {
+
+namespace {
+constexpr const char* kReceived = "stereomap_samples_received_total";
+constexpr const char* kAccepted = "stereomap_samples_accepted_total";
+constexpr const char* kRejected = "stereomap_samples_rejected_total";
+constexpr const char* kDropped = "stereomap_fusion_dropped_frames_total";
+}  // namespace
+
+MapServer::MapServer(const MapServerOptions& options) : options_(options) {
+  metrics_.describe(kReceived, "counter", "DDS samples received, by topic");
+  metrics_.describe(kAccepted, "counter", "DDS samples that passed validation, by topic");
+  metrics_.describe(kRejected, "counter", "DDS samples rejected, by topic and reason");
+  metrics_.describe(kDropped, "counter", "Frames dropped because fusion fell behind");
+  metrics_.describe("stereomap_sessions", "gauge", "Sessions known to this server");
+  metrics_.describe("stereomap_session_frames_fused", "gauge", "Frames fused, by session");
+  metrics_.describe("stereomap_session_occupied_voxels", "gauge", "Occupied voxels, by session");
+  metrics_.describe("stereomap_session_fusion_backlog", "gauge",
+                    "Frames waiting for fusion, by session");
+  metrics_.describe("stereomap_session_fusion_seconds", "gauge",
+                    "Total seconds spent fusing clouds, by session");
+}
+
+void MapServer::reject(const char* topic, const Rejection& rejection, const std::string& from) {
+  metrics_.add(kRejected, {{"topic", topic}, {"reason", rejection.reason}});
+  uint64_t count;
+  {
+    std::lock_guard lock(mutex_);
+    count = ++rejections_by_reason_[std::string(topic) + "/" + rejection.reason];
+  }
+  // The first few of each kind in full, then one in a thousand, so a flood cannot fill logs.
+  if (count <= 5 || count % 1000 == 0) {
+    spdlog::warn("rejected {} sample from {}: {} ({}; {} of this kind so far)", topic, from,
+                 rejection.detail, rejection.reason, count);
+  }
+}
+
+std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char* topic) {
+  std::lock_guard lock(mutex_);
+  if (auto found = sessions_.find(id); found != sessions_.end()) return found->second;
+  if (sessions_.size() >= options_.max_sessions) {
+    spdlog::warn("{} sample for new session '{}' refused: {} sessions is the limit", topic, id,
+                 options_.max_sessions);
+    return nullptr;
+  }
+  auto session = std::make_shared<Session>(
+      id, Session::Options{options_.resolution, options_.queue_capacity});
+  sessions_.emplace(id, session);
+  order_.push_back(id);
+  spdlog::info("session '{}' started (resolution {} m)", id, options_.resolution);
+  return session;
+}
+
+bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
+  metrics_.add(kReceived, {{"topic", "CloudFrame"}});
+  ValidCloud valid;
+  if (auto rejection = validateCloudFrame(frame, options_.limits, valid)) {
+    reject("CloudFrame", *rejection, frame.vehicle_id + "/" + frame.session_id);
+    return false;
+  }
+  auto session = sessionFor(frame.session_id, "CloudFrame");
+  if (!session) {
+    reject("CloudFrame", {"session_limit", "too many sessions"}, frame.session_id);
+    return false;
+  }
+  metrics_.add(kAccepted, {{"topic", "CloudFrame"}});
+  const bool queued = session->enqueue({frame.vehicle_id, frame.seq, std::move(valid.cloud_camera),
+                                        valid.T_map_camera, valid.max_range_m});
+  if (!queued) {
+    metrics_.add(kDropped, {{"session", frame.session_id}});
+    spdlog::warn("session '{}': fusion is behind ({} frames queued); frame {} dropped",
+                 frame.session_id, options_.queue_capacity, frame.seq);
+  }
+  return true;
+}
+
+bool MapServer::ingest(const proto::PoseMsg& pose) {
+  metrics_.add(kReceived, {{"topic", "Pose"}});
+  ValidPose valid;
+  if (auto rejection = validatePose(pose, valid)) {
+    reject("Pose", *rejection, pose.vehicle_id + "/" + pose.session_id);
+    return false;
+  }
+  auto session = sessionFor(pose.session_id, "Pose");
+  if (!session) {
+    reject("Pose", {"session_limit", "too many sessions"}, pose.session_id);
+    return false;
+  }
+  metrics_.add(kAccepted, {{"topic", "Pose"}});
+  session->addPose({pose.vehicle_id, valid.stamp_ns, valid.T_map_body});
+  return true;
+}
+
+bool MapServer::ingest(const proto::SessionEventMsg& event) {
+  metrics_.add(kReceived, {{"topic", "SessionEvent"}});
+  if (auto rejection = validateSessionEvent(event)) {
+    reject("SessionEvent", *rejection, event.vehicle_id + "/" + event.session_id);
+    return false;
+  }
+  auto session = sessionFor(event.session_id, "SessionEvent");
+  if (!session) {
+    reject("SessionEvent", {"session_limit", "too many sessions"}, event.session_id);
+    return false;
+  }
+  metrics_.add(kAccepted, {{"topic", "SessionEvent"}});
+  if (event.kind == proto::SessionEventKind::kEnded) {
+    session->markEnded();
+    spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id,
+                 event.vehicle_id);
+  }
+  return true;
+}
+
+std::vector<std::shared_ptr<Session>> MapServer::sessions() const {
+  std::lock_guard lock(mutex_);
+  std::vector<std::shared_ptr<Session>> list;
+  for (const auto& id : order_) list.push_back(sessions_.at(id));
+  return list;
+}
+
+std::shared_ptr<Session> MapServer::find(const std::string& id) const {
+  std::lock_guard lock(mutex_);
+  const auto found = sessions_.find(id);
+  return found == sessions_.end() ? nullptr : found->second;
+}
+
+std::string MapServer::metricsText() const {
+  const auto all = sessions();
+  metrics_.set("stereomap_sessions", {}, static_cast<double>(all.size()));
+  for (const auto& session : all) {
+    const auto status = session->status();
+    const Labels labels{{"session", status.id}};
+    metrics_.set("stereomap_session_frames_fused", labels, static_cast<double>(status.frames_fused));
+    metrics_.set("stereomap_session_occupied_voxels", labels,
+                 static_cast<double>(status.occupied_voxels));
+    metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));
+    metrics_.set("stereomap_session_fusion_seconds", labels, status.fusion_seconds);
+  }
+  return metrics_.render();
+}
+
+}  // namespace stereomap::core

@@ -1,0 +1,58 @@
+#include "server/core/metrics.hpp"
+
+#include <sstream>
+
+namespace stereomap::core {
+
+std::string Metrics::labelText(const Labels& labels) {
+  if (labels.empty()) return "";
+  std::string text = "{";
+  for (size_t i = 0; i < labels.size(); ++i) {
+    if (i > 0) text += ",";
+    text += labels[i].first + "=\"";
+    for (char c : labels[i].second) {  // escape per the exposition format
+      if (c == '\\' || c == '"') text += '\\';
+      text += c == '\n' ? 'n' : c;
+    }
+    text += "\"";
+  }
+  return text + "}";
+}
+
+void Metrics::describe(const std::string& name, const std::string& type, const std::string& help) {
+  std::lock_guard lock(mutex_);
+  auto& family = families_[name];
+  family.type = type;
+  family.help = help;
+}
+
+void Metrics::add(const std::string& name, const Labels& labels, double value) {
+  std::lock_guard lock(mutex_);
+  families_[name].series[labelText(labels)] += value;
+}
+
+void Metrics::set(const std::string& name, const Labels& labels, double value) {
+  std::lock_guard lock(mutex_);
+  families_[name].series[labelText(labels)] = value;
+}
+
+double Metrics::get(const std::string& name, const Labels& labels) const {
+  std::lock_guard lock(mutex_);
+  const auto family = families_.find(name);
+  if (family == families_.end()) return 0;
+  const auto series = family->second.series.find(labelText(labels));
+  return series == family->second.series.end() ? 0 : series->second;
+}
+
+std::string Metrics::render() const {
+  std::lock_guard lock(mutex_);
+  std::ostringstream out;
+  for (const auto& [name, family] : families_) {
+    if (!family.help.empty()) out << "# HELP " << name << " " << family.help << "\n";
+    if (!family.type.empty()) out << "# TYPE " << name << " " << family.type << "\n";
+    for (const auto& [labels, value] : family.series) out << name << labels << " " << value << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace stereomap::core

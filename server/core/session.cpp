@@ -1,0 +1,169 @@
+#include "server/core/session.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <iomanip>
+#include <sstream>
+
+namespace stereomap::core {
+
+namespace {
+void noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle) {
+  if (std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
+    vehicles.push_back(vehicle);
+  }
+}
+}  // namespace
+
+Session::Session(std::string id, const Options& options)
+    : id_(std::move(id)),
+      options_(options),
+      map_({.resolution = options.resolution}),
+      snapshot_(std::make_shared<VoxelSnapshot>(VoxelSnapshot{0, options.resolution, {}})) {
+  worker_ = std::thread([this] { run(); });
+}
+
+Session::~Session() {
+  {
+    std::lock_guard lock(queue_mutex_);
+    stopping_ = true;
+  }
+  queue_changed_.notify_all();
+  worker_.join();
+}
+
+bool Session::enqueue(FusionJob job) {
+  {
+    std::lock_guard state(state_mutex_);
+    ++frames_received_;
+    noteVehicle(vehicles_, job.vehicle_id);
+  }
+  {
+    std::lock_guard lock(queue_mutex_);
+    if (queue_.size() >= options_.queue_capacity) {
+      std::lock_guard state(state_mutex_);
+      ++frames_dropped_;
+      return false;
+    }
+    queue_.push_back(std::move(job));
+  }
+  queue_changed_.notify_all();
+  return true;
+}
+
+void Session::addPose(PoseRecord pose) {
+  std::lock_guard lock(state_mutex_);
+  noteVehicle(vehicles_, pose.vehicle_id);
+  trajectory_.push_back(std::move(pose));
+}
+
+void Session::markEnded() {
+  std::lock_guard lock(state_mutex_);
+  ended_ = true;
+}
+
+void Session::run() {
+  for (;;) {
+    FusionJob job;
+    {
+      std::unique_lock lock(queue_mutex_);
+      busy_ = false;
+      queue_changed_.notify_all();
+      queue_changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      if (queue_.empty()) return;  // stopping, and everything queued is fused
+      job = std::move(queue_.front());
+      queue_.pop_front();
+      busy_ = true;
+    }
+    const auto start = std::chrono::steady_clock::now();
+    {
+      std::lock_guard lock(map_mutex_);
+      map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m);
+    }
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    {
+      std::lock_guard state(state_mutex_);
+      ++frames_fused_;
+      fusion_seconds_ += seconds;
+    }
+    publishSnapshot();
+  }
+}
+
+void Session::publishSnapshot() {
+  auto snapshot = std::make_shared<VoxelSnapshot>();
+  common::Box3 bounds;
+  {
+    std::lock_guard lock(map_mutex_);
+    snapshot->voxels = map_.occupiedVoxels();
+    bounds = map_.occupiedBounds();
+  }
+  snapshot->resolution = options_.resolution;
+  std::lock_guard state(state_mutex_);
+  snapshot->version = snapshot_->version + 1;
+  snapshot_ = std::move(snapshot);
+  bounds_ = bounds;
+}
+
+SessionStatus Session::status() const {
+  SessionStatus status;
+  status.id = id_;
+  status.resolution = options_.resolution;
+  {
+    std::lock_guard lock(queue_mutex_);
+    status.backlog = queue_.size() + (busy_ ? 1 : 0);
+  }
+  std::lock_guard state(state_mutex_);
+  status.vehicles = vehicles_;
+  status.frames_received = frames_received_;
+  status.frames_fused = frames_fused_;
+  status.frames_dropped = frames_dropped_;
+  status.occupied_voxels = snapshot_->voxels.size();
+  status.bounds = bounds_;
+  status.poses = trajectory_.size();
+  status.ended = ended_;
+  status.fusion_seconds = fusion_seconds_;
+  return status;
+}
+
+std::shared_ptr<const VoxelSnapshot> Session::voxels() const {
+  std::lock_guard state(state_mutex_);
+  return snapshot_;
+}
+
+std::vector<PoseRecord> Session::trajectory(size_t from) const {
+  std::lock_guard state(state_mutex_);
+  if (from >= trajectory_.size()) return {};
+  return {trajectory_.begin() + static_cast<long>(from), trajectory_.end()};
+}
+
+std::string Session::trajectoryTum(const std::string& vehicle_id) const {
+  std::ostringstream out;
+  out << std::fixed;
+  for (const auto& pose : trajectory()) {
+    if (!vehicle_id.empty() && pose.vehicle_id != vehicle_id) continue;
+    const auto& t = pose.T_map_body.translation;
+    const auto& q = pose.T_map_body.rotation;
+    out << std::setprecision(9) << pose.stamp_ns / 1'000'000'000 << "."
+        << std::setw(9) << std::setfill('0') << pose.stamp_ns % 1'000'000'000
+        << std::setfill(' ') << std::setprecision(6) << " " << t.x() << " " << t.y() << " "
+        << t.z() << " " << std::setprecision(9) << q.x() << " " << q.y() << " " << q.z() << " "
+        << q.w() << "\n";
+  }
+  return out.str();
+}
+
+std::string Session::mapBinary() const {
+  std::ostringstream out;
+  std::lock_guard lock(map_mutex_);
+  map_.writeBinary(out);
+  return out.str();
+}
+
+void Session::waitUntilIdle() const {
+  std::unique_lock lock(queue_mutex_);
+  queue_changed_.wait(lock, [this] { return queue_.empty() && !busy_; });
+}
+
+}  // namespace stereomap::core

@@ -1,0 +1,116 @@
+// One mapping session on the server: its occupancy map, fed by a fusion worker thread
+// through a bounded queue (so DDS reading never blocks), its vehicles' trajectory, and
+// snapshots of the occupied voxels for viewers (the network never reads the live map).
+//
+// Threads: enqueue()/addPose() from ingest threads; status()/voxels()/trajectory()/
+// mapBinary() from any thread; the fusion worker is owned by the session.
+#pragma once
+
+#include <condition_variable>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+#include "server/fusion/occupancy_map.hpp"
+
+namespace stereomap::core {
+
+struct PoseRecord {
+  std::string vehicle_id;
+  int64_t stamp_ns = 0;
+  common::Rigid3 T_map_body;
+};
+
+struct FusionJob {
+  std::string vehicle_id;
+  uint64_t seq = 0;
+  common::PointCloud cloud_camera;
+  common::Rigid3 T_map_camera;
+  double max_range_m = 0;
+};
+
+struct VoxelSnapshot {
+  uint64_t version = 0;  // bumps whenever the occupied set may have changed
+  double resolution = 0;
+  std::vector<fusion::VoxelIndex> voxels;  // sorted
+};
+
+struct SessionStatus {
+  std::string id;
+  std::vector<std::string> vehicles;  // in order of first appearance
+  double resolution = 0;
+  uint64_t frames_received = 0;
+  uint64_t frames_fused = 0;
+  uint64_t frames_dropped = 0;  // queue full: fusion fell behind
+  size_t backlog = 0;
+  size_t occupied_voxels = 0;
+  common::Box3 bounds;
+  size_t poses = 0;
+  bool ended = false;
+  double fusion_seconds = 0;  // total time spent inserting clouds
+};
+
+class Session {
+ public:
+  struct Options {
+    double resolution = 0.1;
+    size_t queue_capacity = 200;  // frames waiting for fusion before new ones are dropped
+  };
+
+  Session(std::string id, const Options& options);
+  ~Session();  // finishes the queued frames, then stops the worker
+  Session(const Session&) = delete;
+  Session& operator=(const Session&) = delete;
+
+  const std::string& id() const { return id_; }
+  // Hands a frame to fusion; false (and counted) when the queue is full.
+  bool enqueue(FusionJob job);
+  void addPose(PoseRecord pose);
+  void markEnded();
+
+  SessionStatus status() const;
+  std::shared_ptr<const VoxelSnapshot> voxels() const;
+  // Poses [from, end) in arrival order.
+  std::vector<PoseRecord> trajectory(size_t from = 0) const;
+  // TUM lines "t tx ty tz qx qy qz qw" for one vehicle (all vehicles when empty).
+  std::string trajectoryTum(const std::string& vehicle_id = "") const;
+  // OctoMap binary of the map as it is now (waits for the frame being fused, if any).
+  std::string mapBinary() const;
+  // Blocks until every queued frame is fused (for tests and shutdown).
+  void waitUntilIdle() const;
+
+ private:
+  void run();
+  void publishSnapshot();
+
+  const std::string id_;
+  const Options options_;
+
+  mutable std::mutex queue_mutex_;
+  mutable std::condition_variable queue_changed_;
+  std::deque<FusionJob> queue_;
+  bool busy_ = false;
+  bool stopping_ = false;
+
+  mutable std::mutex map_mutex_;  // the worker holds it while inserting
+  fusion::OccupancyMap map_;
+
+  mutable std::mutex state_mutex_;
+  std::vector<std::string> vehicles_;
+  std::vector<PoseRecord> trajectory_;
+  std::shared_ptr<const VoxelSnapshot> snapshot_;
+  common::Box3 bounds_;
+  uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
+  double fusion_seconds_ = 0;
+  bool ended_ = false;
+
+  std::thread worker_;
+};
+
+}  // namespace stereomap::core

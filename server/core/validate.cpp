@@ -1,0 +1,124 @@
+#include "server/core/validate.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+
+#include "proto/cloud_codec.hpp"
+
+namespace stereomap::core {
+
+namespace {
+
+template <size_t N>
+bool allFinite(const std::array<double, N>& values) {
+  return std::all_of(values.begin(), values.end(), [](double v) { return std::isfinite(v); });
+}
+
+std::optional<Rejection> checkIds(const std::string& vehicle, const std::string& session) {
+  if (!isValidId(vehicle)) {
+    return Rejection{"bad_id", "vehicle_id '" + vehicle + "' is not 1-64 of [A-Za-z0-9._-]"};
+  }
+  if (!isValidId(session)) {
+    return Rejection{"bad_id", "session_id '" + session + "' is not 1-64 of [A-Za-z0-9._-]"};
+  }
+  return std::nullopt;
+}
+
+// A pose from position + x y z w orientation, or a rejection naming `what`.
+std::optional<Rejection> checkPose(const std::array<double, 3>& position,
+                                   const std::array<double, 4>& orientation,
+                                   const std::string& what, common::Rigid3& out) {
+  if (!allFinite(position)) return Rejection{"non_finite", what + " position is not finite"};
+  if (!allFinite(orientation)) return Rejection{"non_finite", what + " orientation is not finite"};
+  const common::Quat q(orientation[3], orientation[0], orientation[1], orientation[2]);
+  if (!common::isUnitQuaternion(q)) {
+    return Rejection{"bad_quaternion",
+                     what + " orientation is not a unit quaternion (norm " +
+                         std::to_string(q.norm()) + ")"};
+  }
+  out = {q.normalized(), common::Vec3(position[0], position[1], position[2])};
+  return std::nullopt;
+}
+
+}  // namespace
+
+bool isValidId(const std::string& id) {
+  if (id.empty() || id.size() > proto::kMaxIdLength || id == "." || id == "..") return false;
+  return std::all_of(id.begin(), id.end(), [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '_' || c == '-';
+  });
+}
+
+std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
+                                            const IngestLimits& limits, ValidCloud& out) {
+  if (auto bad = checkIds(frame.vehicle_id, frame.session_id)) return bad;
+  if (frame.payload.size() > limits.max_payload_bytes) {
+    return Rejection{"oversize", "payload of " + std::to_string(frame.payload.size()) +
+                                     " bytes exceeds the limit of " +
+                                     std::to_string(limits.max_payload_bytes)};
+  }
+  if (frame.point_count > limits.max_points) {
+    return Rejection{"oversize", "point_count " + std::to_string(frame.point_count) +
+                                     " exceeds the limit of " + std::to_string(limits.max_points)};
+  }
+  if (!std::isfinite(frame.max_range) || frame.max_range <= 0 ||
+      frame.max_range > limits.max_range_m) {
+    return Rejection{"bad_range", "max_range " + std::to_string(frame.max_range) +
+                                      " is not in (0, " + std::to_string(limits.max_range_m) + "]"};
+  }
+  if (auto bad = checkPose(frame.sensor_position, frame.sensor_orientation, "sensor",
+                           out.T_map_camera)) {
+    return bad;
+  }
+  if (frame.encoding == proto::CloudEncoding::kDraco) {
+    auto cloud = proto::decodeCloud(frame.payload);
+    if (!cloud) return Rejection{"decode_failed", cloud.error().message};
+    out.cloud_camera = std::move(cloud).value();
+  } else {
+    // RAW_F32: x y z float triples, then one intensity byte per point when has_intensity.
+    const size_t n = frame.point_count;
+    const size_t expected = n * 12 + (frame.has_intensity ? n : 0);
+    if (frame.payload.size() != expected) {
+      return Rejection{"decode_failed", "RAW_F32 payload of " +
+                                            std::to_string(frame.payload.size()) +
+                                            " bytes, expected " + std::to_string(expected)};
+    }
+    out.cloud_camera.points.resize(n);
+    std::memcpy(out.cloud_camera.points.data(), frame.payload.data(), n * 12);
+    if (frame.has_intensity) {
+      out.cloud_camera.intensity.assign(frame.payload.begin() + n * 12, frame.payload.end());
+    }
+    for (const auto& p : out.cloud_camera.points) {
+      if (!p.allFinite()) return Rejection{"non_finite", "RAW_F32 payload has a non-finite point"};
+    }
+  }
+  if (out.cloud_camera.size() != frame.point_count) {
+    return Rejection{"point_count_mismatch",
+                     "payload holds " + std::to_string(out.cloud_camera.size()) +
+                         " points, point_count says " + std::to_string(frame.point_count)};
+  }
+  out.max_range_m = frame.max_range;
+  return std::nullopt;
+}
+
+std::optional<Rejection> validatePose(const proto::PoseMsg& pose, ValidPose& out) {
+  if (auto bad = checkIds(pose.vehicle_id, pose.session_id)) return bad;
+  if (!allFinite(pose.velocity) || !allFinite(pose.covariance)) {
+    return Rejection{"non_finite", "velocity or covariance is not finite"};
+  }
+  if (auto bad = checkPose(pose.position, pose.orientation, "pose", out.T_map_body)) return bad;
+  if (pose.stamp_ns < 0) return Rejection{"bad_stamp", "stamp_ns is negative"};
+  out.stamp_ns = pose.stamp_ns;
+  return std::nullopt;
+}
+
+std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event) {
+  if (auto bad = checkIds(event.vehicle_id, event.session_id)) return bad;
+  for (double v : {event.fx, event.fy, event.cx, event.cy, event.baseline, event.resolution_hint}) {
+    if (!std::isfinite(v)) return Rejection{"non_finite", "camera model is not finite"};
+  }
+  return std::nullopt;
+}
+
+}  // namespace stereomap::core

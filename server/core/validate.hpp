@@ -1,0 +1,46 @@
+// Validation of every DDS sample before the server accepts it: identifiers, finite numbers,
+// unit quaternions, sizes and a decodable payload. A rejection names a short reason (a
+// metric label) and a detail for the log; nothing invalid reaches fusion or storage.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+#include "proto/messages.hpp"
+
+namespace stereomap::core {
+
+struct IngestLimits {
+  size_t max_payload_bytes = 4u << 20;  // below the IDL's 8 MiB bound
+  uint32_t max_points = 1'000'000;
+  double max_range_m = 100.0;
+};
+
+struct Rejection {
+  std::string reason;  // e.g. "non_finite", "decode_failed", "oversize" (metric label)
+  std::string detail;  // for people: what was wrong, naming the field
+};
+
+struct ValidCloud {
+  common::PointCloud cloud_camera;
+  common::Rigid3 T_map_camera;
+  double max_range_m = 0;
+};
+
+struct ValidPose {
+  int64_t stamp_ns = 0;
+  common::Rigid3 T_map_body;
+};
+
+// Ids become URL parts and directory names: 1-64 of [A-Za-z0-9._-], not "." or "..".
+bool isValidId(const std::string& id);
+
+std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
+                                            const IngestLimits& limits, ValidCloud& out);
+std::optional<Rejection> validatePose(const proto::PoseMsg& pose, ValidPose& out);
+std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event);
+
+}  // namespace stereomap::core

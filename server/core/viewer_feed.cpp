@@ -1,0 +1,122 @@
+#include "server/core/viewer_feed.hpp"
+
+#include <nlohmann/json.hpp>
+
+#include <algorithm>
+#include <iterator>
+
+#include "common/time.hpp"
+#include "server/core/api.hpp"
+
+namespace stereomap::core {
+
+namespace {
+
+using nlohmann::json;
+using fusion::VoxelIndex;
+
+json flatten(const std::vector<VoxelIndex>& voxels) {
+  std::vector<int32_t> flat;
+  flat.reserve(voxels.size() * 3);
+  for (const auto& v : voxels) {
+    flat.push_back(v.x);
+    flat.push_back(v.y);
+    flat.push_back(v.z);
+  }
+  return flat;
+}
+
+std::string voxelsMessage(const std::string& session, const VoxelSnapshot& snapshot, bool reset,
+                          const std::vector<VoxelIndex>& add,
+                          const std::vector<VoxelIndex>& remove) {
+  return json{{"type", "voxels"},         {"session", session},
+              {"resolution", snapshot.resolution}, {"version", snapshot.version},
+              {"reset", reset},           {"add", flatten(add)},
+              {"remove", flatten(remove)}}
+      .dump();
+}
+
+// One "poses" message per vehicle, poses in arrival order.
+void appendPoseMessages(const std::string& session, const std::vector<PoseRecord>& poses,
+                        bool reset, std::vector<std::string>& out) {
+  std::map<std::string, json> by_vehicle;
+  std::vector<std::string> order;
+  for (const auto& pose : poses) {
+    auto [it, inserted] = by_vehicle.try_emplace(pose.vehicle_id, json::array());
+    if (inserted) order.push_back(pose.vehicle_id);
+    const auto& t = pose.T_map_body.translation;
+    const auto& q = pose.T_map_body.rotation;
+    it->second.push_back({common::nsToSeconds(pose.stamp_ns), t.x(), t.y(), t.z(), q.x(), q.y(),
+                          q.z(), q.w()});
+  }
+  for (const auto& vehicle : order) {
+    out.push_back(json{{"type", "poses"},
+                       {"session", session},
+                       {"vehicle", vehicle},
+                       {"reset", reset},
+                       {"poses", std::move(by_vehicle[vehicle])}}
+                      .dump());
+  }
+}
+
+}  // namespace
+
+ViewerFeed::ViewerFeed(const MapServer& server) : server_(server) {}
+
+std::vector<std::string> ViewerFeed::welcome() const {
+  std::vector<std::string> out;
+  out.push_back(json{{"type", "hello"}, {"protocol", 1}, {"server", "stereomap 0.1.0"}}.dump());
+  for (const auto& id : order_) {
+    const auto& state = sessions_.at(id);
+    out.push_back(state.status_json);
+    out.push_back(voxelsMessage(id, *state.sent, true, state.sent->voxels, {}));
+    const auto session = server_.find(id);
+    auto poses = session ? session->trajectory(0) : std::vector<PoseRecord>{};
+    poses.resize(std::min(poses.size(), state.poses_sent));
+    appendPoseMessages(id, poses, true, out);
+  }
+  return out;
+}
+
+std::vector<std::string> ViewerFeed::poll() {
+  std::vector<std::string> out;
+  for (const auto& session : server_.sessions()) {
+    auto [it, inserted] = sessions_.try_emplace(session->id());
+    SessionState& state = it->second;
+    if (inserted) {
+      order_.push_back(session->id());
+      state.sent = std::make_shared<VoxelSnapshot>();
+    }
+    const auto snapshot = session->voxels();
+    if (inserted || snapshot->version != state.sent->version) {
+      std::vector<VoxelIndex> add, remove;
+      std::set_difference(snapshot->voxels.begin(), snapshot->voxels.end(),
+                          state.sent->voxels.begin(), state.sent->voxels.end(),
+                          std::back_inserter(add));
+      std::set_difference(state.sent->voxels.begin(), state.sent->voxels.end(),
+                          snapshot->voxels.begin(), snapshot->voxels.end(),
+                          std::back_inserter(remove));
+      if (inserted || !add.empty() || !remove.empty()) {
+        out.push_back(voxelsMessage(session->id(), *snapshot, inserted, add, remove));
+      }
+      state.sent = snapshot;
+    }
+    const auto new_poses = session->trajectory(state.poses_sent);
+    if (!new_poses.empty()) {
+      appendPoseMessages(session->id(), new_poses, false, out);
+      state.poses_sent += new_poses.size();
+    }
+    // Status last, so that its counts are never ahead of the voxels already sent.
+    json status = json::parse(sessionJson(session->status()));
+    status["type"] = "session";
+    status["occupied_voxels"] = state.sent->voxels.size();
+    std::string status_json = status.dump();
+    if (status_json != state.status_json) {
+      state.status_json = status_json;
+      out.push_back(std::move(status_json));
+    }
+  }
+  return out;
+}
+
+}  // namespace stereomap::core
