@@ -1,0 +1,198 @@
+// stereomap-server: receives clouds and poses over DDS, fuses them into an occupancy map per
+// session, keeps sessions on disk, and serves the viewer, the REST API and live pushes.
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include <filesystem>
+#include <thread>
+
+#include "common/shutdown.hpp"
+#include "proto/dds.hpp"
+#include "server/core/map_server.hpp"
+#include "server/net/http_server.hpp"
+#include "server/store/store.hpp"
+
+namespace {
+
+using namespace stereomap;
+
+// Reads one topic until shutdown, handing every sample to the map server.
+template <typename T>
+void pump(proto::Reader<T>& reader, core::MapServer& server, const common::Shutdown& shutdown) {
+  std::vector<T> batch;
+  while (!shutdown.stopRequested()) {
+    batch.clear();
+    reader.take(batch, std::chrono::milliseconds(500));
+    for (const auto& sample : batch) server.ingest(sample);
+  }
+}
+
+bool isLoopback(const std::string& address) {
+  return address == "127.0.0.1" || address == "::1" || address.rfind("127.", 0) == 0 ||
+         address == "localhost";
+}
+
+// Saves every session whose state changed since it was last saved (ended and idle ones only,
+// unless `all`).
+void saveSessions(const core::MapServer& server, const store::SessionStore& store,
+                  std::map<std::string, uint64_t>& saved_versions, bool all) {
+  for (const auto& session : server.sessions()) {
+    const auto status = session->status();
+    if (!all && (!status.ended || status.backlog > 0)) continue;
+    const uint64_t version = session->voxels()->version + status.poses;
+    if (saved_versions[session->id()] == version) continue;
+    if (auto saved = store.save(*session); !saved) {
+      spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);
+      continue;
+    }
+    saved_versions[session->id()] = version;
+    spdlog::info("session '{}' saved to {} ({} frames, {} voxels)", session->id(),
+                 (store.root() / session->id()).string(), status.frames_fused,
+                 status.occupied_voxels);
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
+
+  CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
+  std::string http_spec = "127.0.0.1:8080";
+  std::string store_dir = "stereomap-store";
+  core::MapServerOptions options;
+  std::string dds_config;
+  uint32_t domain = 0;
+  std::string web_root;
+  std::string token;
+  app.add_option("--http", http_spec, "Address and port for HTTP and WebSocket")
+      ->capture_default_str();
+  app.add_option("--store", store_dir, "Directory where sessions are kept")->capture_default_str();
+  app.add_option("--resolution", options.resolution, "Finest voxel edge, metres")
+      ->check(CLI::Range(0.01, 2.0))
+      ->capture_default_str();
+  app.add_option("--dds-config", dds_config,
+                 "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232))->capture_default_str();
+  app.add_option("--web-root", web_root, "The built viewer (default: ../web beside this binary)");
+  app.add_option("--token", token,
+                 "Token clients must present (required when --http is not a loopback address)");
+  app.add_option("--max-cloud-bytes", options.limits.max_payload_bytes,
+                 "Largest accepted cloud payload, bytes")
+      ->check(CLI::Range(size_t{1024}, proto::kMaxPayloadBytes))
+      ->capture_default_str();
+  app.add_option("--queue", options.queue_capacity,
+                 "Frames per session waiting for fusion before new ones are dropped")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;
+  }
+
+  net::HttpServerOptions http;
+  const size_t colon = http_spec.rfind(':');
+  try {
+    if (colon == std::string::npos) throw std::invalid_argument("no port");
+    http.address = http_spec.substr(0, colon);
+    const int port = std::stoi(http_spec.substr(colon + 1));
+    if (port < 0 || port > 65535) throw std::out_of_range("port");
+    http.port = static_cast<uint16_t>(port);
+  } catch (const std::exception&) {
+    spdlog::error("--http '{}' must be ADDRESS:PORT, e.g. 127.0.0.1:8080", http_spec);
+    return 2;
+  }
+  if (http.address == "localhost") http.address = "127.0.0.1";
+  if (!isLoopback(http.address) && token.empty()) {
+    spdlog::error("--http {} is not a loopback address: pass --token so that only your "
+                  "operators can see the maps",
+                  http_spec);
+    return 2;
+  }
+  http.token = token;
+  http.web_root = web_root.empty()
+                      ? std::filesystem::canonical("/proc/self/exe").parent_path() / ".." / "web"
+                      : std::filesystem::path(web_root);
+  http.web_root = std::filesystem::weakly_canonical(http.web_root);
+  if (!std::filesystem::exists(http.web_root / "index.html")) {
+    spdlog::warn("no viewer at {} (build it with ./scripts/build, or pass --web-root); the API "
+                 "still works",
+                 http.web_root.string());
+  }
+
+  auto store = store::SessionStore::open(store_dir);
+  if (!store) {
+    spdlog::error("{}", store.error().message);
+    return 1;
+  }
+  if (!dds_config.empty()) dds_config = std::filesystem::absolute(dds_config).string();
+  auto participant = proto::Participant::create({.domain_id = domain, .config_file = dds_config});
+  if (!participant) {
+    spdlog::error("{}", participant.error().message);
+    return 1;
+  }
+  auto clouds = proto::Reader<proto::CloudFrameMsg>::create(*participant);
+  auto poses = proto::Reader<proto::PoseMsg>::create(*participant);
+  auto events = proto::Reader<proto::SessionEventMsg>::create(*participant);
+  if (!clouds || !poses || !events) {
+    spdlog::error("cannot create DDS readers: {}",
+                  !clouds ? clouds.error().message
+                          : !poses ? poses.error().message : events.error().message);
+    return 1;
+  }
+
+  core::MapServer server(options);
+  auto http_server = net::HttpServer::create(http, server);
+  if (!http_server) {
+    spdlog::error("{}", http_server.error().message);
+    return 1;
+  }
+  (*http_server)->start();
+
+  shutdown.onStop([&] {
+    (*clouds)->wake();
+    (*poses)->wake();
+    (*events)->wake();
+  });
+  std::vector<std::thread> ingest;
+  ingest.emplace_back([&] { pump(**clouds, server, shutdown); });
+  ingest.emplace_back([&] { pump(**poses, server, shutdown); });
+  ingest.emplace_back([&] { pump(**events, server, shutdown); });
+
+  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", domain,
+               options.resolution, store->root().string());
+  spdlog::info("viewer: http://{}:{}/", http.address, (*http_server)->port());
+
+  std::map<std::string, uint64_t> saved_versions;
+  size_t last_voxels = 0;
+  while (!shutdown.waitFor(std::chrono::seconds(5))) {
+    saveSessions(server, *store, saved_versions, /*all=*/false);
+    size_t voxels = 0, frames = 0, backlog = 0;
+    const auto sessions = server.sessions();
+    for (const auto& session : sessions) {
+      const auto status = session->status();
+      voxels += status.occupied_voxels;
+      frames += status.frames_fused;
+      backlog += status.backlog;
+    }
+    if (voxels != last_voxels) {
+      spdlog::info("map: {} sessions, {} frames fused, {} occupied voxels (+{}), backlog {}, "
+                   "{} viewers",
+                   sessions.size(), frames, voxels,
+                   static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog,
+                   (*http_server)->viewers());
+      last_voxels = voxels;
+    }
+  }
+
+  spdlog::info("stopping (signal {}): finishing queued frames and saving sessions",
+               shutdown.signal());
+  for (auto& thread : ingest) thread.join();
+  (*http_server)->stop();
+  for (const auto& session : server.sessions()) session->waitUntilIdle();
+  saveSessions(server, *store, saved_versions, /*all=*/true);
+  spdlog::info("stopped");
+  return 0;
+}

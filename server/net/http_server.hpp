@@ -1,0 +1,48 @@
+// The server's one network port (Boost.Beast): the REST API (server/core/api.hpp), the
+// viewer's static files, and the viewer WebSocket at /ws that pushes the ViewerFeed's
+// messages. Runs on its own thread; owns everything network-side. See docs/PROTOCOL.md.
+//
+//   auto http = HttpServer::create({.address = "127.0.0.1", .port = 8080}, map_server);
+//   (*http)->start();  ...  (*http)->stop();
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include "common/result.hpp"
+#include "server/core/map_server.hpp"
+
+namespace stereomap::net {
+
+struct HttpServerOptions {
+  std::string address = "127.0.0.1";
+  uint16_t port = 8080;  // 0: any free port (see port())
+  std::filesystem::path web_root;  // the built viewer (index.html + assets)
+  // Required (as "Authorization: Bearer T" or "?token=T") when set; the app insists on one
+  // whenever the address is not loopback.
+  std::string token;
+  std::chrono::milliseconds push_interval{200};
+  size_t max_queued_messages = 512;  // per viewer; a slower viewer is disconnected
+};
+
+class HttpServer {
+ public:
+  // Binds the port (fails with a clear message if it is taken or the address is bad).
+  static common::Result<std::unique_ptr<HttpServer>> create(const HttpServerOptions& options,
+                                                            const core::MapServer& server);
+  ~HttpServer();  // stops
+  void start();   // serves on a background thread
+  void stop();    // closes the port and every connection; idempotent
+  uint16_t port() const;
+  size_t viewers() const;
+
+ private:
+  struct Impl;
+  explicit HttpServer(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace stereomap::net

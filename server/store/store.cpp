@@ -1,0 +1,58 @@
+#include "server/store/store.hpp"
+
+#include <fstream>
+
+#include "server/core/api.hpp"
+
+namespace stereomap::store {
+
+namespace fs = std::filesystem;
+using common::ErrorCode;
+using common::makeError;
+
+namespace {
+common::Status writeAtomically(const fs::path& path, const std::string& content) {
+  const fs::path temporary = path.string() + ".tmp";
+  {
+    std::ofstream out(temporary, std::ios::binary | std::ios::trunc);
+    out.write(content.data(), static_cast<std::streamsize>(content.size()));
+    out.flush();
+    if (!out) return makeError(ErrorCode::kIo, "cannot write " + temporary.string());
+  }
+  std::error_code ec;
+  fs::rename(temporary, path, ec);
+  if (ec) return makeError(ErrorCode::kIo, "cannot rename to " + path.string() + ": " + ec.message());
+  return common::Ok{};
+}
+}  // namespace
+
+common::Result<SessionStore> SessionStore::open(const fs::path& root) {
+  std::error_code ec;
+  fs::create_directories(root, ec);
+  if (ec || !fs::is_directory(root)) {
+    return makeError(ErrorCode::kIo, "cannot create the store directory " + root.string() +
+                                         (ec ? ": " + ec.message() : ""));
+  }
+  const fs::path probe = root / ".write-test";
+  if (auto status = writeAtomically(probe, "ok"); !status) {
+    return makeError(ErrorCode::kIo, "the store directory " + root.string() + " is not writable");
+  }
+  fs::remove(probe, ec);
+  return SessionStore(root);
+}
+
+common::Status SessionStore::save(const core::Session& session) const {
+  const fs::path dir = root_ / session.id();  // ids are validated: no separators, no ".."
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return makeError(ErrorCode::kIo, "cannot create " + dir.string() + ": " + ec.message());
+  if (auto s = writeAtomically(dir / "map.bt", session.mapBinary()); !s) return s;
+  const auto vehicles = session.status().vehicles;
+  for (size_t i = 0; i < vehicles.size(); ++i) {  // one TUM file per vehicle
+    const std::string name = i == 0 ? "trajectory.tum" : "trajectory-" + vehicles[i] + ".tum";
+    if (auto s = writeAtomically(dir / name, session.trajectoryTum(vehicles[i])); !s) return s;
+  }
+  return writeAtomically(dir / "session.json", core::sessionJson(session.status()) + "\n");
+}
+
+}  // namespace stereomap::store

@@ -1,0 +1,26 @@
+// Where sessions are kept on disk: one directory per session under the store root, with
+// the map (map.bt), the trajectory (trajectory.tum) and a status file (session.json), each
+// written atomically (temporary file + rename), so a crash never leaves half a file.
+// (The journal and crash recovery come with the store's own issue.)
+#pragma once
+
+#include <filesystem>
+
+#include "common/result.hpp"
+#include "server/core/session.hpp"
+
+namespace stereomap::store {
+
+class SessionStore {
+ public:
+  // Creates `root` if needed; fails with a message naming it when it cannot be written.
+  static common::Result<SessionStore> open(const std::filesystem::path& root);
+  common::Status save(const core::Session& session) const;
+  const std::filesystem::path& root() const { return root_; }
+
+ private:
+  explicit SessionStore(std::filesystem::path root) : root_(std::move(root)) {}
+  std::filesystem::path root_;
+};
+
+}  // namespace stereomap::store

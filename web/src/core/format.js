@@ -1,0 +1,41 @@
+// Text of the viewer's status line. Pure functions so the wording is unit-tested.
+
+/** "2.1 s ago", "3 min ago", "1.5 h ago"; "never" for null. */
+export function formatAge(seconds) {
+  if (seconds === null || seconds === undefined) return 'never';
+  const s = Math.max(0, seconds); // a clock step backwards must not print a negative age
+  if (s < 60) return `${s.toFixed(1)} s ago`;
+  if (s < 3600) return `${Math.floor(s / 60)} min ago`;
+  return `${(s / 3600).toFixed(1)} h ago`;
+}
+
+/** 1234567 → "1,234,567". */
+export function formatCount(n) {
+  return Math.round(n).toString().replace(/\B(?=(\d{3})+(?!\d))/g, ',');
+}
+
+function plural(n, word) {
+  return `${formatCount(n)} ${word}${n === 1 ? '' : 's'}`;
+}
+
+/**
+ * The status line. `link` is {connected, retryInSeconds}; `session` is null (none chosen) or
+ * {id, known, vehicle, renderedVoxels, frames, ageSeconds}; `known` is false for a session
+ * asked for (?session=ID) that the server has not reported.
+ */
+export function statusText(link, session) {
+  const parts = [link.connected ? 'connected'
+    : link.retryInSeconds > 0 ? `disconnected, retrying in ${Math.ceil(link.retryInSeconds)} s`
+    : 'connecting…'];
+  if (!session) {
+    parts.push('no session yet');
+  } else if (!session.known) {
+    parts.push(`session ${session.id} not on the server (yet)`);
+  } else {
+    parts.push(`session ${session.id}${session.vehicle ? ` (${session.vehicle})` : ''}`);
+    parts.push(plural(session.renderedVoxels, 'voxel'));
+    parts.push(plural(session.frames, 'frame'));
+    parts.push(`updated ${formatAge(session.ageSeconds)}`);
+  }
+  return parts.join(' · ');
+}

@@ -1,0 +1,27 @@
+import { describe, expect, it } from 'vitest';
+import { formatAge, formatCount, statusText } from './format.js';
+
+describe('formatAge', () => {
+  it.each([
+    [null, 'never'],
+    [0, '0.0 s ago'],
+    [2.14, '2.1 s ago'],
+    [-3, '0.0 s ago'],
+    [59.94, '59.9 s ago'],
+    [125, '2 min ago'],
+    [5400, '1.5 h ago'],
+  ])('%s s → %s', (seconds, text) => expect(formatAge(seconds)).toBe(text));
+});
+
+describe('statusText', () => {
+  it('names the link, session, voxels, frames and age', () => {
+    const session = { id: 'e2e', known: true, vehicle: 'sim-1', renderedVoxels: 12345, frames: 1, ageSeconds: 2.1 };
+    expect(statusText({ connected: true }, session)).toBe('connected · session e2e (sim-1) · 12,345 voxels · 1 frame · updated 2.1 s ago');
+    expect(statusText({ connected: false, retryInSeconds: 1.2 }, null)).toBe('disconnected, retrying in 2 s · no session yet');
+    expect(statusText({ connected: true }, { id: 'x', known: false })).toBe('connected · session x not on the server (yet)');
+  });
+
+  it('groups thousands', () => {
+    expect([0, 999, 1000, 1234567].map(formatCount)).toEqual(['0', '999', '1,000', '1,234,567']);
+  });
+});

@@ -1,0 +1,165 @@
+// The 3D view of one session: renderer, z-up camera with orbit controls, lights, a grid on the
+// z = 0 plane, the voxel and trajectory layers. Entry point: MapView.requestRender() when
+// data changed, MapView.show(session) from the beforeRender callback. Frames are drawn on demand.
+
+import * as THREE from 'three';
+import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
+import { TrajectoryLayer } from './trajectory_layer.js';
+import { VoxelLayer } from './voxel_layer.js';
+
+const kBackground = 0x0d1117;
+const kViewDirection = new THREE.Vector3(-0.55, -1, 0.75).normalize(); // from the south-west, above
+
+export class MapView {
+  /** `container` receives the canvas; `beforeRender` is called once per drawn frame. */
+  constructor(container, beforeRender = () => {}) {
+    this.container = container;
+    this.beforeRender = beforeRender;
+    this.renderer = new THREE.WebGLRenderer({ antialias: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+    container.appendChild(this.renderer.domElement);
+
+    this.scene = new THREE.Scene();
+    this.scene.background = new THREE.Color(kBackground);
+    this.camera = new THREE.PerspectiveCamera(50, 1, 0.05, 2000);
+    this.camera.up.set(0, 0, 1); // the map frame is z-up
+    this.camera.position.copy(kViewDirection).multiplyScalar(12);
+
+    const sky = new THREE.HemisphereLight(0xdfe8ff, 0x2a2622, 1.4);
+    sky.position.set(0, 0, 1); // HemisphereLight's "up" is its position
+    const sun = new THREE.DirectionalLight(0xffffff, 1.8);
+    sun.position.set(0.4, -0.7, 1); // lights box tops brightest and the two visible sides differently
+    this.scene.add(sky, sun);
+
+    this.grid = null;
+    this.setGrid(new THREE.Vector3(), 20);
+    this.voxels = new VoxelLayer(this.scene);
+    this.trajectory = new TrajectoryLayer(this.scene);
+
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.controls.enableDamping = true;
+    this.controls.addEventListener('change', () => this.requestRender());
+    // Keep the map framed while it grows, until the user moves the camera ('fit' resumes it).
+    this.autoFrame = true;
+    this.framedBounds = new THREE.Box3();
+    this.controls.addEventListener('start', () => {
+      this.autoFrame = false;
+    });
+
+    this.shownId = null; // session and voxel revision the layers hold
+    this.shownVoxelRevision = null;
+    this.frameRequested = false;
+    new ResizeObserver(() => this.resize()).observe(container);
+    this.resize();
+  }
+
+  get renderedVoxels() {
+    return this.voxels.count;
+  }
+
+  get trajectoryLength() {
+    return this.trajectory.length;
+  }
+
+  get heightRange() {
+    return this.voxels.heightRange;
+  }
+
+  /**
+   * Brings the layers up to date with `session` (a SessionState or null); cheap when nothing
+   * changed. Meant for the beforeRender callback, so many messages cost one update per frame.
+   */
+  show(session) {
+    const id = session ? session.id : null;
+    if (id !== this.shownId) {
+      this.shownId = id;
+      this.autoFrame = true;
+      this.framedBounds.makeEmpty();
+    }
+    const voxelRevision = session ? session.voxelRevision : null;
+    if (voxelRevision !== this.shownVoxelRevision) {
+      this.voxels.setVoxels(session?.voxels ?? new Map(), session?.resolution ?? 1);
+      this.shownVoxelRevision = voxelRevision;
+    }
+    this.trajectory.setPoses(session?.poses ?? [], session?.poseEpoch ?? null);
+    if (this.autoFrame && this.voxels.count > 0 && !this.framedBounds.containsBox(this.drawnBounds())) this.fit();
+  }
+
+  drawnBounds() {
+    return this.voxels.bounds.clone().union(this.trajectory.bounds);
+  }
+
+  /** Points the camera at everything drawn and keeps it framed from now on. */
+  fit() {
+    this.autoFrame = true;
+    const bounds = this.drawnBounds();
+    if (bounds.isEmpty()) return;
+    // Frame some slack too, so a growing map stays in view and is not re-framed on every update.
+    this.framedBounds.copy(bounds).expandByVector(bounds.getSize(new THREE.Vector3()).multiplyScalar(0.05));
+    const centre = this.framedBounds.getCenter(new THREE.Vector3());
+    const distance = this.distanceToSee(this.framedBounds, centre);
+    this.controls.target.copy(centre);
+    this.camera.position.copy(centre).addScaledVector(kViewDirection, distance);
+    this.camera.near = distance / 500;
+    this.camera.far = distance * 20;
+    this.camera.updateProjectionMatrix();
+    const radius = this.framedBounds.getBoundingSphere(new THREE.Sphere()).radius;
+    this.setGrid(centre, radius * 2.5);
+    this.trajectory.setMarkerScale(Math.max(radius * 0.1, 0.3));
+    this.controls.update();
+    this.requestRender();
+  }
+
+  // Distance from `centre` along kViewDirection at which every corner of `box` is in view:
+  // a corner at (x, y) across and z towards the camera needs |x| <= (d - z) tan(half fov).
+  distanceToSee(box, centre) {
+    const toCamera = kViewDirection;
+    const right = new THREE.Vector3().crossVectors(this.camera.up, toCamera).normalize();
+    const up = new THREE.Vector3().crossVectors(toCamera, right);
+    const tanY = Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
+    const tanX = tanY * this.camera.aspect;
+    let distance = 1;
+    const corner = new THREE.Vector3();
+    for (let i = 0; i < 8; i += 1) {
+      corner.set(i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y, i & 4 ? box.max.z : box.min.z).sub(centre);
+      const z = corner.dot(toCamera);
+      distance = Math.max(distance, z + Math.abs(corner.dot(right)) / tanX, z + Math.abs(corner.dot(up)) / tanY);
+    }
+    return distance;
+  }
+
+  // A grid of 1 m cells (10 m when large) on z = 0 around `centre`, `size` metres across.
+  setGrid(centre, size) {
+    const cell = size > 200 ? 10 : 1;
+    const cells = Math.max(10, Math.ceil(size / cell / 2) * 2);
+    if (this.grid) {
+      this.scene.remove(this.grid);
+      this.grid.dispose();
+    }
+    this.grid = new THREE.GridHelper(cells * cell, cells, 0x3d4a5c, 0x222a35);
+    this.grid.rotation.x = Math.PI / 2; // GridHelper lies in the x-z plane; the map's ground is x-y
+    this.grid.position.set(Math.round(centre.x / cell) * cell, Math.round(centre.y / cell) * cell, 0);
+    this.scene.add(this.grid);
+  }
+
+  resize() {
+    const { clientWidth: width, clientHeight: height } = this.container;
+    if (width === 0 || height === 0) return;
+    this.renderer.setSize(width, height, false);
+    this.camera.aspect = width / height;
+    this.camera.updateProjectionMatrix();
+    if (this.autoFrame && !this.framedBounds.isEmpty()) this.fit();
+    this.requestRender();
+  }
+
+  requestRender() {
+    if (this.frameRequested) return;
+    this.frameRequested = true;
+    requestAnimationFrame(() => {
+      this.frameRequested = false;
+      this.beforeRender();
+      this.controls.update(); // while damping, this emits 'change' and so asks for the next frame
+      this.renderer.render(this.scene, this.camera);
+    });
+  }
+}
