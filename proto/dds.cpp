@@ -97,6 +97,7 @@ struct Topic<PoseMsg> {
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_Pose_desc; }
   static constexpr const char* kName = "stereomap_Pose";
   static dds_qos_t* qos() { return poseQos(); }
+  static dds_qos_t* readerQos() { return poseQos(); }
 
   static Status toC(const PoseMsg& m, C& c) {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
@@ -137,6 +138,7 @@ struct Topic<CloudFrameMsg> {
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_CloudFrame_desc; }
   static constexpr const char* kName = "stereomap_CloudFrame";
   static dds_qos_t* qos() { return cloudQos(); }
+  static dds_qos_t* readerQos() { return cloudReaderQos(); }
 
   // The payload is borrowed from `m` (not copied): dds_write serialises before returning.
   static Status toC(const CloudFrameMsg& m, C& c) {
@@ -189,6 +191,7 @@ struct Topic<SessionEventMsg> {
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_SessionEvent_desc; }
   static constexpr const char* kName = "stereomap_SessionEvent";
   static dds_qos_t* qos() { return sessionEventQos(); }
+  static dds_qos_t* readerQos() { return sessionEventQos(); }
 
   static Status toC(const SessionEventMsg& m, C& c) {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
@@ -366,7 +369,7 @@ Result<std::unique_ptr<Reader<T>>> Reader<T>::create(std::shared_ptr<Participant
   impl->participant = participant;
   auto topic = createTopic<T>(participant->handle());
   if (!topic) return topic.error();
-  QosPtr qos(Topic<T>::qos());
+  QosPtr qos(Topic<T>::readerQos());
   impl->reader = dds_create_reader(participant->handle(), *topic, qos.get(), nullptr);
   if (impl->reader < 0) {
     const dds_return_t rc = impl->reader;

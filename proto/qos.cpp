@@ -25,4 +25,10 @@ dds_qos_t* cloudQos() {
   return qos;
 }
 
+dds_qos_t* cloudReaderQos() {
+  dds_qos_t* qos = cloudQos();
+  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
+  return qos;
+}
+
 }  // namespace stereomap::proto

@@ -14,6 +14,10 @@ dds_qos_t* poseQos();
 // most recent frames.
 dds_qos_t* cloudQos();
 
+// Reliable, transient-local, keep-all on the reader: a slow reader slows the writer down
+// (reliable flow control) instead of losing frames from its own history.
+dds_qos_t* cloudReaderQos();
+
 inline constexpr int kCloudHistory = 32;
 
 }  // namespace stereomap::proto

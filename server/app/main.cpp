@@ -20,9 +20,11 @@ using namespace stereomap;
 template <typename T>
 void pump(proto::Reader<T>& reader, core::MapServer& server, const common::Shutdown& shutdown) {
   std::vector<T> batch;
-  while (!shutdown.stopRequested()) {
+  bool last_round = false;
+  while (!last_round) {
+    last_round = shutdown.stopRequested();  // after a stop: one more round for what arrived
     batch.clear();
-    reader.take(batch, std::chrono::milliseconds(500));
+    reader.take(batch, last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500));
     for (const auto& sample : batch) server.ingest(sample);
   }
 }

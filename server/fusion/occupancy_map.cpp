@@ -101,7 +101,16 @@ common::Vec3 OccupancyMap::voxelCentre(const VoxelIndex& index) const {
 
 double OccupancyMap::resolution() const { return impl_->tree.getResolution(); }
 
-bool OccupancyMap::writeBinary(std::ostream& out) const { return impl_->tree.writeBinaryConst(out); }
+bool OccupancyMap::writeBinary(std::ostream& out) const {
+  // OctoMap's writeBinaryConst() writes this header too, but also chatters on stderr.
+  const auto& tree = impl_->tree;
+  out << "# Octomap OcTree binary file\n# (feel free to add / change comments, but leave the "
+         "first line as it is!)\n#\n"
+      << "id " << tree.getTreeType() << "\nsize " << tree.size() << "\nres "
+      << tree.getResolution() << "\ndata\n";
+  tree.writeBinaryData(out);
+  return static_cast<bool>(out);
+}
 
 size_t OccupancyMap::memoryBytes() const { return impl_->tree.memoryUsage(); }
 

@@ -1,0 +1,51 @@
+// Helpers for cross-process tests: a child process that is always cleaned up (SIGTERM, then
+// SIGKILL), a plain HTTP GET against the server on loopback, and waiting with a deadline.
+#pragma once
+
+#include <chrono>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <sys/types.h>
+
+namespace stereomap::testing {
+
+class ChildProcess {
+ public:
+  // Starts `argv[0]` with the arguments; stdout and stderr go to `log_path` (appended).
+  ChildProcess(std::vector<std::string> argv, const std::string& log_path);
+  ~ChildProcess();  // stops the process if it still runs
+  ChildProcess(const ChildProcess&) = delete;
+  ChildProcess& operator=(const ChildProcess&) = delete;
+
+  bool running();
+  // Waits for exit up to `timeout`; the exit code, or nullopt if it is still running.
+  std::optional<int> waitExit(std::chrono::milliseconds timeout);
+  // SIGTERM, wait up to `grace`, then SIGKILL. Returns the exit code (or -signal).
+  int stop(std::chrono::milliseconds grace = std::chrono::seconds(10));
+  void kill9();
+  pid_t pid() const { return pid_; }
+
+ private:
+  pid_t pid_ = -1;
+  std::optional<int> status_;
+};
+
+struct HttpReply {
+  int status = 0;  // 0: no answer
+  std::string body;
+};
+
+// GET http://127.0.0.1:port/path with a 10 s timeout; status 0 when nothing answered.
+HttpReply httpGet(int port, const std::string& path);
+
+// Calls `done` until it returns true or `timeout` passes; true when it did.
+bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,
+               std::chrono::milliseconds step = std::chrono::milliseconds(200));
+
+// A fresh empty directory under $TMPDIR, removed by the caller.
+std::string makeTempDir(const std::string& prefix);
+
+}  // namespace stereomap::testing

@@ -1,0 +1,59 @@
+#include "tests/support/server_fixture.hpp"
+
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
+
+namespace stereomap::testing {
+
+using namespace std::chrono_literals;
+
+ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_args) {
+  store_ = makeTempDir("stereomap-test-store");
+  log_ = store_ + ".server.log";
+  std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-server",
+                                   "--http", "127.0.0.1:0", "--store", store_,
+                                   "--dds-config", STEREOMAP_DDS_CONFIG,
+                                   "--domain", std::to_string(domain)};
+  argv.insert(argv.end(), extra_args.begin(), extra_args.end());
+  process_ = std::make_unique<ChildProcess>(argv, log_);
+  // The server logs "viewer: http://127.0.0.1:PORT/" once it listens.
+  const bool up = waitUntil(20s, [&] {
+    const std::string text = log();
+    const size_t at = text.find("viewer: http://127.0.0.1:");
+    if (at == std::string::npos) return !process_->running();
+    port_ = std::atoi(text.c_str() + at + 25);
+    return true;
+  });
+  if (!up || port_ == 0 || httpGet(port_, "/healthz").status != 200) {
+    throw std::runtime_error("stereomap-server did not come up; its log:\n" + log());
+  }
+}
+
+ServerProcess::~ServerProcess() {
+  process_->stop();
+  std::error_code ec;
+  std::filesystem::remove_all(store_, ec);
+  std::filesystem::remove(log_, ec);
+}
+
+std::string ServerProcess::log() const {
+  std::ifstream in(log_);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+std::vector<std::string> onboardArgs(int domain, const std::string& session, int frames,
+                                     const std::vector<std::string>& extra) {
+  std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard",
+                                   "--source", "sim", "--session", session,
+                                   "--frames", std::to_string(frames),
+                                   "--dds-config", STEREOMAP_DDS_CONFIG,
+                                   "--domain", std::to_string(domain)};
+  argv.insert(argv.end(), extra.begin(), extra.end());
+  return argv;
+}
+
+}  // namespace stereomap::testing

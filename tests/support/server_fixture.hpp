@@ -1,0 +1,36 @@
+// A stereomap-server process for cross-process tests: started on a free port and its own
+// DDS domain, with a temporary store, and stopped (and checked) at the end.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "tests/support/process.hpp"
+
+namespace stereomap::testing {
+
+class ServerProcess {
+ public:
+  // Starts the server and waits until it serves /healthz; throws with the log on failure.
+  ServerProcess(int domain, const std::vector<std::string>& extra_args = {});
+  ~ServerProcess();
+  int port() const { return port_; }
+  const std::string& store() const { return store_; }
+  const std::string& logPath() const { return log_; }
+  std::string log() const;
+  HttpReply get(const std::string& path) const { return httpGet(port_, path); }
+  ChildProcess& process() { return *process_; }
+
+ private:
+  std::string store_;
+  std::string log_;
+  int port_ = 0;
+  std::unique_ptr<ChildProcess> process_;
+};
+
+// The onboard binary's argv for a sim flight on `domain`.
+std::vector<std::string> onboardArgs(int domain, const std::string& session, int frames,
+                                     const std::vector<std::string>& extra = {});
+
+}  // namespace stereomap::testing
