@@ -17,7 +17,7 @@ TEST(Rigid3, ComposeAndInverseRoundTrip) {
 
 TEST(Geometry, CameraLooksAlongBodyX) {
   const Quat R_body_camera = bodyFromCameraRotation();
-  EXPECT_LT((R_body_camera * Vec3(0, 0, 1) - Vec3(1, 0, 0)).norm(), 1e-12);  // forward
+  EXPECT_LT((R_body_camera * Vec3(0, 0, 1) - Vec3(1, 0, 0)).norm(), 1e-12);   // forward
   EXPECT_LT((R_body_camera * Vec3(0, 1, 0) - Vec3(0, 0, -1)).norm(), 1e-12);  // down
   EXPECT_LT((R_body_camera * Vec3(1, 0, 0) - Vec3(0, -1, 0)).norm(), 1e-12);  // right
 }

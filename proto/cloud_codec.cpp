@@ -17,21 +17,21 @@ using common::Result;
 Result<std::vector<uint8_t>> encodeCloud(const PointCloud& cloud,
                                          const CloudCodecOptions& options) {
   if (options.quantization_bits < 1 || options.quantization_bits > 30) {
-    return makeError(ErrorCode::kInvalidArgument,
-                     "quantization_bits must be in 1..30, got " +
-                         std::to_string(options.quantization_bits));
+    return makeError(ErrorCode::kInvalidArgument, "quantization_bits must be in 1..30, got " +
+                                                      std::to_string(options.quantization_bits));
   }
   if (cloud.hasIntensity() && cloud.intensity.size() != cloud.size()) {
     return makeError(ErrorCode::kInvalidArgument, "intensity count differs from point count");
   }
   for (const auto& p : cloud.points) {
-    if (!p.allFinite()) return makeError(ErrorCode::kInvalidArgument, "cloud has a non-finite point");
+    if (!p.allFinite())
+      return makeError(ErrorCode::kInvalidArgument, "cloud has a non-finite point");
   }
 
   draco::PointCloudBuilder builder;
   builder.Start(static_cast<draco::PointIndex::ValueType>(cloud.size()));
-  const int position = builder.AddAttribute(draco::GeometryAttribute::POSITION, 3,
-                                            draco::DT_FLOAT32);
+  const int position =
+      builder.AddAttribute(draco::GeometryAttribute::POSITION, 3, draco::DT_FLOAT32);
   if (!cloud.points.empty()) {
     builder.SetAttributeValuesForAllPoints(position, cloud.points.data(), sizeof(common::Vec3f));
   }
@@ -41,7 +41,8 @@ Result<std::vector<uint8_t>> encodeCloud(const PointCloud& cloud,
     builder.SetAttributeValuesForAllPoints(intensity, cloud.intensity.data(), 1);
   }
   std::unique_ptr<draco::PointCloud> draco_cloud = builder.Finalize(false);
-  if (!draco_cloud) return makeError(ErrorCode::kInvalidArgument, "Draco could not build the cloud");
+  if (!draco_cloud)
+    return makeError(ErrorCode::kInvalidArgument, "Draco could not build the cloud");
 
   draco::Encoder encoder;
   encoder.SetAttributeQuantization(draco::GeometryAttribute::POSITION, options.quantization_bits);

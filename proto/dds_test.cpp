@@ -13,7 +13,8 @@ using namespace std::chrono_literals;
 constexpr uint32_t kDomain = 61;
 
 std::shared_ptr<Participant> makeParticipant() {
-  auto participant = Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
+  auto participant =
+      Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
   EXPECT_TRUE(participant.ok()) << participant.error().message;
   return *participant;
 }
@@ -144,7 +145,8 @@ TEST(Dds, WakeReturnsABlockedTakeAtOnce) {
 }
 
 TEST(Dds, BadConfigFileIsAClearError) {
-  auto participant = Participant::create({.domain_id = kDomain + 1, .config_file = "/nonexistent.xml"});
+  auto participant =
+      Participant::create({.domain_id = kDomain + 1, .config_file = "/nonexistent.xml"});
   ASSERT_FALSE(participant.ok());
   EXPECT_NE(participant.error().message.find("/nonexistent.xml"), std::string::npos);
 }

@@ -37,7 +37,7 @@ struct CloudFrameMsg {
   std::string session_id;
   uint64_t seq = 0;
   int64_t stamp_ns = 0;
-  std::array<double, 3> sensor_position{};            // T_map_camera translation
+  std::array<double, 3> sensor_position{};               // T_map_camera translation
   std::array<double, 4> sensor_orientation{0, 0, 0, 1};  // T_map_camera rotation, x y z w
   float max_range = 0;
   uint32_t point_count = 0;

@@ -7,6 +7,7 @@
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
 #include "tests/support/server_fixture.hpp"
+#include "tests/support/synthetic.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -17,18 +18,7 @@ constexpr int kDomain = 72;
 const std::string kSession = "bad-input";
 
 proto::CloudFrameMsg wallFrame(uint64_t seq, double x) {
-  common::PointCloud cloud;
-  for (double y = -1; y <= 1; y += 0.02) {
-    for (double z = -1; z <= 1; z += 0.02) cloud.points.emplace_back(x, y, z);
-  }
-  proto::CloudFrameMsg frame;
-  frame.vehicle_id = "tester";
-  frame.session_id = kSession;
-  frame.seq = seq;
-  frame.max_range = 10;
-  frame.point_count = static_cast<uint32_t>(cloud.size());
-  frame.payload = proto::encodeCloud(cloud).value();
-  return frame;
+  return planeFrame("tester", kSession, seq, planeCloud(x, 1.0, 0.02));
 }
 
 proto::PoseMsg goodPose(uint64_t seq) {
@@ -83,18 +73,21 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   const bool counted = waitUntil(30s, [&] {
     metrics = server.get("/metrics").body;
     return metric(metrics, "stereomap_session_frames_fused{session=\"bad-input\"}") == 2 &&
-           metric(metrics, "stereomap_samples_rejected_total{topic=\"Pose\",reason=\"non_finite\"}") ==
-               1 &&
+           metric(metrics,
+                  "stereomap_samples_rejected_total{topic=\"Pose\",reason=\"non_finite\"}") == 1 &&
            metric(metrics, "stereomap_samples_accepted_total{topic=\"Pose\"}") == 2;
   });
   ASSERT_TRUE(counted) << metrics << "\n" << server.log();
   EXPECT_EQ(
-      metric(metrics, "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"decode_failed\"}"),
+      metric(metrics,
+             "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"decode_failed\"}"),
       1);
-  EXPECT_EQ(metric(metrics, "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"oversize\"}"),
-            1);
   EXPECT_EQ(
-      metric(metrics, "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"bad_quaternion\"}"),
+      metric(metrics, "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"oversize\"}"),
+      1);
+  EXPECT_EQ(
+      metric(metrics,
+             "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"bad_quaternion\"}"),
       1);
   EXPECT_EQ(metric(metrics, "stereomap_samples_accepted_total{topic=\"CloudFrame\"}"), 2);
 

@@ -1,7 +1,7 @@
 // stereomap-onboard: the vehicle side. Reads stereo frames from a source, computes depth,
 // and streams compressed clouds and poses to stereomap-server over DDS.
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
 #include <ctime>
 #include <filesystem>
@@ -49,7 +49,9 @@ int main(int argc, char** argv) {
   app.add_option("--dds-config", dds_config,
                  "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
       ->check(CLI::ExistingFile);
-  app.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232))->capture_default_str();
+  app.add_option("--domain", domain, "DDS domain id")
+      ->check(CLI::Range(0, 232))
+      ->capture_default_str();
   app.add_option("--seed", seed, "Simulated room's seed")->capture_default_str();
   app.add_option("--matcher", matcher, "Stereo matcher: bm (fast) or sgbm")
       ->check(CLI::IsMember({"bm", "sgbm"}))

@@ -16,10 +16,10 @@ namespace stereomap::camera {
 struct SourceFrame {
   uint64_t index = 0;
   int64_t stamp_ns = 0;
-  cv::Mat left;   // CV_8UC1, rectified
-  cv::Mat right;  // CV_8UC1, rectified
-  std::optional<common::Rigid3> T_map_body;    // ground truth, when the source knows it
-  std::optional<common::Rigid3> T_body_camera; // the left camera's mount on the body
+  cv::Mat left;                                 // CV_8UC1, rectified
+  cv::Mat right;                                // CV_8UC1, rectified
+  std::optional<common::Rigid3> T_map_body;     // ground truth, when the source knows it
+  std::optional<common::Rigid3> T_body_camera;  // the left camera's mount on the body
 };
 
 class FrameSource {

@@ -19,9 +19,7 @@ struct StereoCamera {
   double baseline = 0.120081;  // metres
 
   // Ray through pixel (u, v) in the camera frame, scaled so that its z is 1.
-  common::Vec3 rayThrough(double u, double v) const {
-    return {(u - cx) / fx, (v - cy) / fy, 1.0};
-  }
+  common::Vec3 rayThrough(double u, double v) const { return {(u - cx) / fx, (v - cy) / fy, 1.0}; }
   // Depth (z, metres) of a disparity in pixels; disparity must be > 0.
   double depthFromDisparity(double disparity_px) const { return baseline * fx / disparity_px; }
   double disparityFromDepth(double depth_m) const { return baseline * fx / depth_m; }

@@ -79,8 +79,8 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
   return pose;
 }
 
-common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options,
-                                                       uint64_t seq, int64_t stamp_ns,
+common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
+                                                       int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
                                                        const common::PointCloud& cloud_camera) {
   auto payload = proto::encodeCloud(cloud_camera, options.codec);
@@ -130,12 +130,13 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
 
   if (publisher != nullptr) {
     if (!publisher->waitForServer(options.wait_for_server)) {
-      spdlog::warn("no server has subscribed after {} ms; publishing anyway (the last frames "
-                   "stay available to a server that joins later)",
-                   options.wait_for_server.count());
+      spdlog::warn(
+          "no server has subscribed after {} ms; publishing anyway (the last frames "
+          "stay available to a server that joins later)",
+          options.wait_for_server.count());
     }
-    report(publisher->publish(makeSessionEvent(options, source.camera(),
-                                               proto::SessionEventKind::kStarted)),
+    report(publisher->publish(
+               makeSessionEvent(options, source.camera(), proto::SessionEventKind::kStarted)),
            "SessionEvent");
   }
 
@@ -165,8 +166,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
     const auto depth_start = Clock::now();
     const cv::Mat disparity = matcher.compute(frame->left, frame->right);
-    const auto cloud = stereo::cloudFromDisparity(disparity, frame->left, source.camera(),
-                                                  options.cloud);
+    const auto cloud =
+        stereo::cloudFromDisparity(disparity, frame->left, source.camera(), options.cloud);
     depth_ms.push_back(msSince(depth_start));
 
     const common::Rigid3 T_map_body = *frame->T_map_body;
@@ -206,8 +207,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   }
 
   if (publisher != nullptr) {
-    report(publisher->publish(makeSessionEvent(options, source.camera(),
-                                               proto::SessionEventKind::kEnded)),
+    report(publisher->publish(
+               makeSessionEvent(options, source.camera(), proto::SessionEventKind::kEnded)),
            "SessionEvent");
   }
   summary.median_depth_ms = median(depth_ms);

@@ -37,11 +37,11 @@ struct PipelineSummary {
   uint64_t points = 0;
   uint64_t payload_bytes = 0;
   uint64_t publish_errors = 0;
-  uint64_t late_frames = 0;   // frames that started after their slot (the rate was not kept)
-  double median_depth_ms = 0;   // disparity + cloud
+  uint64_t late_frames = 0;    // frames that started after their slot (the rate was not kept)
+  double median_depth_ms = 0;  // disparity + cloud
   double median_encode_ms = 0;
-  double median_frame_ms = 0;   // whole frame, source included
-  bool stopped = false;         // ended by a stop request rather than the end of the source
+  double median_frame_ms = 0;  // whole frame, source included
+  bool stopped = false;        // ended by a stop request rather than the end of the source
 };
 
 // The DDS side of the vehicle: one writer per topic.
@@ -63,8 +63,8 @@ class VehiclePublisher {
 // Messages for one frame (exposed for tests).
 proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
                            const common::Rigid3& T_map_body, const common::Vec3& velocity);
-common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options,
-                                                       uint64_t seq, int64_t stamp_ns,
+common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
+                                                       int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
                                                        const common::PointCloud& cloud_camera);
 proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,

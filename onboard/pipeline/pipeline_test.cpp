@@ -38,8 +38,7 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
 TEST(Pipeline, RunsASourceToTheEndWithoutPublishing) {
   sim::SimSource source({.seed = 1, .max_frames = 3});
   common::Shutdown shutdown;
-  const auto summary =
-      runPipeline(source, nullptr, {.rate_hz = 0, .progress_every = 0}, shutdown);
+  const auto summary = runPipeline(source, nullptr, {.rate_hz = 0, .progress_every = 0}, shutdown);
   EXPECT_EQ(summary.frames, 3u);
   EXPECT_GT(summary.points, 15000u);
   EXPECT_FALSE(summary.stopped);

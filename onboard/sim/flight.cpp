@@ -15,9 +15,9 @@ Rigid3 Flight::T_map_body(double t_s) const {
   const Vec3 position(options_.radius_x * std::cos(phase), options_.radius_y * std::sin(phase),
                       options_.height + options_.height_swing * std::sin(2 * phase));
   // Heading along the path's tangent, turned outward so the camera sees walls and obstacles.
-  const double heading = std::atan2(options_.radius_y * std::cos(phase),
-                                    -options_.radius_x * std::sin(phase)) -
-                         options_.look_outward;
+  const double heading =
+      std::atan2(options_.radius_y * std::cos(phase), -options_.radius_x * std::sin(phase)) -
+      options_.look_outward;
   return {Quat(Eigen::AngleAxisd(heading, Vec3::UnitZ())), position};
 }
 

@@ -8,12 +8,12 @@
 namespace stereomap::sim {
 
 struct FlightOptions {
-  double radius_x = 3.0;     // metres, ellipse semi-axes around the map origin
+  double radius_x = 3.0;  // metres, ellipse semi-axes around the map origin
   double radius_y = 2.4;
-  double height = 1.4;       // mean height above the floor, metres
-  double height_swing = 0.3; // +- metres, two cycles per loop
-  double period_s = 40.0;    // one loop
-  double look_outward = 0.5; // radians the heading is turned from the path towards the walls
+  double height = 1.4;              // mean height above the floor, metres
+  double height_swing = 0.3;        // +- metres, two cycles per loop
+  double period_s = 40.0;           // one loop
+  double look_outward = 0.5;        // radians the heading is turned from the path towards the walls
   double camera_pitch_down = 0.15;  // radians
 };
 

@@ -32,10 +32,9 @@ cv::Rect projectedRect(const SceneBox& box, const Rigid3& T_camera_map,
     v_min = std::min(v_min, uv->y());
     v_max = std::max(v_max, uv->y());
   }
-  const cv::Rect rect(cv::Point(static_cast<int>(std::floor(u_min)) - 1,
-                                static_cast<int>(std::floor(v_min)) - 1),
-                      cv::Point(static_cast<int>(std::ceil(u_max)) + 2,
-                                static_cast<int>(std::ceil(v_max)) + 2));
+  const cv::Rect rect(
+      cv::Point(static_cast<int>(std::floor(u_min)) - 1, static_cast<int>(std::floor(v_min)) - 1),
+      cv::Point(static_cast<int>(std::ceil(u_max)) + 2, static_cast<int>(std::ceil(v_max)) + 2));
   return rect & image;
 }
 

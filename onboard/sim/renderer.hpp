@@ -11,15 +11,15 @@
 namespace stereomap::sim {
 
 struct StereoFrame {
-  cv::Mat left;   // CV_8UC1
-  cv::Mat right;  // CV_8UC1
-  cv::Mat depth;  // CV_32FC1, left camera z in metres, 0 = no surface
+  cv::Mat left;                 // CV_8UC1
+  cv::Mat right;                // CV_8UC1
+  cv::Mat depth;                // CV_32FC1, left camera z in metres, 0 = no surface
   common::Rigid3 T_map_camera;  // left camera
 };
 
 struct RenderOptions {
-  double max_depth = 40.0;     // metres; farther surfaces are not rendered
-  double noise_sigma = 0.0;    // grey levels of Gaussian image noise (0 = exact images)
+  double max_depth = 40.0;   // metres; farther surfaces are not rendered
+  double noise_sigma = 0.0;  // grey levels of Gaussian image noise (0 = exact images)
   uint32_t noise_seed = 1;
 };
 

@@ -11,8 +11,8 @@ namespace stereomap::sim {
 
 struct SimSourceOptions {
   uint32_t seed = 1;
-  double rate_hz = 10.0;  // simulated time between frames is 1 / rate_hz
-  uint64_t max_frames = 0;  // 0: unlimited (the flight loops)
+  double rate_hz = 10.0;       // simulated time between frames is 1 / rate_hz
+  uint64_t max_frames = 0;     // 0: unlimited (the flight loops)
   int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = now
   RenderOptions render;
   FlightOptions flight;

@@ -21,8 +21,8 @@ StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_un
   } else {
     constexpr int kBlock = 5;
     auto sgbm = cv::StereoSGBM::create(0, options.num_disparities, kBlock, 8 * kBlock * kBlock,
-                                       32 * kBlock * kBlock, 1, 63, options.uniqueness_ratio, 0,
-                                       0, cv::StereoSGBM::MODE_SGBM_3WAY);
+                                       32 * kBlock * kBlock, 1, 63, options.uniqueness_ratio, 0, 0,
+                                       cv::StereoSGBM::MODE_SGBM_3WAY);
     impl_->matcher = sgbm;
   }
   impl_->matcher->setSpeckleWindowSize(options.speckle_window);

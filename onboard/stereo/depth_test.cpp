@@ -19,8 +19,7 @@ cv::Mat quantisedTrueDisparity(const cv::Mat& depth) {
     for (int u = 0; u < depth.cols; ++u) {
       const float z = depth.at<float>(v, u);
       if (z > 0) {
-        disparity.at<float>(v, u) =
-            std::round(kCamera.disparityFromDepth(z) * 16.0) / 16.0f;
+        disparity.at<float>(v, u) = std::round(kCamera.disparityFromDepth(z) * 16.0) / 16.0f;
       }
     }
   }
@@ -37,8 +36,8 @@ TEST(CloudFromDisparity, EveryPointLiesOnTheRenderedGeometryWithinQuantisation) 
   const auto frame = renderer.render(flight.T_map_camera(5.0));
   const cv::Mat disparity = quantisedTrueDisparity(frame.depth);
 
-  const auto cloud = cloudFromDisparity(disparity, frame.left, kCamera,
-                                        {.block_cols = 1, .block_rows = 1});
+  const auto cloud =
+      cloudFromDisparity(disparity, frame.left, kCamera, {.block_cols = 1, .block_rows = 1});
   ASSERT_GT(cloud.size(), 50000u);
   size_t checked = 0;
   // Points come out row-major over valid pixels: walk them in the same order.
@@ -111,8 +110,8 @@ TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
     }
     const double accuracy = static_cast<double>(good) / valid;
     const double density = static_cast<double>(valid) / surface;
-    std::printf("matcher %d: within 1 px %.3f, density %.3f\n",
-                static_cast<int>(expected.kind), accuracy, density);
+    std::printf("matcher %d: within 1 px %.3f, density %.3f\n", static_cast<int>(expected.kind),
+                accuracy, density);
     EXPECT_GE(accuracy, expected.min_accuracy);
     EXPECT_GE(density, expected.min_density);
   }

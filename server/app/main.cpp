@@ -1,7 +1,7 @@
 // stereomap-server: receives clouds and poses over DDS, fuses them into an occupancy map per
 // session, keeps sessions on disk, and serves the viewer, the REST API and live pushes.
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
 #include <filesystem>
 #include <thread>
@@ -76,7 +76,9 @@ int main(int argc, char** argv) {
   app.add_option("--dds-config", dds_config,
                  "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
       ->check(CLI::ExistingFile);
-  app.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232))->capture_default_str();
+  app.add_option("--domain", domain, "DDS domain id")
+      ->check(CLI::Range(0, 232))
+      ->capture_default_str();
   app.add_option("--web-root", web_root, "The built viewer (default: ../web beside this binary)");
   app.add_option("--token", token,
                  "Token clients must present (required when --http is not a loopback address)");
@@ -108,9 +110,10 @@ int main(int argc, char** argv) {
   }
   if (http.address == "localhost") http.address = "127.0.0.1";
   if (!isLoopback(http.address) && token.empty()) {
-    spdlog::error("--http {} is not a loopback address: pass --token so that only your "
-                  "operators can see the maps",
-                  http_spec);
+    spdlog::error(
+        "--http {} is not a loopback address: pass --token so that only your "
+        "operators can see the maps",
+        http_spec);
     return 2;
   }
   http.token = token;
@@ -119,9 +122,10 @@ int main(int argc, char** argv) {
                       : std::filesystem::path(web_root);
   http.web_root = std::filesystem::weakly_canonical(http.web_root);
   if (!std::filesystem::exists(http.web_root / "index.html")) {
-    spdlog::warn("no viewer at {} (build it with ./scripts/build, or pass --web-root); the API "
-                 "still works",
-                 http.web_root.string());
+    spdlog::warn(
+        "no viewer at {} (build it with ./scripts/build, or pass --web-root); the API "
+        "still works",
+        http.web_root.string());
   }
 
   auto store = store::SessionStore::open(store_dir);
@@ -139,9 +143,9 @@ int main(int argc, char** argv) {
   auto poses = proto::Reader<proto::PoseMsg>::create(*participant);
   auto events = proto::Reader<proto::SessionEventMsg>::create(*participant);
   if (!clouds || !poses || !events) {
-    spdlog::error("cannot create DDS readers: {}",
-                  !clouds ? clouds.error().message
-                          : !poses ? poses.error().message : events.error().message);
+    spdlog::error("cannot create DDS readers: {}", !clouds  ? clouds.error().message
+                                                   : !poses ? poses.error().message
+                                                            : events.error().message);
     return 1;
   }
 
@@ -180,11 +184,12 @@ int main(int argc, char** argv) {
       backlog += status.backlog;
     }
     if (voxels != last_voxels) {
-      spdlog::info("map: {} sessions, {} frames fused, {} occupied voxels (+{}), backlog {}, "
-                   "{} viewers",
-                   sessions.size(), frames, voxels,
-                   static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog,
-                   (*http_server)->viewers());
+      spdlog::info(
+          "map: {} sessions, {} frames fused, {} occupied voxels (+{}), backlog {}, "
+          "{} viewers",
+          sessions.size(), frames, voxels,
+          static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog,
+          (*http_server)->viewers());
       last_voxels = voxels;
     }
   }

@@ -66,13 +66,17 @@ std::string queryValue(std::string_view target, std::string_view key) {
 
 std::string sessionJson(const SessionStatus& status) { return statusJson(status).dump(); }
 
+bool isApiPath(std::string_view target) {
+  const auto parts = segments(target);
+  if (parts.empty()) return false;
+  return parts[0] == "api" ||
+         (parts.size() == 1 && (parts[0] == "healthz" || parts[0] == "metrics"));
+}
+
 std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
                                     std::string_view target) {
+  if (!isApiPath(target)) return std::nullopt;
   const auto parts = segments(target);
-  if (parts.empty()) return std::nullopt;
-  const bool is_api = parts[0] == "api" || (parts.size() == 1 && (parts[0] == "healthz" ||
-                                                                   parts[0] == "metrics"));
-  if (!is_api) return std::nullopt;
   if (method != "GET" && method != "HEAD") return error(405, "only GET is supported here");
 
   if (parts[0] == "healthz") return HttpAnswer{200, "text/plain", "ok\n", ""};
@@ -95,7 +99,8 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view me
   if (parts.size() == 4 && parts[3] == "trajectory.tum") {
     const std::string vehicle = queryValue(target, "vehicle");
     auto vehicles = session->status().vehicles;
-    if (!vehicle.empty() && std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
+    if (!vehicle.empty() &&
+        std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
       return error(404, "session '" + parts[2] + "' has no vehicle '" + vehicle + "'");
     }
     // One vehicle per file: the given one, else the session's first.

@@ -18,6 +18,9 @@ struct HttpAnswer {
   std::string filename;  // when set: offered as a download with this name
 };
 
+// True for the paths answerApi() serves (/healthz, /metrics, /api/...).
+bool isApiPath(std::string_view target);
+
 // The answer for an API path, or nullopt when `target` is not an API path (static files).
 std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
                                     std::string_view target);

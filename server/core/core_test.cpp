@@ -7,30 +7,17 @@
 #include "server/core/api.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/viewer_feed.hpp"
+#include "tests/support/synthetic.hpp"
 
 namespace stereomap::core {
 namespace {
 
 using nlohmann::json;
 
-common::PointCloud wallCloud(double x) {
-  common::PointCloud cloud;
-  for (double y = -0.5; y <= 0.5; y += 0.03) {
-    for (double z = -0.5; z <= 0.5; z += 0.03) cloud.points.emplace_back(x, y, z);
-  }
-  return cloud;
-}
+common::PointCloud wallCloud(double x) { return testing::planeCloud(x, 0.5, 0.03); }
 
 proto::CloudFrameMsg cloudFrame(const std::string& session, double wall_x, uint64_t seq = 0) {
-  const auto cloud = wallCloud(wall_x);
-  proto::CloudFrameMsg frame;
-  frame.vehicle_id = "v1";
-  frame.session_id = session;
-  frame.seq = seq;
-  frame.max_range = 10;
-  frame.point_count = static_cast<uint32_t>(cloud.size());
-  frame.payload = proto::encodeCloud(cloud).value();
-  return frame;
+  return testing::planeFrame("v1", session, seq, wallCloud(wall_x));
 }
 
 proto::PoseMsg pose(const std::string& session, double x, int64_t stamp_ns) {
@@ -113,8 +100,9 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
 
   auto tum = answerApi(server, "GET", "/api/sessions/flight-1/trajectory.tum");
   ASSERT_TRUE(tum && tum->status == 200);
-  EXPECT_EQ(tum->body, "1700000000.250000000 0.500000 0.000000 0.000000 0.000000000 "
-                       "0.000000000 0.000000000 1.000000000\n");
+  EXPECT_EQ(tum->body,
+            "1700000000.250000000 0.500000 0.000000 0.000000 0.000000000 "
+            "0.000000000 0.000000000 1.000000000\n");
   auto bt = answerApi(server, "GET", "/api/sessions/flight-1/map.bt");
   ASSERT_TRUE(bt && bt->status == 200);
   EXPECT_EQ(bt->body.rfind("# Octomap OcTree binary file", 0), 0u);

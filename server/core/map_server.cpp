@@ -47,27 +47,36 @@ std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char
                  options_.max_sessions);
     return nullptr;
   }
-  auto session = std::make_shared<Session>(
-      id, Session::Options{options_.resolution, options_.queue_capacity});
+  auto session =
+      std::make_shared<Session>(id, Session::Options{options_.resolution, options_.queue_capacity});
   sessions_.emplace(id, session);
   order_.push_back(id);
   spdlog::info("session '{}' started (resolution {} m)", id, options_.resolution);
   return session;
 }
 
-bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
-  metrics_.add(kReceived, {{"topic", "CloudFrame"}});
-  ValidCloud valid;
-  if (auto rejection = validateCloudFrame(frame, options_.limits, valid)) {
-    reject("CloudFrame", *rejection, frame.vehicle_id + "/" + frame.session_id);
-    return false;
+std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& vehicle_id,
+                                          const std::string& session_id,
+                                          const std::optional<Rejection>& rejection) {
+  metrics_.add(kReceived, {{"topic", topic}});
+  if (rejection) {
+    reject(topic, *rejection, vehicle_id + "/" + session_id);
+    return nullptr;
   }
-  auto session = sessionFor(frame.session_id, "CloudFrame");
+  auto session = sessionFor(session_id, topic);
   if (!session) {
-    reject("CloudFrame", {"session_limit", "too many sessions"}, frame.session_id);
-    return false;
+    reject(topic, {"session_limit", "too many sessions"}, vehicle_id + "/" + session_id);
+    return nullptr;
   }
-  metrics_.add(kAccepted, {{"topic", "CloudFrame"}});
+  metrics_.add(kAccepted, {{"topic", topic}});
+  return session;
+}
+
+bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
+  ValidCloud valid;
+  const auto rejection = validateCloudFrame(frame, options_.limits, valid);
+  auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection);
+  if (!session) return false;
   const bool queued = session->enqueue({frame.vehicle_id, frame.seq, std::move(valid.cloud_camera),
                                         valid.T_map_camera, valid.max_range_m});
   if (!queued) {
@@ -79,38 +88,21 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
 }
 
 bool MapServer::ingest(const proto::PoseMsg& pose) {
-  metrics_.add(kReceived, {{"topic", "Pose"}});
   ValidPose valid;
-  if (auto rejection = validatePose(pose, valid)) {
-    reject("Pose", *rejection, pose.vehicle_id + "/" + pose.session_id);
-    return false;
-  }
-  auto session = sessionFor(pose.session_id, "Pose");
-  if (!session) {
-    reject("Pose", {"session_limit", "too many sessions"}, pose.session_id);
-    return false;
-  }
-  metrics_.add(kAccepted, {{"topic", "Pose"}});
+  const auto rejection = validatePose(pose, valid);
+  auto session = admit("Pose", pose.vehicle_id, pose.session_id, rejection);
+  if (!session) return false;
   session->addPose({pose.vehicle_id, valid.stamp_ns, valid.T_map_body});
   return true;
 }
 
 bool MapServer::ingest(const proto::SessionEventMsg& event) {
-  metrics_.add(kReceived, {{"topic", "SessionEvent"}});
-  if (auto rejection = validateSessionEvent(event)) {
-    reject("SessionEvent", *rejection, event.vehicle_id + "/" + event.session_id);
-    return false;
-  }
-  auto session = sessionFor(event.session_id, "SessionEvent");
-  if (!session) {
-    reject("SessionEvent", {"session_limit", "too many sessions"}, event.session_id);
-    return false;
-  }
-  metrics_.add(kAccepted, {{"topic", "SessionEvent"}});
+  auto session =
+      admit("SessionEvent", event.vehicle_id, event.session_id, validateSessionEvent(event));
+  if (!session) return false;
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
-    spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id,
-                 event.vehicle_id);
+    spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
   }
   return true;
 }
@@ -134,7 +126,8 @@ std::string MapServer::metricsText() const {
   for (const auto& session : all) {
     const auto status = session->status();
     const Labels labels{{"session", status.id}};
-    metrics_.set("stereomap_session_frames_fused", labels, static_cast<double>(status.frames_fused));
+    metrics_.set("stereomap_session_frames_fused", labels,
+                 static_cast<double>(status.frames_fused));
     metrics_.set("stereomap_session_occupied_voxels", labels,
                  static_cast<double>(status.occupied_voxels));
     metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));

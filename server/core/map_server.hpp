@@ -6,6 +6,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,10 @@ class MapServer {
 
  private:
   std::shared_ptr<Session> sessionFor(const std::string& id, const char* topic);
+  // Counts the sample and returns its session, or nullptr (counted, logged) when rejected.
+  std::shared_ptr<Session> admit(const char* topic, const std::string& vehicle_id,
+                                 const std::string& session_id,
+                                 const std::optional<Rejection>& rejection);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
 
   const MapServerOptions options_;

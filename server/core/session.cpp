@@ -145,11 +145,10 @@ std::string Session::trajectoryTum(const std::string& vehicle_id) const {
     if (!vehicle_id.empty() && pose.vehicle_id != vehicle_id) continue;
     const auto& t = pose.T_map_body.translation;
     const auto& q = pose.T_map_body.rotation;
-    out << std::setprecision(9) << pose.stamp_ns / 1'000'000'000 << "."
-        << std::setw(9) << std::setfill('0') << pose.stamp_ns % 1'000'000'000
-        << std::setfill(' ') << std::setprecision(6) << " " << t.x() << " " << t.y() << " "
-        << t.z() << " " << std::setprecision(9) << q.x() << " " << q.y() << " " << q.z() << " "
-        << q.w() << "\n";
+    out << std::setprecision(9) << pose.stamp_ns / 1'000'000'000 << "." << std::setw(9)
+        << std::setfill('0') << pose.stamp_ns % 1'000'000'000 << std::setfill(' ')
+        << std::setprecision(6) << " " << t.x() << " " << t.y() << " " << t.z() << " "
+        << std::setprecision(9) << q.x() << " " << q.y() << " " << q.z() << " " << q.w() << "\n";
   }
   return out.str();
 }

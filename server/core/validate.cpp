@@ -33,9 +33,8 @@ std::optional<Rejection> checkPose(const std::array<double, 3>& position,
   if (!allFinite(orientation)) return Rejection{"non_finite", what + " orientation is not finite"};
   const common::Quat q(orientation[3], orientation[0], orientation[1], orientation[2]);
   if (!common::isUnitQuaternion(q)) {
-    return Rejection{"bad_quaternion",
-                     what + " orientation is not a unit quaternion (norm " +
-                         std::to_string(q.norm()) + ")"};
+    return Rejection{"bad_quaternion", what + " orientation is not a unit quaternion (norm " +
+                                           std::to_string(q.norm()) + ")"};
   }
   out = {q.normalized(), common::Vec3(position[0], position[1], position[2])};
   return std::nullopt;
@@ -67,8 +66,8 @@ std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
     return Rejection{"bad_range", "max_range " + std::to_string(frame.max_range) +
                                       " is not in (0, " + std::to_string(limits.max_range_m) + "]"};
   }
-  if (auto bad = checkPose(frame.sensor_position, frame.sensor_orientation, "sensor",
-                           out.T_map_camera)) {
+  if (auto bad =
+          checkPose(frame.sensor_position, frame.sensor_orientation, "sensor", out.T_map_camera)) {
     return bad;
   }
   if (frame.encoding == proto::CloudEncoding::kDraco) {

@@ -12,8 +12,8 @@ namespace stereomap::core {
 
 namespace {
 
-using nlohmann::json;
 using fusion::VoxelIndex;
+using nlohmann::json;
 
 json flatten(const std::vector<VoxelIndex>& voxels) {
   std::vector<int32_t> flat;
@@ -29,9 +29,12 @@ json flatten(const std::vector<VoxelIndex>& voxels) {
 std::string voxelsMessage(const std::string& session, const VoxelSnapshot& snapshot, bool reset,
                           const std::vector<VoxelIndex>& add,
                           const std::vector<VoxelIndex>& remove) {
-  return json{{"type", "voxels"},         {"session", session},
-              {"resolution", snapshot.resolution}, {"version", snapshot.version},
-              {"reset", reset},           {"add", flatten(add)},
+  return json{{"type", "voxels"},
+              {"session", session},
+              {"resolution", snapshot.resolution},
+              {"version", snapshot.version},
+              {"reset", reset},
+              {"add", flatten(add)},
               {"remove", flatten(remove)}}
       .dump();
 }
@@ -46,8 +49,8 @@ void appendPoseMessages(const std::string& session, const std::vector<PoseRecord
     if (inserted) order.push_back(pose.vehicle_id);
     const auto& t = pose.T_map_body.translation;
     const auto& q = pose.T_map_body.rotation;
-    it->second.push_back({common::nsToSeconds(pose.stamp_ns), t.x(), t.y(), t.z(), q.x(), q.y(),
-                          q.z(), q.w()});
+    it->second.push_back(
+        {common::nsToSeconds(pose.stamp_ns), t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()});
   }
   for (const auto& vehicle : order) {
     out.push_back(json{{"type", "poses"},

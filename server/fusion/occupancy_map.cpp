@@ -106,8 +106,8 @@ bool OccupancyMap::writeBinary(std::ostream& out) const {
   const auto& tree = impl_->tree;
   out << "# Octomap OcTree binary file\n# (feel free to add / change comments, but leave the "
          "first line as it is!)\n#\n"
-      << "id " << tree.getTreeType() << "\nsize " << tree.size() << "\nres "
-      << tree.getResolution() << "\ndata\n";
+      << "id " << tree.getTreeType() << "\nsize " << tree.size() << "\nres " << tree.getResolution()
+      << "\ndata\n";
   tree.writeBinaryData(out);
   return static_cast<bool>(out);
 }

@@ -5,19 +5,15 @@
 
 #include <sstream>
 
+#include "tests/support/synthetic.hpp"
+
 namespace stereomap::fusion {
 namespace {
 
 using common::Vec3;
 
 // A 2 m x 2 m wall of points at x = 3 (map frame), seen from the origin, 2 cm apart.
-common::PointCloud wall(double x) {
-  common::PointCloud cloud;
-  for (double y = -1; y <= 1; y += 0.02) {
-    for (double z = -1; z <= 1; z += 0.02) cloud.points.emplace_back(x, y, z);
-  }
-  return cloud;
-}
+common::PointCloud wall(double x) { return testing::planeCloud(x, 1.0, 0.02); }
 
 TEST(OccupancyMap, WallIsOccupiedAndTheSpaceBeforeItFree) {
   OccupancyMap map({.resolution = 0.1});

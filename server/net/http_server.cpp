@@ -2,10 +2,10 @@
 
 #include "server/net/http_server.hpp"
 
+#include <spdlog/spdlog.h>
 #include <boost/asio.hpp>
 #include <boost/beast.hpp>
 #include <nlohmann/json.hpp>
-#include <spdlog/spdlog.h>
 
 #include <atomic>
 #include <deque>
@@ -100,7 +100,8 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
       if (ec) return;
       self->hub_.viewers.insert(self);
       self->hub_.viewer_count = self->hub_.viewers.size();
-      for (auto& message : self->hub_.feed.welcome()) self->send(std::make_shared<std::string>(message));
+      for (auto& message : self->hub_.feed.welcome())
+        self->send(std::make_shared<std::string>(message));
       self->read();
     });
   }
@@ -183,10 +184,15 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
   }
 
   void handle(http::request<http::string_body> request) {
-    if (!hub_.options.token.empty() && tokenFrom(request) != hub_.options.token) {
-      return sendError(http::status::unauthorized, "a valid token is required", request.keep_alive());
-    }
     const std::string_view target(request.target().data(), request.target().size());
+    const std::string method(request.method_string());
+    // The viewer's files are public; maps, poses and metrics need the token when one is set.
+    const bool is_data = websocket::is_upgrade(request) || core::isApiPath(target);
+    if (is_data && !hub_.options.token.empty() && tokenFrom(request) != hub_.options.token) {
+      return sendError(http::status::unauthorized,
+                       "a valid token is required (Authorization: Bearer T or ?token=T)",
+                       request.keep_alive());
+    }
     if (websocket::is_upgrade(request)) {
       if (target.substr(0, target.find('?')) != "/ws") {
         return sendError(http::status::not_found, "the WebSocket endpoint is /ws", false);
@@ -195,7 +201,6 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)->start(std::move(request));
       return;
     }
-    const std::string method(request.method_string());
     if (auto answer = core::answerApi(hub_.server, method, target)) {
       auto response = std::make_shared<http::response<http::string_body>>(
           static_cast<http::status>(answer->status), request.version());
@@ -209,12 +214,14 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       return write(response, request.keep_alive());
     }
     if (request.method() != http::verb::get && request.method() != http::verb::head) {
-      return sendError(http::status::method_not_allowed, "only GET is supported", request.keep_alive());
+      return sendError(http::status::method_not_allowed, "only GET is supported",
+                       request.keep_alive());
     }
     const auto path = staticFile(hub_.options.web_root, target);
     std::string body;
     if (path.empty()) {
-      return sendError(http::status::bad_request, "path leaves the viewer's folder", request.keep_alive());
+      return sendError(http::status::bad_request, "path leaves the viewer's folder",
+                       request.keep_alive());
     }
     if (!readFile(path, body)) {
       if (path.filename() == "index.html") {
@@ -223,10 +230,11 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
                              "): run ./scripts/build or pass --web-root",
                          request.keep_alive());
       }
-      return sendError(http::status::not_found, "no file " + std::string(target), request.keep_alive());
+      return sendError(http::status::not_found, "no file " + std::string(target),
+                       request.keep_alive());
     }
-    auto response = std::make_shared<http::response<http::string_body>>(http::status::ok,
-                                                                         request.version());
+    auto response =
+        std::make_shared<http::response<http::string_body>>(http::status::ok, request.version());
     response->set(http::field::content_type, std::string(mimeType(path)));
     response->body() = request.method() == http::verb::head ? "" : std::move(body);
     write(response, request.keep_alive());
@@ -243,12 +251,13 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     response->set(http::field::server, "stereomap");
     response->keep_alive(keep_alive);
     response->prepare_payload();
-    http::async_write(stream_, *response,
-                      [self = shared_from_this(), response, keep_alive](beast::error_code ec, size_t) {
-                        if (ec) return;
-                        if (!keep_alive) return self->closeWrite();
-                        self->read();
-                      });
+    http::async_write(
+        stream_, *response,
+        [self = shared_from_this(), response, keep_alive](beast::error_code ec, size_t) {
+          if (ec) return;
+          if (!keep_alive) return self->closeWrite();
+          self->read();
+        });
   }
 
   void closeWrite() {
@@ -302,7 +311,7 @@ HttpServer::HttpServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 HttpServer::~HttpServer() { stop(); }
 
 common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerOptions& options,
-                                                              const core::MapServer& server) {
+                                                               const core::MapServer& server) {
   auto impl = std::make_unique<Impl>(options, server);
   beast::error_code ec;
   const auto address = asio::ip::make_address(options.address, ec);

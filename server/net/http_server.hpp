@@ -19,7 +19,7 @@ namespace stereomap::net {
 
 struct HttpServerOptions {
   std::string address = "127.0.0.1";
-  uint16_t port = 8080;  // 0: any free port (see port())
+  uint16_t port = 8080;            // 0: any free port (see port())
   std::filesystem::path web_root;  // the built viewer (index.html + assets)
   // Required (as "Authorization: Bearer T" or "?token=T") when set; the app insists on one
   // whenever the address is not loopback.

@@ -21,7 +21,8 @@ common::Status writeAtomically(const fs::path& path, const std::string& content)
   }
   std::error_code ec;
   fs::rename(temporary, path, ec);
-  if (ec) return makeError(ErrorCode::kIo, "cannot rename to " + path.string() + ": " + ec.message());
+  if (ec)
+    return makeError(ErrorCode::kIo, "cannot rename to " + path.string() + ": " + ec.message());
   return common::Ok{};
 }
 }  // namespace

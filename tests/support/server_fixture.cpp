@@ -13,9 +13,14 @@ ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_a
   store_ = makeTempDir("stereomap-test-store");
   log_ = store_ + ".server.log";
   std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-server",
-                                   "--http", "127.0.0.1:0", "--store", store_,
-                                   "--dds-config", STEREOMAP_DDS_CONFIG,
-                                   "--domain", std::to_string(domain)};
+                                   "--http",
+                                   "127.0.0.1:0",
+                                   "--store",
+                                   store_,
+                                   "--dds-config",
+                                   STEREOMAP_DDS_CONFIG,
+                                   "--domain",
+                                   std::to_string(domain)};
   argv.insert(argv.end(), extra_args.begin(), extra_args.end());
   process_ = std::make_unique<ChildProcess>(argv, log_);
   // The server logs "viewer: http://127.0.0.1:PORT/" once it listens.
@@ -48,10 +53,16 @@ std::string ServerProcess::log() const {
 std::vector<std::string> onboardArgs(int domain, const std::string& session, int frames,
                                      const std::vector<std::string>& extra) {
   std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard",
-                                   "--source", "sim", "--session", session,
-                                   "--frames", std::to_string(frames),
-                                   "--dds-config", STEREOMAP_DDS_CONFIG,
-                                   "--domain", std::to_string(domain)};
+                                   "--source",
+                                   "sim",
+                                   "--session",
+                                   session,
+                                   "--frames",
+                                   std::to_string(frames),
+                                   "--dds-config",
+                                   STEREOMAP_DDS_CONFIG,
+                                   "--domain",
+                                   std::to_string(domain)};
   argv.insert(argv.end(), extra.begin(), extra.end());
   return argv;
 }

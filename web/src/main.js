@@ -99,7 +99,10 @@ function receive(text) {
 
 function connect() {
   const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
-  const socket = new WebSocket(`${scheme}://${location.host}/ws`);
+  // A server bound beyond loopback wants its token: pass on the page's ?token=.
+  const token = new URLSearchParams(location.search).get('token');
+  const query = token ? `?token=${encodeURIComponent(token)}` : '';
+  const socket = new WebSocket(`${scheme}://${location.host}/ws${query}`);
   socket.onopen = () => {
     Object.assign(link, { connected: true, failures: 0, retryAtMs: null });
     updateStatus();

@@ -1,0 +1,90 @@
+// stereomap-bench-pipeline: the time of each step of the walking skeleton's data path, on
+// the simulated 640x480 camera: render a stereo pair, disparity (BM, SGBM), cloud, Draco
+// encode/decode, and one frame's OctoMap fusion at 0.1 m. Figures: docs/BENCHMARKS.md.
+#include <benchmark/benchmark.h>
+#include <opencv2/core/utility.hpp>
+
+#include "onboard/sim/sim_source.hpp"
+#include "onboard/stereo/depth.hpp"
+#include "proto/cloud_codec.hpp"
+#include "server/fusion/occupancy_map.hpp"
+
+namespace {
+
+using namespace stereomap;
+
+// One rendered frame of the default flight (seed 1, t = 5 s), shared by the benchmarks.
+struct Fixture {
+  sim::Scene scene = sim::Scene::makeRoom({.seed = 1});
+  sim::Flight flight;
+  camera::StereoCamera camera;
+  sim::Renderer renderer{scene, camera};
+  sim::StereoFrame frame = renderer.render(flight.T_map_camera(5.0));
+  cv::Mat disparity = stereo::StereoMatcher().compute(frame.left, frame.right);
+  common::PointCloud cloud = stereo::cloudFromDisparity(disparity, frame.left, camera);
+  std::vector<uint8_t> payload = proto::encodeCloud(cloud).value();
+};
+
+const Fixture& fixture() {
+  static const Fixture instance;
+  return instance;
+}
+
+// state.range(0): OpenCV threads (1 = one core).
+void BM_SimRenderStereoPair(benchmark::State& state) {
+  cv::setNumThreads(static_cast<int>(state.range(0)));
+  const auto& f = fixture();
+  for (auto _ : state) benchmark::DoNotOptimize(f.renderer.render(f.flight.T_map_camera(5.0)));
+}
+BENCHMARK(BM_SimRenderStereoPair)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+
+void BM_Disparity(benchmark::State& state) {
+  cv::setNumThreads(1);
+  const auto& f = fixture();
+  const stereo::StereoMatcher matcher(
+      {.kind = state.range(0) == 0 ? stereo::MatcherKind::kBlockMatching
+                                   : stereo::MatcherKind::kSemiGlobal});
+  state.SetLabel(state.range(0) == 0 ? "BM, 80 disparities" : "SGBM 3-way, 80 disparities");
+  for (auto _ : state) benchmark::DoNotOptimize(matcher.compute(f.frame.left, f.frame.right));
+}
+BENCHMARK(BM_Disparity)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+
+void BM_CloudFromDisparity(benchmark::State& state) {
+  const auto& f = fixture();
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(stereo::cloudFromDisparity(f.disparity, f.frame.left, f.camera));
+  }
+  state.counters["points"] = static_cast<double>(f.cloud.size());
+}
+BENCHMARK(BM_CloudFromDisparity)->Unit(benchmark::kMillisecond);
+
+void BM_DracoEncode(benchmark::State& state) {
+  const auto& f = fixture();
+  for (auto _ : state) benchmark::DoNotOptimize(proto::encodeCloud(f.cloud));
+  state.counters["bytes_per_point"] =
+      static_cast<double>(f.payload.size()) / static_cast<double>(f.cloud.size());
+}
+BENCHMARK(BM_DracoEncode)->Unit(benchmark::kMillisecond);
+
+void BM_DracoDecode(benchmark::State& state) {
+  const auto& f = fixture();
+  for (auto _ : state) benchmark::DoNotOptimize(proto::decodeCloud(f.payload));
+}
+BENCHMARK(BM_DracoDecode)->Unit(benchmark::kMillisecond);
+
+// Stock OctoMap insertion (discretised) of one sim frame into an empty 0.1 m map.
+void BM_FusionOneSimFrame(benchmark::State& state) {
+  const auto& f = fixture();
+  const auto T_map_camera = f.flight.T_map_camera(5.0);
+  for (auto _ : state) {
+    fusion::OccupancyMap map({.resolution = 0.1});
+    map.insertCloud(f.cloud, T_map_camera, 6.0);
+    benchmark::DoNotOptimize(map.occupiedCount());
+  }
+  state.counters["points"] = static_cast<double>(f.cloud.size());
+}
+BENCHMARK(BM_FusionOneSimFrame)->Unit(benchmark::kMillisecond);
+
+}  // namespace
+
+BENCHMARK_MAIN();
