@@ -9,6 +9,7 @@
 #include "common/shutdown.hpp"
 #include "onboard/pipeline/pipeline.hpp"
 #include "onboard/sim/sim_source.hpp"
+#include "proto/dds_cli.hpp"
 
 namespace {
 
@@ -31,8 +32,7 @@ int main(int argc, char** argv) {
   double rate_hz = 10.0;
   pipeline::PipelineOptions options;
   options.session_id = defaultSessionName();
-  std::string dds_config;
-  uint32_t domain = 0;
+  proto::DdsOptions dds;
   uint32_t seed = 1;
   std::string matcher = "bm";
   double noise_sigma = 0;
@@ -46,12 +46,7 @@ int main(int argc, char** argv) {
   app.add_option("--session", options.session_id, "Session name (letters, digits, . _ -)")
       ->capture_default_str();
   app.add_option("--vehicle", options.vehicle_id, "Vehicle id")->capture_default_str();
-  app.add_option("--dds-config", dds_config,
-                 "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
-      ->check(CLI::ExistingFile);
-  app.add_option("--domain", domain, "DDS domain id")
-      ->check(CLI::Range(0, 232))
-      ->capture_default_str();
+  proto::addDdsFlags(app, dds);
   app.add_option("--seed", seed, "Simulated room's seed")->capture_default_str();
   app.add_option("--matcher", matcher, "Stereo matcher: bm (fast) or sgbm")
       ->check(CLI::IsMember({"bm", "sgbm"}))
@@ -96,8 +91,7 @@ int main(int argc, char** argv) {
                          .max_frames = frames,
                          .render = {.noise_sigma = noise_sigma}});
 
-  if (!dds_config.empty()) dds_config = std::filesystem::absolute(dds_config).string();
-  auto participant = proto::Participant::create({.domain_id = domain, .config_file = dds_config});
+  auto participant = proto::Participant::create(dds);
   if (!participant) {
     spdlog::error("{}", participant.error().message);
     return 1;
@@ -109,7 +103,7 @@ int main(int argc, char** argv) {
   }
 
   spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}", options.vehicle_id,
-               options.session_id, domain, source.describe(), rate_hz,
+               options.session_id, dds.domain_id, source.describe(), rate_hz,
                frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"));
   const auto summary = pipeline::runPipeline(source, publisher->get(), options, shutdown);
   spdlog::info(

@@ -7,7 +7,7 @@
 #include <thread>
 
 #include "common/shutdown.hpp"
-#include "proto/dds.hpp"
+#include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/net/http_server.hpp"
 #include "server/store/store.hpp"
@@ -63,8 +63,7 @@ int main(int argc, char** argv) {
   std::string http_spec = "127.0.0.1:8080";
   std::string store_dir = "stereomap-store";
   core::MapServerOptions options;
-  std::string dds_config;
-  uint32_t domain = 0;
+  proto::DdsOptions dds;
   std::string web_root;
   std::string token;
   app.add_option("--http", http_spec, "Address and port for HTTP and WebSocket")
@@ -73,12 +72,7 @@ int main(int argc, char** argv) {
   app.add_option("--resolution", options.resolution, "Finest voxel edge, metres")
       ->check(CLI::Range(0.01, 2.0))
       ->capture_default_str();
-  app.add_option("--dds-config", dds_config,
-                 "Cyclone DDS XML configuration (default: $CYCLONEDDS_URI, else loopback only)")
-      ->check(CLI::ExistingFile);
-  app.add_option("--domain", domain, "DDS domain id")
-      ->check(CLI::Range(0, 232))
-      ->capture_default_str();
+  proto::addDdsFlags(app, dds);
   app.add_option("--web-root", web_root, "The built viewer (default: ../web beside this binary)");
   app.add_option("--token", token,
                  "Token clients must present (required when --http is not a loopback address)");
@@ -133,8 +127,7 @@ int main(int argc, char** argv) {
     spdlog::error("{}", store.error().message);
     return 1;
   }
-  if (!dds_config.empty()) dds_config = std::filesystem::absolute(dds_config).string();
-  auto participant = proto::Participant::create({.domain_id = domain, .config_file = dds_config});
+  auto participant = proto::Participant::create(dds);
   if (!participant) {
     spdlog::error("{}", participant.error().message);
     return 1;
@@ -167,7 +160,7 @@ int main(int argc, char** argv) {
   ingest.emplace_back([&] { pump(**poses, server, shutdown); });
   ingest.emplace_back([&] { pump(**events, server, shutdown); });
 
-  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", domain,
+  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", dds.domain_id,
                options.resolution, store->root().string());
   spdlog::info("viewer: http://{}:{}/", http.address, (*http_server)->port());
 
