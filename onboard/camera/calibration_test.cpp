@@ -1,0 +1,202 @@
+#include "onboard/camera/calibration.hpp"
+
+#include <gtest/gtest.h>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/video/tracking.hpp>
+
+#include <fstream>
+
+#include "onboard/camera/rectifier.hpp"
+
+namespace stereomap::camera {
+namespace {
+
+namespace fs = std::filesystem;
+const fs::path kData = STEREOMAP_DATA_DIR;
+
+#define SKIP_WITHOUT(path) \
+  if (!fs::exists(path))   \
+  GTEST_SKIP() << "data not found: " << (path).string() << " (../shared/data is absent)"
+
+class TempDir {
+ public:
+  TempDir() : path_(fs::temp_directory_path() / ("stereomap-calib-" + std::to_string(::getpid()))) {
+    fs::create_directories(path_);
+  }
+  ~TempDir() { fs::remove_all(path_); }
+  fs::path operator/(const std::string& name) const { return path_ / name; }
+
+ private:
+  fs::path path_;
+};
+
+void writeText(const fs::path& path, const std::string& text) { std::ofstream(path) << text; }
+
+StereoCalibration sample() {
+  StereoCalibration c;
+  c.image_size = {640, 480};
+  c.left.K = cv::Matx33d(500, 0, 320, 0, 501, 240, 0, 0, 1);
+  c.right.K = cv::Matx33d(502, 0, 322, 0, 503, 241, 0, 0, 1);
+  c.left.distortion = (cv::Mat_<double>(1, 5) << -0.2, 0.05, 0.001, -0.001, 0.0);
+  c.right.distortion = (cv::Mat_<double>(1, 5) << -0.21, 0.04, 0.0, 0.001, 0.0);
+  cv::Rodrigues(cv::Vec3d(0.01, -0.02, 0.005), c.R);
+  c.T = cv::Vec3d(-0.12, 0.001, 0.002);
+  return c;
+}
+
+TEST(Calibration, OurFormatRoundTrips) {
+  TempDir dir;
+  ASSERT_TRUE(writeCalibration(dir / "rig.yaml", sample()).ok());
+  auto back = readCalibration(dir / "rig.yaml");
+  ASSERT_TRUE(back.ok()) << back.error().message;
+  EXPECT_EQ(back->image_size, cv::Size(640, 480));
+  EXPECT_LT(cv::norm(back->left.K, sample().left.K), 1e-12);
+  EXPECT_LT(cv::norm(back->right.distortion, sample().right.distortion), 1e-12);
+  EXPECT_LT(cv::norm(back->R, sample().R), 1e-12);
+  EXPECT_LT(cv::norm(back->T, sample().T), 1e-12);
+}
+
+TEST(Calibration, ReadsOpenCvStereoCalibFilesSplitOrJoined) {
+  TempDir dir;
+  const auto c = sample();
+  {
+    cv::FileStorage intrinsics((dir / "intrinsics.yml").string(), cv::FileStorage::WRITE);
+    intrinsics << "M1" << cv::Mat(c.left.K) << "D1" << c.left.distortion << "M2"
+               << cv::Mat(c.right.K) << "D2" << c.right.distortion;
+    cv::FileStorage extrinsics((dir / "extrinsics.yml").string(), cv::FileStorage::WRITE);
+    extrinsics << "R" << cv::Mat(c.R) << "T" << cv::Mat(c.T);
+  }
+  auto split = readCalibration(dir / "intrinsics.yml");
+  ASSERT_TRUE(split.ok()) << split.error().message;
+  EXPECT_LT(cv::norm(split->T, c.T), 1e-12);
+  EXPECT_EQ(split->image_size, cv::Size());  // stereo_calib does not store it
+  {
+    cv::FileStorage joined((dir / "joined.xml").string(), cv::FileStorage::WRITE);
+    joined << "M1" << cv::Mat(c.left.K) << "D1" << c.left.distortion << "M2" << cv::Mat(c.right.K)
+           << "D2" << c.right.distortion << "R" << cv::Mat(c.R) << "T" << cv::Mat(c.T);
+  }
+  auto joined = readCalibration(dir / "joined.xml");
+  ASSERT_TRUE(joined.ok()) << joined.error().message;
+  EXPECT_LT(cv::norm(joined->R, c.R), 1e-12);
+}
+
+TEST(Calibration, BadFilesNameTheFileAndTheField) {
+  TempDir dir;
+  auto expectError = [](const fs::path& path, const std::string& needle) {
+    auto result = readCalibration(path);
+    ASSERT_FALSE(result.ok()) << path;
+    EXPECT_NE(result.error().message.find(path.string()), std::string::npos)
+        << result.error().message;
+    EXPECT_NE(result.error().message.find(needle), std::string::npos) << result.error().message;
+  };
+  expectError(dir / "missing.yaml", "no such calibration file");
+  writeText(dir / "garbage.yaml", "%YAML:1.0\nfoo: [1, 2\n");
+  expectError(dir / "garbage.yaml", "cannot be parsed");
+  writeText(dir / "unknown.yaml", "%YAML:1.0\nfoo: 1\n");
+  expectError(dir / "unknown.yaml", "not a known calibration format");
+
+  auto broken = sample();
+  ASSERT_TRUE(writeCalibration(dir / "ok.yaml", broken).ok());
+  std::ifstream in(dir / "ok.yaml");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  writeText(dir / "no_t.yaml", text.substr(0, text.find("T: ")));
+  expectError(dir / "no_t.yaml", "T is missing");
+
+  broken.T = cv::Vec3d(0, 0, 0);
+  EXPECT_NE(validateCalibration(broken).error().message.find("T is zero"), std::string::npos);
+  broken = sample();
+  broken.left.K(0, 0) = std::nan("");
+  EXPECT_NE(validateCalibration(broken).error().message.find("K_left"), std::string::npos);
+  broken = sample();
+  broken.R = cv::Matx33d(1, 0, 0, 0, 1, 0, 0, 0.5, 1);
+  EXPECT_NE(validateCalibration(broken).error().message.find("R is not a rotation"),
+            std::string::npos);
+
+  writeText(dir / "calib.txt", "P0: 1 0 2 0 0 1 2 0 0 0 1 0\nP1: 1 0 2 -0.5 0 1 2 0 0 0 1\n");
+  expectError(dir / "calib.txt", "P1 has fewer than 12 numbers");
+  writeText(dir / "calib2.txt", "P0: 1 0 2 0 0 1 2 0 0 0 1 0\nP1: 1 0 2 0.5 0 1 2 0 0 0 1 0\n");
+  expectError(dir / "calib2.txt", "P1[0,3]");
+}
+
+TEST(Calibration, ReadsKittiCalib) {
+  const fs::path path = kData / "kitti_stereo_seq2/calib.txt";
+  SKIP_WITHOUT(path);
+  auto c = readCalibration(path);
+  ASSERT_TRUE(c.ok()) << c.error().message;
+  EXPECT_TRUE(c->isRectified());
+  EXPECT_DOUBLE_EQ(c->left.K(0, 0), 718.856);
+  EXPECT_NEAR(c->baseline(), 386.1448 / 718.856, 1e-12);
+}
+
+TEST(Calibration, ReadsEurocSensorYamls) {
+  const fs::path cam0 = kData / "euroc_v101_micro/mav0/cam0/sensor.yaml";
+  SKIP_WITHOUT(cam0);
+  auto c = readEurocCalibration(cam0, kData / "euroc_v101_micro/mav0/cam1/sensor.yaml");
+  ASSERT_TRUE(c.ok()) << c.error().message;
+  EXPECT_FALSE(c->isRectified());
+  EXPECT_EQ(c->image_size, cv::Size(752, 480));
+  EXPECT_NEAR(c->baseline(), 0.11008, 5e-5);  // the data set's README
+  cv::Vec3d rotation;
+  cv::Rodrigues(c->R, rotation);
+  EXPECT_NEAR(cv::norm(rotation) * 180 / CV_PI, 0.818, 0.001);
+  ASSERT_TRUE(c->T_body_left.has_value());
+
+  auto rectifier = Rectifier::create(*c);
+  ASSERT_TRUE(rectifier.ok()) << rectifier.error().message;
+  EXPECT_NEAR(rectifier->camera().fx, 436.235, 0.001);
+  EXPECT_NEAR(rectifier->camera().cx, 364.441, 0.001);
+  EXPECT_NEAR(rectifier->camera().cy, 256.952, 0.001);
+  EXPECT_NEAR(rectifier->camera().baseline, 0.11008, 5e-5);
+}
+
+// Rectified EuRoC pairs must put matched features on the same row: KLT-tracked corners
+// (sub-pixel) from left to right, median |dy| over the clip. Before rectification the
+// median is about 12 px, so the check can fail.
+TEST(Rectifier, EurocMatchesLieOnTheSameRow) {
+  const fs::path mav0 = kData / "euroc_v101_micro/mav0";
+  SKIP_WITHOUT(mav0);
+  auto c = readEurocCalibration(mav0 / "cam0/sensor.yaml", mav0 / "cam1/sensor.yaml");
+  ASSERT_TRUE(c.ok());
+  auto rectifier = Rectifier::create(*c);
+  ASSERT_TRUE(rectifier.ok());
+  std::vector<double> raw_dy, rectified_dy;
+  auto track = [](const cv::Mat& left, const cv::Mat& right, std::vector<double>& dy) {
+    std::vector<cv::Point2f> corners, tracked, back;
+    cv::goodFeaturesToTrack(left, corners, 400, 0.01, 10);
+    std::vector<uchar> ok, ok_back;
+    std::vector<float> error;
+    cv::calcOpticalFlowPyrLK(left, right, corners, tracked, ok, error, cv::Size(21, 21), 4);
+    cv::calcOpticalFlowPyrLK(right, left, tracked, back, ok_back, error, cv::Size(21, 21), 4);
+    for (size_t i = 0; i < corners.size(); ++i) {
+      // Keep tracks that come back to where they started (a consistency check, not a row one).
+      if (ok[i] && ok_back[i] && cv::norm(back[i] - corners[i]) < 0.3) {
+        dy.push_back(std::abs(tracked[i].y - corners[i].y));
+      }
+    }
+  };
+  int pairs = 0;
+  for (const auto& entry : fs::directory_iterator(mav0 / "cam0/data")) {
+    if (pairs++ % 4 != 0) continue;  // every 4th pair: 10 of 40
+    const cv::Mat left = cv::imread(entry.path().string(), cv::IMREAD_GRAYSCALE);
+    const cv::Mat right =
+        cv::imread((mav0 / "cam1/data" / entry.path().filename()).string(), cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(left.empty() || right.empty()) << entry.path();
+    track(left, right, raw_dy);
+    cv::Mat left_rect, right_rect;
+    ASSERT_TRUE(rectifier->rectify(left, right, left_rect, right_rect).ok());
+    track(left_rect, right_rect, rectified_dy);
+  }
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    return v[v.size() / 2];
+  };
+  ASSERT_GT(rectified_dy.size(), 1000u);
+  std::printf("EuRoC vertical disparity: median %.3f px raw, %.3f px rectified (%zu tracks)\n",
+              median(raw_dy), median(rectified_dy), rectified_dy.size());
+  EXPECT_GT(median(raw_dy), 5.0);
+  EXPECT_LE(median(rectified_dy), 0.5);
+}
+
+}  // namespace
+}  // namespace stereomap::camera
