@@ -7,6 +7,7 @@
 #include <filesystem>
 
 #include "common/shutdown.hpp"
+#include "onboard/camera/dataset_source.hpp"
 #include "onboard/pipeline/pipeline.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "proto/dds_cli.hpp"
@@ -37,7 +38,14 @@ int main(int argc, char** argv) {
   std::string matcher = "bm";
   double noise_sigma = 0;
   double wait_s = 3.0;
-  app.add_option("--source", source_spec, "Frame source: sim")->capture_default_str();
+  std::string calibration_file;
+  app.add_option("--source", source_spec,
+                 "Frame source: sim, kitti:DIR, euroc:DIR, folder:DIR or camera:LEFT,RIGHT")
+      ->capture_default_str();
+  app.add_option("--calib", calibration_file,
+                 "Stereo calibration (ours, OpenCV stereo_calib, KITTI calib.txt); overrides "
+                 "the source's own")
+      ->check(CLI::ExistingFile);
   app.add_option("--frames", frames, "Stop after N frames (0: run until Ctrl-C)")
       ->capture_default_str();
   app.add_option("--rate", rate_hz, "Frames per second (0: as fast as possible)")
@@ -70,10 +78,6 @@ int main(int argc, char** argv) {
     return app.exit(error) == 0 ? 0 : 2;
   }
 
-  if (source_spec != "sim") {
-    spdlog::error("--source '{}' is not supported yet; available: sim", source_spec);
-    return 2;
-  }
   if (options.session_id.empty() || options.session_id.size() > proto::kMaxIdLength ||
       options.session_id.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
                                            "0123456789._-") != std::string::npos) {
@@ -86,10 +90,23 @@ int main(int argc, char** argv) {
       matcher == "sgbm" ? stereo::MatcherKind::kSemiGlobal : stereo::MatcherKind::kBlockMatching;
   options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
 
-  sim::SimSource source({.seed = seed,
-                         .rate_hz = rate_hz > 0 ? rate_hz : 10.0,
-                         .max_frames = frames,
-                         .render = {.noise_sigma = noise_sigma}});
+  std::unique_ptr<camera::FrameSource> source;
+  if (source_spec == "sim") {
+    source = std::make_unique<sim::SimSource>(
+        sim::SimSourceOptions{.seed = seed,
+                              .rate_hz = rate_hz > 0 ? rate_hz : 10.0,
+                              .max_frames = frames,
+                              .render = {.noise_sigma = noise_sigma}});
+  } else {
+    camera::DatasetOptions dataset{.max_frames = frames, .rate_hz = rate_hz > 0 ? rate_hz : 10.0};
+    if (!calibration_file.empty()) dataset.calibration_file = calibration_file;
+    auto opened = camera::openDatasetSource(source_spec, dataset);
+    if (!opened) {
+      spdlog::error("{}", opened.error().message);
+      return opened.error().code == common::ErrorCode::kInvalidArgument ? 2 : 1;
+    }
+    source = std::move(opened).value();
+  }
 
   auto participant = proto::Participant::create(dds);
   if (!participant) {
@@ -103,9 +120,9 @@ int main(int argc, char** argv) {
   }
 
   spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}", options.vehicle_id,
-               options.session_id, dds.domain_id, source.describe(), rate_hz,
+               options.session_id, dds.domain_id, source->describe(), rate_hz,
                frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"));
-  const auto summary = pipeline::runPipeline(source, publisher->get(), options, shutdown);
+  const auto summary = pipeline::runPipeline(*source, publisher->get(), options, shutdown);
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), {:.1f} KiB per frame, depth {:.1f} ms, "
       "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors",

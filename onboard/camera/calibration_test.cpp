@@ -1,9 +1,11 @@
 #include "onboard/camera/calibration.hpp"
 
 #include <gtest/gtest.h>
+
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/video/tracking.hpp>
+#include "tests/support/data.hpp"
 
 #include <fstream>
 
@@ -14,11 +16,9 @@ namespace stereomap::camera {
 namespace {
 
 namespace fs = std::filesystem;
-const fs::path kData = STEREOMAP_DATA_DIR;
+const fs::path kData = testing::kDataDir;
 
-#define SKIP_WITHOUT(path) \
-  if (!fs::exists(path))   \
-  GTEST_SKIP() << "data not found: " << (path).string() << " (../shared/data is absent)"
+#define SKIP_WITHOUT(path) STEREOMAP_SKIP_WITHOUT(path)
 
 class TempDir {
  public:

@@ -38,8 +38,8 @@ double viewRms(const std::vector<cv::Point3f>& object, const std::vector<cv::Poi
 }  // namespace
 
 size_t ChessboardReport::used_views() const {
-  return static_cast<size_t>(std::count_if(views.begin(), views.end(),
-                                           [](const auto& v) { return v.used; }));
+  return static_cast<size_t>(
+      std::count_if(views.begin(), views.end(), [](const auto& v) { return v.used; }));
 }
 
 common::Result<ChessboardReport> calibrateFromChessboards(
@@ -67,8 +67,8 @@ common::Result<ChessboardReport> calibrateFromChessboards(
       auto l = findCorners(left, options.inner_corners);
       auto r = l.empty() ? std::vector<cv::Point2f>{} : findCorners(right, options.inner_corners);
       if (l.empty() || r.empty()) {
-        view.reason = std::string("board not found in the ") + (l.empty() ? "left" : "right") +
-                      " image";
+        view.reason =
+            std::string("board not found in the ") + (l.empty() ? "left" : "right") + " image";
       } else {
         view.used = true;
         left_points.push_back(std::move(l));
@@ -80,8 +80,8 @@ common::Result<ChessboardReport> calibrateFromChessboards(
   }
   if (left_points.size() < 3) {
     return makeError(ErrorCode::kInvalidArgument,
-                     "the board was found in only " + std::to_string(left_points.size()) +
-                         " of " + std::to_string(pairs.size()) +
+                     "the board was found in only " + std::to_string(left_points.size()) + " of " +
+                         std::to_string(pairs.size()) +
                          " pairs; at least 3 are needed (check --board and the images)");
   }
 
@@ -98,8 +98,8 @@ common::Result<ChessboardReport> calibrateFromChessboards(
   c.image_size = image_size;
   cv::Mat K_left, K_right, D_left, D_right;
   std::vector<cv::Mat> rvecs_left, tvecs_left, rvecs_right, tvecs_right;
-  report.rms_left_px = cv::calibrateCamera(objects, left_points, image_size, K_left, D_left,
-                                           rvecs_left, tvecs_left);
+  report.rms_left_px =
+      cv::calibrateCamera(objects, left_points, image_size, K_left, D_left, rvecs_left, tvecs_left);
   report.rms_right_px = cv::calibrateCamera(objects, right_points, image_size, K_right, D_right,
                                             rvecs_right, tvecs_right);
   c.left = {cv::Matx33d(K_left), D_left.reshape(1, 1)};
@@ -107,8 +107,8 @@ common::Result<ChessboardReport> calibrateFromChessboards(
 
   cv::Mat R, T, E, F;
   report.rms_stereo_px = cv::stereoCalibrate(
-      objects, left_points, right_points, K_left, D_left, K_right, D_right, image_size, R, T, E,
-      F, cv::CALIB_FIX_INTRINSIC,
+      objects, left_points, right_points, K_left, D_left, K_right, D_right, image_size, R, T, E, F,
+      cv::CALIB_FIX_INTRINSIC,
       cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 100, 1e-5));
   c.R = cv::Matx33d(R);
   c.T = cv::Vec3d(T.at<double>(0), T.at<double>(1), T.at<double>(2));

@@ -1,0 +1,102 @@
+#include "onboard/camera/dataset_source.hpp"
+
+#include <gtest/gtest.h>
+
+#include "tests/support/data.hpp"
+
+#include <fstream>
+
+namespace stereomap::camera {
+namespace {
+
+namespace fs = std::filesystem;
+const fs::path kData = testing::kDataDir;
+#define SKIP_WITHOUT(path) STEREOMAP_SKIP_WITHOUT(path)
+
+TEST(DatasetSource, KittiFramesArriveRectifiedWithGroundTruth) {
+  const fs::path dir = kData / "kitti_stereo_seq2";
+  SKIP_WITHOUT(dir);
+  auto source = openDatasetSource("kitti:" + dir.string(), {});
+  ASSERT_TRUE(source.ok()) << source.error().message;
+  EXPECT_DOUBLE_EQ((*source)->camera().fx, 718.856);
+  EXPECT_NEAR((*source)->camera().baseline, 0.5372, 1e-4);
+  size_t frames = 0;
+  std::optional<SourceFrame> last;
+  while (auto frame = (*source)->next()) {
+    ASSERT_EQ(frame->left.size(), cv::Size(1241, 376));
+    ASSERT_EQ(frame->left.type(), CV_8UC1);
+    ASSERT_TRUE(frame->T_map_body.has_value());
+    if (frames == 0) {
+      EXPECT_LT(frame->T_map_body->translation.norm(), 1e-9);
+    }
+    ++frames;
+    last = std::move(frame);
+  }
+  EXPECT_EQ(frames, 51u);
+  // The car drives forward (map +x at the start) and turns right (towards -y); z is up.
+  // poses.txt ends at camera-frame (40.02, -0.86, 19.93): x right, y down, z ahead.
+  EXPECT_NEAR(last->T_map_body->translation.x(), 19.93, 0.01);
+  EXPECT_NEAR(last->T_map_body->translation.y(), -40.02, 0.01);
+  EXPECT_NEAR(last->T_map_body->translation.z(), 0.86, 0.01);
+  const common::Vec3 forward = last->T_map_body->rotation * common::Vec3::UnitX();
+  EXPECT_LT(std::atan2(forward.y(), forward.x()) * 180 / M_PI, -80.0);  // right turn ~98°
+}
+
+TEST(DatasetSource, EurocFramesAreRectifiedAndPosed) {
+  const fs::path dir = kData / "euroc_v101_micro";
+  SKIP_WITHOUT(dir);
+  auto source = openDatasetSource("euroc:" + dir.string(), {.max_frames = 5});
+  ASSERT_TRUE(source.ok()) << source.error().message;
+  EXPECT_NEAR((*source)->camera().fx, 436.235, 1e-3);
+  size_t frames = 0;
+  while (auto frame = (*source)->next()) {
+    EXPECT_EQ(frame->left.size(), cv::Size(752, 480));
+    ASSERT_TRUE(frame->T_map_body && frame->T_body_camera);
+    // The Vicon room's ground truth: the vehicle stands about 0.95 m above the origin.
+    EXPECT_NEAR(frame->T_map_body->translation.z(), 0.947, 0.01);
+    ++frames;
+  }
+  EXPECT_EQ(frames, 5u);
+}
+
+TEST(DatasetSource, FolderReportsAndSkipsAMissingFrame) {
+  const fs::path kitti = kData / "kitti_stereo_seq2";
+  SKIP_WITHOUT(kitti);
+  const fs::path dir =
+      fs::temp_directory_path() / ("stereomap-folder-" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  for (const char* name : {"000000.png", "000001.png", "000002.png"}) {
+    fs::copy_file(kitti / "image_0" / name, dir / ("left_" + std::string(name)));
+    fs::copy_file(kitti / "image_1" / name, dir / ("right_" + std::string(name)));
+  }
+  fs::copy_file(kitti / "calib.txt", dir / "calib.txt");
+  fs::remove(dir / "right_000001.png");
+  auto source = openDatasetSource("folder:" + dir.string(), {});
+  ASSERT_TRUE(source.ok()) << source.error().message;
+  std::vector<uint64_t> indices;
+  while (auto frame = (*source)->next()) {
+    indices.push_back(frame->index);
+    EXPECT_FALSE(frame->T_map_body.has_value());  // a folder has no poses
+  }
+  EXPECT_EQ(indices, (std::vector<uint64_t>{0, 2}));
+  fs::remove_all(dir);
+}
+
+TEST(DatasetSource, BadSpecsAreClearErrors) {
+  auto expectError = [](const std::string& spec, const std::string& needle,
+                        const DatasetOptions& options = {}) {
+    auto source = openDatasetSource(spec, options);
+    ASSERT_FALSE(source.ok()) << spec;
+    EXPECT_NE(source.error().message.find(needle), std::string::npos) << source.error().message;
+  };
+  expectError("kitti:/nonexistent", "no image_0/ folder");
+  expectError("euroc:/nonexistent", "no mav0/cam0/data.csv");
+  expectError("folder:/nonexistent", "no such folder");
+  expectError("tape:/x", "unknown source 'tape'");
+  expectError("kitti", "needs a location");
+  expectError("camera:0", "expected camera:LEFT,RIGHT");
+  expectError("camera:0,1", "needs --calib");
+}
+
+}  // namespace
+}  // namespace stereomap::camera
