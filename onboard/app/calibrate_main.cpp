@@ -1,7 +1,7 @@
 // stereomap-calibrate: stereo calibration from chessboard image pairs, written in
 // stereomap's calibration format for `stereomap-onboard --source folder:DIR`.
-#include <CLI/CLI.hpp>
 #include <glob.h>
+#include <CLI/CLI.hpp>
 
 #include <cstdio>
 #include <regex>

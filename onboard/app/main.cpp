@@ -35,7 +35,7 @@ int main(int argc, char** argv) {
   options.session_id = defaultSessionName();
   proto::DdsOptions dds;
   uint32_t seed = 1;
-  std::string matcher = "bm";
+  std::string stereo_preset = "fast";
   double noise_sigma = 0;
   double wait_s = 3.0;
   std::string calibration_file;
@@ -56,8 +56,9 @@ int main(int argc, char** argv) {
   app.add_option("--vehicle", options.vehicle_id, "Vehicle id")->capture_default_str();
   proto::addDdsFlags(app, dds);
   app.add_option("--seed", seed, "Simulated room's seed")->capture_default_str();
-  app.add_option("--matcher", matcher, "Stereo matcher: bm (fast) or sgbm")
-      ->check(CLI::IsMember({"bm", "sgbm"}))
+  app.add_option("--stereo", stereo_preset,
+                 "Stereo configuration: fast (real time) or accurate (docs/BENCHMARKS.md)")
+      ->check(CLI::IsMember({"fast", "accurate"}))
       ->capture_default_str();
   app.add_option("--max-range", options.cloud.max_range_m, "Cloud range limit, metres")
       ->check(CLI::Range(0.5, 100.0))
@@ -86,8 +87,8 @@ int main(int argc, char** argv) {
     return 2;
   }
   options.rate_hz = rate_hz;
-  options.matcher.kind =
-      matcher == "sgbm" ? stereo::MatcherKind::kSemiGlobal : stereo::MatcherKind::kBlockMatching;
+  options.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
+                                                : stereo::MatcherOptions::fast();
   options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
 
   std::unique_ptr<camera::FrameSource> source;

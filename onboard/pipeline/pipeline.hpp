@@ -22,7 +22,7 @@ struct PipelineOptions {
   std::string vehicle_id = "sim-1";
   std::string session_id = "session";
   double rate_hz = 10.0;  // frames are paced to this rate; 0 = as fast as possible
-  stereo::MatcherOptions matcher;
+  stereo::MatcherOptions matcher = stereo::MatcherOptions::fast();
   stereo::CloudOptions cloud;
   proto::CloudCodecOptions codec;
   // How long to wait for a server's readers before the first frame (frames are kept by

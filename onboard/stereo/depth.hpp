@@ -17,25 +17,55 @@
 namespace stereomap::stereo {
 
 enum class MatcherKind { kBlockMatching, kSemiGlobal };
+enum class SemiGlobalMode { kFivePaths, kThreeWay, kEightPaths, kEightPathsFourLines };
 
+// Every knob of the matcher. Start from fast() or accurate() (documented in
+// docs/BENCHMARKS.md with their measured accuracy and speed) rather than from scratch.
 struct MatcherOptions {
-  MatcherKind kind = MatcherKind::kBlockMatching;
+  MatcherKind kind = MatcherKind::kSemiGlobal;
+  SemiGlobalMode mode = SemiGlobalMode::kThreeWay;
   int num_disparities = 80;  // multiple of 16; the nearest depth is baseline * fx / this
-  int block_size = 11;       // odd; BM window (SGBM uses 5)
-  int uniqueness_ratio = 15;
-  int speckle_window = 100;  // pixels; 0 disables speckle filtering
+  int min_disparity = 0;     // see minimumDisparity(): far points the map cannot use
+  int block_size = 5;        // odd
+  // SGBM smoothness penalties per pixel of the block: P1 = p1 * block², P2 = p2 * block².
+  int p1 = 8;
+  int p2 = 32;
+  int prefilter_cap = 63;
+  int uniqueness_ratio = 15;    // percent margin of the best cost over the second best
+  int left_right_max_diff = 1;  // left-right consistency in pixels; < 0 disables the check
+  int speckle_window = 100;     // pixels; 0 disables speckle filtering
   int speckle_range = 2;
+  int texture_threshold = 10;  // BM only
+  // Pad the images on the left so that the first num_disparities columns get estimates too
+  // (a match that would land outside the right image, d > x, is dropped).
+  bool pad_left = true;
+  // Match at 1/downscale resolution and scale the disparity back (speed for large images).
+  int downscale = 1;
+
+  // Real time on board: <= 15 ms per 640x480 frame with rectification and cloud, one core.
+  static MatcherOptions fast();
+  // Best accuracy within 60 ms per 640x480 frame, one core.
+  static MatcherOptions accurate();
 };
+
+// The matchers' disparity count for a largest expected disparity: a multiple of 16.
+int disparitiesFor(int max_disparity_px);
+// The octree-mapping paper's rule (eq. 5): d_min = ceil(sqrt(b * f * dd / r)). Below it one
+// disparity step spans more than a voxel of resolution r, so such points are not worth
+// matching. dd is the disparity uncertainty (0.5 px in the paper).
+int minimumDisparity(double baseline_m, double fx_px, double resolution_m, double dd_px = 0.5);
 
 class StereoMatcher {
  public:
-  explicit StereoMatcher(const MatcherOptions& options = {});
+  explicit StereoMatcher(const MatcherOptions& options = MatcherOptions::fast());
+  const MatcherOptions& options() const;
   ~StereoMatcher();
   StereoMatcher(StereoMatcher&&) noexcept;
   StereoMatcher& operator=(StereoMatcher&&) noexcept;
 
-  // Disparity of the left image in pixels (CV_32FC1, sub-pixel in 1/16 px steps); values
-  // <= 0 are invalid. Both images must be CV_8UC1 of the same size.
+  // Disparity of the left image in pixels (CV_32FC1, sub-pixel in 1/16 px steps); negative
+  // values are invalid. Both images must be CV_8UC1 of the same size. Reuses internal
+  // buffers: one matcher per thread.
   cv::Mat compute(const cv::Mat& left, const cv::Mat& right) const;
 
  private:
@@ -49,11 +79,17 @@ struct CloudOptions {
   int block_cols = 5;        // down-sampling block (the octree-mapping paper's 5x2)
   int block_rows = 2;
   bool with_intensity = true;
+  // Speckle filter on the block grid: islands of at most this many blocks whose disparity
+  // differs from their surroundings by more than speckle_range_px are dropped (0: off).
+  int speckle_blocks = 40;
+  double speckle_range_px = 1.0;
 };
 
-// One point per block_cols x block_rows block: the median valid disparity of the block,
-// placed on the ray through the block's centre. Blocks with fewer than half of their pixels
-// valid give no point; invalid disparities never become points.
+// One point per block_cols x block_rows block: the mean valid disparity of the block (the
+// median when the values span more than 1 px, i.e. a depth edge), placed on the ray
+// through the block's centre (disparity quantised to 1/16 px, as the
+// matchers'). Blocks with fewer than half of their pixels valid, and speckles of blocks,
+// give no point; invalid disparities never become points.
 common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& left,
                                       const camera::StereoCamera& camera,
                                       const CloudOptions& options = {});

@@ -4,6 +4,8 @@
 
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/renderer.hpp"
+#include "onboard/stereo/disparity_io.hpp"
+#include "tests/support/data.hpp"
 
 namespace stereomap::stereo {
 namespace {
@@ -67,9 +69,21 @@ TEST(CloudFromDisparity, BlocksOfFiveByTwoOnAPlaneGiveOnePointEach) {
   EXPECT_EQ(cloud.size(), static_cast<size_t>(128 * 240));
   ASSERT_EQ(cloud.intensity.size(), cloud.size());
   for (size_t i = 0; i < cloud.size(); ++i) {
-    ASSERT_NEAR(cloud.points[i].z(), z, 1e-5);
+    ASSERT_NEAR(cloud.points[i].z(), z, quantisationBound(z) * 1.01);  // d kept in 1/16 px
     ASSERT_EQ(cloud.intensity[i], 77);
   }
+}
+
+TEST(CloudFromDisparity, SpecklesOfBlocksAreDropped) {
+  // A plane at 2.5 m with a 3x3-block island at another depth: the island is a speckle.
+  cv::Mat disparity(kCamera.height, kCamera.width, CV_32FC1,
+                    cv::Scalar(kCamera.disparityFromDepth(2.5)));
+  disparity(cv::Rect(100, 100, 15, 6)).setTo(kCamera.disparityFromDepth(1.5));
+  const cv::Mat left(disparity.size(), CV_8UC1, cv::Scalar(0));
+  const auto filtered = cloudFromDisparity(disparity, left, kCamera);
+  EXPECT_EQ(filtered.size(), static_cast<size_t>(128 * 240 - 9));
+  const auto unfiltered = cloudFromDisparity(disparity, left, kCamera, {.speckle_blocks = 0});
+  EXPECT_EQ(unfiltered.size(), static_cast<size_t>(128 * 240));
 }
 
 TEST(CloudFromDisparity, InvalidAndOutOfRangeDisparitiesNeverBecomePoints) {
@@ -89,12 +103,13 @@ TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
   const sim::Renderer renderer(room, kCamera);
   const auto frame = renderer.render(sim::Flight().T_map_camera(5.0));
   struct Expected {
-    MatcherKind kind;
+    const char* name;
+    MatcherOptions options;
     double min_accuracy, min_density;
   };
-  for (const auto& expected : {Expected{MatcherKind::kBlockMatching, 0.97, 0.88},
-                               Expected{MatcherKind::kSemiGlobal, 0.97, 0.95}}) {
-    const StereoMatcher matcher({.kind = expected.kind});
+  for (const auto& expected : {Expected{"fast", MatcherOptions::fast(), 0.97, 0.88},
+                               Expected{"accurate", MatcherOptions::accurate(), 0.97, 0.95}}) {
+    const StereoMatcher matcher(expected.options);
     const cv::Mat disparity = matcher.compute(frame.left, frame.right);
     size_t valid = 0, good = 0, surface = 0;
     for (int v = 0; v < kCamera.height; ++v) {
@@ -103,18 +118,73 @@ TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
         if (z <= 0 || z > 6.0) continue;
         ++surface;
         const float d = disparity.at<float>(v, u);
-        if (d <= 0) continue;
+        if (d < 0) continue;
         ++valid;
         good += std::abs(d - kCamera.disparityFromDepth(z)) <= 1.0;
       }
     }
     const double accuracy = static_cast<double>(good) / valid;
     const double density = static_cast<double>(valid) / surface;
-    std::printf("matcher %d: within 1 px %.3f, density %.3f\n", static_cast<int>(expected.kind),
-                accuracy, density);
+    std::printf("%s: within 1 px %.3f, density %.3f\n", expected.name, accuracy, density);
     EXPECT_GE(accuracy, expected.min_accuracy);
     EXPECT_GE(density, expected.min_density);
   }
+}
+
+}  // namespace
+}  // namespace stereomap::stereo
+
+namespace stereomap::stereo {
+namespace {
+
+// Middlebury (GT known, non-occluded): the accurate preset against stock StereoSGBM, whose
+// figures the data set's README measures (bad 3.63 / 1.28 / 8.70 / 6.74 %). Ours, measured
+// by stereomap-bench-stereo (docs/BENCHMARKS.md): 2.75 / 0.72 / 6.28 / 5.52 % at density
+// 98.7 / 99.3 / 96.5 / 95.5 %. Each threshold sits a little above our figure and below
+// stock's.
+TEST(StereoMatcher, AccurateBeatsStockSgbmOnEveryMiddleburyPair) {
+  struct Expected {
+    const char* pair;
+    double max_bad, stock_bad;
+  };
+  for (const auto& expected :
+       {Expected{"tsukuba", 0.0300, 0.0363}, Expected{"venus", 0.0085, 0.0128},
+        Expected{"teddy", 0.0660, 0.0870}, Expected{"aloe", 0.0580, 0.0674}}) {
+    const auto dir = testing::kDataDir / "middlebury" / expected.pair;
+    STEREOMAP_SKIP_WITHOUT(dir);
+    auto pair = loadMiddleburyPair(dir);
+    ASSERT_TRUE(pair.ok()) << pair.error().message;
+    MatcherOptions options = MatcherOptions::accurate();
+    options.num_disparities = disparitiesFor(pair->max_disparity);
+    const auto score =
+        scoreDisparity(StereoMatcher(options).compute(pair->left, pair->right), *pair);
+    std::printf("%s: bad %.2f%%, density %.2f%%\n", expected.pair, 100 * score.bad,
+                100 * score.density);
+    EXPECT_LT(score.bad, expected.max_bad) << expected.pair;
+    EXPECT_LT(score.bad, expected.stock_bad) << expected.pair;
+    EXPECT_GE(score.density, 0.95) << expected.pair;  // the issue asks >= 0.85
+  }
+}
+
+TEST(DisparityIo, PngRoundTripKeepsSubPixelAndInvalid) {
+  cv::Mat disparity(4, 5, CV_32FC1, cv::Scalar(12.3125f));
+  disparity.at<float>(1, 2) = -1.0f;
+  disparity.at<float>(2, 3) = 200.5f;
+  const auto path = std::filesystem::temp_directory_path() / "stereomap-disparity-test.png";
+  ASSERT_TRUE(writeDisparityPng(path, disparity).ok());
+  auto back = readDisparityPng(path);
+  ASSERT_TRUE(back.ok()) << back.error().message;
+  EXPECT_FLOAT_EQ(back->at<float>(0, 0), 12.3125f);  // multiples of 1/256 survive exactly
+  EXPECT_LT(back->at<float>(1, 2), 0.0f);
+  EXPECT_FLOAT_EQ(back->at<float>(2, 3), 200.5f);
+  std::filesystem::remove(path);
+}
+
+TEST(MinimumDisparity, FollowsThePapersRule) {
+  // b = 0.09 m, f = 350 px (a 320x240 webcam), r = 0.05 m, dd = 0.5: sqrt(315) = 17.7 -> 18.
+  EXPECT_EQ(minimumDisparity(0.09, 350.0, 0.05), 18);
+  EXPECT_EQ(disparitiesFor(53), 64);
+  EXPECT_EQ(disparitiesFor(64), 64);
 }
 
 }  // namespace
