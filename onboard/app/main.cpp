@@ -38,6 +38,7 @@ int main(int argc, char** argv) {
   std::string stereo_preset = "fast";
   double noise_sigma = 0;
   double wait_s = 3.0;
+  double paper_resolution = 0;
   std::string calibration_file;
   app.add_option("--source", source_spec,
                  "Frame source: sim, kitti:DIR, euroc:DIR, folder:DIR or camera:LEFT,RIGHT")
@@ -70,6 +71,10 @@ int main(int argc, char** argv) {
   app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")
       ->check(CLI::Range(0.0, 50.0))
       ->capture_default_str();
+  app.add_option("--min-disparity-for-resolution", paper_resolution,
+                 "Skip disparities below the octree-mapping paper's d_min = ceil(sqrt(b*f*0.5/r)) "
+                 "for map resolution r metres (0: off)")
+      ->check(CLI::Range(0.0, 10.0));
   app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
       ->check(CLI::Range(0.0, 600.0))
       ->capture_default_str();
@@ -107,6 +112,15 @@ int main(int argc, char** argv) {
       return opened.error().code == common::ErrorCode::kInvalidArgument ? 2 : 1;
     }
     source = std::move(opened).value();
+  }
+
+  if (paper_resolution > 0) {
+    const auto& camera = source->camera();
+    options.matcher.min_disparity =
+        stereo::minimumDisparity(camera.baseline, camera.fx, paper_resolution);
+    spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels",
+                 options.matcher.min_disparity,
+                 camera.depthFromDisparity(options.matcher.min_disparity), paper_resolution);
   }
 
   auto participant = proto::Participant::create(dds);

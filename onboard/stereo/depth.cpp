@@ -2,6 +2,7 @@
 
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/ximgproc/disparity_filter.hpp>
 
 #include <algorithm>
 #include <array>
@@ -52,6 +53,8 @@ int minimumDisparity(double baseline_m, double fx_px, double resolution_m, doubl
 struct StereoMatcher::Impl {
   MatcherOptions options;
   cv::Ptr<cv::StereoMatcher> matcher;
+  cv::Ptr<cv::StereoMatcher> right_matcher;  // for the WLS filter
+  cv::Ptr<cv::ximgproc::DisparityWLSFilter> wls;
   cv::Mat fixed_point;  // reused between frames: a fresh 0.6 MB buffer costs page faults
 };
 
@@ -97,7 +100,24 @@ StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_un
   }
   impl_->matcher->setSpeckleWindowSize(options.speckle_window);
   impl_->matcher->setSpeckleRange(options.speckle_range);
+  if (options.wls_lambda > 0) {
+    impl_->wls = cv::ximgproc::createDisparityWLSFilter(impl_->matcher);
+    impl_->wls->setLambda(options.wls_lambda);
+    impl_->wls->setSigmaColor(options.wls_sigma);
+    impl_->right_matcher = cv::ximgproc::createRightMatcher(impl_->matcher);
+  }
 }
+
+namespace {
+// Laplacian of Gaussian, mapped to 8 bits around 128 (the paper's prefilter).
+cv::Mat laplacianOfGaussian(const cv::Mat& image, double sigma) {
+  cv::Mat blurred, laplacian, out;
+  cv::GaussianBlur(image, blurred, cv::Size(), sigma);
+  cv::Laplacian(blurred, laplacian, CV_16S, 3);
+  laplacian.convertTo(out, CV_8U, -4.0, 128.0);
+  return out;
+}
+}  // namespace
 
 StereoMatcher::~StereoMatcher() = default;
 StereoMatcher::StereoMatcher(StereoMatcher&&) noexcept = default;
@@ -114,6 +134,10 @@ cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const 
     cv::resize(left, l, small, 0, 0, cv::INTER_AREA);
     cv::resize(right, r, small, 0, 0, cv::INTER_AREA);
   }
+  if (o.prefilter == Prefilter::kLoG) {
+    l = laplacianOfGaussian(l, o.log_sigma_px);
+    r = laplacianOfGaussian(r, o.log_sigma_px);
+  }
   // Without padding the matchers leave the first num_disparities columns empty; with it a
   // pixel there finds its match whenever the match is inside the right image.
   const int pad =
@@ -124,6 +148,14 @@ cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const 
   }
   cv::Mat& fixed_point = impl_->fixed_point;  // CV_16S, 4 fractional bits
   impl_->matcher->compute(l, r, fixed_point);
+  if (impl_->wls) {
+    cv::Mat right_disparity, filtered;
+    impl_->right_matcher->compute(r, l, right_disparity);
+    // The filter's default region of interest leaves the left band empty: use all of it.
+    impl_->wls->filter(fixed_point, l, filtered, right_disparity, cv::Rect(0, 0, l.cols, l.rows),
+                       r);
+    fixed_point = filtered;
+  }
   const int invalid_below = impl_->matcher->getMinDisparity() * 16;
   const float scale = static_cast<float>(o.downscale) / 16.0f;
   cv::Mat disparity(l.rows, l.cols - pad, CV_32FC1);

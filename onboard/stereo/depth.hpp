@@ -18,6 +18,10 @@ namespace stereomap::stereo {
 
 enum class MatcherKind { kBlockMatching, kSemiGlobal };
 enum class SemiGlobalMode { kFivePaths, kThreeWay, kEightPaths, kEightPathsFourLines };
+// Applied to both images before matching. The matchers already use a horizontal Sobel
+// internally (kNone keeps just that); kLoG is the octree-mapping paper's Laplacian of
+// Gaussian.
+enum class Prefilter { kNone, kLoG };
 
 // Every knob of the matcher. Start from fast() or accurate() (documented in
 // docs/BENCHMARKS.md with their measured accuracy and speed) rather than from scratch.
@@ -41,6 +45,13 @@ struct MatcherOptions {
   bool pad_left = true;
   // Match at 1/downscale resolution and scale the disparity back (speed for large images).
   int downscale = 1;
+  Prefilter prefilter = Prefilter::kNone;
+  double log_sigma_px = 1.0;
+  // Edge-aware filling of the disparity with OpenCV contrib's WLS filter (ximgproc), using
+  // a right-view matcher for confidence; 0 disables. Dense but measured less accurate on
+  // Middlebury than the accurate preset (docs/BENCHMARKS.md), so off by default.
+  double wls_lambda = 0;
+  double wls_sigma = 1.5;
 
   // Real time on board: <= 15 ms per 640x480 frame with rectification and cloud, one core.
   static MatcherOptions fast();

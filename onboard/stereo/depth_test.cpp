@@ -96,8 +96,8 @@ TEST(CloudFromDisparity, InvalidAndOutOfRangeDisparitiesNeverBecomePoints) {
   EXPECT_GT(cloudFromDisparity(disparity, left, kCamera).size(), 0u);
 }
 
-// Measured on sim seed 2, t = 5 s (docs/BENCHMARKS.md): within 1 px BM 0.991, SGBM 0.992;
-// density BM 0.931, SGBM 0.995. Thresholds sit a little below the measurement.
+// Measured on sim seed 2, t = 5 s (docs/BENCHMARKS.md): within 1 px fast 0.980, accurate
+// 0.991; density fast 0.950, accurate 0.994. Thresholds sit a little below the measurement.
 TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
   const sim::Scene room = sim::Scene::makeRoom({.seed = 2});
   const sim::Renderer renderer(room, kCamera);

@@ -41,10 +41,10 @@ BENCHMARK(BM_SimRenderStereoPair)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond)
 void BM_Disparity(benchmark::State& state) {
   cv::setNumThreads(1);
   const auto& f = fixture();
-  const stereo::StereoMatcher matcher({.kind = state.range(0) == 0
-                                                   ? stereo::MatcherKind::kBlockMatching
-                                                   : stereo::MatcherKind::kSemiGlobal});
-  state.SetLabel(state.range(0) == 0 ? "BM, 80 disparities" : "SGBM 3-way, 80 disparities");
+  const stereo::StereoMatcher matcher(state.range(0) == 0 ? stereo::MatcherOptions::fast()
+                                                          : stereo::MatcherOptions::accurate());
+  state.SetLabel(state.range(0) == 0 ? "fast (BM, 64 disparities)"
+                                     : "accurate (SGBM 3-way, 80 disparities)");
   for (auto _ : state) benchmark::DoNotOptimize(matcher.compute(f.frame.left, f.frame.right));
 }
 BENCHMARK(BM_Disparity)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
