@@ -74,6 +74,33 @@ Result<cv::Size> readSize(const cv::FileStorage& storage, const std::string& fil
   return cv::Size(static_cast<int>(w), static_cast<int>(h));
 }
 
+// Both cameras' intrinsics (names differ between formats) into `c`.
+common::Status readIntrinsics(const cv::FileStorage& storage, const std::string& file,
+                              const char* K_left, const char* D_left, const char* K_right,
+                              const char* D_right, StereoCalibration& c) {
+  for (auto [K_name, D_name, camera] :
+       {std::tuple{K_left, D_left, &c.left}, std::tuple{K_right, D_right, &c.right}}) {
+    auto K = readMatrix(storage, file, K_name, 3, 3);
+    if (!K) return K.error();
+    auto D = readMatrix(storage, file, D_name, 1, 0);
+    if (!D) return D.error();
+    *camera = {cv::Matx33d(*K), *D};
+  }
+  return common::Ok{};
+}
+
+common::Status readExtrinsics(const cv::FileStorage& storage, const std::string& file,
+                              StereoCalibration& c) {
+  auto R = readMatrix(storage, file, "R", 3, 3);
+  if (!R) return R.error();
+  auto T = readMatrix(storage, file, "T", 1, 0);
+  if (!T) return T.error();
+  if (T->total() != 3) return fieldError(file, "T", "must have 3 elements");
+  c.R = cv::Matx33d(*R);
+  c.T = cv::Vec3d(T->at<double>(0), T->at<double>(1), T->at<double>(2));
+  return common::Ok{};
+}
+
 // OpenCV's stereo_calib files: intrinsics (M1 D1 M2 D2) and extrinsics (R T), possibly
 // split over intrinsics.yml and extrinsics.yml.
 Result<StereoCalibration> readOpenCvStereoCalib(const cv::FileStorage& storage,
@@ -81,38 +108,18 @@ Result<StereoCalibration> readOpenCvStereoCalib(const cv::FileStorage& storage,
   const std::string file = path.string();
   StereoCalibration c;
   c.source = file;
-  auto M1 = readMatrix(storage, file, "M1", 3, 3);
-  if (!M1) return M1.error();
-  auto D1 = readMatrix(storage, file, "D1", 1, 0);
-  if (!D1) return D1.error();
-  auto M2 = readMatrix(storage, file, "M2", 3, 3);
-  if (!M2) return M2.error();
-  auto D2 = readMatrix(storage, file, "D2", 1, 0);
-  if (!D2) return D2.error();
-  c.left = {cv::Matx33d(*M1), *D1};
-  c.right = {cv::Matx33d(*M2), *D2};
-
-  cv::FileStorage extrinsics_storage;
-  const cv::FileStorage* extrinsics = &storage;
-  std::string extrinsics_file = file;
+  if (auto s = readIntrinsics(storage, file, "M1", "D1", "M2", "D2", c); !s) return s.error();
   if (storage["R"].empty() && storage["T"].empty()) {
     const fs::path beside = path.parent_path() / "extrinsics.yml";
-    auto opened = openStorage(beside);
-    if (!opened) {
+    auto extrinsics = openStorage(beside);
+    if (!extrinsics) {
       return fieldError(file, "R/T", "are missing (and no extrinsics.yml beside it)");
     }
-    extrinsics_storage = std::move(opened).value();
-    extrinsics = &extrinsics_storage;
-    extrinsics_file = beside.string();
-    c.source += " + " + extrinsics_file;
+    c.source += " + " + beside.string();
+    if (auto s = readExtrinsics(*extrinsics, beside.string(), c); !s) return s.error();
+  } else if (auto s = readExtrinsics(storage, file, c); !s) {
+    return s.error();
   }
-  auto R = readMatrix(*extrinsics, extrinsics_file, "R", 3, 3);
-  if (!R) return R.error();
-  auto T = readMatrix(*extrinsics, extrinsics_file, "T", 1, 0);
-  if (!T) return T.error();
-  if (T->total() != 3) return fieldError(extrinsics_file, "T", "must have 3 elements");
-  c.R = cv::Matx33d(*R);
-  c.T = cv::Vec3d(T->at<double>(0), T->at<double>(1), T->at<double>(2));
   auto size = readSize(storage, file, "image_width", "image_height");
   if (!size) return size.error();
   c.image_size = *size;
@@ -127,23 +134,10 @@ Result<StereoCalibration> readOurs(const cv::FileStorage& storage, const fs::pat
   if (!size) return size.error();
   if (size->area() == 0) return fieldError(file, "image_width/image_height", "are missing");
   c.image_size = *size;
-  auto K_left = readMatrix(storage, file, "K_left", 3, 3);
-  if (!K_left) return K_left.error();
-  auto D_left = readMatrix(storage, file, "D_left", 1, 0);
-  if (!D_left) return D_left.error();
-  auto K_right = readMatrix(storage, file, "K_right", 3, 3);
-  if (!K_right) return K_right.error();
-  auto D_right = readMatrix(storage, file, "D_right", 1, 0);
-  if (!D_right) return D_right.error();
-  auto R = readMatrix(storage, file, "R", 3, 3);
-  if (!R) return R.error();
-  auto T = readMatrix(storage, file, "T", 1, 0);
-  if (!T) return T.error();
-  if (T->total() != 3) return fieldError(file, "T", "must have 3 elements");
-  c.left = {cv::Matx33d(*K_left), *D_left};
-  c.right = {cv::Matx33d(*K_right), *D_right};
-  c.R = cv::Matx33d(*R);
-  c.T = cv::Vec3d(T->at<double>(0), T->at<double>(1), T->at<double>(2));
+  if (auto s = readIntrinsics(storage, file, "K_left", "D_left", "K_right", "D_right", c); !s) {
+    return s.error();
+  }
+  if (auto s = readExtrinsics(storage, file, c); !s) return s.error();
   return c;
 }
 

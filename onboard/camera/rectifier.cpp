@@ -105,20 +105,22 @@ common::Status Rectifier::rectify(const cv::Mat& left, const cv::Mat& right, cv:
   return common::Ok{};
 }
 
-std::vector<cv::Point2f> Rectifier::rectifyLeftPoints(const std::vector<cv::Point2f>& raw) const {
+std::vector<cv::Point2f> Rectifier::rectifyPoints(const std::vector<cv::Point2f>& raw,
+                                                  const CameraIntrinsics& camera,
+                                                  const cv::Matx33d& R,
+                                                  const cv::Matx34d& P) const {
   if (raw.empty()) return {};
   std::vector<cv::Point2f> out;
-  cv::undistortPoints(raw, out, calibration_.left.K, calibration_.left.distortion, R_left_,
-                      P_left_);
+  cv::undistortPoints(raw, out, camera.K, camera.distortion, R, P);
   return out;
 }
 
+std::vector<cv::Point2f> Rectifier::rectifyLeftPoints(const std::vector<cv::Point2f>& raw) const {
+  return rectifyPoints(raw, calibration_.left, R_left_, P_left_);
+}
+
 std::vector<cv::Point2f> Rectifier::rectifyRightPoints(const std::vector<cv::Point2f>& raw) const {
-  if (raw.empty()) return {};
-  std::vector<cv::Point2f> out;
-  cv::undistortPoints(raw, out, calibration_.right.K, calibration_.right.distortion, R_right_,
-                      P_right_);
-  return out;
+  return rectifyPoints(raw, calibration_.right, R_right_, P_right_);
 }
 
 }  // namespace stereomap::camera

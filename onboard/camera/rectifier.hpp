@@ -32,6 +32,10 @@ class Rectifier {
   std::vector<cv::Point2f> rectifyRightPoints(const std::vector<cv::Point2f>& raw) const;
 
  private:
+  std::vector<cv::Point2f> rectifyPoints(const std::vector<cv::Point2f>& raw,
+                                         const CameraIntrinsics& camera, const cv::Matx33d& R,
+                                         const cv::Matx34d& P) const;
+
   StereoCalibration calibration_;
   StereoCamera camera_;
   cv::Matx33d R_left_ = cv::Matx33d::eye(), R_right_ = cv::Matx33d::eye();
