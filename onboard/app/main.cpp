@@ -71,6 +71,10 @@ int main(int argc, char** argv) {
   app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")
       ->check(CLI::Range(0.0, 50.0))
       ->capture_default_str();
+  app.add_option("--voxel-downsample", options.cloud.voxel_m,
+                 "Keep one point per voxel of this edge, metres (0: off; the 5x2 blocks stay)")
+      ->check(CLI::Range(0.0, 10.0))
+      ->capture_default_str();
   app.add_option("--min-disparity-for-resolution", paper_resolution,
                  "Skip disparities below the octree-mapping paper's d_min = ceil(sqrt(b*f*0.5/r)) "
                  "for map resolution r metres (0: off)")

@@ -8,6 +8,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <unordered_map>
 
 namespace stereomap::stereo {
 
@@ -252,7 +253,44 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
       if (options.with_intensity) cloud.intensity.push_back(grey[bx]);
     }
   }
-  return cloud;
+  return options.voxel_m > 0 ? voxelGridDownsample(cloud, options.voxel_m) : cloud;
+}
+
+common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m) {
+  CV_Assert(voxel_m > 0);
+  struct Cell {
+    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+    uint32_t intensity_sum = 0;
+    uint32_t count = 0;
+  };
+  // Key: voxel indices packed into 64 bits (21 bits each, +-1e6 voxels around the camera).
+  auto key = [voxel_m](const common::Vec3f& p) {
+    auto index = [voxel_m](float x) {
+      return static_cast<uint64_t>(static_cast<int64_t>(std::floor(x / voxel_m)) + (1 << 20)) &
+             0x1FFFFF;
+    };
+    return index(p.x()) | index(p.y()) << 21 | index(p.z()) << 42;
+  };
+  std::unordered_map<uint64_t, uint32_t> slot;
+  std::vector<Cell> cells;
+  slot.reserve(cloud.size());
+  for (size_t i = 0; i < cloud.size(); ++i) {
+    auto [it, inserted] =
+        slot.try_emplace(key(cloud.points[i]), static_cast<uint32_t>(cells.size()));
+    if (inserted) cells.emplace_back();
+    Cell& cell = cells[it->second];
+    cell.sum += cloud.points[i].cast<double>();
+    if (cloud.hasIntensity()) cell.intensity_sum += cloud.intensity[i];
+    ++cell.count;
+  }
+  common::PointCloud out;
+  out.points.reserve(cells.size());
+  for (const Cell& cell : cells) {
+    out.points.push_back((cell.sum / cell.count).cast<float>());
+    if (cloud.hasIntensity())
+      out.intensity.push_back(static_cast<uint8_t>(cell.intensity_sum / cell.count));
+  }
+  return out;
 }
 
 }  // namespace stereomap::stereo

@@ -92,6 +92,9 @@ struct CloudOptions {
   bool with_intensity = true;
   // Speckle filter on the block grid: islands of at most this many blocks whose disparity
   // differs from their surroundings by more than speckle_range_px are dropped (0: off).
+  // Then keep one point per voxel of this edge (their centroid and mean intensity); 0: off.
+  // Thins the many near points without touching far ones; pick the map's resolution.
+  double voxel_m = 0;
   int speckle_blocks = 40;
   double speckle_range_px = 1.0;
 };
@@ -104,5 +107,9 @@ struct CloudOptions {
 common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& left,
                                       const camera::StereoCamera& camera,
                                       const CloudOptions& options = {});
+
+// One point per occupied cubic voxel of edge `voxel_m` (the centroid of its points, with
+// their mean intensity), in order of first appearance. voxel_m must be positive.
+common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m);
 
 }  // namespace stereomap::stereo

@@ -86,6 +86,22 @@ TEST(CloudFromDisparity, SpecklesOfBlocksAreDropped) {
   EXPECT_EQ(unfiltered.size(), static_cast<size_t>(128 * 240));
 }
 
+TEST(VoxelGrid, KeepsOneCentroidPerVoxel) {
+  common::PointCloud cloud;
+  cloud.points = {{0.01f, 0.01f, 1.01f}, {0.03f, 0.05f, 1.09f}, {0.25f, 0.0f, 1.0f}};
+  cloud.intensity = {10, 30, 200};
+  const auto thinned = voxelGridDownsample(cloud, 0.1);
+  ASSERT_EQ(thinned.size(), 2u);
+  EXPECT_NEAR(thinned.points[0].x(), 0.02f, 1e-6);
+  EXPECT_NEAR(thinned.points[0].z(), 1.05f, 1e-6);
+  EXPECT_EQ(thinned.intensity[0], 20);
+  EXPECT_EQ(thinned.intensity[1], 200);
+  // Negative coordinates land in their own voxels (floor, not truncation).
+  cloud.points = {{-0.01f, 0, 1}, {0.01f, 0, 1}};
+  cloud.intensity.clear();
+  EXPECT_EQ(voxelGridDownsample(cloud, 0.1).size(), 2u);
+}
+
 TEST(CloudFromDisparity, InvalidAndOutOfRangeDisparitiesNeverBecomePoints) {
   cv::Mat disparity(kCamera.height, kCamera.width, CV_32FC1, cv::Scalar(-1));
   const cv::Mat left(disparity.size(), CV_8UC1, cv::Scalar(0));
