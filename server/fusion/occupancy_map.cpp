@@ -2,6 +2,8 @@
 
 #include <octomap/OcTree.h>
 
+#include "server/fusion/detail/bulk_insert.hpp"
+
 #include <algorithm>
 
 namespace stereomap::fusion {
@@ -12,15 +14,32 @@ constexpr int32_t kKeyOffset = 32768;
 constexpr unsigned kTreeDepth = 16;
 }  // namespace
 
+OccupancyMap::Options OccupancyMap::Options::octomapPreset(double resolution) {
+  Options options;
+  options.resolution = resolution;
+  return options;
+}
+
+OccupancyMap::Options OccupancyMap::Options::paperPreset(double resolution) {
+  Options options;
+  options.resolution = resolution;
+  options.prob_hit = 0.7;
+  options.prob_miss = 0.1;
+  options.occupancy_threshold = 0.6;
+  return options;
+}
+
 struct OccupancyMap::Impl {
-  explicit Impl(const Options& options) : tree(options.resolution) {
+  explicit Impl(const Options& options) : options(options), tree(options.resolution) {
     tree.setProbHit(options.prob_hit);
     tree.setProbMiss(options.prob_miss);
     tree.setClampingThresMin(options.clamp_min);
     tree.setClampingThresMax(options.clamp_max);
     tree.setOccupancyThres(options.occupancy_threshold);
   }
-  octomap::OcTree tree;
+  Options options;
+  detail::BulkOcTree tree;
+  detail::BulkInserter inserter;
 };
 
 OccupancyMap::OccupancyMap(const Options& options) : impl_(std::make_unique<Impl>(options)) {}
@@ -28,16 +47,25 @@ OccupancyMap::~OccupancyMap() = default;
 
 void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
                                const common::Rigid3& T_map_sensor, double max_range_m) {
-  octomap::Pointcloud scan;
-  scan.reserve(cloud_sensor.size());
+  std::vector<octomap::point3d> points;
+  points.reserve(cloud_sensor.size());
   for (const auto& p : cloud_sensor.points) {
     const common::Vec3 p_map = T_map_sensor * p.cast<double>();
-    scan.push_back(static_cast<float>(p_map.x()), static_cast<float>(p_map.y()),
-                   static_cast<float>(p_map.z()));
+    points.emplace_back(static_cast<float>(p_map.x()), static_cast<float>(p_map.y()),
+                        static_cast<float>(p_map.z()));
   }
-  const common::Vec3& origin = T_map_sensor.translation;
-  impl_->tree.insertPointCloud(scan, octomap::point3d(origin.x(), origin.y(), origin.z()),
-                               max_range_m, /*lazy_eval=*/false, /*discretize=*/true);
+  const common::Vec3& t = T_map_sensor.translation;
+  const octomap::point3d origin(static_cast<float>(t.x()), static_cast<float>(t.y()),
+                                static_cast<float>(t.z()));
+  if (impl_->options.insertion == Insertion::kFast) {
+    impl_->inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads);
+  } else {
+    octomap::Pointcloud scan;
+    scan.reserve(points.size());
+    for (const auto& p : points) scan.push_back(p);
+    impl_->tree.insertPointCloud(scan, origin, max_range_m, /*lazy_eval=*/false,
+                                 /*discretize=*/false);
+  }
 }
 
 Occupancy OccupancyMap::query(const common::Vec3& p_map) const {
@@ -113,5 +141,45 @@ bool OccupancyMap::writeBinary(std::ostream& out) const {
 }
 
 size_t OccupancyMap::memoryBytes() const { return impl_->tree.memoryUsage(); }
+
+namespace {
+
+using Node = octomap::OcTreeNode;
+
+Occupancy classOf(const octomap::OcTree& tree, const Node* node) {
+  if (node == nullptr) return Occupancy::kUnknown;
+  return tree.isNodeOccupied(node) ? Occupancy::kOccupied : Occupancy::kFree;
+}
+
+// A node's child, or the node itself when it is a leaf (its class covers the child's region).
+const Node* childOrSelf(const octomap::OcTree& tree, const Node* node, unsigned i) {
+  if (node == nullptr || !tree.nodeHasChildren(node)) return node;
+  return tree.nodeChildExists(node, i) ? tree.getNodeChild(node, i) : nullptr;
+}
+
+void compareRecurs(const octomap::OcTree& ta, const Node* a, const octomap::OcTree& tb,
+                   const Node* b, unsigned depth, MapAgreement& result) {
+  if (a == nullptr && b == nullptr) return;
+  const bool a_split = a != nullptr && ta.nodeHasChildren(a);
+  const bool b_split = b != nullptr && tb.nodeHasChildren(b);
+  if (a_split || b_split) {
+    for (unsigned i = 0; i < 8; ++i) {
+      compareRecurs(ta, childOrSelf(ta, a, i), tb, childOrSelf(tb, b, i), depth + 1, result);
+    }
+    return;
+  }
+  const uint64_t voxels = uint64_t{1} << (3 * (16 - depth));
+  result.voxels += voxels;
+  if (classOf(ta, a) == classOf(tb, b)) result.agreeing += voxels;
+}
+
+}  // namespace
+
+MapAgreement compareClassification(const OccupancyMap& a, const OccupancyMap& b) {
+  MapAgreement result;
+  compareRecurs(a.impl_->tree, a.impl_->tree.getRoot(), b.impl_->tree, b.impl_->tree.getRoot(), 0,
+                result);
+  return result;
+}
 
 }  // namespace stereomap::fusion

@@ -27,8 +27,20 @@ struct VoxelIndex {
 
 enum class Occupancy { kUnknown, kFree, kOccupied };
 
+// How two maps classify the voxels that either of them knows, counted in finest voxels.
+struct MapAgreement {
+  uint64_t voxels = 0;    // known (free or occupied) in at least one map
+  uint64_t agreeing = 0;  // same class in both
+  double fraction() const { return voxels ? static_cast<double>(agreeing) / voxels : 1.0; }
+};
+
 class OccupancyMap {
  public:
+  enum class Insertion {
+    kFast,     // ours: bitset ray casting on all cores + one bulk tree update (default)
+    kOctomap,  // OctoMap's own insertPointCloud, for comparison
+  };
+
   // Sensor model; the defaults are OctoMap's (hit 0.7, miss 0.4, clamping 0.1192/0.971).
   struct Options {
     double resolution = 0.1;  // metres, finest voxel edge
@@ -37,6 +49,14 @@ class OccupancyMap {
     double clamp_min = 0.1192;
     double clamp_max = 0.971;
     double occupancy_threshold = 0.5;
+    Insertion insertion = Insertion::kFast;
+    unsigned threads = 2;  // ray casting threads of the fast path
+
+    // OctoMap's defaults (above).
+    static Options octomapPreset(double resolution);
+    // The octree-mapping paper: hit 0.7, free 0.1; occupied if P >= 0.6 (free if <= 0.4,
+    // unknown between: see classify()).
+    static Options paperPreset(double resolution);
   };
 
   explicit OccupancyMap(const Options& options);
@@ -64,8 +84,12 @@ class OccupancyMap {
   size_t memoryBytes() const;
 
  private:
+  friend MapAgreement compareClassification(const OccupancyMap& a, const OccupancyMap& b);
   struct Impl;
   std::unique_ptr<Impl> impl_;
 };
+
+// Walks both trees together (pruned nodes stand for all their voxels). Same resolution only.
+MapAgreement compareClassification(const OccupancyMap& a, const OccupancyMap& b);
 
 }  // namespace stereomap::fusion

@@ -74,3 +74,61 @@ TEST(OccupancyMap, BinaryExportLoadsInOctoMapWithTheSameOccupiedVoxels) {
 
 }  // namespace
 }  // namespace stereomap::fusion
+
+namespace stereomap::fusion {
+namespace {
+
+// A synthetic frame: rays over a 65x50 degree view along the sensor's +x, ending on a wavy
+// surface 2-10 m away, some beyond max_range.
+common::PointCloud frustumCloud(int cols, int rows, uint32_t seed) {
+  common::PointCloud cloud;
+  const double h = 65.0 * M_PI / 180, v = 50.0 * M_PI / 180;
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) {
+      const double az = (c / (cols - 1.0) - 0.5) * h, el = (r / (rows - 1.0) - 0.5) * v;
+      const double range = 6.0 + 3.5 * std::sin(3 * az + seed) * std::cos(2 * el) +
+                           0.5 * std::sin(17 * az * el + seed);
+      const Vec3 dir(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
+      cloud.points.push_back((dir * range).cast<float>());
+    }
+  }
+  return cloud;
+}
+
+double agreementAfter(const std::vector<std::pair<common::PointCloud, common::Rigid3>>& frames,
+                      double resolution, double max_range) {
+  OccupancyMap fast({.resolution = resolution});
+  OccupancyMap stock({.resolution = resolution, .insertion = OccupancyMap::Insertion::kOctomap});
+  for (const auto& [cloud, pose] : frames) {
+    fast.insertCloud(cloud, pose, max_range);
+    stock.insertCloud(cloud, pose, max_range);
+  }
+  const auto agreement = compareClassification(fast, stock);
+  std::printf("agreement %.5f over %llu voxels\n", agreement.fraction(),
+              static_cast<unsigned long long>(agreement.voxels));
+  EXPECT_GT(agreement.voxels, 10000u);
+  EXPECT_EQ(fast.occupiedCount() > 0, true);
+  return agreement.fraction();
+}
+
+TEST(FastInsertion, AgreesWithOctomapOnSyntheticFrames) {
+  std::vector<std::pair<common::PointCloud, common::Rigid3>> frames;
+  for (uint32_t i = 0; i < 4; ++i) {
+    frames.emplace_back(frustumCloud(100, 80, i),
+                        common::Rigid3{common::Quat(Eigen::AngleAxisd(0.3 * i, Vec3::UnitZ())),
+                                       Vec3(0.2 * i, -0.1 * i, 0.05 * i)});
+  }
+  EXPECT_GE(agreementAfter(frames, 0.05, 8.0), 0.995);
+  EXPECT_GE(agreementAfter(frames, 0.1, -1.0), 0.995);
+}
+
+TEST(FastInsertion, ComparisonCanTellMapsApart) {
+  OccupancyMap a({.resolution = 0.1}), b({.resolution = 0.1});
+  a.insertCloud(wall(3.05), common::Rigid3::identity(), 10);
+  b.insertCloud(wall(4.05), common::Rigid3::identity(), 10);
+  EXPECT_LT(compareClassification(a, b).fraction(), 0.95);
+  EXPECT_DOUBLE_EQ(compareClassification(a, a).fraction(), 1.0);
+}
+
+}  // namespace
+}  // namespace stereomap::fusion

@@ -1,0 +1,47 @@
+// The fast insertion path behind OccupancyMap (internal to server/fusion). It produces the
+// same update as OctoMap's insertPointCloud (same rays, same "occupied wins over free"
+// rule, one log-odds update per touched voxel) at a fraction of the cost:
+//  1. rays are cast on all cores into dense bitsets over the cloud's bounding box (no
+//     std::unordered_set), one bitset per thread, OR-ed at the end;
+//  2. the touched voxels are listed in Morton order (radix sort), so that
+//  3. the tree is updated in one recursive descent that visits each touched subtree once,
+//     updating inner nodes and pruning on the way back up (no per-key updateNode()).
+#pragma once
+
+#include <octomap/OcTree.h>
+
+#include <cstdint>
+#include <vector>
+
+namespace stereomap::fusion::detail {
+
+// octomap::OcTree with a bulk update (it needs the tree's protected root).
+class BulkOcTree : public octomap::OcTree {
+ public:
+  explicit BulkOcTree(double resolution) : octomap::OcTree(resolution) {}
+  // `codes`: Morton code of each key shifted left by one, lowest bit set for an occupied
+  // (hit) update and clear for a free (miss) update; sorted ascending, no key twice.
+  void applySortedUpdates(const std::vector<uint64_t>& codes);
+
+ private:
+  void descend(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
+               const uint64_t* begin, const uint64_t* end);
+};
+
+// Reusable buffers for insertions (one per map; not thread-safe).
+class BulkInserter {
+ public:
+  // Points in the map frame; rays from `origin`, clipped at max_range (< 0: no limit).
+  void insert(BulkOcTree& tree, const std::vector<octomap::point3d>& points,
+              const octomap::point3d& origin, double max_range, unsigned threads);
+
+ private:
+  std::vector<uint64_t> free_bits_[2], occupied_bits_;
+  std::vector<uint64_t> codes_, scratch_;
+};
+
+// Morton code of a key: bit b of x, y, z at bits 3b, 3b+1, 3b+2.
+uint64_t mortonCode(const octomap::OcTreeKey& key);
+octomap::OcTreeKey mortonDecode(uint64_t code);
+
+}  // namespace stereomap::fusion::detail
