@@ -4,6 +4,7 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <atomic>
 #include <thread>
 
 namespace stereomap::fusion::detail {
@@ -76,23 +77,28 @@ inline void setBit(std::vector<uint64_t>& bits, size_t index) {
 }
 
 // OctoMap's computeRayKeys (Amanatides & Woo), with the same float/double arithmetic so
-// that it visits the same voxels, writing into a bitset instead of a KeyRay.
+// that it visits the same voxels, writing into a bitset instead of a KeyRay. The loop is
+// arranged so that each step finds the next axis once and moves the bit index by a stride.
 void castRay(const octomap::OcTree& tree, const point3d& origin, const point3d& end,
              const KeyBox& box, std::vector<uint64_t>& bits) {
   OcTreeKey key_origin, key_end;
   if (!tree.coordToKeyChecked(origin, key_origin) || !tree.coordToKeyChecked(end, key_end)) return;
   if (key_origin == key_end) return;
-  setBit(bits, box.index(key_origin));
+  size_t index = box.index(key_origin);
+  setBit(bits, index);
 
   point3d direction = end - origin;
   const float length = static_cast<float>(direction.norm());
   direction /= length;
   const double resolution = tree.getResolution();
+  const int64_t stride[3] = {static_cast<int64_t>(box.size[1]) * box.size[2], box.size[2], 1};
   int step[3];
+  int64_t index_step[3];
   double t_max[3], t_delta[3];
   OcTreeKey current = key_origin;
   for (unsigned i = 0; i < 3; ++i) {
     step[i] = direction(i) > 0.0 ? 1 : direction(i) < 0.0 ? -1 : 0;
+    index_step[i] = step[i] * stride[i];
     if (step[i] != 0) {
       double border = tree.keyToCoord(current[i]);
       border += static_cast<float>(step[i] * resolution * 0.5);
@@ -102,18 +108,28 @@ void castRay(const octomap::OcTree& tree, const point3d& origin, const point3d& 
       t_max[i] = t_delta[i] = std::numeric_limits<double>::max();
     }
   }
+  // The stepping loop below is OctoMap's (the next axis is the smallest t_max, ties going to
+  // the later axis) in scalars and selects instead of branches: which axis comes next is
+  // unpredictable, and a mispredicted branch per voxel was most of the cost.
+  double t0 = t_max[0], t1 = t_max[1], t2 = t_max[2];
+  const double d0 = t_delta[0], d1 = t_delta[1], d2 = t_delta[2];
+  int k0 = current[0], k1 = current[1], k2 = current[2];
+  const int e0 = key_end[0], e1 = key_end[1], e2 = key_end[2];
   for (;;) {
-    unsigned dim;
-    if (t_max[0] < t_max[1]) {
-      dim = t_max[0] < t_max[2] ? 0 : 2;
-    } else {
-      dim = t_max[1] < t_max[2] ? 1 : 2;
-    }
-    current[dim] += step[dim];
-    t_max[dim] += t_delta[dim];
-    if (current == key_end) return;
-    if (std::min(std::min(t_max[0], t_max[1]), t_max[2]) > length) return;
-    setBit(bits, box.index(current));
+    const bool x_first = t0 < t1;
+    const bool z_next = !((x_first ? t0 : t1) < t2);
+    const bool x_next = x_first && !z_next;
+    const bool y_next = !x_first && !z_next;
+    k0 += x_next ? step[0] : 0;
+    k1 += y_next ? step[1] : 0;
+    k2 += z_next ? step[2] : 0;
+    t0 += x_next ? d0 : 0.0;
+    t1 += y_next ? d1 : 0.0;
+    t2 += z_next ? d2 : 0.0;
+    index += x_next ? index_step[0] : y_next ? index_step[1] : index_step[2];
+    if (k0 == e0 && k1 == e1 && k2 == e2) return;
+    if (std::min(std::min(t0, t1), t2) > length) return;
+    setBit(bits, index);
   }
 }
 
@@ -129,7 +145,26 @@ OcTreeKey mortonDecode(uint64_t code) {
                    static_cast<uint16_t>(compactBits(code >> 2)));
 }
 
-void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes) {
+namespace {
+// Subtrees at this depth are the units of parallel work (up to 512 of them).
+constexpr unsigned kTaskDepth = 3;
+
+// [begin, end) split into runs of equal child index at `depth`, calling visit(child, b, e).
+template <typename Visit>
+void forEachChildRun(unsigned tree_depth, unsigned depth, const uint64_t* begin,
+                     const uint64_t* end, Visit visit) {
+  const unsigned shift = 3 * (tree_depth - 1 - depth) + 1;  // above the occupied flag
+  for (const uint64_t* run = begin; run != end;) {
+    const unsigned child = static_cast<unsigned>((*run >> shift) & 7);
+    const uint64_t* run_end =
+        std::find_if(run, end, [&](uint64_t c) { return ((c >> shift) & 7) != child; });
+    visit(child, run, run_end);
+    run = run_end;
+  }
+}
+}  // namespace
+
+void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads) {
   if (codes.empty()) return;
   bool created = false;
   if (root == nullptr) {
@@ -137,7 +172,67 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes) {
     ++tree_size;
     created = true;
   }
-  descend(root, created, 0, codes.data(), codes.data() + codes.size());
+  if (threads < 2) {
+    descend(root, created, 0, codes.data(), codes.data() + codes.size());
+    return;
+  }
+  // Top levels serially (create or expand the nodes down to kTaskDepth), the subtrees below
+  // on two threads, then the top levels' occupancy and pruning serially on the way back up.
+  std::vector<Task> tasks;
+  openTop(root, created, 0, codes.data(), codes.data() + codes.size(), tasks);
+  // The second thread changes nodes through a twin tree with the same sensor model, so that
+  // OctoMap's node bookkeeping (tree_size) of the two threads never touches the same counter.
+  BulkOcTree twin(getResolution());
+  twin.setProbHit(getProbHit());
+  twin.setProbMiss(getProbMiss());
+  twin.setClampingThresMin(getClampingThresMin());
+  twin.setClampingThresMax(getClampingThresMax());
+  twin.setOccupancyThres(getOccupancyThres());
+  std::atomic<size_t> next{0};
+  auto work = [&tasks, &next](BulkOcTree& tree) {
+    for (size_t i; (i = next.fetch_add(1)) < tasks.size();) {
+      const Task& t = tasks[i];
+      tree.descend(t.node, t.just_created, kTaskDepth, t.begin, t.end);
+    }
+  };
+  std::thread helper(work, std::ref(twin));
+  work(*this);
+  helper.join();
+  tree_size += twin.tree_size;  // wraps correctly when the twin pruned more than it made
+  twin.tree_size = 0;
+  size_changed = true;
+  closeTop(root, 0, codes.data(), codes.data() + codes.size());
+}
+
+void BulkOcTree::openTop(OcTreeNode* node, bool node_just_created, unsigned depth,
+                         const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks) {
+  if (depth == kTaskDepth) {
+    tasks.push_back({node, node_just_created, begin, end});
+    return;
+  }
+  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+    const bool created = openChild(node, node_just_created, child);
+    openTop(getNodeChild(node, child), created, depth + 1, b, e, tasks);
+  });
+}
+
+void BulkOcTree::closeTop(OcTreeNode* node, unsigned depth, const uint64_t* begin,
+                          const uint64_t* end) {
+  if (depth == kTaskDepth) return;
+  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+    closeTop(getNodeChild(node, child), depth + 1, b, e);
+  });
+  if (!pruneNode(node)) node->updateOccupancyChildren();
+}
+
+bool BulkOcTree::openChild(OcTreeNode* node, bool node_just_created, unsigned child) {
+  if (nodeChildExists(node, child)) return false;
+  if (!nodeHasChildren(node) && !node_just_created) {
+    expandNode(node);  // a pruned node: give it its eight children back
+    return false;
+  }
+  createNodeChild(node, child);
+  return true;
 }
 
 // Mirrors OccupancyOcTreeBase::updateNodeRecurs for all keys below `node` at once.
@@ -148,25 +243,10 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
     updateNodeLogOdds(node, (*begin & 1) ? prob_hit_log : prob_miss_log);
     return;
   }
-  // Bits of the child index at this depth: the Morton triplet of bit (15 - depth), which
-  // sits above the occupied flag in each code.
-  const unsigned shift = 3 * (tree_depth - 1 - depth) + 1;
-  for (const uint64_t* group = begin; group != end;) {
-    const unsigned child = static_cast<unsigned>((*group >> shift) & 7);
-    const uint64_t* group_end =
-        std::find_if(group, end, [&](uint64_t c) { return ((c >> shift) & 7) != child; });
-    bool created = false;
-    if (!nodeChildExists(node, child)) {
-      if (!nodeHasChildren(node) && !node_just_created) {
-        expandNode(node);  // a pruned node: give it its eight children back
-      } else {
-        createNodeChild(node, child);
-        created = true;
-      }
-    }
-    descend(getNodeChild(node, child), created, depth + 1, group, group_end);
-    group = group_end;
-  }
+  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+    const bool created = openChild(node, node_just_created, child);
+    descend(getNodeChild(node, child), created, depth + 1, b, e);
+  });
   if (!pruneNode(node)) node->updateOccupancyChildren();
 }
 
@@ -213,21 +293,29 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   }
 
   // Occupied wins over free (as OctoMap's computeUpdate); list both in Morton order.
-  codes_.clear();
-  for (size_t w = 0; w < words; ++w) {
-    const uint64_t occupied = occupied_bits_[w];
-    uint64_t free = free_bits_[0][w];
-    if (threads == 2) free |= free_bits_[1][w];
-    uint64_t any = free | occupied;
-    while (any != 0) {
-      const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
-      any &= any - 1;
-      const uint64_t is_occupied = (occupied >> bit) & 1;
-      codes_.push_back(mortonCode(box.key(w * 64 + bit)) << 1 | is_occupied);
+  auto extract = [&](size_t from, size_t to, std::vector<uint64_t>& out) {
+    out.clear();
+    for (size_t w = from; w < to; ++w) {
+      const uint64_t occupied = occupied_bits_[w];
+      uint64_t any = free_bits_[0][w] | occupied;
+      if (threads == 2) any |= free_bits_[1][w];
+      while (any != 0) {
+        const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
+        any &= any - 1;
+        out.push_back(mortonCode(box.key(w * 64 + bit)) << 1 | ((occupied >> bit) & 1));
+      }
     }
+  };
+  if (threads == 2) {
+    std::thread helper(extract, words / 2, words, std::ref(scratch_));
+    extract(0, words / 2, codes_);
+    helper.join();
+    codes_.insert(codes_.end(), scratch_.begin(), scratch_.end());
+  } else {
+    extract(0, words, codes_);
   }
   radixSort(codes_, scratch_, 49);
-  tree.applySortedUpdates(codes_);
+  tree.applySortedUpdates(codes_, threads);
 }
 
 }  // namespace stereomap::fusion::detail

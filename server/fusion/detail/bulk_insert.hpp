@@ -21,11 +21,24 @@ class BulkOcTree : public octomap::OcTree {
   explicit BulkOcTree(double resolution) : octomap::OcTree(resolution) {}
   // `codes`: Morton code of each key shifted left by one, lowest bit set for an occupied
   // (hit) update and clear for a free (miss) update; sorted ascending, no key twice.
-  void applySortedUpdates(const std::vector<uint64_t>& codes);
+  // threads >= 2: subtrees below depth 3 are updated on two threads.
+  void applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads = 1);
 
  private:
+  struct Task {
+    octomap::OcTreeNode* node;
+    bool just_created;
+    const uint64_t* begin;
+    const uint64_t* end;
+  };
   void descend(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
                const uint64_t* begin, const uint64_t* end);
+  // The child to descend into exists afterwards; true when it had to be created.
+  bool openChild(octomap::OcTreeNode* node, bool node_just_created, unsigned child);
+  void openTop(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
+               const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks);
+  void closeTop(octomap::OcTreeNode* node, unsigned depth, const uint64_t* begin,
+                const uint64_t* end);
 };
 
 // Reusable buffers for insertions (one per map; not thread-safe).
