@@ -39,7 +39,6 @@ struct OccupancyMap::Impl {
   }
   Options options;
   detail::BulkOcTree tree;
-  detail::BulkInserter inserter;
 };
 
 OccupancyMap::OccupancyMap(const Options& options) : impl_(std::make_unique<Impl>(options)) {}
@@ -58,7 +57,10 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
   const octomap::point3d origin(static_cast<float>(t.x()), static_cast<float>(t.y()),
                                 static_cast<float>(t.z()));
   if (impl_->options.insertion == Insertion::kFast) {
-    impl_->inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads);
+    // Scratch buffers (several MB) live with the thread, so that a fusion worker reuses
+    // them across frames and maps instead of faulting fresh pages in every time.
+    thread_local detail::BulkInserter inserter;
+    inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads);
   } else {
     octomap::Pointcloud scan;
     scan.reserve(points.size());

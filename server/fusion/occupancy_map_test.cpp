@@ -5,7 +5,9 @@
 
 #include <sstream>
 
+#include "tests/support/data.hpp"
 #include "tests/support/synthetic.hpp"
+#include "tests/support/tum.hpp"
 
 namespace stereomap::fusion {
 namespace {
@@ -120,6 +122,17 @@ TEST(FastInsertion, AgreesWithOctomapOnSyntheticFrames) {
   }
   EXPECT_GE(agreementAfter(frames, 0.05, 8.0), 0.995);
   EXPECT_GE(agreementAfter(frames, 0.1, -1.0), 0.995);
+}
+
+TEST(FastInsertion, AgreesWithOctomapOnRealTumDepth) {
+  const auto dir = testing::kDataDir / "tum_rgbd_fr1";
+  STEREOMAP_SKIP_WITHOUT(dir);
+  std::vector<std::pair<common::PointCloud, common::Rigid3>> frames;
+  for (auto& f : testing::tumDepthFrames(dir.string(), 6)) {
+    frames.emplace_back(std::move(f.cloud), f.T_map_camera);
+  }
+  ASSERT_EQ(frames.size(), 6u);
+  EXPECT_GE(agreementAfter(frames, 0.05, 3.0), 0.995);  // some rays longer than 3 m
 }
 
 TEST(FastInsertion, ComparisonCanTellMapsApart) {

@@ -11,11 +11,13 @@
 #include <fstream>
 #include <functional>
 #include <random>
+#include <sstream>
 
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "tests/support/tum.hpp"
 
 namespace {
 
@@ -37,8 +39,8 @@ Frame frustumFrame() {
   for (int r = 0; r < 200; ++r) {
     for (int c = 0; c < 250; ++c) {
       const double az = (c / 249.0 - 0.5) * h, el = (r / 199.0 - 0.5) * v;
-      const double range = std::clamp(
-          6.0 + 3.5 * std::sin(3 * az) * std::cos(2 * el) + jitter(rng), 2.0, 10.0);
+      const double range =
+          std::clamp(6.0 + 3.5 * std::sin(3 * az) * std::cos(2 * el) + jitter(rng), 2.0, 10.0);
       const Vec3 dir(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
       frame.cloud.points.push_back((dir * range).cast<float>());
     }
@@ -58,42 +60,10 @@ Frame simFrame() {
           pose};
 }
 
-// TUM fr1 desk depth frames (every 4th pixel), in the colour camera frame, with the ground
-// truth pose nearest in time.
 std::vector<Frame> tumFrames(const std::string& dir, size_t count) {
   std::vector<Frame> frames;
-  std::ifstream list(dir + "/depth.txt");
-  std::vector<std::pair<double, common::Rigid3>> truth;
-  std::ifstream gt(dir + "/groundtruth.txt");
-  for (std::string line; std::getline(gt, line);) {
-    if (line.empty() || line[0] == '#') continue;
-    double t, x, y, z, qx, qy, qz, qw;
-    if (std::istringstream(line) >> t >> x >> y >> z >> qx >> qy >> qz >> qw) {
-      truth.push_back({t, {common::Quat(qw, qx, qy, qz).normalized(), Vec3(x, y, z)}});
-    }
-  }
-  for (std::string line; std::getline(list, line) && frames.size() < count;) {
-    if (line.empty() || line[0] == '#' || truth.empty()) continue;
-    double stamp;
-    std::string file;
-    std::istringstream(line) >> stamp >> file;
-    const cv::Mat depth = cv::imread(dir + "/" + file, cv::IMREAD_UNCHANGED);
-    if (depth.type() != CV_16UC1) continue;
-    Frame frame;
-    for (int v = 0; v < depth.rows; v += 4) {
-      for (int u = 0; u < depth.cols; u += 4) {
-        const double z = depth.at<uint16_t>(v, u) / 5000.0;
-        if (z > 0) {
-          frame.cloud.points.emplace_back(static_cast<float>((u - 318.6) / 517.3 * z),
-                                          static_cast<float>((v - 255.3) / 516.5 * z),
-                                          static_cast<float>(z));
-        }
-      }
-    }
-    frame.pose = std::min_element(truth.begin(), truth.end(), [&](const auto& a, const auto& b) {
-                   return std::abs(a.first - stamp) < std::abs(b.first - stamp);
-                 })->second;
-    frames.push_back(std::move(frame));
+  for (auto& f : testing::tumDepthFrames(dir, count)) {
+    frames.push_back({std::move(f.cloud), f.T_map_camera});
   }
   return frames;
 }
@@ -125,7 +95,8 @@ Result compare(const std::vector<Frame>& frames, double resolution, double max_r
     return 0.0;
   };
   Result result{};
-  result.stock_ms = medianMs(stock_runs, [&] { build(OccupancyMap::Insertion::kOctomap, nullptr); });
+  result.stock_ms =
+      medianMs(stock_runs, [&] { build(OccupancyMap::Insertion::kOctomap, nullptr); });
   result.fast_ms = medianMs(runs, [&] { build(OccupancyMap::Insertion::kFast, nullptr); });
   OccupancyMap stock({.resolution = resolution, .insertion = OccupancyMap::Insertion::kOctomap});
   for (const auto& f : frames) stock.insertCloud(f.cloud, f.pose, max_range);
@@ -145,8 +116,9 @@ int main(int argc, char** argv) {
   app.add_option("--tum", tum, "TUM RGB-D folder (skipped when absent)");
   CLI11_PARSE(app, argc, argv);
 
-  std::printf("| case | points | OctoMap insertPointCloud | ours, 1 thread | ours, 2 threads | "
-              "speedup (2 threads) | agreement |\n|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "| case | points | OctoMap insertPointCloud | ours, 1 thread | ours, 2 threads | "
+      "speedup (2 threads) | agreement |\n|---|---|---|---|---|---|---|\n");
   auto row = [&](const char* name, const std::vector<Frame>& frames, double resolution,
                  double max_range) {
     size_t points = 0;
@@ -154,12 +126,12 @@ int main(int argc, char** argv) {
     const auto one = compare(frames, resolution, max_range, runs, stock_runs, 1);
     const auto two = compare(frames, resolution, max_range, runs, 1, 2);
     std::printf("| %s | %zu | %.1f ms | %.1f ms | %.1f ms (%.2f M points/s) | %.1fx | %.3f%% |\n",
-                name, points, one.stock_ms, one.fast_ms, two.fast_ms,
-                points / two.fast_ms / 1000.0, one.stock_ms / two.fast_ms, 100 * two.agreement);
+                name, points, one.stock_ms, one.fast_ms, two.fast_ms, points / two.fast_ms / 1000.0,
+                one.stock_ms / two.fast_ms, 100 * two.agreement);
     return std::pair{one.stock_ms / two.fast_ms, two.agreement};
   };
-  const auto headline = row("50k points, 65x50 deg, 2-10 m, 0.05 m, 10 m rays", {frustumFrame()},
-                            0.05, 10.0);
+  const auto headline =
+      row("50k points, 65x50 deg, 2-10 m, 0.05 m, 10 m rays", {frustumFrame()}, 0.05, 10.0);
   row("sim 640x480 frame (fast stereo), 0.05 m, 6 m rays", {simFrame()}, 0.05, 6.0);
   row("sim 640x480 frame (fast stereo), 0.1 m, 6 m rays", {simFrame()}, 0.1, 6.0);
   const auto desk = tumFrames(tum, 10);

@@ -2,9 +2,9 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <limits>
-#include <atomic>
 #include <thread>
 
 namespace stereomap::fusion::detail {
@@ -35,11 +35,13 @@ uint64_t compactBits(uint64_t v) {
   return v;
 }
 
-// LSD radix sort of 64-bit values whose set bits are below `bits`.
-void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch, unsigned bits) {
+// LSD radix sort of 64-bit values whose set bits are below `bits`. (Splitting it over two
+// threads measured no faster: it is memory-bound.)
+void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch,
+               std::vector<uint32_t>& counts, unsigned bits) {
   constexpr unsigned kDigit = 16;
   scratch.resize(values.size());
-  std::vector<uint32_t> counts(size_t{1} << kDigit);
+  counts.resize(size_t{1} << kDigit);
   for (unsigned shift = 0; shift < bits; shift += kDigit) {
     std::fill(counts.begin(), counts.end(), 0);
     for (uint64_t v : values) ++counts[(v >> shift) & 0xFFFF];
@@ -243,6 +245,18 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
     updateNodeLogOdds(node, (*begin & 1) ? prob_hit_log : prob_miss_log);
     return;
   }
+  // Every voxel below a childless node gets the same update (common in free space near the
+  // sensor): OctoMap would create or expand all the children, update them alike and prune
+  // them back into this node. Updating the node itself gives the same tree, without the
+  // allocations.
+  const auto count = static_cast<size_t>(end - begin);
+  if (count == size_t{1} << (3 * (tree_depth - depth)) && !nodeHasChildren(node)) {
+    const uint64_t flag = *begin & 1;
+    if (std::all_of(begin, end, [flag](uint64_t c) { return (c & 1) == flag; })) {
+      updateNodeLogOdds(node, flag ? prob_hit_log : prob_miss_log);
+      return;
+    }
+  }
   forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
     const bool created = openChild(node, node_just_created, child);
     descend(getNodeChild(node, child), created, depth + 1, b, e);
@@ -299,10 +313,22 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
       const uint64_t occupied = occupied_bits_[w];
       uint64_t any = free_bits_[0][w] | occupied;
       if (threads == 2) any |= free_bits_[1][w];
+      if (any == 0) continue;
+      // One division per word; the bits of the word walk z (then y, x) from there.
+      const OcTreeKey first = box.key(w * 64);
+      int x = first[0], y = first[1], z = first[2];
+      unsigned at = 0;
       while (any != 0) {
         const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
         any &= any - 1;
-        out.push_back(mortonCode(box.key(w * 64 + bit)) << 1 | ((occupied >> bit) & 1));
+        for (z += static_cast<int>(bit - at); z >= box.min[2] + box.size[2];) {
+          z -= box.size[2];
+          if (++y == box.min[1] + box.size[1]) y = box.min[1], ++x;
+        }
+        at = bit;
+        const OcTreeKey key(static_cast<uint16_t>(x), static_cast<uint16_t>(y),
+                            static_cast<uint16_t>(z));
+        out.push_back(mortonCode(key) << 1 | ((occupied >> bit) & 1));
       }
     }
   };
@@ -314,7 +340,7 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   } else {
     extract(0, words, codes_);
   }
-  radixSort(codes_, scratch_, 49);
+  radixSort(codes_, scratch_, counts_, 49);
   tree.applySortedUpdates(codes_, threads);
 }
 

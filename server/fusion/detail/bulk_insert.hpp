@@ -51,6 +51,7 @@ class BulkInserter {
  private:
   std::vector<uint64_t> free_bits_[2], occupied_bits_;
   std::vector<uint64_t> codes_, scratch_;
+  std::vector<uint32_t> counts_;
 };
 
 // Morton code of a key: bit b of x, y, z at bits 3b, 3b+1, 3b+2.
