@@ -56,82 +56,142 @@ void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch,
   }
 }
 
-// The key box that holds every voxel of the update, and the bit index of a key in it.
-struct KeyBox {
-  std::array<int, 3> min{}, size{};
-  size_t bits() const { return static_cast<size_t>(size[0]) * size[1] * size[2]; }
-  size_t index(const OcTreeKey& k) const {
-    return (static_cast<size_t>(k[0] - min[0]) * size[1] + (k[1] - min[1])) * size[2] +
-           (k[2] - min[2]);
+// The voxels an update can touch, as bricks of 4x4x4 voxels: one 64-bit word per brick,
+// whose bits are the brick's voxels in Morton order. The box starts on a multiple of 4, so
+// a voxel's Morton code is its brick's code followed by its bit: listing the bricks in
+// Morton order lists the voxels in Morton order (only bricks need sorting, not voxels).
+struct BrickBox {
+  std::array<int, 3> min{};     // first key of the box (a multiple of 4 on each axis)
+  std::array<int, 3> bricks{};  // bricks along each axis
+  size_t words() const { return static_cast<size_t>(bricks[0]) * bricks[1] * bricks[2]; }
+  size_t brickIndex(int rx, int ry, int rz) const {  // relative keys
+    return (static_cast<size_t>(rx >> 2) * bricks[1] + (ry >> 2)) * bricks[2] + (rz >> 2);
   }
-  OcTreeKey key(size_t index) const {
-    const int z = static_cast<int>(index % size[2]);
-    index /= size[2];
-    const int y = static_cast<int>(index % size[1]);
-    const int x = static_cast<int>(index / size[1]);
-    return OcTreeKey(static_cast<uint16_t>(x + min[0]), static_cast<uint16_t>(y + min[1]),
-                     static_cast<uint16_t>(z + min[2]));
+  std::array<int, 3> brickKey(size_t word) const {  // absolute key of the brick's corner
+    const int bz = static_cast<int>(word % bricks[2]);
+    word /= bricks[2];
+    const int by = static_cast<int>(word % bricks[1]);
+    const int bx = static_cast<int>(word / bricks[1]);
+    return {min[0] + 4 * bx, min[1] + 4 * by, min[2] + 4 * bz};
   }
 };
 
-inline void setBit(std::vector<uint64_t>& bits, size_t index) {
-  bits[index >> 6] |= uint64_t{1} << (index & 63);
+// Bit of a voxel inside its brick: the Morton code of its 2-bit coordinates.
+constexpr std::array<uint8_t, 64> kBrickBit = [] {
+  std::array<uint8_t, 64> bit{};
+  for (unsigned i = 0; i < 64; ++i) {
+    const unsigned x = i & 3, y = (i >> 2) & 3, z = (i >> 4) & 3;
+    bit[i] = static_cast<uint8_t>((x & 1) | (y & 1) << 1 | (z & 1) << 2 | (x >> 1) << 3 |
+                                  (y >> 1) << 4 | (z >> 1) << 5);
+  }
+  return bit;
+}();
+
+inline void markVoxel(std::vector<uint64_t>& words, const BrickBox& box, int rx, int ry, int rz) {
+  words[box.brickIndex(rx, ry, rz)] |= uint64_t{1}
+                                       << kBrickBit[(rx & 3) | (ry & 3) << 2 | (rz & 3) << 4];
 }
 
-// OctoMap's computeRayKeys (Amanatides & Woo), with the same float/double arithmetic so
-// that it visits the same voxels, writing into a bitset instead of a KeyRay. The loop is
-// arranged so that each step finds the next axis once and moves the bit index by a stride.
-void castRay(const octomap::OcTree& tree, const point3d& origin, const point3d& end,
-             const KeyBox& box, std::vector<uint64_t>& bits) {
-  OcTreeKey key_origin, key_end;
-  if (!tree.coordToKeyChecked(origin, key_origin) || !tree.coordToKeyChecked(end, key_end)) return;
-  if (key_origin == key_end) return;
-  size_t index = box.index(key_origin);
-  setBit(bits, index);
-
-  point3d direction = end - origin;
-  const float length = static_cast<float>(direction.norm());
-  direction /= length;
-  const double resolution = tree.getResolution();
-  const int64_t stride[3] = {static_cast<int64_t>(box.size[1]) * box.size[2], box.size[2], 1};
-  int step[3];
-  int64_t index_step[3];
-  double t_max[3], t_delta[3];
-  OcTreeKey current = key_origin;
-  for (unsigned i = 0; i < 3; ++i) {
-    step[i] = direction(i) > 0.0 ? 1 : direction(i) < 0.0 ? -1 : 0;
-    index_step[i] = step[i] * stride[i];
-    if (step[i] != 0) {
-      double border = tree.keyToCoord(current[i]);
-      border += static_cast<float>(step[i] * resolution * 0.5);
-      t_max[i] = (border - origin(i)) / direction(i);
-      t_delta[i] = resolution / std::fabs(direction(i));
-    } else {
-      t_max[i] = t_delta[i] = std::numeric_limits<double>::max();
+// One ray of OctoMap's computeRayKeys (Amanatides & Woo), with the same float/double
+// arithmetic so that it visits the same voxels, as a walk over bit indices of a KeyBox.
+class RayWalk {
+ public:
+  // Prepares the walk from `origin` to `end` and returns the origin voxel's bit, or false
+  // when there is nothing to mark (an end outside the tree, or origin and end in one voxel).
+  bool start(const octomap::OcTree& tree, const point3d& origin, const point3d& end,
+             const BrickBox& box) {
+    OcTreeKey key_origin, key_end;
+    if (!tree.coordToKeyChecked(origin, key_origin) || !tree.coordToKeyChecked(end, key_end)) {
+      return false;
     }
+    if (key_origin == key_end) return false;
+    point3d direction = end - origin;
+    length_ = static_cast<float>(direction.norm());
+    direction /= length_;
+    const double resolution = tree.getResolution();
+    double t_max[3], t_delta[3];
+    for (unsigned i = 0; i < 3; ++i) {
+      step_[i] = direction(i) > 0.0 ? 1 : direction(i) < 0.0 ? -1 : 0;
+      if (step_[i] != 0) {
+        double border = tree.keyToCoord(key_origin[i]);
+        border += static_cast<float>(step_[i] * resolution * 0.5);
+        t_max[i] = (border - origin(i)) / direction(i);
+        t_delta[i] = resolution / std::fabs(direction(i));
+      } else {
+        t_max[i] = t_delta[i] = std::numeric_limits<double>::max();
+      }
+      key_[i] = key_origin[i] - box.min[i];  // relative to the box from here on
+      end_[i] = key_end[i] - box.min[i];
+    }
+    t0_ = t_max[0], t1_ = t_max[1], t2_ = t_max[2];
+    d0_ = t_delta[0], d1_ = t_delta[1], d2_ = t_delta[2];
+    return true;
   }
-  // The stepping loop below is OctoMap's (the next axis is the smallest t_max, ties going to
-  // the later axis) in scalars and selects instead of branches: which axis comes next is
-  // unpredictable, and a mispredicted branch per voxel was most of the cost.
-  double t0 = t_max[0], t1 = t_max[1], t2 = t_max[2];
-  const double d0 = t_delta[0], d1 = t_delta[1], d2 = t_delta[2];
-  int k0 = current[0], k1 = current[1], k2 = current[2];
-  const int e0 = key_end[0], e1 = key_end[1], e2 = key_end[2];
-  for (;;) {
-    const bool x_first = t0 < t1;
-    const bool z_next = !((x_first ? t0 : t1) < t2);
+
+  // One voxel further; false when the ray is done, else key() is the voxel to mark. The
+  // next axis is the smallest t_max, ties going to the later axis (as OctoMap), chosen with
+  // selects instead of branches: the choice is unpredictable, and a mispredicted branch per
+  // voxel was most of the cost.
+  bool advance() {
+    const bool x_first = t0_ < t1_;
+    const bool z_next = !((x_first ? t0_ : t1_) < t2_);
     const bool x_next = x_first && !z_next;
     const bool y_next = !x_first && !z_next;
-    k0 += x_next ? step[0] : 0;
-    k1 += y_next ? step[1] : 0;
-    k2 += z_next ? step[2] : 0;
-    t0 += x_next ? d0 : 0.0;
-    t1 += y_next ? d1 : 0.0;
-    t2 += z_next ? d2 : 0.0;
-    index += x_next ? index_step[0] : y_next ? index_step[1] : index_step[2];
-    if (k0 == e0 && k1 == e1 && k2 == e2) return;
-    if (std::min(std::min(t0, t1), t2) > length) return;
-    setBit(bits, index);
+    key_[0] += x_next ? step_[0] : 0;
+    key_[1] += y_next ? step_[1] : 0;
+    key_[2] += z_next ? step_[2] : 0;
+    t0_ += x_next ? d0_ : 0.0;
+    t1_ += y_next ? d1_ : 0.0;
+    t2_ += z_next ? d2_ : 0.0;
+    if (key_[0] == end_[0] && key_[1] == end_[1] && key_[2] == end_[2]) return false;
+    return !(std::min(std::min(t0_, t1_), t2_) > length_);
+  }
+  void mark(std::vector<uint64_t>& words, const BrickBox& box) const {
+    markVoxel(words, box, key_[0], key_[1], key_[2]);
+  }
+
+ private:
+  double t0_, t1_, t2_, d0_, d1_, d2_;
+  int key_[3], end_[3], step_[3];
+  float length_;
+};
+
+// Marks the voxels of the rays origin -> ends[from..to). Two rays are walked in turns:
+// each walk is one long chain of dependent steps, and two of them keep the core busier.
+void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vector<point3d>& ends,
+              size_t from, size_t to, const BrickBox& box, std::vector<uint64_t>& bits) {
+  size_t next = from;
+  auto load = [&](RayWalk& walk) {
+    while (next < to) {
+      if (walk.start(tree, origin, ends[next++], box)) {
+        walk.mark(bits, box);  // the origin's voxel
+        return true;
+      }
+    }
+    return false;
+  };
+  RayWalk a, b;
+  bool a_live = load(a), b_live = load(b);
+  while (a_live && b_live) {
+    if (a.advance()) {
+      a.mark(bits, box);
+    } else {
+      a_live = load(a);
+    }
+    if (b.advance()) {
+      b.mark(bits, box);
+    } else {
+      b_live = load(b);
+    }
+  }
+  for (RayWalk* walk : {&a, &b}) {
+    for (bool live = walk == &a ? a_live : b_live; live;) {
+      if (walk->advance()) {
+        walk->mark(bits, box);
+      } else {
+        live = load(*walk);
+      }
+    }
   }
 }
 
@@ -270,7 +330,7 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   // Ray ends: measured points, or the point at max_range along a longer ray (free only).
   std::vector<point3d> ends(points.size());
   std::vector<uint8_t> hit(points.size());
-  KeyBox box;
+  BrickBox box;
   OcTreeKey key;
   if (!tree.coordToKeyChecked(origin, key)) return;
   std::array<int, 3> lo{key[0], key[1], key[2]}, hi = lo;
@@ -285,15 +345,15 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
     }
   }
   for (int a = 0; a < 3; ++a) {
-    box.min[a] = lo[a];
-    box.size[a] = hi[a] - lo[a] + 1;
+    box.min[a] = lo[a] & ~3;
+    box.bricks[a] = (hi[a] - box.min[a]) / 4 + 1;
   }
-  const size_t words = (box.bits() + 63) / 64;
+  const size_t words = box.words();
   for (unsigned t = 0; t < threads; ++t) free_bits_[t].assign(words, 0);
   occupied_bits_.assign(words, 0);
 
   auto castRange = [&](unsigned t, size_t from, size_t to) {
-    for (size_t i = from; i < to; ++i) castRay(tree, origin, ends[i], box, free_bits_[t]);
+    castRays(tree, origin, ends, from, to, box, free_bits_[t]);
   };
   if (threads == 2) {
     std::thread helper(castRange, 1u, points.size() / 2, points.size());
@@ -303,44 +363,59 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
     castRange(0, 0, points.size());
   }
   for (size_t i = 0; i < points.size(); ++i) {
-    if (hit[i] && tree.coordToKeyChecked(ends[i], key)) setBit(occupied_bits_, box.index(key));
+    if (hit[i] && tree.coordToKeyChecked(ends[i], key)) {
+      markVoxel(occupied_bits_, box, key[0] - box.min[0], key[1] - box.min[1], key[2] - box.min[2]);
+    }
   }
 
-  // Occupied wins over free (as OctoMap's computeUpdate); list both in Morton order.
-  auto extract = [&](size_t from, size_t to, std::vector<uint64_t>& out) {
-    out.clear();
-    for (size_t w = from; w < to; ++w) {
-      const uint64_t occupied = occupied_bits_[w];
-      uint64_t any = free_bits_[0][w] | occupied;
+  // The touched bricks, sorted by Morton code (the brick's code above its word index).
+  constexpr unsigned kIndexBits = 22;
+  bricks_.clear();
+  for (size_t w = 0; w < words; ++w) {
+    uint64_t any = free_bits_[0][w] | occupied_bits_[w];
+    if (threads == 2) any |= free_bits_[1][w];
+    if (any == 0) continue;
+    const auto corner = box.brickKey(w);
+    const OcTreeKey brick(static_cast<uint16_t>(corner[0] >> 2),
+                          static_cast<uint16_t>(corner[1] >> 2),
+                          static_cast<uint16_t>(corner[2] >> 2));
+    bricks_.push_back(mortonCode(brick) << kIndexBits | w);
+  }
+  const bool fits = words < (size_t{1} << kIndexBits);
+  if (fits) {
+    radixSort(bricks_, scratch_, counts_, 64);
+  } else {  // a box of more than 4M bricks (256M voxels): rare, sort the slow way
+    std::vector<std::pair<uint64_t, size_t>> order;
+    for (size_t w = 0; w < words; ++w) {
+      uint64_t any = free_bits_[0][w] | occupied_bits_[w];
       if (threads == 2) any |= free_bits_[1][w];
       if (any == 0) continue;
-      // One division per word; the bits of the word walk z (then y, x) from there.
-      const OcTreeKey first = box.key(w * 64);
-      int x = first[0], y = first[1], z = first[2];
-      unsigned at = 0;
-      while (any != 0) {
-        const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
-        any &= any - 1;
-        for (z += static_cast<int>(bit - at); z >= box.min[2] + box.size[2];) {
-          z -= box.size[2];
-          if (++y == box.min[1] + box.size[1]) y = box.min[1], ++x;
-        }
-        at = bit;
-        const OcTreeKey key(static_cast<uint16_t>(x), static_cast<uint16_t>(y),
-                            static_cast<uint16_t>(z));
-        out.push_back(mortonCode(key) << 1 | ((occupied >> bit) & 1));
-      }
+      const auto corner = box.brickKey(w);
+      order.emplace_back(mortonCode(OcTreeKey(static_cast<uint16_t>(corner[0] >> 2),
+                                              static_cast<uint16_t>(corner[1] >> 2),
+                                              static_cast<uint16_t>(corner[2] >> 2))),
+                         w);
     }
-  };
-  if (threads == 2) {
-    std::thread helper(extract, words / 2, words, std::ref(scratch_));
-    extract(0, words / 2, codes_);
-    helper.join();
-    codes_.insert(codes_.end(), scratch_.begin(), scratch_.end());
-  } else {
-    extract(0, words, codes_);
+    std::sort(order.begin(), order.end());
+    bricks_.clear();
+    for (const auto& [code, w] : order) bricks_.push_back(code << kIndexBits | w);
   }
-  radixSort(codes_, scratch_, counts_, 49);
+  // Occupied wins over free (as OctoMap's computeUpdate). Each brick's voxels come out in
+  // Morton order as its bits do; the code of a voxel is its brick's code and its bit.
+  codes_.clear();
+  for (const uint64_t entry : bricks_) {
+    const size_t w = entry & ((uint64_t{1} << kIndexBits) - 1);
+    const uint64_t brick_code = fits ? entry >> kIndexBits : 0;
+    const uint64_t occupied = occupied_bits_[w];
+    uint64_t any = free_bits_[0][w] | occupied;
+    if (threads == 2) any |= free_bits_[1][w];
+    const uint64_t base = (fits ? brick_code : (entry >> kIndexBits)) << 6;
+    while (any != 0) {
+      const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
+      any &= any - 1;
+      codes_.push_back((base | bit) << 1 | ((occupied >> bit) & 1));
+    }
+  }
   tree.applySortedUpdates(codes_, threads);
 }
 
