@@ -123,6 +123,8 @@ class RayWalk {
       key_[i] = key_origin[i] - box.min[i];  // relative to the box from here on
       end_[i] = key_end[i] - box.min[i];
     }
+    stride_x_ = static_cast<size_t>(box.bricks[1]) * box.bricks[2];
+    stride_y_ = static_cast<size_t>(box.bricks[2]);
     t0_ = t_max[0], t1_ = t_max[1], t2_ = t_max[2];
     d0_ = t_delta[0], d1_ = t_delta[1], d2_ = t_delta[2];
     return true;
@@ -146,25 +148,31 @@ class RayWalk {
     if (key_[0] == end_[0] && key_[1] == end_[1] && key_[2] == end_[2]) return false;
     return !(std::min(std::min(t0_, t1_), t2_) > length_);
   }
-  void mark(std::vector<uint64_t>& words, const BrickBox& box) const {
-    markVoxel(words, box, key_[0], key_[1], key_[2]);
+  void mark(uint64_t* words) const {
+    const size_t word = static_cast<size_t>(key_[0] >> 2) * stride_x_ +
+                        static_cast<size_t>(key_[1] >> 2) * stride_y_ +
+                        static_cast<size_t>(key_[2] >> 2);
+    words[word] |=
+        uint64_t{1} << kBrickBit[(key_[0] & 3) | (key_[1] & 3) << 2 | (key_[2] & 3) << 4];
   }
 
  private:
   double t0_, t1_, t2_, d0_, d1_, d2_;
   int key_[3], end_[3], step_[3];
+  size_t stride_x_, stride_y_;
   float length_;
 };
 
 // Marks the voxels of the rays origin -> ends[from..to). Two rays are walked in turns:
 // each walk is one long chain of dependent steps, and two of them keep the core busier.
 void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vector<point3d>& ends,
-              size_t from, size_t to, const BrickBox& box, std::vector<uint64_t>& bits) {
+              size_t from, size_t to, const BrickBox& box, std::vector<uint64_t>& bit_words) {
+  uint64_t* const bits = bit_words.data();  // a plain pointer: the loop keeps it in a register
   size_t next = from;
   auto load = [&](RayWalk& walk) {
     while (next < to) {
       if (walk.start(tree, origin, ends[next++], box)) {
-        walk.mark(bits, box);  // the origin's voxel
+        walk.mark(bits);  // the origin's voxel
         return true;
       }
     }
@@ -174,12 +182,12 @@ void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vec
   bool a_live = load(a), b_live = load(b);
   while (a_live && b_live) {
     if (a.advance()) {
-      a.mark(bits, box);
+      a.mark(bits);
     } else {
       a_live = load(a);
     }
     if (b.advance()) {
-      b.mark(bits, box);
+      b.mark(bits);
     } else {
       b_live = load(b);
     }
@@ -187,7 +195,7 @@ void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vec
   for (RayWalk* walk : {&a, &b}) {
     for (bool live = walk == &a ? a_live : b_live; live;) {
       if (walk->advance()) {
-        walk->mark(bits, box);
+        walk->mark(bits);
       } else {
         live = load(*walk);
       }
