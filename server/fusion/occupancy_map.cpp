@@ -26,6 +26,7 @@ OccupancyMap::Options OccupancyMap::Options::paperPreset(double resolution) {
   options.prob_hit = 0.7;
   options.prob_miss = 0.1;
   options.occupancy_threshold = 0.6;
+  options.free_threshold = 0.4;
   return options;
 }
 
@@ -73,7 +74,64 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
 Occupancy OccupancyMap::query(const common::Vec3& p_map) const {
   const octomap::OcTreeNode* node = impl_->tree.search(p_map.x(), p_map.y(), p_map.z());
   if (node == nullptr) return Occupancy::kUnknown;
-  return impl_->tree.isNodeOccupied(node) ? Occupancy::kOccupied : Occupancy::kFree;
+  if (impl_->tree.isNodeOccupied(node)) return Occupancy::kOccupied;
+  return node->getOccupancy() <= impl_->options.free_threshold ? Occupancy::kFree
+                                                               : Occupancy::kUnknown;
+}
+
+std::vector<VoxelIndex> OccupancyMap::occupiedCells(unsigned depth) const {
+  depth = std::clamp(depth, 1u, kTreeDepth);
+  const auto& tree = impl_->tree;
+  const unsigned shift = kTreeDepth - depth;
+  const int32_t offset = kKeyOffset >> shift;
+  std::vector<VoxelIndex> cells;
+  for (auto it = tree.begin_leafs(depth), end = tree.end_leafs(); it != end; ++it) {
+    if (!tree.isNodeOccupied(*it)) continue;
+    const octomap::OcTreeKey key = it.getKey();
+    // A leaf above `depth` (pruned) covers several cells of that depth.
+    const int32_t span = 1 << (depth - std::min(depth, it.getDepth()));
+    const int32_t x0 = (key[0] >> shift & ~(span - 1)) - offset;
+    const int32_t y0 = (key[1] >> shift & ~(span - 1)) - offset;
+    const int32_t z0 = (key[2] >> shift & ~(span - 1)) - offset;
+    for (int32_t dx = 0; dx < span; ++dx) {
+      for (int32_t dy = 0; dy < span; ++dy) {
+        for (int32_t dz = 0; dz < span; ++dz) cells.push_back({x0 + dx, y0 + dy, z0 + dz});
+      }
+    }
+  }
+  std::sort(cells.begin(), cells.end());
+  return cells;
+}
+
+double OccupancyMap::cellSize(unsigned depth) const {
+  return impl_->tree.getNodeSize(std::clamp(depth, 1u, kTreeDepth));
+}
+
+std::vector<VoxelIndex> OccupancyMap::occupiedVoxelsIn(const common::Box3& box) const {
+  std::vector<VoxelIndex> inside;
+  if (box.empty()) return inside;
+  const auto& tree = impl_->tree;
+  const octomap::point3d lo(static_cast<float>(box.min.x()), static_cast<float>(box.min.y()),
+                            static_cast<float>(box.min.z()));
+  const octomap::point3d hi(static_cast<float>(box.max.x()), static_cast<float>(box.max.y()),
+                            static_cast<float>(box.max.z()));
+  for (auto it = tree.begin_leafs_bbx(lo, hi), end = tree.end_leafs_bbx(); it != end; ++it) {
+    if (!tree.isNodeOccupied(*it)) continue;
+    const octomap::OcTreeKey key = it.getKey();
+    const int32_t span = 1 << (kTreeDepth - it.getDepth());
+    for (int32_t dx = 0; dx < span; ++dx) {
+      for (int32_t dy = 0; dy < span; ++dy) {
+        for (int32_t dz = 0; dz < span; ++dz) {
+          const VoxelIndex v{(key[0] & ~(span - 1)) - kKeyOffset + dx,
+                             (key[1] & ~(span - 1)) - kKeyOffset + dy,
+                             (key[2] & ~(span - 1)) - kKeyOffset + dz};
+          if (box.contains(voxelCentre(v))) inside.push_back(v);
+        }
+      }
+    }
+  }
+  std::sort(inside.begin(), inside.end());
+  return inside;
 }
 
 std::vector<VoxelIndex> OccupancyMap::occupiedVoxels() const {
@@ -130,6 +188,8 @@ common::Vec3 OccupancyMap::voxelCentre(const VoxelIndex& index) const {
 }
 
 double OccupancyMap::resolution() const { return impl_->tree.getResolution(); }
+
+bool OccupancyMap::writeFull(std::ostream& out) const { return impl_->tree.write(out); }
 
 bool OccupancyMap::writeBinary(std::ostream& out) const {
   // OctoMap's writeBinaryConst() writes this header too, but also chatters on stderr.

@@ -48,7 +48,8 @@ class OccupancyMap {
     double prob_miss = 0.4;
     double clamp_min = 0.1192;
     double clamp_max = 0.971;
-    double occupancy_threshold = 0.5;
+    double occupancy_threshold = 0.5;  // occupied when P >= this
+    double free_threshold = 0.5;       // free when P <= this (and not occupied); else unknown
     Insertion insertion = Insertion::kFast;
     unsigned threads = 2;  // ray casting threads of the fast path
 
@@ -70,16 +71,27 @@ class OccupancyMap {
   void insertCloud(const common::PointCloud& cloud_sensor, const common::Rigid3& T_map_sensor,
                    double max_range_m);
 
+  // The voxel's class: occupied (P >= occupancy_threshold), free (P <= free_threshold) or
+  // unknown (never observed, or in between).
   Occupancy query(const common::Vec3& p_map) const;
   // Occupied voxels at the finest resolution, sorted (pruned nodes are expanded).
   std::vector<VoxelIndex> occupiedVoxels() const;
   size_t occupiedCount() const;
+  // Occupied cells at a coarser `depth` (16 = finest; one level up doubles the edge): a
+  // cell is occupied when its most occupied voxel is (OctoMap keeps inner nodes at the max of
+  // their children). Index i of a cell at depth d has its centre at (i + 0.5) * cellSize(d).
+  std::vector<VoxelIndex> occupiedCells(unsigned depth) const;
+  double cellSize(unsigned depth) const;
+  // Occupied voxels (finest) inside the box, sorted.
+  std::vector<VoxelIndex> occupiedVoxelsIn(const common::Box3& box) const;
   // Bounds of the occupied voxels' cells; empty when nothing is occupied.
   common::Box3 occupiedBounds() const;
   common::Vec3 voxelCentre(const VoxelIndex& index) const;
   double resolution() const;
   // OctoMap binary (.bt, opens in octovis); the live tree is not pruned or modified.
   bool writeBinary(std::ostream& out) const;
+  // OctoMap full format (.ot: log-odds kept); the live tree is not modified.
+  bool writeFull(std::ostream& out) const;
   // Number of bytes the tree occupies in memory (OctoMap's estimate).
   size_t memoryBytes() const;
 

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <octomap/OcTree.h>
 
+#include <set>
 #include <sstream>
 
 #include "tests/support/data.hpp"
@@ -141,6 +142,78 @@ TEST(FastInsertion, ComparisonCanTellMapsApart) {
   b.insertCloud(wall(4.05), common::Rigid3::identity(), 10);
   EXPECT_LT(compareClassification(a, b).fraction(), 0.95);
   EXPECT_DOUBLE_EQ(compareClassification(a, a).fraction(), 1.0);
+}
+
+}  // namespace
+}  // namespace stereomap::fusion
+
+namespace stereomap::fusion {
+namespace {
+
+TEST(OccupancyMap, CoarseCellsAreOccupiedWhenAnyVoxelIs) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
+  const auto fine = map.occupiedVoxels();
+  const auto coarse = map.occupiedCells(15);  // 0.2 m cells
+  EXPECT_DOUBLE_EQ(map.cellSize(15), 0.2);
+  EXPECT_DOUBLE_EQ(map.cellSize(16), 0.1);
+  EXPECT_EQ(map.occupiedCells(16), fine);
+  // Every fine voxel lies in a coarse cell, and every coarse cell holds a fine voxel.
+  std::set<std::tuple<int, int, int>> from_fine;
+  for (const auto& v : fine) {
+    from_fine.insert({v.x >> 1, v.y >> 1, v.z >> 1});  // floor division by 2
+  }
+  ASSERT_EQ(coarse.size(), from_fine.size());
+  for (const auto& c : coarse) EXPECT_TRUE(from_fine.count({c.x, c.y, c.z}));
+  EXPECT_LT(coarse.size(), fine.size());
+}
+
+TEST(OccupancyMap, BoxQueryReturnsOnlyVoxelsInside) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
+  common::Box3 box;
+  box.extend(Vec3(2.9, 0.0, 0.0));
+  box.extend(Vec3(3.2, 0.5, 0.5));
+  const auto inside = map.occupiedVoxelsIn(box);
+  ASSERT_FALSE(inside.empty());
+  size_t expected = 0;
+  for (const auto& v : map.occupiedVoxels()) expected += box.contains(map.voxelCentre(v));
+  EXPECT_EQ(inside.size(), expected);
+  for (const auto& v : inside) EXPECT_TRUE(box.contains(map.voxelCentre(v)));
+}
+
+TEST(OccupancyMap, PaperPresetLeavesUncertainVoxelsUnknown) {
+  // Three hits then one miss on a voxel: log-odds 3 * 0.847 - 2.197 = 0.344, P = 0.585 with
+  // the paper's model (miss 0.1): between 0.4 and 0.6, unknown. OctoMap's model (miss 0.4)
+  // gives P = 0.894: occupied.
+  const auto paper = OccupancyMap::Options::paperPreset(0.1);
+  EXPECT_DOUBLE_EQ(paper.prob_miss, 0.1);
+  EXPECT_DOUBLE_EQ(paper.occupancy_threshold, 0.6);
+  EXPECT_DOUBLE_EQ(paper.free_threshold, 0.4);
+  const Vec3 voxel(3.05, 0.05, 0.05);
+  common::PointCloud behind;
+  behind.points.emplace_back(5.05f, 0.05f, 0.05f);  // its ray crosses the voxel
+  for (const auto& options : {paper, OccupancyMap::Options::octomapPreset(0.1)}) {
+    OccupancyMap map(options);
+    for (int i = 0; i < 3; ++i) map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
+    map.insertCloud(behind, common::Rigid3::identity(), 10.0);
+    EXPECT_EQ(map.query(voxel), options.prob_miss == 0.1 ? Occupancy::kUnknown
+                                                         : Occupancy::kOccupied);
+    EXPECT_EQ(map.query(Vec3(1.55, 0.05, 0.05)), Occupancy::kFree);
+  }
+}
+
+TEST(OccupancyMap, FullExportKeepsLogOdds) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
+  std::stringstream ot;
+  ASSERT_TRUE(map.writeFull(ot));
+  std::unique_ptr<octomap::AbstractOcTree> read(octomap::AbstractOcTree::read(ot));
+  auto* tree = dynamic_cast<octomap::OcTree*>(read.get());
+  ASSERT_NE(tree, nullptr);
+  const auto* node = tree->search(3.05, 0.05, 0.05);
+  ASSERT_NE(node, nullptr);
+  EXPECT_NEAR(node->getOccupancy(), 0.7, 1e-6);  // one hit, as inserted
 }
 
 }  // namespace
