@@ -17,6 +17,7 @@
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "tests/support/timing.hpp"
 #include "tests/support/tum.hpp"
 
 namespace {
@@ -24,6 +25,7 @@ namespace {
 using namespace stereomap;
 using common::Vec3;
 using fusion::OccupancyMap;
+using testing::medianMs;
 
 struct Frame {
   common::PointCloud cloud;
@@ -66,18 +68,6 @@ std::vector<Frame> tumFrames(const std::string& dir, size_t count) {
     frames.push_back({std::move(f.cloud), f.T_map_camera});
   }
   return frames;
-}
-
-double medianMs(int runs, const std::function<void()>& work) {
-  std::vector<double> ms;
-  for (int i = 0; i < runs; ++i) {
-    const auto start = std::chrono::steady_clock::now();
-    work();
-    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-                     .count());
-  }
-  std::nth_element(ms.begin(), ms.begin() + ms.size() / 2, ms.end());
-  return ms[ms.size() / 2];
 }
 
 struct Result {

@@ -16,10 +16,12 @@
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "onboard/stereo/disparity_io.hpp"
+#include "tests/support/timing.hpp"
 
 namespace {
 
 using namespace stereomap;
+using testing::medianMs;
 
 // Stock OpenCV StereoSGBM as the Middlebury README measures it (mode HH, block 5,
 // P1 = 8*25, P2 = 32*25, everything else default).
@@ -31,18 +33,6 @@ cv::Mat stockSgbm(const cv::Mat& left, const cv::Mat& right, int num_disparities
   fixed_point.convertTo(disparity, CV_32F, 1.0 / 16);
   disparity.setTo(-1.0f, fixed_point < 0);
   return disparity;
-}
-
-double medianMs(int runs, const std::function<void()>& work) {
-  std::vector<double> ms;
-  for (int i = 0; i < runs; ++i) {
-    const auto start = std::chrono::steady_clock::now();
-    work();
-    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-                     .count());
-  }
-  std::nth_element(ms.begin(), ms.begin() + runs / 2, ms.end());
-  return ms[runs / 2];
 }
 
 }  // namespace
