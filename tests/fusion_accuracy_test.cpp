@@ -30,8 +30,7 @@ TEST(FusionAccuracy, SimFlightAtFiveCentimetres) {
   while (auto frame = source.next()) {
     const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
     const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
-                                                  frame->left, camera,
-                                                  {.max_range_m = kMaxRange});
+                                                  frame->left, camera, {.max_range_m = kMaxRange});
     map.insertCloud(cloud, T_map_camera, kMaxRange);
     poses.push_back(T_map_camera);
   }
@@ -41,7 +40,8 @@ TEST(FusionAccuracy, SimFlightAtFiveCentimetres) {
   const auto occupied = map.occupiedVoxels();
   const double half_diagonal = kResolution * std::sqrt(3.0) / 2;
   size_t correct = 0;
-  for (const auto& v : occupied) correct += scene.distanceToSurface(map.voxelCentre(v)) <= half_diagonal;
+  for (const auto& v : occupied)
+    correct += scene.distanceToSurface(map.voxelCentre(v)) <= half_diagonal;
 
   // Recall: the true surface voxels the camera saw (within range), occupied in the map; and
   // free space: voxels on the true rays, at least two voxels before the surface, free.
@@ -82,10 +82,10 @@ TEST(FusionAccuracy, SimFlightAtFiveCentimetres) {
   const double precision = static_cast<double>(correct) / occupied.size();
   const double recall = static_cast<double>(recalled) / seen.size();
   const double free_space = static_cast<double>(free_correct) / free_checked;
-  std::printf("fusion accuracy at %.2f m: precision %.4f (%zu voxels), recall %.4f (%zu seen), "
-              "free space %.4f (%zu samples)\n",
-              kResolution, precision, occupied.size(), recall, seen.size(), free_space,
-              free_checked);
+  std::printf(
+      "fusion accuracy at %.2f m: precision %.4f (%zu voxels), recall %.4f (%zu seen), "
+      "free space %.4f (%zu samples)\n",
+      kResolution, precision, occupied.size(), recall, seen.size(), free_space, free_checked);
   RecordProperty("precision", std::to_string(precision));
   RecordProperty("recall", std::to_string(recall));
   RecordProperty("free_space", std::to_string(free_space));

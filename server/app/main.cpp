@@ -10,6 +10,7 @@
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/net/http_server.hpp"
+#include "server/store/session_journals.hpp"
 #include "server/store/store.hpp"
 
 namespace {
@@ -142,7 +143,18 @@ int main(int argc, char** argv) {
     return 1;
   }
 
+  // Journal first: a frame counts as received once it is on disk. Then recover what earlier
+  // runs journaled, before DDS delivers anything new.
+  store::SessionJournals journals(store->root());
+  options.log = &journals;
   core::MapServer server(options);
+  for (const auto& session : store::recoverSessions(store->root(), server)) {
+    if (!session.problem.empty()) {
+      spdlog::warn("session '{}': journal damaged, {}", session.id, session.problem);
+    }
+    spdlog::info("session '{}' recovered from its journal: {} frames, {} poses", session.id,
+                 session.frames, session.poses);
+  }
   auto http_server = net::HttpServer::create(http, server);
   if (!http_server) {
     spdlog::error("{}", http_server.error().message);

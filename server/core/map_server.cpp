@@ -9,6 +9,7 @@ constexpr const char* kReceived = "stereomap_samples_received_total";
 constexpr const char* kAccepted = "stereomap_samples_accepted_total";
 constexpr const char* kRejected = "stereomap_samples_rejected_total";
 constexpr const char* kDropped = "stereomap_fusion_dropped_frames_total";
+constexpr const char* kDuplicates = "stereomap_samples_duplicate_total";
 }  // namespace
 
 MapServer::MapServer(const MapServerOptions& options) : options_(options) {
@@ -16,6 +17,8 @@ MapServer::MapServer(const MapServerOptions& options) : options_(options) {
   metrics_.describe(kAccepted, "counter", "DDS samples that passed validation, by topic");
   metrics_.describe(kRejected, "counter", "DDS samples rejected, by topic and reason");
   metrics_.describe(kDropped, "counter", "Frames dropped because fusion fell behind");
+  metrics_.describe(kDuplicates, "counter",
+                    "Samples received again (DDS history after a restart), skipped, by topic");
   metrics_.describe("stereomap_sessions", "gauge", "Sessions known to this server");
   metrics_.describe("stereomap_session_frames_fused", "gauge", "Frames fused, by session");
   metrics_.describe("stereomap_session_occupied_voxels", "gauge", "Occupied voxels, by session");
@@ -72,13 +75,31 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& 
   return session;
 }
 
-bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
+template <typename Message>
+bool MapServer::record(const char* topic, const Message& message, Session& session, Origin origin) {
+  if (!session.claim(topic, message.vehicle_id, message.seq, message.stamp_ns)) {
+    metrics_.add(kDuplicates, {{"topic", topic}});
+    return false;
+  }
+  if (origin == Origin::kLive && options_.log != nullptr) {
+    // Durable first: a frame the journal could not keep was not received.
+    if (auto logged = options_.log->append(message); !logged) {
+      reject(topic, {"journal_failed", logged.error().message},
+             message.vehicle_id + "/" + message.session_id);
+      return false;
+    }
+  }
+  return true;
+}
+
+bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin) {
   ValidCloud valid;
   const auto rejection = validateCloudFrame(frame, options_.limits, valid);
   auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection);
-  if (!session) return false;
+  if (!session || !record("CloudFrame", frame, *session, origin)) return false;
   const bool queued = session->enqueue({frame.vehicle_id, frame.seq, std::move(valid.cloud_camera),
-                                        valid.T_map_camera, valid.max_range_m});
+                                        valid.T_map_camera, valid.max_range_m},
+                                       /*wait_for_room=*/origin == Origin::kReplay);
   if (!queued) {
     metrics_.add(kDropped, {{"session", frame.session_id}});
     spdlog::warn("session '{}': fusion is behind ({} frames queued); frame {} dropped",
@@ -87,11 +108,11 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame) {
   return true;
 }
 
-bool MapServer::ingest(const proto::PoseMsg& pose) {
+bool MapServer::ingest(const proto::PoseMsg& pose, Origin origin) {
   ValidPose valid;
   const auto rejection = validatePose(pose, valid);
   auto session = admit("Pose", pose.vehicle_id, pose.session_id, rejection);
-  if (!session) return false;
+  if (!session || !record("Pose", pose, *session, origin)) return false;
   session->addPose({pose.vehicle_id, valid.stamp_ns, valid.T_map_body});
   return true;
 }

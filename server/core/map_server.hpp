@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "common/result.hpp"
 #include "proto/messages.hpp"
 #include "server/core/metrics.hpp"
 #include "server/core/session.hpp"
@@ -17,20 +18,36 @@
 
 namespace stereomap::core {
 
+// Where accepted samples are made durable before they count as received (the store's
+// journal). Called from the ingest threads; implementations are thread-safe.
+class IngestLog {
+ public:
+  virtual ~IngestLog() = default;
+  virtual common::Status append(const proto::CloudFrameMsg& frame) = 0;
+  virtual common::Status append(const proto::PoseMsg& pose) = 0;
+};
+
+// A live sample is journaled; a replayed one (crash recovery) already was, and waits for
+// room in the fusion queue instead of being dropped.
+enum class Origin { kLive, kReplay };
+
 struct MapServerOptions {
   double resolution = 0.1;
   size_t queue_capacity = 200;
   size_t max_sessions = 256;
   IngestLimits limits;
+  IngestLog* log = nullptr;  // not owned; nullptr: nothing is journaled
 };
 
 class MapServer {
  public:
   explicit MapServer(const MapServerOptions& options);
 
-  // Each returns true when the sample was accepted.
-  bool ingest(const proto::CloudFrameMsg& frame);
-  bool ingest(const proto::PoseMsg& pose);
+  // Each returns true when the sample was accepted. A sample seen before (same vehicle, a
+  // seq and stamp no newer than the last accepted: DDS redelivering its history to a
+  // restarted server) is counted as a duplicate and skipped.
+  bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive);
+  bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event);
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
@@ -47,6 +64,9 @@ class MapServer {
                                  const std::string& session_id,
                                  const std::optional<Rejection>& rejection);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
+  // Skips duplicates and journals live samples; false when the sample must go no further.
+  template <typename Message>
+  bool record(const char* topic, const Message& message, Session& session, Origin origin);
 
   const MapServerOptions options_;
   mutable Metrics metrics_;

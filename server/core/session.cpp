@@ -32,14 +32,29 @@ Session::~Session() {
   worker_.join();
 }
 
-bool Session::enqueue(FusionJob job) {
+bool Session::claim(const std::string& topic, const std::string& vehicle, uint64_t seq,
+                    int64_t stamp_ns) {
+  std::lock_guard state(state_mutex_);
+  auto [it, inserted] = last_claimed_.try_emplace({topic, vehicle}, seq, stamp_ns);
+  if (inserted) return true;
+  auto& [last_seq, last_stamp] = it->second;
+  if (seq <= last_seq && stamp_ns <= last_stamp) return false;
+  last_seq = seq;
+  last_stamp = stamp_ns;
+  return true;
+}
+
+bool Session::enqueue(FusionJob job, bool wait_for_room) {
   {
     std::lock_guard state(state_mutex_);
     ++frames_received_;
     noteVehicle(vehicles_, job.vehicle_id);
   }
   {
-    std::lock_guard lock(queue_mutex_);
+    std::unique_lock lock(queue_mutex_);
+    if (wait_for_room) {
+      queue_changed_.wait(lock, [this] { return queue_.size() < options_.queue_capacity; });
+    }
     if (queue_.size() >= options_.queue_capacity) {
       std::lock_guard state(state_mutex_);
       ++frames_dropped_;

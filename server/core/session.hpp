@@ -8,6 +8,7 @@
 
 #include <condition_variable>
 #include <deque>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <set>
@@ -69,8 +70,12 @@ class Session {
   Session& operator=(const Session&) = delete;
 
   const std::string& id() const { return id_; }
-  // Hands a frame to fusion; false (and counted) when the queue is full.
-  bool enqueue(FusionJob job);
+  // Hands a frame to fusion; false (and counted) when the queue is full, unless
+  // `wait_for_room`, which blocks until the worker makes room (replay at start-up).
+  bool enqueue(FusionJob job, bool wait_for_room = false);
+  // True the first time a (topic, vehicle) sample with this seq and stamp is seen: false
+  // when neither is newer than the last claimed one (a redelivered sample).
+  bool claim(const std::string& topic, const std::string& vehicle, uint64_t seq, int64_t stamp_ns);
   void addPose(PoseRecord pose);
   void markEnded();
 
@@ -103,6 +108,7 @@ class Session {
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
+  std::map<std::pair<std::string, std::string>, std::pair<uint64_t, int64_t>> last_claimed_;
   std::vector<PoseRecord> trajectory_;
   std::shared_ptr<const VoxelSnapshot> snapshot_;
   common::Box3 bounds_;

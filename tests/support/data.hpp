@@ -10,6 +10,6 @@ namespace stereomap::testing {
 inline const std::filesystem::path kDataDir = STEREOMAP_DATA_DIR;
 }  // namespace stereomap::testing
 
-#define STEREOMAP_SKIP_WITHOUT(path)                                                  \
-  if (!std::filesystem::exists(path))                                                 \
+#define STEREOMAP_SKIP_WITHOUT(path)  \
+  if (!std::filesystem::exists(path)) \
   GTEST_SKIP() << "data not found: " << (path).string() << " (../shared/data is absent)"

@@ -9,9 +9,11 @@ namespace stereomap::testing {
 
 using namespace std::chrono_literals;
 
-ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_args) {
-  store_ = makeTempDir("stereomap-test-store");
-  log_ = store_ + ".server.log";
+ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_args,
+                             const std::string& store) {
+  owns_store_ = store.empty();
+  store_ = owns_store_ ? makeTempDir("stereomap-test-store") : store;
+  log_ = makeTempDir("stereomap-test-log") + "/server.log";
   std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-server",
                                    "--http",
                                    "127.0.0.1:0",
@@ -39,8 +41,8 @@ ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_a
 ServerProcess::~ServerProcess() {
   process_->stop();
   std::error_code ec;
-  std::filesystem::remove_all(store_, ec);
-  std::filesystem::remove(log_, ec);
+  if (owns_store_) std::filesystem::remove_all(store_, ec);
+  std::filesystem::remove_all(std::filesystem::path(log_).parent_path(), ec);
 }
 
 std::string ServerProcess::log() const {

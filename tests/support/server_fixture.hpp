@@ -13,7 +13,10 @@ namespace stereomap::testing {
 class ServerProcess {
  public:
   // Starts the server and waits until it serves /healthz; throws with the log on failure.
-  ServerProcess(int domain, const std::vector<std::string>& extra_args = {});
+  // With `store` given the server uses (and the fixture keeps) that directory; otherwise a
+  // temporary one, removed at the end.
+  ServerProcess(int domain, const std::vector<std::string>& extra_args = {},
+                const std::string& store = "");
   ~ServerProcess();
   int port() const { return port_; }
   const std::string& store() const { return store_; }
@@ -24,6 +27,7 @@ class ServerProcess {
 
  private:
   std::string store_;
+  bool owns_store_ = true;
   std::string log_;
   int port_ = 0;
   std::unique_ptr<ChildProcess> process_;
