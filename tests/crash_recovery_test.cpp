@@ -34,12 +34,12 @@ TEST(CrashRecovery, KilledServerLosesNothingItJournaled) {
   ChildProcess onboard(onboardArgs(kDomain, kSession, kFrames, {"--rate", "20"}),
                        store + ".onboard.log");
   {
-    ServerProcess first(kDomain, {}, store);
+    ServerProcess first(kDomain, {"--snapshot-every", "10"}, store);
     ASSERT_TRUE(waitUntil(60s, [&] { return (fused_before_kill = framesFused(first)) >= 30; }))
         << first.log();
     first.process().kill9();
   }
-  ServerProcess second(kDomain, {}, store);
+  ServerProcess second(kDomain, {"--snapshot-every", "10"}, store);
   ASSERT_TRUE(onboard.waitExit(120s).value_or(-1) == 0) << "onboard did not finish";
   int previous = -2, fused = -1;
   ASSERT_TRUE(waitUntil(
@@ -85,6 +85,31 @@ TEST(CrashRecovery, KilledServerLosesNothingItJournaled) {
   ASSERT_EQ(served.status, 200);
   EXPECT_EQ(served.body.size(), expected.str().size());
   EXPECT_TRUE(served.body == expected.str()) << "the recovered map differs from the reference";
+  // The restart after the kill started from a snapshot (every 10 frames), not from scratch.
+  EXPECT_EQ(second.log().find("(0 from a snapshot)"), std::string::npos) << second.log();
+
+  // Snapshot damaged, then gone: recovery falls back to replaying the whole journal.
+  const auto session_dir = std::filesystem::path(store) / kSession;
+  second.process().stop();
+  for (const char* damage : {"truncate", "delete"}) {
+    SCOPED_TRACE(damage);
+    for (const auto& entry : std::filesystem::directory_iterator(session_dir)) {
+      if (entry.path().extension() != ".ot") continue;
+      if (std::string(damage) == "truncate") {
+        std::filesystem::resize_file(entry.path(), std::filesystem::file_size(entry.path()) / 2);
+      } else {
+        std::filesystem::remove(entry.path());
+      }
+    }
+    ServerProcess again(kDomain, {"--snapshot-every", "1000000"}, store);
+    ASSERT_TRUE(waitUntil(60s, [&] { return framesFused(again) == fused; })) << again.log();
+    const auto recovered = again.get("/api/sessions/" + kSession + "/map.bt");
+    EXPECT_TRUE(recovered.body == expected.str());
+    EXPECT_NE(again.log().find("(0 from a snapshot)"), std::string::npos) << again.log();
+    if (std::string(damage) == "truncate") {
+      EXPECT_NE(again.log().find("unusable"), std::string::npos) << again.log();
+    }
+  }
   std::filesystem::remove_all(store);
   std::filesystem::remove(store + ".onboard.log");
 }

@@ -81,6 +81,11 @@ int main(int argc, char** argv) {
                  "Largest accepted cloud payload, bytes")
       ->check(CLI::Range(size_t{1024}, proto::kMaxPayloadBytes))
       ->capture_default_str();
+  app.add_option("--snapshot-every", options.snapshot_every,
+                 "Fused frames between map snapshots (recovery replays only the journal after "
+                 "the last one)")
+      ->check(CLI::Range(1, 1000000))
+      ->capture_default_str();
   app.add_option("--queue", options.queue_capacity,
                  "Frames per session waiting for fusion before new ones are dropped")
       ->check(CLI::Range(1, 100000))
@@ -147,13 +152,14 @@ int main(int argc, char** argv) {
   // runs journaled, before DDS delivers anything new.
   store::SessionJournals journals(store->root());
   options.log = &journals;
+  options.snapshots = &journals;
   core::MapServer server(options);
   for (const auto& session : store::recoverSessions(store->root(), server)) {
     if (!session.problem.empty()) {
       spdlog::warn("session '{}': journal damaged, {}", session.id, session.problem);
     }
-    spdlog::info("session '{}' recovered from its journal: {} frames, {} poses", session.id,
-                 session.frames, session.poses);
+    spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
+                 session.frames, session.snapshot_frames, session.poses);
   }
   auto http_server = net::HttpServer::create(http, server);
   if (!http_server) {

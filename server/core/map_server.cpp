@@ -50,8 +50,15 @@ std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char
                  options_.max_sessions);
     return nullptr;
   }
-  auto session =
-      std::make_shared<Session>(id, Session::Options{options_.resolution, options_.queue_capacity});
+  Session::Options session_options{options_.resolution, options_.queue_capacity};
+  if (options_.snapshots != nullptr) {
+    session_options.snapshot_every = options_.snapshot_every;
+    session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t fused,
+                                                                  const std::string& ot) {
+      sink->saveSnapshot(id, fused, ot);
+    };
+  }
+  auto session = std::make_shared<Session>(id, session_options);
   sessions_.emplace(id, session);
   order_.push_back(id);
   spdlog::info("session '{}' started (resolution {} m)", id, options_.resolution);
@@ -97,6 +104,10 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin) {
   const auto rejection = validateCloudFrame(frame, options_.limits, valid);
   auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection);
   if (!session || !record("CloudFrame", frame, *session, origin)) return false;
+  if (origin == Origin::kCovered) {
+    session->countCovered(frame.vehicle_id);
+    return true;
+  }
   const bool queued = session->enqueue({frame.vehicle_id, frame.seq, std::move(valid.cloud_camera),
                                         valid.T_map_camera, valid.max_range_m},
                                        /*wait_for_room=*/origin == Origin::kReplay);
@@ -126,6 +137,16 @@ bool MapServer::ingest(const proto::SessionEventMsg& event) {
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
   }
   return true;
+}
+
+common::Status MapServer::restoreSession(const std::string& id, std::istream& ot,
+                                         uint64_t frames_fused) {
+  if (!isValidId(id)) {
+    return common::makeError(common::ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
+  }
+  auto session = sessionFor(id, "snapshot");
+  if (!session) return common::makeError(common::ErrorCode::kUnavailable, "too many sessions");
+  return session->restore(ot, frames_fused);
 }
 
 std::vector<std::shared_ptr<Session>> MapServer::sessions() const {

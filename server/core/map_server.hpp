@@ -27,16 +27,27 @@ class IngestLog {
   virtual common::Status append(const proto::PoseMsg& pose) = 0;
 };
 
+// Where sessions' map snapshots go (the store). Called from fusion worker threads.
+class SnapshotSink {
+ public:
+  virtual ~SnapshotSink() = default;
+  virtual void saveSnapshot(const std::string& session, uint64_t frames_fused,
+                            const std::string& ot) = 0;
+};
+
 // A live sample is journaled; a replayed one (crash recovery) already was, and waits for
-// room in the fusion queue instead of being dropped.
-enum class Origin { kLive, kReplay };
+// room in the fusion queue instead of being dropped; a covered one is already in the
+// restored snapshot (counted and de-duplicated, not fused again).
+enum class Origin { kLive, kReplay, kCovered };
 
 struct MapServerOptions {
   double resolution = 0.1;
   size_t queue_capacity = 200;
   size_t max_sessions = 256;
   IngestLimits limits;
-  IngestLog* log = nullptr;  // not owned; nullptr: nothing is journaled
+  IngestLog* log = nullptr;           // not owned; nullptr: nothing is journaled
+  SnapshotSink* snapshots = nullptr;  // not owned; nullptr: no snapshots
+  size_t snapshot_every = 100;        // frames between snapshots
 };
 
 class MapServer {
@@ -49,6 +60,9 @@ class MapServer {
   bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive);
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event);
+
+  // Creates session `id` from a snapshot of its first `frames_fused` frames (recovery).
+  common::Status restoreSession(const std::string& id, std::istream& ot, uint64_t frames_fused);
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;

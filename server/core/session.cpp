@@ -66,6 +66,24 @@ bool Session::enqueue(FusionJob job, bool wait_for_room) {
   return true;
 }
 
+common::Status Session::restore(std::istream& ot, uint64_t frames_fused) {
+  {
+    std::lock_guard lock(map_mutex_);
+    if (auto status = map_.readFull(ot); !status) return status;
+  }
+  {
+    std::lock_guard state(state_mutex_);
+    frames_fused_ = frames_received_ = frames_fused;
+  }
+  publishSnapshot();
+  return common::Ok{};
+}
+
+void Session::countCovered(const std::string& vehicle_id) {
+  std::lock_guard state(state_mutex_);
+  noteVehicle(vehicles_, vehicle_id);
+}
+
 void Session::addPose(PoseRecord pose) {
   std::lock_guard lock(state_mutex_);
   noteVehicle(vehicles_, pose.vehicle_id);
@@ -97,12 +115,22 @@ void Session::run() {
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    uint64_t fused;
     {
       std::lock_guard state(state_mutex_);
-      ++frames_fused_;
+      fused = ++frames_fused_;
       fusion_seconds_ += seconds;
     }
     publishSnapshot();
+    if (options_.snapshot_every > 0 && options_.on_snapshot &&
+        fused % options_.snapshot_every == 0) {
+      std::ostringstream ot;
+      {
+        std::lock_guard lock(map_mutex_);
+        map_.writeFull(ot);
+      }
+      options_.on_snapshot(fused, ot.str());
+    }
   }
 }
 

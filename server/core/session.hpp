@@ -8,6 +8,8 @@
 
 #include <condition_variable>
 #include <deque>
+#include <functional>
+#include <istream>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -18,6 +20,7 @@
 
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
+#include "common/result.hpp"
 #include "server/fusion/occupancy_map.hpp"
 
 namespace stereomap::core {
@@ -62,6 +65,9 @@ class Session {
   struct Options {
     double resolution = 0.1;
     size_t queue_capacity = 200;  // frames waiting for fusion before new ones are dropped
+    // Every this many fused frames the worker hands a .ot of the map to on_snapshot (0: off).
+    size_t snapshot_every = 0;
+    std::function<void(uint64_t frames_fused, const std::string& ot)> on_snapshot;
   };
 
   Session(std::string id, const Options& options);
@@ -70,6 +76,10 @@ class Session {
   Session& operator=(const Session&) = delete;
 
   const std::string& id() const { return id_; }
+  // Starts from a snapshot (a .ot of the first `frames_fused` frames); before any enqueue.
+  common::Status restore(std::istream& ot, uint64_t frames_fused);
+  // Counts a frame that the restored snapshot already holds (replayed, not fused again).
+  void countCovered(const std::string& vehicle_id);
   // Hands a frame to fusion; false (and counted) when the queue is full, unless
   // `wait_for_room`, which blocks until the worker makes room (replay at start-up).
   bool enqueue(FusionJob job, bool wait_for_room = false);

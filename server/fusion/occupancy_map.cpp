@@ -5,6 +5,8 @@
 #include "server/fusion/detail/bulk_insert.hpp"
 
 #include <algorithm>
+#include <istream>
+#include <sstream>
 
 namespace stereomap::fusion {
 
@@ -190,6 +192,38 @@ common::Vec3 OccupancyMap::voxelCentre(const VoxelIndex& index) const {
 double OccupancyMap::resolution() const { return impl_->tree.getResolution(); }
 
 bool OccupancyMap::writeFull(std::ostream& out) const { return impl_->tree.write(out); }
+
+common::Status OccupancyMap::readFull(std::istream& in) {
+  using common::ErrorCode;
+  using common::makeError;
+  auto& tree = impl_->tree;
+  tree.clear();
+  // The header of AbstractOcTree::write: comment lines, then id, size, res, data.
+  std::string line, id;
+  double res = 0;
+  while (std::getline(in, line)) {
+    if (line.empty() || line[0] == '#') continue;
+    std::istringstream fields(line);
+    std::string key;
+    fields >> key;
+    if (key == "id") fields >> id;
+    if (key == "res") fields >> res;
+    if (key == "data") break;
+  }
+  if (!in || line.rfind("data", 0) != 0) return makeError(ErrorCode::kCorrupt, "no .ot header");
+  if (id != "OcTree") return makeError(ErrorCode::kCorrupt, "not an OcTree ('" + id + "')");
+  if (std::abs(res - tree.getResolution()) > 1e-9) {
+    return makeError(ErrorCode::kInvalidArgument, "resolution " + std::to_string(res) +
+                                                      " differs from the map's " +
+                                                      std::to_string(tree.getResolution()));
+  }
+  tree.readData(in);
+  if (!in) {
+    tree.clear();
+    return makeError(ErrorCode::kCorrupt, "the .ot data is truncated or damaged");
+  }
+  return common::Ok{};
+}
 
 bool OccupancyMap::writeBinary(std::ostream& out) const {
   // OctoMap's writeBinaryConst() writes this header too, but also chatters on stderr.

@@ -15,6 +15,7 @@
 
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
+#include "common/result.hpp"
 
 namespace stereomap::fusion {
 
@@ -92,6 +93,9 @@ class OccupancyMap {
   bool writeBinary(std::ostream& out) const;
   // OctoMap full format (.ot: log-odds kept); the live tree is not modified.
   bool writeFull(std::ostream& out) const;
+  // Replaces the map with a .ot written by writeFull (same resolution); the map is left
+  // empty on failure, and the error says why.
+  common::Status readFull(std::istream& in);
   // Number of bytes the tree occupies in memory (OctoMap's estimate).
   size_t memoryBytes() const;
 

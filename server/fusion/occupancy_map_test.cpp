@@ -197,8 +197,8 @@ TEST(OccupancyMap, PaperPresetLeavesUncertainVoxelsUnknown) {
     OccupancyMap map(options);
     for (int i = 0; i < 3; ++i) map.insertCloud(wall(3.05), common::Rigid3::identity(), 10.0);
     map.insertCloud(behind, common::Rigid3::identity(), 10.0);
-    EXPECT_EQ(map.query(voxel), options.prob_miss == 0.1 ? Occupancy::kUnknown
-                                                         : Occupancy::kOccupied);
+    EXPECT_EQ(map.query(voxel),
+              options.prob_miss == 0.1 ? Occupancy::kUnknown : Occupancy::kOccupied);
     EXPECT_EQ(map.query(Vec3(1.55, 0.05, 0.05)), Occupancy::kFree);
   }
 }
