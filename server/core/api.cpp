@@ -108,6 +108,26 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view me
     return HttpAnswer{200, "text/plain", session->trajectoryTum(chosen),
                       parts[2] + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
   }
+  if (parts.size() == 4 && parts[3] == "map.ot") {
+    return HttpAnswer{200, "application/octet-stream", session->mapFull(), parts[2] + ".ot"};
+  }
+  if (parts.size() == 4 && parts[3] == "map.ply") {
+    return HttpAnswer{200, "application/octet-stream", session->occupiedPly(), parts[2] + ".ply"};
+  }
+  if (parts.size() == 4 && parts[3] == "map.png") {
+    // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
+    double z_min = -1e9, z_max = 1e9;
+    try {
+      if (auto v = queryValue(target, "zmin"); !v.empty()) z_min = std::stod(v);
+      if (auto v = queryValue(target, "zmax"); !v.empty()) z_max = std::stod(v);
+    } catch (const std::exception&) {
+      return error(400, "zmin and zmax must be numbers (metres)");
+    }
+    if (!(z_min <= z_max)) return error(400, "zmin must not exceed zmax");
+    std::string png = session->occupancyPng(z_min, z_max);
+    if (png.empty()) return error(404, "no occupied voxels in that height band");
+    return HttpAnswer{200, "image/png", std::move(png), parts[2] + ".png"};
+  }
   if (parts.size() == 4 && parts[3] == "map.bt") {
     return HttpAnswer{200, "application/octet-stream", session->mapBinary(), parts[2] + ".bt"};
   }

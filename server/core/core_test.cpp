@@ -107,6 +107,20 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   ASSERT_TRUE(bt && bt->status == 200);
   EXPECT_EQ(bt->body.rfind("# Octomap OcTree binary file", 0), 0u);
 
+  auto ot = answerApi(server, "GET", "/api/sessions/flight-1/map.ot");
+  ASSERT_TRUE(ot && ot->status == 200);
+  EXPECT_EQ(ot->body.rfind("# Octomap OcTree file", 0), 0u);
+  auto ply = answerApi(server, "GET", "/api/sessions/flight-1/map.ply");
+  ASSERT_TRUE(ply && ply->status == 200);
+  const auto voxels = sessions[0]["occupied_voxels"].get<size_t>();
+  const size_t header = ply->body.find("end_header\n") + 11;
+  EXPECT_EQ(ply->body.size() - header, voxels * 12);  // three floats per voxel
+  auto png = answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=-0.2&zmax=0.2");
+  ASSERT_TRUE(png && png->status == 200);
+  EXPECT_EQ(png->content_type, "image/png");
+  EXPECT_EQ(png->body.substr(1, 3), "PNG");
+  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status, 404);
+  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status, 400);
   EXPECT_EQ(answerApi(server, "GET", "/api/sessions/nope/map.bt")->status, 404);
   EXPECT_EQ(answerApi(server, "POST", "/api/sessions")->status, 405);
   EXPECT_EQ(answerApi(server, "GET", "/api/other")->status, 404);

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <chrono>
 #include <iomanip>
+
+#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
 namespace stereomap::core {
@@ -201,6 +203,49 @@ std::string Session::mapBinary() const {
   std::lock_guard lock(map_mutex_);
   map_.writeBinary(out);
   return out.str();
+}
+
+std::string Session::mapFull() const {
+  std::ostringstream out;
+  std::lock_guard lock(map_mutex_);
+  map_.writeFull(out);
+  return out.str();
+}
+
+std::string Session::occupiedPly() const {
+  const auto snapshot = voxels();
+  std::ostringstream out;
+  out << "ply\nformat binary_little_endian 1.0\ncomment stereomap session " << id_
+      << ", occupied voxel centres, resolution " << snapshot->resolution << " m\nelement vertex "
+      << snapshot->voxels.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
+      << "end_header\n";
+  for (const auto& v : snapshot->voxels) {
+    const float xyz[3] = {static_cast<float>((v.x + 0.5) * snapshot->resolution),
+                          static_cast<float>((v.y + 0.5) * snapshot->resolution),
+                          static_cast<float>((v.z + 0.5) * snapshot->resolution)};
+    out.write(reinterpret_cast<const char*>(xyz), sizeof(xyz));
+  }
+  return out.str();
+}
+
+std::string Session::occupancyPng(double z_min, double z_max) const {
+  const auto snapshot = voxels();
+  std::vector<fusion::VoxelIndex> band;
+  for (const auto& v : snapshot->voxels) {
+    const double z = (v.z + 0.5) * snapshot->resolution;
+    if (z >= z_min && z <= z_max) band.push_back(v);
+  }
+  if (band.empty()) return "";
+  int32_t x0 = band[0].x, x1 = x0, y0 = band[0].y, y1 = y0;
+  for (const auto& v : band) {
+    x0 = std::min(x0, v.x), x1 = std::max(x1, v.x);
+    y0 = std::min(y0, v.y), y1 = std::max(y1, v.y);
+  }
+  cv::Mat image(y1 - y0 + 1, x1 - x0 + 1, CV_8UC1, cv::Scalar(0));
+  for (const auto& v : band) image.at<uint8_t>(y1 - v.y, v.x - x0) = 255;  // north up
+  std::vector<uint8_t> png;
+  cv::imencode(".png", image, png);
+  return std::string(png.begin(), png.end());
 }
 
 void Session::waitUntilIdle() const {

@@ -97,6 +97,14 @@ class Session {
   std::string trajectoryTum(const std::string& vehicle_id = "") const;
   // OctoMap binary of the map as it is now (waits for the frame being fused, if any).
   std::string mapBinary() const;
+  // OctoMap full format (.ot, log-odds kept).
+  std::string mapFull() const;
+  // Binary PLY of the occupied voxels' centres (map frame, metres).
+  std::string occupiedPly() const;
+  // A top-down PNG of the occupied voxels with centres in [z_min, z_max] (one pixel per
+  // voxel; white occupied, black not), and its origin: pixel (0, 0) is the voxel with the
+  // smallest x and largest y. Empty when nothing is occupied in the band.
+  std::string occupancyPng(double z_min, double z_max) const;
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
 
