@@ -117,14 +117,17 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view me
   if (parts.size() == 4 && parts[3] == "map.png") {
     // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
     double z_min = -1e9, z_max = 1e9;
+    int scale = 1;
     try {
       if (auto v = queryValue(target, "zmin"); !v.empty()) z_min = std::stod(v);
       if (auto v = queryValue(target, "zmax"); !v.empty()) z_max = std::stod(v);
+      if (auto v = queryValue(target, "scale"); !v.empty()) scale = std::stoi(v);
     } catch (const std::exception&) {
-      return error(400, "zmin and zmax must be numbers (metres)");
+      return error(400, "zmin and zmax must be numbers (metres), scale a whole number");
     }
     if (!(z_min <= z_max)) return error(400, "zmin must not exceed zmax");
-    std::string png = session->occupancyPng(z_min, z_max);
+    if (scale < 1 || scale > 16) return error(400, "scale must be 1..16 pixels per voxel");
+    std::string png = session->occupancyPng(z_min, z_max, scale);
     if (png.empty()) return error(404, "no occupied voxels in that height band");
     return HttpAnswer{200, "image/png", std::move(png), parts[2] + ".png"};
   }

@@ -121,6 +121,7 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   EXPECT_EQ(png->body.substr(1, 3), "PNG");
   EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status, 404);
   EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status, 400);
+  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?scale=40")->status, 400);
   EXPECT_EQ(answerApi(server, "GET", "/api/sessions/nope/map.bt")->status, 404);
   EXPECT_EQ(answerApi(server, "POST", "/api/sessions")->status, 405);
   EXPECT_EQ(answerApi(server, "GET", "/api/other")->status, 404);

@@ -5,6 +5,7 @@
 #include <iomanip>
 
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <sstream>
 
 namespace stereomap::core {
@@ -228,7 +229,7 @@ std::string Session::occupiedPly() const {
   return out.str();
 }
 
-std::string Session::occupancyPng(double z_min, double z_max) const {
+std::string Session::occupancyPng(double z_min, double z_max, int pixels_per_voxel) const {
   const auto snapshot = voxels();
   std::vector<fusion::VoxelIndex> band;
   for (const auto& v : snapshot->voxels) {
@@ -243,6 +244,9 @@ std::string Session::occupancyPng(double z_min, double z_max) const {
   }
   cv::Mat image(y1 - y0 + 1, x1 - x0 + 1, CV_8UC1, cv::Scalar(0));
   for (const auto& v : band) image.at<uint8_t>(y1 - v.y, v.x - x0) = 255;  // north up
+  if (pixels_per_voxel > 1) {
+    cv::resize(image, image, cv::Size(), pixels_per_voxel, pixels_per_voxel, cv::INTER_NEAREST);
+  }
   std::vector<uint8_t> png;
   cv::imencode(".png", image, png);
   return std::string(png.begin(), png.end());

@@ -102,9 +102,9 @@ class Session {
   // Binary PLY of the occupied voxels' centres (map frame, metres).
   std::string occupiedPly() const;
   // A top-down PNG of the occupied voxels with centres in [z_min, z_max] (one pixel per
-  // voxel; white occupied, black not), and its origin: pixel (0, 0) is the voxel with the
-  // smallest x and largest y. Empty when nothing is occupied in the band.
-  std::string occupancyPng(double z_min, double z_max) const;
+  // voxel, or a square of pixels_per_voxel; white occupied, black not); pixel (0, 0) is the
+  // voxel with the smallest x and largest y. Empty when nothing is occupied in the band.
+  std::string occupancyPng(double z_min, double z_max, int pixels_per_voxel = 1) const;
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
 
