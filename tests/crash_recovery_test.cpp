@@ -105,6 +105,8 @@ TEST(CrashRecovery, KilledServerLosesNothingItJournaled) {
     ASSERT_TRUE(waitUntil(60s, [&] { return framesFused(again) == fused; })) << again.log();
     const auto recovered = again.get("/api/sessions/" + kSession + "/map.bt");
     EXPECT_TRUE(recovered.body == expected.str());
+    // The vehicle's ENDED event was journaled too: the session comes back as ended.
+    EXPECT_EQ(nlohmann::json::parse(again.get("/api/sessions/" + kSession).body)["state"], "ended");
     EXPECT_NE(again.log().find("(0 from a snapshot)"), std::string::npos) << again.log();
     if (std::string(damage) == "truncate") {
       EXPECT_NE(again.log().find("unusable"), std::string::npos) << again.log();

@@ -84,7 +84,9 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& 
 
 template <typename Message>
 bool MapServer::record(const char* topic, const Message& message, Session& session, Origin origin) {
-  if (!session.claim(topic, message.vehicle_id, message.seq, message.stamp_ns)) {
+  uint64_t seq = 0;  // session events carry no seq: their stamp tells them apart
+  if constexpr (requires { message.seq; }) seq = message.seq;
+  if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
     metrics_.add(kDuplicates, {{"topic", topic}});
     return false;
   }
@@ -128,10 +130,10 @@ bool MapServer::ingest(const proto::PoseMsg& pose, Origin origin) {
   return true;
 }
 
-bool MapServer::ingest(const proto::SessionEventMsg& event) {
+bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
   auto session =
       admit("SessionEvent", event.vehicle_id, event.session_id, validateSessionEvent(event));
-  if (!session) return false;
+  if (!session || !record("SessionEvent", event, *session, origin)) return false;
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);

@@ -25,6 +25,7 @@ class IngestLog {
   virtual ~IngestLog() = default;
   virtual common::Status append(const proto::CloudFrameMsg& frame) = 0;
   virtual common::Status append(const proto::PoseMsg& pose) = 0;
+  virtual common::Status append(const proto::SessionEventMsg& event) = 0;
 };
 
 // Where sessions' map snapshots go (the store). Called from fusion worker threads.
@@ -59,7 +60,7 @@ class MapServer {
   // restarted server) is counted as a duplicate and skipped.
   bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive);
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
-  bool ingest(const proto::SessionEventMsg& event);
+  bool ingest(const proto::SessionEventMsg& event, Origin origin = Origin::kLive);
 
   // Creates session `id` from a snapshot of its first `frames_fused` frames (recovery).
   common::Status restoreSession(const std::string& id, std::istream& ot, uint64_t frames_fused);

@@ -41,7 +41,7 @@ bool Session::claim(const std::string& topic, const std::string& vehicle, uint64
   auto [it, inserted] = last_claimed_.try_emplace({topic, vehicle}, seq, stamp_ns);
   if (inserted) return true;
   auto& [last_seq, last_stamp] = it->second;
-  if (seq <= last_seq && stamp_ns <= last_stamp) return false;
+  if (seq <= last_seq && stamp_ns <= last_stamp) return false;  // not newer in either
   last_seq = seq;
   last_stamp = stamp_ns;
   return true;

@@ -16,7 +16,7 @@ namespace {
 
 constexpr char kMagic[8] = {'S', 'M', 'J', 'O', 'U', 'R', 'N', '1'};
 constexpr uint32_t kMaxRecordBytes = 64u << 20;
-enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2 };
+enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2, kSessionEvent = 3 };
 
 // Little-endian field writer/reader; the reader fails (ok() false) on any overrun.
 class Writer {
@@ -99,6 +99,15 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     w.put(f->quantization_bits);
     w.put(static_cast<uint8_t>(f->has_intensity));
     w.putBytes(f->payload);
+  } else if (const auto* e = std::get_if<proto::SessionEventMsg>(&record)) {
+    type = kSessionEvent;
+    w.putString(e->vehicle_id);
+    w.putString(e->session_id);
+    w.put(e->stamp_ns);
+    w.put(static_cast<uint8_t>(e->kind));
+    w.put(e->width);
+    w.put(e->height);
+    for (double v : {e->fx, e->fy, e->cx, e->cy, e->baseline, e->resolution_hint}) w.put(v);
   } else {
     const auto& p = std::get<proto::PoseMsg>(record);
     type = kPose;
@@ -146,6 +155,18 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     p.tracking_state = static_cast<proto::TrackingState>(std::min<uint8_t>(r.get<uint8_t>(), 3));
     p.source = static_cast<proto::PoseSource>(std::min<uint8_t>(r.get<uint8_t>(), 2));
     out = std::move(p);
+  } else if (type == kSessionEvent) {
+    proto::SessionEventMsg e;
+    e.vehicle_id = r.getString();
+    e.session_id = r.getString();
+    e.stamp_ns = r.get<int64_t>();
+    e.kind = static_cast<proto::SessionEventKind>(r.get<uint8_t>() & 1);
+    e.width = r.get<uint32_t>();
+    e.height = r.get<uint32_t>();
+    for (double* v : {&e.fx, &e.fy, &e.cx, &e.cy, &e.baseline, &e.resolution_hint}) {
+      *v = r.get<double>();
+    }
+    out = std::move(e);
   } else {
     return false;
   }

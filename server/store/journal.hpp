@@ -21,7 +21,7 @@
 
 namespace stereomap::store {
 
-using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg>;
+using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg>;
 
 struct JournalReplay {
   std::vector<JournalRecord> records;

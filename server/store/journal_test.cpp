@@ -78,6 +78,25 @@ TEST_F(JournalTest, RecordsRoundTrip) {
   EXPECT_EQ(p1.tracking_state, proto::TrackingState::kOk);
 }
 
+TEST_F(JournalTest, SessionEventsRoundTrip) {
+  auto journal = Journal::open(path_);
+  ASSERT_TRUE(journal.ok());
+  proto::SessionEventMsg event;
+  event.vehicle_id = "uav";
+  event.session_id = "s";
+  event.stamp_ns = 77;
+  event.kind = proto::SessionEventKind::kEnded;
+  event.baseline = 0.12;
+  ASSERT_TRUE((*journal)->append(event).ok());
+  auto replay = readJournal(path_);
+  ASSERT_TRUE(replay.ok());
+  ASSERT_EQ(replay->records.size(), 1u);
+  const auto& back = std::get<proto::SessionEventMsg>(replay->records[0]);
+  EXPECT_EQ(back.kind, proto::SessionEventKind::kEnded);
+  EXPECT_EQ(back.stamp_ns, 77);
+  EXPECT_DOUBLE_EQ(back.baseline, 0.12);
+}
+
 TEST_F(JournalTest, TornTailIsCutAndEverythingBeforeKept) {
   const auto sizes = writeFive();
   fs::resize_file(path_, sizes[3] + 20);  // mid-way through the fifth record

@@ -64,6 +64,10 @@ common::Status SessionJournals::append(const proto::PoseMsg& pose) {
   return appendTo(pose.session_id, pose);
 }
 
+common::Status SessionJournals::append(const proto::SessionEventMsg& event) {
+  return appendTo(event.session_id, event);
+}
+
 common::Status SessionJournals::appendTo(const std::string& session, const JournalRecord& record) {
   std::lock_guard lock(mutex_);
   auto& journal = journals_[session];
@@ -117,8 +121,10 @@ std::vector<RecoveredSession> recoverSessions(const fs::path& root, core::MapSer
         const bool covered = cloud_index++ < session.snapshot_frames;
         session.frames +=
             server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay);
+      } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+        session.poses += server.ingest(*pose, core::Origin::kReplay);
       } else {
-        session.poses += server.ingest(std::get<proto::PoseMsg>(record), core::Origin::kReplay);
+        server.ingest(std::get<proto::SessionEventMsg>(record), core::Origin::kReplay);
       }
     }
     if (auto live = server.find(session.id)) live->waitUntilIdle();

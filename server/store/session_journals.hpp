@@ -21,6 +21,7 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
   explicit SessionJournals(std::filesystem::path root) : root_(std::move(root)) {}
   common::Status append(const proto::CloudFrameMsg& frame) override;
   common::Status append(const proto::PoseMsg& pose) override;
+  common::Status append(const proto::SessionEventMsg& event) override;
   // Written atomically (temporary file + rename); older snapshots are then removed.
   void saveSnapshot(const std::string& session, uint64_t frames_fused,
                     const std::string& ot) override;
