@@ -83,14 +83,27 @@ void getArray(Reader& r, std::array<double, N>& a) {
   for (double& v : a) v = r.get<double>();
 }
 
+// The fields every message starts with: ids, seq (where the message has one), stamp.
+template <typename Message>
+void putHeader(Writer& w, const Message& m) {
+  w.putString(m.vehicle_id);
+  w.putString(m.session_id);
+  if constexpr (requires { m.seq; }) w.put(m.seq);
+  w.put(m.stamp_ns);
+}
+template <typename Message>
+void getHeader(Reader& r, Message& m) {
+  m.vehicle_id = r.getString();
+  m.session_id = r.getString();
+  if constexpr (requires { m.seq; }) m.seq = r.get<uint64_t>();
+  m.stamp_ns = r.get<int64_t>();
+}
+
 std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
   Writer w;
   if (const auto* f = std::get_if<proto::CloudFrameMsg>(&record)) {
     type = kCloudFrame;
-    w.putString(f->vehicle_id);
-    w.putString(f->session_id);
-    w.put(f->seq);
-    w.put(f->stamp_ns);
+    putHeader(w, *f);
     putArray(w, f->sensor_position);
     putArray(w, f->sensor_orientation);
     w.put(f->max_range);
@@ -101,9 +114,7 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     w.putBytes(f->payload);
   } else if (const auto* e = std::get_if<proto::SessionEventMsg>(&record)) {
     type = kSessionEvent;
-    w.putString(e->vehicle_id);
-    w.putString(e->session_id);
-    w.put(e->stamp_ns);
+    putHeader(w, *e);
     w.put(static_cast<uint8_t>(e->kind));
     w.put(e->width);
     w.put(e->height);
@@ -111,10 +122,7 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
   } else {
     const auto& p = std::get<proto::PoseMsg>(record);
     type = kPose;
-    w.putString(p.vehicle_id);
-    w.putString(p.session_id);
-    w.put(p.seq);
-    w.put(p.stamp_ns);
+    putHeader(w, p);
     putArray(w, p.position);
     putArray(w, p.orientation);
     putArray(w, p.velocity);
@@ -129,10 +137,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
   Reader r(data, size);
   if (type == kCloudFrame) {
     proto::CloudFrameMsg f;
-    f.vehicle_id = r.getString();
-    f.session_id = r.getString();
-    f.seq = r.get<uint64_t>();
-    f.stamp_ns = r.get<int64_t>();
+    getHeader(r, f);
     getArray(r, f.sensor_position);
     getArray(r, f.sensor_orientation);
     f.max_range = r.get<float>();
@@ -144,10 +149,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     out = std::move(f);
   } else if (type == kPose) {
     proto::PoseMsg p;
-    p.vehicle_id = r.getString();
-    p.session_id = r.getString();
-    p.seq = r.get<uint64_t>();
-    p.stamp_ns = r.get<int64_t>();
+    getHeader(r, p);
     getArray(r, p.position);
     getArray(r, p.orientation);
     getArray(r, p.velocity);
@@ -157,9 +159,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     out = std::move(p);
   } else if (type == kSessionEvent) {
     proto::SessionEventMsg e;
-    e.vehicle_id = r.getString();
-    e.session_id = r.getString();
-    e.stamp_ns = r.get<int64_t>();
+    getHeader(r, e);
     e.kind = static_cast<proto::SessionEventKind>(r.get<uint8_t>() & 1);
     e.width = r.get<uint32_t>();
     e.height = r.get<uint32_t>();
