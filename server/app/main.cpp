@@ -10,6 +10,7 @@
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/net/http_server.hpp"
+#include "server/store/catalog.hpp"
 #include "server/store/session_journals.hpp"
 #include "server/store/store.hpp"
 
@@ -161,6 +162,21 @@ int main(int argc, char** argv) {
     spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
                  session.frames, session.snapshot_frames, session.poses);
   }
+  auto catalog = store::Catalog::open(store->root());
+  if (!catalog) {
+    spdlog::error("{}", catalog.error().message);
+    return 1;
+  }
+  if (!(*catalog)->warning().empty()) spdlog::warn("{}", (*catalog)->warning());
+  auto catalogue = [&](const core::Session& session) {
+    std::error_code ec;
+    const auto bytes = std::filesystem::file_size(store->root() / session.id() / "journal.smj", ec);
+    if (auto recorded = (*catalog)->record(session.status(), ec ? 0 : bytes); !recorded) {
+      spdlog::warn("{}", recorded.error().message);
+    }
+  };
+  for (const auto& session : server.sessions()) catalogue(*session);  // recovered ones
+
   auto http_server = net::HttpServer::create(http, server);
   if (!http_server) {
     spdlog::error("{}", http_server.error().message);
@@ -186,6 +202,7 @@ int main(int argc, char** argv) {
   size_t last_voxels = 0;
   while (!shutdown.waitFor(std::chrono::seconds(5))) {
     saveSessions(server, *store, saved_versions, /*all=*/false);
+    for (const auto& session : server.sessions()) catalogue(*session);
     size_t voxels = 0, frames = 0, backlog = 0;
     const auto sessions = server.sessions();
     for (const auto& session : sessions) {
@@ -211,6 +228,7 @@ int main(int argc, char** argv) {
   (*http_server)->stop();
   for (const auto& session : server.sessions()) session->waitUntilIdle();
   saveSessions(server, *store, saved_versions, /*all=*/true);
+  for (const auto& session : server.sessions()) catalogue(*session);
   spdlog::info("stopped");
   return 0;
 }

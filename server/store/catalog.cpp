@@ -1,0 +1,140 @@
+#include "server/store/catalog.hpp"
+
+#include <SQLiteCpp/SQLiteCpp.h>
+
+#include "common/time.hpp"
+
+namespace stereomap::store {
+
+namespace fs = std::filesystem;
+using common::ErrorCode;
+using common::makeError;
+
+struct Catalog::Impl {
+  explicit Impl(const fs::path& path)
+      : db(path.string(), SQLite::OPEN_READWRITE | SQLite::OPEN_CREATE) {}
+  SQLite::Database db;
+};
+
+namespace {
+
+constexpr const char* kSchema = R"(
+CREATE TABLE IF NOT EXISTS sessions (
+  id TEXT PRIMARY KEY,
+  vehicles TEXT NOT NULL,
+  state TEXT NOT NULL,
+  frames INTEGER NOT NULL,
+  resolution REAL NOT NULL,
+  occupied_voxels INTEGER NOT NULL,
+  min_x REAL, min_y REAL, min_z REAL, max_x REAL, max_y REAL, max_z REAL,
+  journal_bytes INTEGER NOT NULL,
+  updated_ns INTEGER NOT NULL
+))";
+
+}  // namespace
+
+std::unique_ptr<Catalog::Impl> Catalog::openHealthy(const fs::path& path) {
+  auto impl = std::make_unique<Catalog::Impl>(path);
+  impl->db.exec("PRAGMA journal_mode=WAL");
+  const std::string check = impl->db.execAndGet("PRAGMA integrity_check").getString();
+  if (check != "ok") throw SQLite::Exception("integrity check: " + check);
+  impl->db.exec(kSchema);
+  return impl;
+}
+
+Catalog::Catalog(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Catalog::~Catalog() = default;
+
+common::Result<std::unique_ptr<Catalog>> Catalog::open(const fs::path& root) {
+  const fs::path path = root / "catalog.sqlite";
+  std::string warning;
+  std::unique_ptr<Impl> impl;
+  try {
+    impl = openHealthy(path);
+  } catch (const SQLite::Exception& e) {
+    // The journals hold the truth: keep the damaged file for inspection, start afresh.
+    const fs::path aside =
+        path.string() + ".corrupt-" + std::to_string(common::nowNs() / 1'000'000'000);
+    std::error_code ec;
+    fs::rename(path, aside, ec);
+    for (const char* suffix : {"-wal", "-shm"}) fs::remove(path.string() + suffix, ec);
+    warning = path.string() + " was damaged (" + e.what() + "); moved to " + aside.string() +
+              " and rebuilt from the session journals";
+    try {
+      impl = openHealthy(path);
+    } catch (const SQLite::Exception& again) {
+      return makeError(ErrorCode::kIo,
+                       path.string() + ": cannot create the catalog: " + again.what());
+    }
+  }
+  auto catalog = std::unique_ptr<Catalog>(new Catalog(std::move(impl)));
+  catalog->warning_ = std::move(warning);
+  return catalog;
+}
+
+common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_bytes) {
+  try {
+    SQLite::Statement upsert(impl_->db, R"(
+      INSERT INTO sessions VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)
+      ON CONFLICT(id) DO UPDATE SET vehicles = excluded.vehicles, state = excluded.state,
+        frames = excluded.frames, resolution = excluded.resolution,
+        occupied_voxels = excluded.occupied_voxels, min_x = excluded.min_x,
+        min_y = excluded.min_y, min_z = excluded.min_z, max_x = excluded.max_x,
+        max_y = excluded.max_y, max_z = excluded.max_z, journal_bytes = excluded.journal_bytes,
+        updated_ns = excluded.updated_ns)");
+    std::string vehicles;
+    for (const auto& v : s.vehicles) vehicles += (vehicles.empty() ? "" : ",") + v;
+    upsert.bind(1, s.id);
+    upsert.bind(2, vehicles);
+    upsert.bind(3, s.ended ? "ended" : "live");
+    upsert.bind(4, static_cast<int64_t>(s.frames_fused));
+    upsert.bind(5, s.resolution);
+    upsert.bind(6, static_cast<int64_t>(s.occupied_voxels));
+    for (int i = 0; i < 3; ++i) {
+      if (s.bounds.empty()) {
+        upsert.bind(7 + i);
+        upsert.bind(10 + i);
+      } else {
+        upsert.bind(7 + i, s.bounds.min[i]);
+        upsert.bind(10 + i, s.bounds.max[i]);
+      }
+    }
+    upsert.bind(13, static_cast<int64_t>(journal_bytes));
+    upsert.bind(14, static_cast<int64_t>(common::nowNs()));
+    upsert.exec();
+  } catch (const SQLite::Exception& e) {
+    return makeError(ErrorCode::kIo,
+                     std::string("catalog: cannot record session '") + s.id + "': " + e.what());
+  }
+  return common::Ok{};
+}
+
+common::Result<std::vector<CatalogRow>> Catalog::list() const {
+  std::vector<CatalogRow> rows;
+  try {
+    SQLite::Statement query(impl_->db, "SELECT * FROM sessions ORDER BY updated_ns");
+    while (query.executeStep()) {
+      CatalogRow row;
+      row.id = query.getColumn(0).getString();
+      row.vehicles = query.getColumn(1).getString();
+      row.state = query.getColumn(2).getString();
+      row.frames = static_cast<uint64_t>(query.getColumn(3).getInt64());
+      row.resolution = query.getColumn(4).getDouble();
+      row.occupied_voxels = static_cast<uint64_t>(query.getColumn(5).getInt64());
+      if (!query.getColumn(6).isNull()) {
+        row.bounds.extend({query.getColumn(6).getDouble(), query.getColumn(7).getDouble(),
+                           query.getColumn(8).getDouble()});
+        row.bounds.extend({query.getColumn(9).getDouble(), query.getColumn(10).getDouble(),
+                           query.getColumn(11).getDouble()});
+      }
+      row.journal_bytes = static_cast<uint64_t>(query.getColumn(12).getInt64());
+      row.updated_ns = query.getColumn(13).getInt64();
+      rows.push_back(std::move(row));
+    }
+  } catch (const SQLite::Exception& e) {
+    return makeError(ErrorCode::kIo, std::string("catalog: cannot list sessions: ") + e.what());
+  }
+  return rows;
+}
+
+}  // namespace stereomap::store
