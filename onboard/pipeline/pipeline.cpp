@@ -65,13 +65,19 @@ bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);
 }
 
+// The fields every message of this vehicle starts with.
+template <typename Message>
+void address(Message& message, const PipelineOptions& options, uint64_t seq, int64_t stamp_ns) {
+  message.vehicle_id = options.vehicle_id;
+  message.session_id = options.session_id;
+  message.seq = seq;
+  message.stamp_ns = stamp_ns;
+}
+
 proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
                            const common::Rigid3& T_map_body, const common::Vec3& velocity) {
   proto::PoseMsg pose;
-  pose.vehicle_id = options.vehicle_id;
-  pose.session_id = options.session_id;
-  pose.seq = seq;
-  pose.stamp_ns = stamp_ns;
+  address(pose, options, seq, stamp_ns);
   copyPose(T_map_body, pose.position, pose.orientation);
   pose.velocity = {velocity.x(), velocity.y(), velocity.z()};
   pose.tracking_state = proto::TrackingState::kOk;
@@ -86,10 +92,7 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
   auto payload = proto::encodeCloud(cloud_camera, options.codec);
   if (!payload) return payload.error();
   proto::CloudFrameMsg frame;
-  frame.vehicle_id = options.vehicle_id;
-  frame.session_id = options.session_id;
-  frame.seq = seq;
-  frame.stamp_ns = stamp_ns;
+  address(frame, options, seq, stamp_ns);
   copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
   frame.max_range = static_cast<float>(options.cloud.max_range_m);
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());

@@ -64,7 +64,11 @@ std::string queryValue(std::string_view target, std::string_view key) {
 
 }  // namespace
 
-std::string sessionJson(const SessionStatus& status) { return statusJson(status).dump(); }
+std::string sessionJson(const SessionStatus& status, const char* message_type) {
+  json object = statusJson(status);
+  if (message_type != nullptr) object["type"] = message_type;
+  return object.dump();
+}
 
 bool isApiPath(std::string_view target) {
   const auto parts = segments(target);

@@ -25,7 +25,8 @@ bool isApiPath(std::string_view target);
 std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
                                     std::string_view target);
 
-// The JSON object describing a session (GET /api/sessions and the viewer's "session" message).
-std::string sessionJson(const SessionStatus& status);
+// The JSON object describing a session (GET /api/sessions and, with message_type
+// "session", the viewer's message).
+std::string sessionJson(const SessionStatus& status, const char* message_type = nullptr);
 
 }  // namespace stereomap::core

@@ -110,10 +110,9 @@ std::vector<std::string> ViewerFeed::poll() {
       state.poses_sent += new_poses.size();
     }
     // Status last, so that its counts are never ahead of the voxels already sent.
-    json status = json::parse(sessionJson(session->status()));
-    status["type"] = "session";
-    status["occupied_voxels"] = state.sent->voxels.size();
-    std::string status_json = status.dump();
+    SessionStatus status = session->status();
+    status.occupied_voxels = state.sent->voxels.size();
+    std::string status_json = sessionJson(status, "session");
     if (status_json != state.status_json) {
       state.status_json = status_json;
       out.push_back(std::move(status_json));
