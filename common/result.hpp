@@ -9,7 +9,8 @@
 
 namespace stereomap::common {
 
-enum class ErrorCode { kInvalidArgument, kNotFound, kIo, kCorrupt, kTooLarge, kUnavailable };
+// kConflict: the request clashes with the current state (already loaded, live, exists).
+enum class ErrorCode { kInvalidArgument, kNotFound, kIo, kCorrupt, kTooLarge, kUnavailable, kConflict };
 
 struct Error {
   ErrorCode code = ErrorCode::kInvalidArgument;

@@ -10,9 +10,7 @@
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/net/http_server.hpp"
-#include "server/store/catalog.hpp"
-#include "server/store/session_journals.hpp"
-#include "server/store/store.hpp"
+#include "server/store/store_admin.hpp"
 
 namespace {
 
@@ -34,26 +32,6 @@ void pump(proto::Reader<T>& reader, core::MapServer& server, const common::Shutd
 bool isLoopback(const std::string& address) {
   return address == "127.0.0.1" || address == "::1" || address.rfind("127.", 0) == 0 ||
          address == "localhost";
-}
-
-// Saves every session whose state changed since it was last saved (ended and idle ones only,
-// unless `all`).
-void saveSessions(const core::MapServer& server, const store::SessionStore& store,
-                  std::map<std::string, uint64_t>& saved_versions, bool all) {
-  for (const auto& session : server.sessions()) {
-    const auto status = session->status();
-    if (!all && (!status.ended || status.backlog > 0)) continue;
-    const uint64_t version = session->voxels()->version + status.poses;
-    if (saved_versions[session->id()] == version) continue;
-    if (auto saved = store.save(*session); !saved) {
-      spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);
-      continue;
-    }
-    saved_versions[session->id()] = version;
-    spdlog::info("session '{}' saved to {} ({} frames, {} voxels)", session->id(),
-                 (store.root() / session->id()).string(), status.frames_fused,
-                 status.occupied_voxels);
-  }
 }
 
 }  // namespace
@@ -129,11 +107,6 @@ int main(int argc, char** argv) {
         http.web_root.string());
   }
 
-  auto store = store::SessionStore::open(store_dir);
-  if (!store) {
-    spdlog::error("{}", store.error().message);
-    return 1;
-  }
   auto participant = proto::Participant::create(dds);
   if (!participant) {
     spdlog::error("{}", participant.error().message);
@@ -151,33 +124,26 @@ int main(int argc, char** argv) {
 
   // Journal first: a frame counts as received once it is on disk. Then recover what earlier
   // runs journaled, before DDS delivers anything new.
-  store::SessionJournals journals(store->root());
+  store::SessionJournals journals(store_dir, options.resolution);
   options.log = &journals;
   options.snapshots = &journals;
   core::MapServer server(options);
-  for (const auto& session : store::recoverSessions(store->root(), server)) {
+  auto admin = store::StoreAdmin::create(store_dir, server, &journals,
+                                         {.default_resolution = options.resolution});
+  if (!admin) {
+    spdlog::error("{}", admin.error().message);
+    return 1;
+  }
+  if (!(*admin)->catalogWarning().empty()) spdlog::warn("{}", (*admin)->catalogWarning());
+  for (const auto& session : (*admin)->recoverAll()) {
     if (!session.problem.empty()) {
       spdlog::warn("session '{}': journal damaged, {}", session.id, session.problem);
     }
     spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
                  session.frames, session.snapshot_frames, session.poses);
   }
-  auto catalog = store::Catalog::open(store->root());
-  if (!catalog) {
-    spdlog::error("{}", catalog.error().message);
-    return 1;
-  }
-  if (!(*catalog)->warning().empty()) spdlog::warn("{}", (*catalog)->warning());
-  auto catalogue = [&](const core::Session& session) {
-    std::error_code ec;
-    const auto bytes = std::filesystem::file_size(store->root() / session.id() / "journal.smj", ec);
-    if (auto recorded = (*catalog)->record(session.status(), ec ? 0 : bytes); !recorded) {
-      spdlog::warn("{}", recorded.error().message);
-    }
-  };
-  for (const auto& session : server.sessions()) catalogue(*session);  // recovered ones
 
-  auto http_server = net::HttpServer::create(http, server);
+  auto http_server = net::HttpServer::create(http, server, admin->get());
   if (!http_server) {
     spdlog::error("{}", http_server.error().message);
     return 1;
@@ -195,14 +161,12 @@ int main(int argc, char** argv) {
   ingest.emplace_back([&] { pump(**events, server, shutdown); });
 
   spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", dds.domain_id,
-               options.resolution, store->root().string());
+               options.resolution, store_dir);
   spdlog::info("viewer: http://{}:{}/", http.address, (*http_server)->port());
 
-  std::map<std::string, uint64_t> saved_versions;
   size_t last_voxels = 0;
   while (!shutdown.waitFor(std::chrono::seconds(5))) {
-    saveSessions(server, *store, saved_versions, /*all=*/false);
-    for (const auto& session : server.sessions()) catalogue(*session);
+    (*admin)->checkpoint(/*all=*/false);
     size_t voxels = 0, frames = 0, backlog = 0;
     const auto sessions = server.sessions();
     for (const auto& session : sessions) {
@@ -227,8 +191,7 @@ int main(int argc, char** argv) {
   for (auto& thread : ingest) thread.join();
   (*http_server)->stop();
   for (const auto& session : server.sessions()) session->waitUntilIdle();
-  saveSessions(server, *store, saved_versions, /*all=*/true);
-  for (const auto& session : server.sessions()) catalogue(*session);
+  (*admin)->checkpoint(/*all=*/true);
   spdlog::info("stopped");
   return 0;
 }

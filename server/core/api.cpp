@@ -2,6 +2,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "common/transform_args.hpp"
+
 namespace stereomap::core {
 
 namespace {
@@ -22,7 +24,7 @@ json statusJson(const SessionStatus& s) {
   return {{"id", s.id},
           {"vehicle", s.vehicles.empty() ? "" : s.vehicles.front()},
           {"vehicles", s.vehicles},
-          {"state", s.ended ? "ended" : "live"},
+          {"state", stateName(s)},
           {"resolution", s.resolution},
           {"frames", s.frames_fused},
           {"frames_received", s.frames_received},
@@ -77,11 +79,14 @@ bool isApiPath(std::string_view target) {
          (parts.size() == 1 && (parts[0] == "healthz" || parts[0] == "metrics"));
 }
 
-std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
-                                    std::string_view target) {
+std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin* admin,
+                                    std::string_view method, std::string_view target) {
   if (!isApiPath(target)) return std::nullopt;
   const auto parts = segments(target);
-  if (method != "GET" && method != "HEAD") return error(405, "only GET is supported here");
+  if (method != "GET" && method != "HEAD") {
+    return error(405, "use GET here (POST .../open, .../close and /api/sessions/merge, "
+                      "DELETE /api/sessions/{id} manage sessions)");
+  }
 
   if (parts[0] == "healthz") return HttpAnswer{200, "text/plain", "ok\n", ""};
   if (parts[0] == "metrics") {
@@ -93,9 +98,22 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view me
   if (parts.size() == 2) {
     json list = json::array();
     for (const auto& session : server.sessions()) list.push_back(statusJson(session->status()));
+    if (admin != nullptr) {
+      for (const auto& closed : admin->closedSessions()) list.push_back(statusJson(closed));
+    }
     return HttpAnswer{200, "application/json", list.dump() + "\n", ""};
   }
   const auto session = server.find(parts[2]);
+  if (!session && admin != nullptr) {
+    for (const auto& closed : admin->closedSessions()) {
+      if (closed.id != parts[2]) continue;
+      if (parts.size() == 3) {
+        return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
+      }
+      return error(409, "session '" + parts[2] + "' is closed: open it first (POST /api/sessions/" +
+                            parts[2] + "/open)");
+    }
+  }
   if (!session) return error(404, "no session '" + parts[2] + "'");
   if (parts.size() == 3) {
     return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
@@ -139,6 +157,67 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view me
     return HttpAnswer{200, "application/octet-stream", session->mapBinary(), parts[2] + ".bt"};
   }
   return error(404, "unknown session resource '" + std::string(target) + "'");
+}
+
+bool isAdminRequest(std::string_view method, std::string_view target) {
+  if (method != "POST" && method != "DELETE") return false;
+  const auto parts = segments(target);
+  return parts.size() >= 3 && parts[0] == "api" && parts[1] == "sessions";
+}
+
+HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string_view method,
+                       std::string_view target, const std::string& body) {
+  if (admin == nullptr) return error(503, "this server keeps no store: sessions cannot be managed");
+  const auto parts = segments(target);
+  common::Status done = common::Ok{};
+  std::string id;
+  if (method == "POST" && parts.size() == 3 && parts[2] == "merge") {
+    MergeRequest request;
+    try {
+      const json doc = json::parse(body);
+      request.first = doc.at("first").get<std::string>();
+      request.second = doc.at("second").get<std::string>();
+      request.into = doc.at("into").get<std::string>();
+      if (doc.contains("transform")) {
+        const auto T = common::rigidFromTxyzQxyzw(doc["transform"].get<std::vector<double>>());
+        if (!T) throw std::invalid_argument("transform");
+        request.T_first_second = *T;
+      }
+    } catch (const std::exception&) {
+      return error(400,
+                   "merge wants a JSON body {\"first\": ID, \"second\": ID, \"into\": NEW_ID, "
+                   "\"transform\": [tx, ty, tz, qx, qy, qz, qw] (optional, a unit quaternion; "
+                   "maps the second session's frame into the first's)}");
+    }
+    id = request.into;
+    done = admin->merge(request);
+  } else if (method == "POST" && parts.size() == 4 && parts[3] == "open") {
+    id = parts[2];
+    done = admin->open(id);
+  } else if (method == "POST" && parts.size() == 4 && parts[3] == "close") {
+    id = parts[2];
+    done = admin->close(id);
+  } else if (method == "DELETE" && parts.size() == 3) {
+    done = admin->remove(parts[2]);
+    if (done) return HttpAnswer{200, "application/json", json{{"deleted", parts[2]}}.dump() + "\n", ""};
+  } else {
+    return error(404, "unknown request " + std::string(method) + " " + std::string(target));
+  }
+  if (!done) {
+    const auto code = done.error().code;
+    return error(code == common::ErrorCode::kNotFound          ? 404
+                 : code == common::ErrorCode::kConflict        ? 409
+                 : code == common::ErrorCode::kInvalidArgument ? 400
+                                                               : 500,
+                 done.error().message);
+  }
+  if (const auto session = server.find(id)) {
+    return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
+  }
+  for (const auto& closed : admin->closedSessions()) {
+    if (closed.id == id) return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
+  }
+  return HttpAnswer{200, "application/json", json{{"id", id}}.dump() + "\n", ""};
 }
 
 }  // namespace stereomap::core

@@ -8,6 +8,7 @@
 #include <string_view>
 
 #include "server/core/map_server.hpp"
+#include "server/core/session_admin.hpp"
 
 namespace stereomap::core {
 
@@ -21,9 +22,17 @@ struct HttpAnswer {
 // True for the paths answerApi() serves (/healthz, /metrics, /api/...).
 bool isApiPath(std::string_view target);
 
-// The answer for an API path, or nullopt when `target` is not an API path (static files).
-std::optional<HttpAnswer> answerApi(const MapServer& server, std::string_view method,
-                                    std::string_view target);
+// The answer for a GET/HEAD of an API path, or nullopt when `target` is not an API path
+// (static files). `admin` (may be null) adds the store's closed sessions to listings.
+std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin* admin,
+                                    std::string_view method, std::string_view target);
+
+// True for the requests answerAdmin() serves: POST /api/sessions/{id}/open|close,
+// DELETE /api/sessions/{id}, POST /api/sessions/merge. They may take seconds (a replay), so
+// the network layer runs them off its own thread.
+bool isAdminRequest(std::string_view method, std::string_view target);
+HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string_view method,
+                       std::string_view target, const std::string& body);
 
 // The JSON object describing a session (GET /api/sessions and, with message_type
 // "session", the viewer's message).

@@ -88,7 +88,7 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   ASSERT_TRUE(server.ingest(pose("flight-1", 0.5, 1'700'000'000'250'000'000)));
   server.find("flight-1")->waitUntilIdle();
 
-  auto list = answerApi(server, "GET", "/api/sessions");
+  auto list = answerApi(server, nullptr, "GET", "/api/sessions");
   ASSERT_TRUE(list && list->status == 200);
   const auto sessions = json::parse(list->body);
   ASSERT_EQ(sessions.size(), 1u);
@@ -98,35 +98,35 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   EXPECT_GT(sessions[0]["occupied_voxels"].get<int>(), 50);
   EXPECT_NEAR(sessions[0]["bounds"]["min"][0].get<double>(), 2.0, 1e-9);
 
-  auto tum = answerApi(server, "GET", "/api/sessions/flight-1/trajectory.tum");
+  auto tum = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/trajectory.tum");
   ASSERT_TRUE(tum && tum->status == 200);
   EXPECT_EQ(tum->body,
             "1700000000.250000000 0.500000 0.000000 0.000000 0.000000000 "
             "0.000000000 0.000000000 1.000000000\n");
-  auto bt = answerApi(server, "GET", "/api/sessions/flight-1/map.bt");
+  auto bt = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.bt");
   ASSERT_TRUE(bt && bt->status == 200);
   EXPECT_EQ(bt->body.rfind("# Octomap OcTree binary file", 0), 0u);
 
-  auto ot = answerApi(server, "GET", "/api/sessions/flight-1/map.ot");
+  auto ot = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.ot");
   ASSERT_TRUE(ot && ot->status == 200);
   EXPECT_EQ(ot->body.rfind("# Octomap OcTree file", 0), 0u);
-  auto ply = answerApi(server, "GET", "/api/sessions/flight-1/map.ply");
+  auto ply = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.ply");
   ASSERT_TRUE(ply && ply->status == 200);
   const auto voxels = sessions[0]["occupied_voxels"].get<size_t>();
   const size_t header = ply->body.find("end_header\n") + 11;
   EXPECT_EQ(ply->body.size() - header, voxels * 12);  // three floats per voxel
-  auto png = answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=-0.2&zmax=0.2");
+  auto png = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=-0.2&zmax=0.2");
   ASSERT_TRUE(png && png->status == 200);
   EXPECT_EQ(png->content_type, "image/png");
   EXPECT_EQ(png->body.substr(1, 3), "PNG");
-  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status, 404);
-  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status, 400);
-  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/flight-1/map.png?scale=40")->status, 400);
-  EXPECT_EQ(answerApi(server, "GET", "/api/sessions/nope/map.bt")->status, 404);
-  EXPECT_EQ(answerApi(server, "POST", "/api/sessions")->status, 405);
-  EXPECT_EQ(answerApi(server, "GET", "/api/other")->status, 404);
-  EXPECT_EQ(answerApi(server, "GET", "/healthz")->body, "ok\n");
-  EXPECT_FALSE(answerApi(server, "GET", "/index.html").has_value());
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status, 404);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status, 400);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?scale=40")->status, 400);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/nope/map.bt")->status, 404);
+  EXPECT_EQ(answerApi(server, nullptr, "POST", "/api/sessions")->status, 405);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/other")->status, 404);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/healthz")->body, "ok\n");
+  EXPECT_FALSE(answerApi(server, nullptr, "GET", "/index.html").has_value());
 }
 
 // Applying the feed's messages in order must reproduce the server's voxel set exactly.

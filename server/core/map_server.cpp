@@ -2,6 +2,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
+
 namespace stereomap::core {
 
 namespace {
@@ -42,40 +44,101 @@ void MapServer::reject(const char* topic, const Rejection& rejection, const std:
   }
 }
 
-std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char* topic) {
-  std::lock_guard lock(mutex_);
-  if (auto found = sessions_.find(id); found != sessions_.end()) return found->second;
-  if (sessions_.size() >= options_.max_sessions) {
-    spdlog::warn("{} sample for new session '{}' refused: {} sessions is the limit", topic, id,
-                 options_.max_sessions);
-    return nullptr;
-  }
-  Session::Options session_options{options_.resolution, options_.queue_capacity};
+Session::Options MapServer::sessionOptions(const std::string& id, double resolution,
+                                           bool read_only) const {
+  Session::Options session_options{resolution, options_.queue_capacity, read_only};
   if (options_.snapshots != nullptr) {
     session_options.snapshot_every = options_.snapshot_every;
-    session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t fused,
+    session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t frames,
                                                                   const std::string& ot) {
-      sink->saveSnapshot(id, fused, ot);
+      sink->saveSnapshot(id, frames, ot);
     };
   }
-  auto session = std::make_shared<Session>(id, session_options);
+  return session_options;
+}
+
+std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char* topic,
+                                               std::optional<Rejection>& refusal) {
+  std::lock_guard lock(mutex_);
+  if (auto found = sessions_.find(id); found != sessions_.end()) return found->second;
+  if (closed_.count(id) != 0) {
+    refusal = Rejection{"session_closed", "session '" + id +
+                                              "' was closed into the store; a new flight "
+                                              "needs a new session id"};
+    return nullptr;
+  }
+  if (sessions_.size() >= options_.max_sessions) {
+    refusal = Rejection{"session_limit", std::to_string(options_.max_sessions) +
+                                             " sessions is the limit; session '" + id +
+                                             "' not started (close old sessions)"};
+    return nullptr;
+  }
+  auto session = std::make_shared<Session>(id, sessionOptions(id, options_.resolution, false));
   sessions_.emplace(id, session);
   order_.push_back(id);
-  spdlog::info("session '{}' started (resolution {} m)", id, options_.resolution);
+  spdlog::info("session '{}' started (resolution {} m) by a {} sample", id, options_.resolution,
+               topic);
   return session;
+}
+
+common::Result<std::shared_ptr<Session>> MapServer::createSession(const std::string& id,
+                                                                  double resolution,
+                                                                  bool read_only) {
+  using common::ErrorCode;
+  if (!isValidId(id)) return common::makeError(ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
+  std::lock_guard lock(mutex_);
+  if (sessions_.count(id) != 0) {
+    return common::makeError(ErrorCode::kConflict, "session '" + id + "' is already loaded");
+  }
+  if (sessions_.size() >= options_.max_sessions) {
+    return common::makeError(ErrorCode::kUnavailable,
+                             std::to_string(options_.max_sessions) + " sessions is the limit");
+  }
+  closed_.erase(id);
+  auto session = std::make_shared<Session>(id, sessionOptions(id, resolution, read_only));
+  sessions_.emplace(id, session);
+  order_.push_back(id);
+  return session;
+}
+
+std::shared_ptr<Session> MapServer::unload(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  const auto found = sessions_.find(id);
+  if (found == sessions_.end()) return nullptr;
+  auto session = std::move(found->second);
+  sessions_.erase(found);
+  order_.erase(std::find(order_.begin(), order_.end(), id));
+  closed_.insert(id);
+  return session;
+}
+
+void MapServer::markClosed(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  closed_.insert(id);
+}
+
+void MapServer::forget(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  closed_.erase(id);
+}
+
+bool MapServer::isClosed(const std::string& id) const {
+  std::lock_guard lock(mutex_);
+  return closed_.count(id) != 0;
 }
 
 std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& vehicle_id,
                                           const std::string& session_id,
-                                          const std::optional<Rejection>& rejection) {
+                                          std::optional<Rejection> rejection, Origin origin) {
   metrics_.add(kReceived, {{"topic", topic}});
+  std::shared_ptr<Session> session;
+  if (!rejection) session = sessionFor(session_id, topic, rejection);
+  if (session && session->readOnly() && origin == Origin::kLive) {
+    rejection = Rejection{"read_only", "session '" + session_id +
+                                           "' was opened read-only from the store"};
+  }
   if (rejection) {
     reject(topic, *rejection, vehicle_id + "/" + session_id);
-    return nullptr;
-  }
-  auto session = sessionFor(session_id, topic);
-  if (!session) {
-    reject(topic, {"session_limit", "too many sessions"}, vehicle_id + "/" + session_id);
     return nullptr;
   }
   metrics_.add(kAccepted, {{"topic", topic}});
@@ -104,7 +167,7 @@ bool MapServer::record(const char* topic, const Message& message, Session& sessi
 bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin) {
   ValidCloud valid;
   const auto rejection = validateCloudFrame(frame, options_.limits, valid);
-  auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection);
+  auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection, origin);
   if (!session || !record("CloudFrame", frame, *session, origin)) return false;
   if (origin == Origin::kCovered) {
     session->countCovered(frame.vehicle_id);
@@ -124,31 +187,21 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin) {
 bool MapServer::ingest(const proto::PoseMsg& pose, Origin origin) {
   ValidPose valid;
   const auto rejection = validatePose(pose, valid);
-  auto session = admit("Pose", pose.vehicle_id, pose.session_id, rejection);
+  auto session = admit("Pose", pose.vehicle_id, pose.session_id, rejection, origin);
   if (!session || !record("Pose", pose, *session, origin)) return false;
   session->addPose({pose.vehicle_id, valid.stamp_ns, valid.T_map_body});
   return true;
 }
 
 bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
-  auto session =
-      admit("SessionEvent", event.vehicle_id, event.session_id, validateSessionEvent(event));
+  auto session = admit("SessionEvent", event.vehicle_id, event.session_id,
+                       validateSessionEvent(event), origin);
   if (!session || !record("SessionEvent", event, *session, origin)) return false;
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
   }
   return true;
-}
-
-common::Status MapServer::restoreSession(const std::string& id, std::istream& ot,
-                                         uint64_t frames_fused) {
-  if (!isValidId(id)) {
-    return common::makeError(common::ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
-  }
-  auto session = sessionFor(id, "snapshot");
-  if (!session) return common::makeError(common::ErrorCode::kUnavailable, "too many sessions");
-  return session->restore(ot, frames_fused);
 }
 
 std::vector<std::shared_ptr<Session>> MapServer::sessions() const {

@@ -7,6 +7,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -62,8 +63,17 @@ class MapServer {
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event, Origin origin = Origin::kLive);
 
-  // Creates session `id` from a snapshot of its first `frames_fused` frames (recovery).
-  common::Status restoreSession(const std::string& id, std::istream& ot, uint64_t frames_fused);
+  // Creates session `id` (recovery, or opening a stored session read-only) at its own
+  // resolution; fails when it is already loaded or the session limit is reached.
+  common::Result<std::shared_ptr<Session>> createSession(const std::string& id, double resolution,
+                                                         bool read_only);
+  // Unloads a session that was closed into the store and returns it: later samples for it
+  // are refused (reason session_closed) until it is opened again or forgotten.
+  std::shared_ptr<Session> unload(const std::string& id);
+  // Marks ids as closed (kept in the store, not loaded) or forgets them (deleted).
+  void markClosed(const std::string& id);
+  void forget(const std::string& id);
+  bool isClosed(const std::string& id) const;
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;
@@ -73,11 +83,14 @@ class MapServer {
   const MapServerOptions& options() const { return options_; }
 
  private:
-  std::shared_ptr<Session> sessionFor(const std::string& id, const char* topic);
+  // The session, created on first sight; nullptr with `refusal` set when it cannot be.
+  std::shared_ptr<Session> sessionFor(const std::string& id, const char* topic,
+                                      std::optional<Rejection>& refusal);
+  Session::Options sessionOptions(const std::string& id, double resolution, bool read_only) const;
   // Counts the sample and returns its session, or nullptr (counted, logged) when rejected.
   std::shared_ptr<Session> admit(const char* topic, const std::string& vehicle_id,
                                  const std::string& session_id,
-                                 const std::optional<Rejection>& rejection);
+                                 std::optional<Rejection> rejection, Origin origin);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
   // Skips duplicates and journals live samples; false when the sample must go no further.
   template <typename Message>
@@ -88,6 +101,7 @@ class MapServer {
   mutable std::mutex mutex_;
   std::map<std::string, std::shared_ptr<Session>> sessions_;
   std::vector<std::string> order_;
+  std::set<std::string> closed_;
   std::map<std::string, uint64_t> rejections_by_reason_;  // for rate-limited logging
 };
 

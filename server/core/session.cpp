@@ -18,6 +18,12 @@ void noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle)
 }
 }  // namespace
 
+const char* stateName(const SessionStatus& status) {
+  if (status.closed) return "closed";
+  if (status.read_only) return "opened";
+  return status.ended ? "ended" : "live";
+}
+
 Session::Session(std::string id, const Options& options)
     : id_(std::move(id)),
       options_(options),
@@ -50,7 +56,7 @@ bool Session::claim(const std::string& topic, const std::string& vehicle, uint64
 bool Session::enqueue(FusionJob job, bool wait_for_room) {
   {
     std::lock_guard state(state_mutex_);
-    ++frames_received_;
+    job.received_index = ++frames_received_;
     noteVehicle(vehicles_, job.vehicle_id);
   }
   {
@@ -69,14 +75,15 @@ bool Session::enqueue(FusionJob job, bool wait_for_room) {
   return true;
 }
 
-common::Status Session::restore(std::istream& ot, uint64_t frames_fused) {
+common::Status Session::restore(std::istream& ot, uint64_t frames) {
   {
     std::lock_guard lock(map_mutex_);
     if (auto status = map_.readFull(ot); !status) return status;
   }
   {
     std::lock_guard state(state_mutex_);
-    frames_fused_ = frames_received_ = frames_fused;
+    frames_fused_ = frames_received_ = frames;
+    last_fused_index_ = frames;
   }
   publishSnapshot();
   return common::Ok{};
@@ -123,6 +130,7 @@ void Session::run() {
       std::lock_guard state(state_mutex_);
       fused = ++frames_fused_;
       fusion_seconds_ += seconds;
+      last_fused_index_ = job.received_index;
     }
     publishSnapshot();
     if (options_.snapshot_every > 0 && options_.on_snapshot &&
@@ -132,9 +140,18 @@ void Session::run() {
         std::lock_guard lock(map_mutex_);
         map_.writeFull(ot);
       }
-      options_.on_snapshot(fused, ot.str());
+      options_.on_snapshot(job.received_index, ot.str());
     }
   }
+}
+
+std::pair<uint64_t, std::string> Session::snapshotNow() const {
+  waitUntilIdle();
+  std::ostringstream ot;
+  std::lock_guard lock(map_mutex_);
+  map_.writeFull(ot);
+  std::lock_guard state(state_mutex_);
+  return {last_fused_index_, ot.str()};
 }
 
 void Session::publishSnapshot() {
@@ -169,6 +186,7 @@ SessionStatus Session::status() const {
   status.bounds = bounds_;
   status.poses = trajectory_.size();
   status.ended = ended_;
+  status.read_only = options_.read_only;
   status.fusion_seconds = fusion_seconds_;
   return status;
 }

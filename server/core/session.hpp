@@ -37,6 +37,7 @@ struct FusionJob {
   common::PointCloud cloud_camera;
   common::Rigid3 T_map_camera;
   double max_range_m = 0;
+  uint64_t received_index = 0;  // set by enqueue(): this frame's 1-based place in the journal
 };
 
 struct VoxelSnapshot {
@@ -57,17 +58,24 @@ struct SessionStatus {
   common::Box3 bounds;
   size_t poses = 0;
   bool ended = false;
+  bool read_only = false;  // opened from the store: takes no new samples
+  bool closed = false;     // kept in the store only (not loaded)
   double fusion_seconds = 0;  // total time spent inserting clouds
 };
+
+// "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
+const char* stateName(const SessionStatus& status);
 
 class Session {
  public:
   struct Options {
     double resolution = 0.1;
     size_t queue_capacity = 200;  // frames waiting for fusion before new ones are dropped
-    // Every this many fused frames the worker hands a .ot of the map to on_snapshot (0: off).
+    bool read_only = false;       // opened from the store (the MapServer refuses live samples)
+    // Every this many fused frames the worker hands a .ot of the map to on_snapshot, with
+    // the number of journaled frames it covers (dropped ones included). 0: off.
     size_t snapshot_every = 0;
-    std::function<void(uint64_t frames_fused, const std::string& ot)> on_snapshot;
+    std::function<void(uint64_t journal_frames, const std::string& ot)> on_snapshot;
   };
 
   Session(std::string id, const Options& options);
@@ -76,8 +84,10 @@ class Session {
   Session& operator=(const Session&) = delete;
 
   const std::string& id() const { return id_; }
-  // Starts from a snapshot (a .ot of the first `frames_fused` frames); before any enqueue.
-  common::Status restore(std::istream& ot, uint64_t frames_fused);
+  bool readOnly() const { return options_.read_only; }
+  // Starts from a snapshot (a .ot of the journal's first `frames` frames); before any
+  // enqueue. Fails when the snapshot is damaged or its resolution is not the session's.
+  common::Status restore(std::istream& ot, uint64_t frames);
   // Counts a frame that the restored snapshot already holds (replayed, not fused again).
   void countCovered(const std::string& vehicle_id);
   // Hands a frame to fusion; false (and counted) when the queue is full, unless
@@ -107,6 +117,8 @@ class Session {
   std::string occupancyPng(double z_min, double z_max, int pixels_per_voxel = 1) const;
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
+  // A .ot of the map and the number of journaled frames it covers, once idle (close()).
+  std::pair<uint64_t, std::string> snapshotNow() const;
 
  private:
   void run();
@@ -131,6 +143,7 @@ class Session {
   std::shared_ptr<const VoxelSnapshot> snapshot_;
   common::Box3 bounds_;
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
+  uint64_t last_fused_index_ = 0;  // journal place of the last frame fused
   double fusion_seconds_ = 0;
   bool ended_ = false;
 

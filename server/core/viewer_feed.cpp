@@ -83,7 +83,20 @@ std::vector<std::string> ViewerFeed::welcome() const {
 
 std::vector<std::string> ViewerFeed::poll() {
   std::vector<std::string> out;
-  for (const auto& session : server_.sessions()) {
+  const auto sessions = server_.sessions();
+  // Sessions the server no longer holds (closed into the store, or deleted).
+  for (auto id = order_.begin(); id != order_.end();) {
+    const bool held = std::any_of(sessions.begin(), sessions.end(),
+                                  [&](const auto& session) { return session->id() == *id; });
+    if (held) {
+      ++id;
+      continue;
+    }
+    out.push_back(json{{"type", "session_removed"}, {"id", *id}}.dump());
+    sessions_.erase(*id);
+    id = order_.erase(id);
+  }
+  for (const auto& session : sessions) {
     auto [it, inserted] = sessions_.try_emplace(session->id());
     SessionState& state = it->second;
     if (inserted) {

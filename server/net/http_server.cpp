@@ -8,6 +8,9 @@
 #include <nlohmann/json.hpp>
 
 #include <atomic>
+#include <condition_variable>
+#include <functional>
+#include <mutex>
 #include <deque>
 #include <fstream>
 #include <set>
@@ -76,6 +79,50 @@ std::string tokenFrom(const http::request<http::string_body>& request) {
   return std::string(rest.substr(0, rest.find('&')));
 }
 
+// Runs session-management requests (a replay can take seconds) one at a time, off the
+// network thread, so that viewers and REST reads never wait for them.
+class AdminWorker {
+ public:
+  AdminWorker() : thread_([this] { run(); }) {}
+  ~AdminWorker() { stop(); }
+  void post(std::function<void()> job) {
+    {
+      std::lock_guard lock(mutex_);
+      jobs_.push_back(std::move(job));
+    }
+    changed_.notify_one();
+  }
+  void stop() {  // finishes the job under way; drops the queued ones
+    {
+      std::lock_guard lock(mutex_);
+      stopping_ = true;
+      jobs_.clear();
+    }
+    changed_.notify_one();
+    if (thread_.joinable()) thread_.join();
+  }
+
+ private:
+  void run() {
+    for (;;) {
+      std::function<void()> job;
+      {
+        std::unique_lock lock(mutex_);
+        changed_.wait(lock, [this] { return stopping_ || !jobs_.empty(); });
+        if (stopping_) return;
+        job = std::move(jobs_.front());
+        jobs_.pop_front();
+      }
+      job();
+    }
+  }
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  std::deque<std::function<void()>> jobs_;
+  bool stopping_ = false;
+  std::thread thread_;
+};
+
 }  // namespace
 
 class WebSocketSession;
@@ -83,10 +130,12 @@ class WebSocketSession;
 // Shared by every connection; touched only on the io thread.
 struct Hub {
   const core::MapServer& server;
+  core::SessionAdmin* admin;  // may be null
   HttpServerOptions options;
   core::ViewerFeed feed;
   std::set<std::shared_ptr<WebSocketSession>> viewers;
   std::atomic<size_t> viewer_count{0};
+  AdminWorker admin_worker;
 };
 
 class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
@@ -201,17 +250,21 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)->start(std::move(request));
       return;
     }
-    if (auto answer = core::answerApi(hub_.server, method, target)) {
-      auto response = std::make_shared<http::response<http::string_body>>(
-          static_cast<http::status>(answer->status), request.version());
-      response->set(http::field::content_type, answer->content_type);
-      response->set(http::field::cache_control, "no-store");
-      if (!answer->filename.empty()) {
-        response->set(http::field::content_disposition,
-                      "inline; filename=\"" + answer->filename + "\"");
-      }
-      response->body() = request.method() == http::verb::head ? "" : std::move(answer->body);
-      return write(response, request.keep_alive());
+    if (core::isAdminRequest(method, target)) {
+      hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
+                              body = std::move(request.body()), version = request.version(),
+                              keep_alive = request.keep_alive()] {
+        auto answer = core::answerAdmin(self->hub_.admin, self->hub_.server, method, target, body);
+        asio::post(self->stream_.get_executor(),
+                   [self, answer = std::move(answer), version, keep_alive]() mutable {
+                     self->sendAnswer(std::move(answer), version, false, keep_alive);
+                   });
+      });
+      return;
+    }
+    if (auto answer = core::answerApi(hub_.server, hub_.admin, method, target)) {
+      return sendAnswer(std::move(*answer), request.version(),
+                        request.method() == http::verb::head, request.keep_alive());
     }
     if (request.method() != http::verb::get && request.method() != http::verb::head) {
       return sendError(http::status::method_not_allowed, "only GET is supported",
@@ -238,6 +291,19 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     response->set(http::field::content_type, std::string(mimeType(path)));
     response->body() = request.method() == http::verb::head ? "" : std::move(body);
     write(response, request.keep_alive());
+  }
+
+  void sendAnswer(core::HttpAnswer answer, unsigned version, bool head, bool keep_alive) {
+    auto response = std::make_shared<http::response<http::string_body>>(
+        static_cast<http::status>(answer.status), version);
+    response->set(http::field::content_type, answer.content_type);
+    response->set(http::field::cache_control, "no-store");
+    if (!answer.filename.empty()) {
+      response->set(http::field::content_disposition,
+                    "inline; filename=\"" + answer.filename + "\"");
+    }
+    response->body() = head ? "" : std::move(answer.body);
+    write(response, keep_alive);
   }
 
   void sendError(http::status status, const std::string& message, bool keep_alive) {
@@ -272,8 +338,8 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
 };
 
 struct HttpServer::Impl {
-  Impl(const HttpServerOptions& options, const core::MapServer& server)
-      : hub{server, options, core::ViewerFeed(server), {}, {}}, acceptor(io), timer(io) {}
+  Impl(const HttpServerOptions& options, const core::MapServer& server, core::SessionAdmin* admin)
+      : hub{server, admin, options, core::ViewerFeed(server), {}, {}, {}}, acceptor(io), timer(io) {}
 
   void accept() {
     acceptor.async_accept([this](beast::error_code ec, tcp::socket socket) {
@@ -311,8 +377,9 @@ HttpServer::HttpServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 HttpServer::~HttpServer() { stop(); }
 
 common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerOptions& options,
-                                                               const core::MapServer& server) {
-  auto impl = std::make_unique<Impl>(options, server);
+                                                               const core::MapServer& server,
+                                                               core::SessionAdmin* admin) {
+  auto impl = std::make_unique<Impl>(options, server, admin);
   beast::error_code ec;
   const auto address = asio::ip::make_address(options.address, ec);
   if (ec) {
@@ -341,6 +408,7 @@ void HttpServer::start() {
 void HttpServer::stop() {
   if (impl_->stopped) return;
   impl_->stopped = true;
+  impl_->hub.admin_worker.stop();
   asio::post(impl_->io, [this] {
     beast::error_code ignored;
     impl_->acceptor.close(ignored);

@@ -14,6 +14,7 @@
 
 #include "common/result.hpp"
 #include "server/core/map_server.hpp"
+#include "server/core/session_admin.hpp"
 
 namespace stereomap::net {
 
@@ -31,8 +32,10 @@ struct HttpServerOptions {
 class HttpServer {
  public:
   // Binds the port (fails with a clear message if it is taken or the address is bad).
+  // `admin` (not owned, may be null) serves session management (open, close, delete, merge).
   static common::Result<std::unique_ptr<HttpServer>> create(const HttpServerOptions& options,
-                                                            const core::MapServer& server);
+                                                            const core::MapServer& server,
+                                                            core::SessionAdmin* admin = nullptr);
   ~HttpServer();  // stops
   void start();   // serves on a background thread
   void stop();    // closes the port and every connection; idempotent

@@ -11,8 +11,8 @@ using common::ErrorCode;
 using common::makeError;
 
 struct Catalog::Impl {
-  explicit Impl(const fs::path& path)
-      : db(path.string(), SQLite::OPEN_READWRITE | SQLite::OPEN_CREATE) {}
+  explicit Impl(const fs::path& path, int flags = SQLite::OPEN_READWRITE | SQLite::OPEN_CREATE)
+      : db(path.string(), flags) {}
   SQLite::Database db;
 };
 
@@ -72,6 +72,28 @@ common::Result<std::unique_ptr<Catalog>> Catalog::open(const fs::path& root) {
   return catalog;
 }
 
+common::Result<std::unique_ptr<Catalog>> Catalog::openReadOnly(const fs::path& root) {
+  const fs::path path = root / "catalog.sqlite";
+  try {
+    auto impl = std::make_unique<Impl>(path, SQLite::OPEN_READONLY);
+    impl->db.execAndGet("SELECT COUNT(*) FROM sessions");
+    return std::unique_ptr<Catalog>(new Catalog(std::move(impl)));
+  } catch (const SQLite::Exception& e) {
+    return makeError(ErrorCode::kIo, path.string() + ": cannot read the catalog: " + e.what());
+  }
+}
+
+common::Status Catalog::remove(const std::string& id) {
+  try {
+    SQLite::Statement erase(impl_->db, "DELETE FROM sessions WHERE id = ?");
+    erase.bind(1, id);
+    erase.exec();
+  } catch (const SQLite::Exception& e) {
+    return makeError(ErrorCode::kIo, "catalog: cannot remove session '" + id + "': " + e.what());
+  }
+  return common::Ok{};
+}
+
 common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_bytes) {
   try {
     SQLite::Statement upsert(impl_->db, R"(
@@ -86,7 +108,7 @@ common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_by
     for (const auto& v : s.vehicles) vehicles += (vehicles.empty() ? "" : ",") + v;
     upsert.bind(1, s.id);
     upsert.bind(2, vehicles);
-    upsert.bind(3, s.ended ? "ended" : "live");
+    upsert.bind(3, core::stateName(s));
     upsert.bind(4, static_cast<int64_t>(s.frames_fused));
     upsert.bind(5, s.resolution);
     upsert.bind(6, static_cast<int64_t>(s.occupied_voxels));

@@ -17,7 +17,7 @@ namespace stereomap::store {
 struct CatalogRow {
   std::string id;
   std::string vehicles;  // comma-separated, in order of appearance
-  std::string state;     // live | ended
+  std::string state;     // live | ended | opened | closed (core::stateName)
   uint64_t frames = 0;
   double resolution = 0;
   uint64_t occupied_voxels = 0;
@@ -33,7 +33,12 @@ class Catalog {
   static common::Result<std::unique_ptr<Catalog>> open(const std::filesystem::path& root);
   ~Catalog();
 
+  // Opens an existing catalog for reading only (tools beside a running server); never
+  // changes the file.
+  static common::Result<std::unique_ptr<Catalog>> openReadOnly(const std::filesystem::path& root);
+
   common::Status record(const core::SessionStatus& status, uint64_t journal_bytes);
+  common::Status remove(const std::string& id);
   common::Result<std::vector<CatalogRow>> list() const;
   const std::string& warning() const { return warning_; }
 

@@ -10,10 +10,6 @@ namespace stereomap::store {
 
 namespace fs = std::filesystem;
 
-namespace {
-constexpr const char* kJournalName = "journal.smj";
-
-// Snapshots of a session directory, newest (most frames) first: (frames, path).
 std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
   std::vector<std::pair<uint64_t, fs::path>> found;
   std::error_code ec;
@@ -28,32 +24,43 @@ std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
   std::sort(found.rbegin(), found.rend());
   return found;
 }
-}  // namespace
 
-void SessionJournals::saveSnapshot(const std::string& session, uint64_t frames_fused,
-                                   const std::string& ot) {
-  const fs::path dir = root_ / session;
-  char name[40];
-  std::snprintf(name, sizeof(name), "snapshot-%010llu.ot",
-                static_cast<unsigned long long>(frames_fused));
-  const fs::path path = dir / name, temporary = dir / (std::string(name) + ".tmp");
+common::Status writeAtomically(const fs::path& path, const std::string& content) {
+  const fs::path temporary = path.string() + ".tmp";
   {
     std::ofstream out(temporary, std::ios::binary | std::ios::trunc);
-    out.write(ot.data(), static_cast<std::streamsize>(ot.size()));
-    if (!out.flush()) {
-      spdlog::warn("session '{}': cannot write snapshot {}", session, temporary.string());
-      return;
-    }
+    out.write(content.data(), static_cast<std::streamsize>(content.size()));
+    out.flush();
+    if (!out) return common::makeError(common::ErrorCode::kIo, "cannot write " + temporary.string());
   }
   std::error_code ec;
   fs::rename(temporary, path, ec);
   if (ec) {
-    spdlog::warn("session '{}': cannot keep snapshot {}: {}", session, path.string(), ec.message());
+    return common::makeError(common::ErrorCode::kIo,
+                             "cannot rename to " + path.string() + ": " + ec.message());
+  }
+  return common::Ok{};
+}
+
+void SessionJournals::saveSnapshot(const std::string& session, uint64_t journal_frames,
+                                   const std::string& ot) {
+  const fs::path dir = root_ / session;
+  char name[40];
+  std::snprintf(name, sizeof(name), "snapshot-%010llu.ot",
+                static_cast<unsigned long long>(journal_frames));
+  if (auto written = writeAtomically(dir / name, ot); !written) {
+    spdlog::warn("session '{}': snapshot not kept: {}", session, written.error().message);
     return;
   }
+  std::error_code ec;
   for (const auto& [frames, older] : snapshotsIn(dir)) {
-    if (frames < frames_fused) fs::remove(older, ec);
+    if (frames < journal_frames) fs::remove(older, ec);
   }
+}
+
+void SessionJournals::release(const std::string& session) {
+  std::lock_guard lock(mutex_);
+  journals_.erase(session);
 }
 
 common::Status SessionJournals::append(const proto::CloudFrameMsg& frame) {
@@ -75,6 +82,10 @@ common::Status SessionJournals::appendTo(const std::string& session, const Journ
     const fs::path dir = root_ / session;  // ids are validated: no separators, no ".."
     std::error_code ec;
     fs::create_directories(dir, ec);
+    if (!fs::exists(dir / kMetaName)) {
+      const std::string meta = "{\"resolution\": " + std::to_string(resolution_) + "}\n";
+      if (auto written = writeAtomically(dir / kMetaName, meta); !written) return written;
+    }
     auto opened = Journal::open(dir / kJournalName);
     if (!opened) {
       journals_.erase(session);
@@ -83,54 +94,6 @@ common::Status SessionJournals::appendTo(const std::string& session, const Journ
     journal = std::move(opened).value();
   }
   return journal->append(record);
-}
-
-std::vector<RecoveredSession> recoverSessions(const fs::path& root, core::MapServer& server) {
-  std::vector<RecoveredSession> recovered;
-  std::error_code ec;
-  for (const auto& entry : fs::directory_iterator(root, ec)) {
-    const fs::path journal = entry.path() / kJournalName;
-    if (!entry.is_directory() || !fs::exists(journal)) continue;
-    auto replay = readJournal(journal);
-    RecoveredSession session{entry.path().filename().string()};
-    if (!replay) {
-      session.problem = replay.error().message;
-      recovered.push_back(std::move(session));
-      continue;
-    }
-    session.problem = replay->problem;
-    // The newest snapshot that loads and that the journal covers; else a full replay.
-    size_t journal_frames = 0;
-    for (const auto& record : replay->records) {
-      journal_frames += std::holds_alternative<proto::CloudFrameMsg>(record);
-    }
-    for (const auto& [frames, path] : snapshotsIn(entry.path())) {
-      if (frames > journal_frames) continue;  // newer than the intact journal: not usable
-      std::ifstream ot(path, std::ios::binary);
-      if (auto restored = server.restoreSession(session.id, ot, frames); restored) {
-        session.snapshot_frames = frames;
-        break;
-      } else {
-        session.problem += (session.problem.empty() ? "" : "; ") + path.filename().string() +
-                           " unusable (" + restored.error().message + ")";
-      }
-    }
-    size_t cloud_index = 0;
-    for (const auto& record : replay->records) {
-      if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
-        const bool covered = cloud_index++ < session.snapshot_frames;
-        session.frames +=
-            server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay);
-      } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-        session.poses += server.ingest(*pose, core::Origin::kReplay);
-      } else {
-        server.ingest(std::get<proto::SessionEventMsg>(record), core::Origin::kReplay);
-      }
-    }
-    if (auto live = server.find(session.id)) live->waitUntilIdle();
-    recovered.push_back(std::move(session));
-  }
-  return recovered;
 }
 
 }  // namespace stereomap::store

@@ -1,8 +1,8 @@
 // The server side of the store's durability: one Journal per session under the store root
-// (<root>/<session>/journal.smj, the MapServer's IngestLog), periodic map snapshots
-// (<root>/<session>/snapshot-<frames>.ot, the MapServer's SnapshotSink), and recovery at
-// start-up: the newest loadable snapshot, then the journal's frames after it (a damaged
-// journal tail is cut with a warning, everything before it kept).
+// (<root>/<session>/journal.smj, the MapServer's IngestLog; a new session's directory also
+// gets meta.json with its resolution) and periodic map snapshots
+// (<root>/<session>/snapshot-<journal frames>.ot, the MapServer's SnapshotSink).
+// Recovery lives in store_admin.hpp.
 #pragma once
 
 #include <filesystem>
@@ -18,31 +18,34 @@ namespace stereomap::store {
 
 class SessionJournals : public core::IngestLog, public core::SnapshotSink {
  public:
-  explicit SessionJournals(std::filesystem::path root) : root_(std::move(root)) {}
+  // `resolution`: what new sessions are created with (the server's --resolution).
+  SessionJournals(std::filesystem::path root, double resolution)
+      : root_(std::move(root)), resolution_(resolution) {}
   common::Status append(const proto::CloudFrameMsg& frame) override;
   common::Status append(const proto::PoseMsg& pose) override;
   common::Status append(const proto::SessionEventMsg& event) override;
   // Written atomically (temporary file + rename); older snapshots are then removed.
-  void saveSnapshot(const std::string& session, uint64_t frames_fused,
+  void saveSnapshot(const std::string& session, uint64_t journal_frames,
                     const std::string& ot) override;
+  // Closes a session's journal file (the session was closed or deleted).
+  void release(const std::string& session);
 
  private:
   common::Status appendTo(const std::string& session, const JournalRecord& record);
   std::filesystem::path root_;
+  double resolution_;
   std::mutex mutex_;
   std::map<std::string, std::unique_ptr<Journal>> journals_;
 };
 
-struct RecoveredSession {
-  std::string id;
-  size_t frames = 0, poses = 0;
-  uint64_t snapshot_frames = 0;  // frames restored from a snapshot rather than replayed
-  std::string problem;           // what was cut or could not be used, if anything
-};
+// <dir>/snapshot-*.ot, newest (most journal frames) first: (frames, path).
+std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(
+    const std::filesystem::path& dir);
 
-// Replays every <root>/*/journal.smj into `server` (Origin::kReplay) and waits until the
-// replayed frames are fused.
-std::vector<RecoveredSession> recoverSessions(const std::filesystem::path& root,
-                                              core::MapServer& server);
+// Writes `content` to a temporary file beside `path`, flushes it, and renames it over `path`.
+common::Status writeAtomically(const std::filesystem::path& path, const std::string& content);
+
+inline constexpr const char* kJournalName = "journal.smj";
+inline constexpr const char* kMetaName = "meta.json";
 
 }  // namespace stereomap::store

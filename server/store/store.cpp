@@ -3,29 +3,13 @@
 #include <fstream>
 
 #include "server/core/api.hpp"
+#include "server/store/session_journals.hpp"
 
 namespace stereomap::store {
 
 namespace fs = std::filesystem;
 using common::ErrorCode;
 using common::makeError;
-
-namespace {
-common::Status writeAtomically(const fs::path& path, const std::string& content) {
-  const fs::path temporary = path.string() + ".tmp";
-  {
-    std::ofstream out(temporary, std::ios::binary | std::ios::trunc);
-    out.write(content.data(), static_cast<std::streamsize>(content.size()));
-    out.flush();
-    if (!out) return makeError(ErrorCode::kIo, "cannot write " + temporary.string());
-  }
-  std::error_code ec;
-  fs::rename(temporary, path, ec);
-  if (ec)
-    return makeError(ErrorCode::kIo, "cannot rename to " + path.string() + ": " + ec.message());
-  return common::Ok{};
-}
-}  // namespace
 
 common::Result<SessionStore> SessionStore::open(const fs::path& root) {
   std::error_code ec;
@@ -42,7 +26,7 @@ common::Result<SessionStore> SessionStore::open(const fs::path& root) {
   return SessionStore(root);
 }
 
-common::Status SessionStore::save(const core::Session& session) const {
+common::Status SessionStore::save(const core::Session& session, bool closed) const {
   const fs::path dir = root_ / session.id();  // ids are validated: no separators, no ".."
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -53,7 +37,10 @@ common::Status SessionStore::save(const core::Session& session) const {
     const std::string name = i == 0 ? "trajectory.tum" : "trajectory-" + vehicles[i] + ".tum";
     if (auto s = writeAtomically(dir / name, session.trajectoryTum(vehicles[i])); !s) return s;
   }
-  return writeAtomically(dir / "session.json", core::sessionJson(session.status()) + "\n");
+  auto status = session.status();
+  status.closed = closed;
+  if (closed) status.read_only = false;
+  return writeAtomically(dir / "session.json", core::sessionJson(status) + "\n");
 }
 
 }  // namespace stereomap::store

@@ -1,7 +1,8 @@
 // Where sessions are kept on disk: one directory per session under the store root, with
 // the map (map.bt), the trajectory (trajectory.tum) and a status file (session.json), each
 // written atomically (temporary file + rename), so a crash never leaves half a file.
-// (The journal and crash recovery come with the store's own issue.)
+// The journal and snapshots are in session_journals.hpp; recovery and session management in
+// store_admin.hpp.
 #pragma once
 
 #include <filesystem>
@@ -15,7 +16,8 @@ class SessionStore {
  public:
   // Creates `root` if needed; fails with a message naming it when it cannot be written.
   static common::Result<SessionStore> open(const std::filesystem::path& root);
-  common::Status save(const core::Session& session) const;
+  // `closed`: the session is being closed into the store (session.json says so).
+  common::Status save(const core::Session& session, bool closed = false) const;
   const std::filesystem::path& root() const { return root_; }
 
  private:

@@ -1,5 +1,8 @@
 #include "tests/support/process.hpp"
 
+#include <filesystem>
+#include <fstream>
+
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <netinet/in.h>
@@ -75,11 +78,14 @@ void ChildProcess::kill9() {
   waitExit(std::chrono::seconds(10));
 }
 
-HttpReply httpGet(int port, const std::string& path) {
+HttpReply httpGet(int port, const std::string& path) { return httpRequest(port, "GET", path); }
+
+HttpReply httpRequest(int port, const std::string& method, const std::string& path,
+                      const std::string& body) {
   HttpReply reply;
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   if (fd < 0) return reply;
-  timeval timeout{10, 0};
+  timeval timeout{60, 0};  // session management replays journals: allow for it
   setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
   sockaddr_in address{};
   address.sin_family = AF_INET;
@@ -89,8 +95,10 @@ HttpReply httpGet(int port, const std::string& path) {
     ::close(fd);
     return reply;
   }
-  const std::string request =
-      "GET " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n";
+  const std::string request = method + " " + path +
+                              " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n"
+                              "Content-Type: application/json\r\nContent-Length: " +
+                              std::to_string(body.size()) + "\r\n\r\n" + body;
   if (::send(fd, request.data(), request.size(), 0) != static_cast<ssize_t>(request.size())) {
     ::close(fd);
     return reply;
@@ -104,6 +112,21 @@ HttpReply httpGet(int port, const std::string& path) {
   reply.status = std::atoi(response.c_str() + 9);
   reply.body = response.substr(header_end + 4);
   return reply;
+}
+
+ToolRun runTool(const std::vector<std::string>& argv, std::chrono::milliseconds timeout) {
+  const std::string dir = makeTempDir("stereomap-tool");
+  const std::string log = dir + "/output.log";
+  ToolRun run;
+  {
+    ChildProcess child(argv, log);
+    run.exit_code = child.waitExit(timeout).value_or(-1);
+  }
+  std::ifstream in(log);
+  run.output.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  std::error_code ec;
+  std::filesystem::remove_all(dir, ec);
+  return run;
 }
 
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,

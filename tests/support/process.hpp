@@ -33,13 +33,25 @@ class ChildProcess {
   std::optional<int> status_;
 };
 
+// Runs a command to completion (killed after `timeout`): its exit code (-1 when it had to be
+// killed) and its stdout + stderr.
+struct ToolRun {
+  int exit_code = -1;
+  std::string output;
+};
+ToolRun runTool(const std::vector<std::string>& argv,
+                std::chrono::milliseconds timeout = std::chrono::seconds(120));
+
 struct HttpReply {
   int status = 0;  // 0: no answer
   std::string body;
 };
 
-// GET http://127.0.0.1:port/path with a 10 s timeout; status 0 when nothing answered.
+// GET (or `method`, with a JSON body) http://127.0.0.1:port/path with a 60 s timeout;
+// status 0 when nothing answered.
 HttpReply httpGet(int port, const std::string& path);
+HttpReply httpRequest(int port, const std::string& method, const std::string& path,
+                      const std::string& body = "");
 
 // Calls `done` until it returns true or `timeout` passes; true when it did.
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,

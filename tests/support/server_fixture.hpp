@@ -23,6 +23,10 @@ class ServerProcess {
   const std::string& logPath() const { return log_; }
   std::string log() const;
   HttpReply get(const std::string& path) const { return httpGet(port_, path); }
+  HttpReply request(const std::string& method, const std::string& path,
+                    const std::string& body = "") const {
+    return httpRequest(port_, method, path, body);
+  }
   ChildProcess& process() { return *process_; }
 
  private:

@@ -86,6 +86,12 @@ export class MapStore {
       return null;
     }
     if (message.type === 'error') return null;
+    if (message.type === 'session_removed') {
+      // Closed into the store or deleted: the server no longer holds it.
+      this.sessions.delete(message.id);
+      if (this.latestSessionId === message.id) this.latestSessionId = [...this.sessions.keys()].at(-1) ?? null;
+      return null;
+    }
     const id = message.type === 'session' ? message.id : message.session;
     const state = this.session(id);
     if (message.type === 'voxels') state.applyVoxels(message);

@@ -88,6 +88,17 @@ describe('MapStore poses and status', () => {
     expect(store.sessions.get('demo')).toMatchObject({ vehicle: 'sim-1', resolution: 0.2, frames: 12, serverVoxels: 34, bounds: null });
   });
 
+  it('forgets a session the server removed', () => {
+    const store = new MapStore();
+    apply(store, { type: 'session', id: 'old', vehicle: 'v', resolution: 0.1, frames: 1, occupied_voxels: 0, bounds: null });
+    apply(store, { type: 'session', id: 'new', vehicle: 'v', resolution: 0.1, frames: 1, occupied_voxels: 0, bounds: null });
+    expect(apply(store, { type: 'session_removed', id: 'new' })).toBeNull();
+    expect([...store.sessions.keys()]).toEqual(['old']);
+    expect(store.latestSessionId).toBe('old');
+    apply(store, { type: 'session_removed', id: 'unknown' });
+    expect(store.sessions.size).toBe(1);
+  });
+
   it('ignores server error replies', () => {
     const store = new MapStore();
     expect(apply(store, { type: 'error', message: 'unknown request' })).toBeNull();

@@ -114,6 +114,9 @@ const kParsers = {
       poses: poseList(m),
     };
   },
+  session_removed(m) {
+    return { type: 'session_removed', id: requireId(m, 'id') };
+  },
   error(m) {
     return { type: 'error', message: field(m, 'message', (v) => typeof v === 'string', 'a string') };
   },
@@ -132,7 +135,7 @@ export function parseMessage(text) {
   }
   const parse = Object.hasOwn(kParsers, message.type) ? kParsers[message.type] : null;
   if (!parse) {
-    throw new ProtocolError(`unknown message type ${shown(message.type)} (expected hello, session, voxels, poses or error)`);
+    throw new ProtocolError(`unknown message type ${shown(message.type)} (expected hello, session, session_removed, voxels, poses or error)`);
   }
   return parse(message);
 }

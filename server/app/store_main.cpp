@@ -1,0 +1,252 @@
+// stereomap-store: the session store, offline. Lists, checks and exports sessions (beside a
+// running server too: reading takes no lock), and closes, deletes and merges them (only
+// when no server holds the store; use the server's REST API otherwise).
+#include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <nlohmann/json.hpp>
+
+#include "common/transform_args.hpp"
+#include "server/core/api.hpp"
+#include "server/core/map_server.hpp"
+#include "server/store/journal.hpp"
+#include "server/store/store_admin.hpp"
+
+namespace {
+
+using namespace stereomap;
+namespace fs = std::filesystem;
+
+struct Store {
+  std::unique_ptr<store::SessionJournals> journals;
+  std::unique_ptr<core::MapServer> server;
+  std::unique_ptr<store::StoreAdmin> admin;
+};
+
+// A private MapServer over the store: nothing is loaded until a command opens a session.
+common::Result<Store> openStore(const fs::path& root, double resolution, bool writable) {
+  Store store;
+  core::MapServerOptions options;
+  options.resolution = resolution;
+  if (writable) {
+    store.journals = std::make_unique<store::SessionJournals>(root, resolution);
+    options.log = store.journals.get();
+    options.snapshots = store.journals.get();
+  }
+  store.server = std::make_unique<core::MapServer>(options);
+  auto admin = store::StoreAdmin::create(root, *store.server, store.journals.get(),
+                                         {.default_resolution = resolution, .writable = writable});
+  if (!admin) return admin.error();
+  store.admin = std::move(admin).value();
+  return store;
+}
+
+std::string megabytes(uint64_t bytes) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.1f", static_cast<double>(bytes) / 1e6);
+  return text;
+}
+
+int fail(const std::string& message) {
+  spdlog::error("{}", message);
+  return 1;
+}
+
+int list(const fs::path& root, bool as_json) {
+  auto catalog = store::Catalog::openReadOnly(root);
+  if (!catalog) return fail(catalog.error().message + " (is " + root.string() + " a store?)");
+  auto rows = (*catalog)->list();
+  if (!rows) return fail(rows.error().message);
+  if (as_json) {
+    nlohmann::json out = nlohmann::json::array();
+    for (const auto& r : *rows) {
+      out.push_back({{"id", r.id},
+                     {"vehicles", r.vehicles},
+                     {"state", r.state},
+                     {"frames", r.frames},
+                     {"resolution", r.resolution},
+                     {"occupied_voxels", r.occupied_voxels},
+                     {"journal_bytes", r.journal_bytes},
+                     {"updated_ns", r.updated_ns}});
+    }
+    std::cout << out.dump(2) << "\n";
+    return 0;
+  }
+  std::printf("%-24s %-7s %-16s %7s %6s %9s %9s\n", "SESSION", "STATE", "VEHICLES", "FRAMES",
+              "RES_M", "VOXELS", "JOURNAL_MB");
+  for (const auto& r : *rows) {
+    std::printf("%-24s %-7s %-16s %7llu %6.3f %9llu %9s\n", r.id.c_str(), r.state.c_str(),
+                r.vehicles.c_str(), static_cast<unsigned long long>(r.frames), r.resolution,
+                static_cast<unsigned long long>(r.occupied_voxels),
+                megabytes(r.journal_bytes).c_str());
+  }
+  if (rows->empty()) std::printf("(no sessions in %s)\n", root.string().c_str());
+  return 0;
+}
+
+// Reads every session's journal and snapshots; exit code 1 when anything is damaged.
+int check(Store& store) {
+  int damaged = 0;
+  for (const auto& id : store.admin->storedIds()) {
+    const fs::path dir = store.admin->root() / id;
+    auto replay = store::readJournal(dir / store::kJournalName);
+    if (!replay) {
+      std::printf("%-24s UNREADABLE %s\n", id.c_str(), replay.error().message.c_str());
+      ++damaged;
+      continue;
+    }
+    size_t frames = 0;
+    for (const auto& r : replay->records) frames += std::holds_alternative<proto::CloudFrameMsg>(r);
+    const auto snapshots = store::snapshotsIn(dir);
+    std::printf("%-24s %-9s %zu records, %zu frames, %s MB, newest snapshot %s%s%s\n", id.c_str(),
+                replay->problem.empty() ? "ok" : "DAMAGED", replay->records.size(), frames,
+                megabytes(replay->good_bytes).c_str(),
+                snapshots.empty() ? "none" : std::to_string(snapshots.front().first).c_str(),
+                replay->problem.empty() ? "" : ": ", replay->problem.c_str());
+    damaged += !replay->problem.empty();
+  }
+  if (damaged > 0) {
+    std::printf("%d damaged; the server (or stereomap-store close) keeps every intact record\n",
+                damaged);
+  }
+  return damaged > 0 ? 1 : 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "stereomap-store: list, check, export, close, delete and merge the sessions of a "
+      "stereomap store (the directory given to stereomap-server --store)"};
+  app.require_subcommand(1);
+  std::string root = "stereomap-store";
+  double resolution = 0.1;
+  app.add_option("--store", root, "The store directory")->capture_default_str();
+  app.add_option("--resolution", resolution,
+                 "Voxel edge (m) for sessions whose directory does not record one")
+      ->check(CLI::Range(0.01, 2.0))
+      ->capture_default_str();
+
+  bool as_json = false;
+  auto* list_cmd = app.add_subcommand("list", "Sessions in the catalog (as the server last saw them)");
+  list_cmd->add_flag("--json", as_json, "JSON instead of a table");
+
+  app.add_subcommand("check", "Read every journal and snapshot; exit 1 if any is damaged");
+
+  std::string id;
+  auto* show_cmd = app.add_subcommand("show", "Replay one session and print its status (JSON)");
+  show_cmd->add_option("session", id, "Session id")->required();
+
+  std::string format, out, vehicle;
+  double z_min = -1e9, z_max = 1e9;
+  int scale = 1;
+  auto* export_cmd = app.add_subcommand("export", "Replay one session and write a file");
+  export_cmd->add_option("session", id, "Session id")->required();
+  export_cmd->add_option("--format", format, "bt | ot | ply | png | tum")
+      ->required()
+      ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
+  export_cmd->add_option("--out", out, "Output file (default: SESSION.FORMAT)");
+  export_cmd->add_option("--zmin", z_min, "png: lowest voxel centre height, m");
+  export_cmd->add_option("--zmax", z_max, "png: highest voxel centre height, m");
+  export_cmd->add_option("--scale", scale, "png: pixels per voxel")->check(CLI::Range(1, 16));
+  export_cmd->add_option("--vehicle", vehicle, "tum: the vehicle (default: the first)");
+
+  auto* close_cmd = app.add_subcommand(
+      "close", "Save a session's map and trajectory and mark it closed (not loaded at start)");
+  close_cmd->add_option("session", id, "Session id")->required();
+
+  bool yes = false;
+  auto* delete_cmd = app.add_subcommand("delete", "Delete a session and its files");
+  delete_cmd->add_option("session", id, "Session id")->required();
+  delete_cmd->add_flag("--yes", yes, "Confirm: the session's journal and maps are removed");
+
+  std::string first, second, into;
+  std::vector<double> transform;
+  auto* merge_cmd = app.add_subcommand(
+      "merge", "Merge two sessions into a new, closed one (the second moved by --transform)");
+  merge_cmd->add_option("first", first, "First session (its map frame is the result's)")->required();
+  merge_cmd->add_option("second", second, "Second session")->required();
+  merge_cmd->add_option("--into", into, "The new session's id")->required();
+  merge_cmd->add_option("--transform", transform,
+                        "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
+      ->delimiter(',')
+      ->expected(7);
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;
+  }
+  spdlog::set_pattern("%^%l%$: %v");
+  spdlog::set_level(spdlog::level::warn);
+
+  if (*list_cmd) return list(root, as_json);
+  const bool writes = *close_cmd || *delete_cmd || *merge_cmd;
+  if (*delete_cmd && !yes) return fail("delete is permanent: add --yes to delete '" + id + "'");
+  auto store = openStore(root, resolution, writes);
+  if (!store) return fail(store.error().message);
+  auto& admin = *store->admin;
+  if (app.got_subcommand("check")) return check(*store);
+
+  if (*show_cmd || *export_cmd) {
+    if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
+    const auto session = store->server->find(id);
+    if (*show_cmd) {
+      std::cout << core::sessionJson(session->status()) << "\n";
+      return 0;
+    }
+    std::string content;
+    if (format == "bt") content = session->mapBinary();
+    if (format == "ot") content = session->mapFull();
+    if (format == "ply") content = session->occupiedPly();
+    if (format == "png") {
+      content = session->occupancyPng(z_min, z_max, scale);
+      if (content.empty()) return fail("no occupied voxels in that height band");
+    }
+    if (format == "tum") {
+      const auto vehicles = session->status().vehicles;
+      if (!vehicle.empty() && std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
+        return fail("session '" + id + "' has no vehicle '" + vehicle + "'");
+      }
+      content = session->trajectoryTum(!vehicle.empty() ? vehicle : vehicles.empty() ? "" : vehicles[0]);
+    }
+    if (out.empty()) out = id + "." + format;
+    std::ofstream file(out, std::ios::binary | std::ios::trunc);
+    file.write(content.data(), static_cast<std::streamsize>(content.size()));
+    if (!file.flush()) return fail("cannot write " + out);
+    std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
+    return 0;
+  }
+  if (*close_cmd) {
+    for (const auto& closed : admin.closedSessions()) {
+      if (closed.id == id) return fail("session '" + id + "' is already closed");
+    }
+    if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
+    if (auto closed = admin.close(id); !closed) return fail(closed.error().message);
+    std::printf("session '%s' closed\n", id.c_str());
+    return 0;
+  }
+  if (*delete_cmd) {
+    if (auto removed = admin.remove(id); !removed) return fail(removed.error().message);
+    std::printf("session '%s' deleted\n", id.c_str());
+    return 0;
+  }
+  core::MergeRequest request{first, second, into, common::Rigid3::identity()};
+  if (!transform.empty()) {
+    const auto T = common::rigidFromTxyzQxyzw(transform);
+    if (!T) return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
+    request.T_first_second = *T;
+  }
+  if (auto merged = admin.merge(request); !merged) return fail(merged.error().message);
+  const auto status = store->server->find(into)->status();
+  if (auto closed = admin.close(into); !closed) return fail(closed.error().message);
+  std::printf("merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
+              first.c_str(), second.c_str(), into.c_str(),
+              static_cast<unsigned long long>(status.frames_fused), status.poses,
+              status.occupied_voxels);
+  return 0;
+}

@@ -1,0 +1,40 @@
+// What operators do with stored sessions: open one read-only, close it into the store,
+// delete it, merge two into a new one. The store implements it (server/store); the API
+// (server/core/api.hpp) and the offline CLI only call it.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/result.hpp"
+#include "server/core/session.hpp"
+
+namespace stereomap::core {
+
+struct MergeRequest {
+  std::string first, second;  // existing sessions (loaded or closed)
+  std::string into;           // the new session's id
+  // Maps the second session's map frame into the first's (identity: same frame).
+  common::Rigid3 T_first_second;
+};
+
+class SessionAdmin {
+ public:
+  virtual ~SessionAdmin() = default;
+  // Sessions kept in the store but not loaded (state "closed"), oldest first.
+  virtual std::vector<SessionStatus> closedSessions() const = 0;
+  // Loads a closed session read-only (snapshot + journal replay), with its trajectory.
+  // kNotFound: no such session; kConflict: already loaded.
+  virtual common::Status open(const std::string& id) = 0;
+  // Saves a loaded session (map, trajectory, snapshot) and unloads it; later samples for
+  // it are refused. kNotFound / kConflict (already closed).
+  virtual common::Status close(const std::string& id) = 0;
+  // Deletes a session that is not live (closed, ended or opened read-only) from the store.
+  virtual common::Status remove(const std::string& id) = 0;
+  // Writes a new, closed session whose journal holds both sessions' frames (the second's
+  // moved by the transform; its vehicles renamed where they clash) and opens it read-only.
+  virtual common::Status merge(const MergeRequest& request) = 0;
+};
+
+}  // namespace stereomap::core

@@ -1,0 +1,448 @@
+#include "server/store/store_admin.hpp"
+
+#include <fcntl.h>
+#include <spdlog/spdlog.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <set>
+
+#include "common/time.hpp"
+#include "server/core/validate.hpp"
+
+namespace stereomap::store {
+
+namespace fs = std::filesystem;
+using common::ErrorCode;
+using common::makeError;
+using nlohmann::json;
+
+namespace {
+
+constexpr const char* kClosedMarker = "closed";  // present: the session is closed
+constexpr const char* kStatusName = "session.json";
+
+json readJson(const fs::path& path) {
+  std::ifstream in(path);
+  if (!in) return nullptr;
+  return json::parse(in, nullptr, /*allow_exceptions=*/false);
+}
+
+// The session's resolution: meta.json (written when its journal was created), else the
+// status saved at its last stop, else the default.
+double resolutionOf(const fs::path& dir, double fallback) {
+  for (const char* name : {kMetaName, kStatusName}) {
+    const json doc = readJson(dir / name);
+    if (doc.is_object() && doc.contains("resolution") && doc["resolution"].is_number()) {
+      const double r = doc["resolution"].get<double>();
+      if (r > 0) return r;
+    }
+  }
+  return fallback;
+}
+
+core::SessionStatus statusFromJson(const std::string& id, const json& doc) {
+  core::SessionStatus s;
+  s.id = id;
+  s.closed = true;
+  if (!doc.is_object()) return s;
+  auto count = [&](const char* key) {
+    return doc.contains(key) && doc[key].is_number_unsigned() ? doc[key].get<uint64_t>() : 0;
+  };
+  if (doc.contains("vehicles") && doc["vehicles"].is_array()) {
+    for (const auto& v : doc["vehicles"])
+      if (v.is_string()) s.vehicles.push_back(v.get<std::string>());
+  }
+  if (doc.contains("resolution") && doc["resolution"].is_number()) {
+    s.resolution = doc["resolution"].get<double>();
+  }
+  s.frames_fused = s.frames_received = count("frames");
+  s.occupied_voxels = count("occupied_voxels");
+  s.poses = count("poses");
+  s.ended = doc.value("state", "") != "live";
+  const auto& bounds = doc.contains("bounds") ? doc["bounds"] : json();
+  if (bounds.is_object() && bounds.contains("min") && bounds.contains("max")) {
+    try {
+      const auto lo = bounds["min"].get<std::array<double, 3>>();
+      const auto hi = bounds["max"].get<std::array<double, 3>>();
+      s.bounds.extend({lo[0], lo[1], lo[2]});
+      s.bounds.extend({hi[0], hi[1], hi[2]});
+    } catch (const json::exception&) {
+    }
+  }
+  return s;
+}
+
+uint64_t journalBytes(const fs::path& dir) {
+  std::error_code ec;
+  const auto bytes = fs::file_size(dir / kJournalName, ec);
+  return ec ? 0 : bytes;
+}
+
+// Deletes a directory tree, renaming it aside first so that it vanishes from the store at
+// once even if the removal is interrupted (leftovers are swept at the next start).
+common::Status removeTree(const fs::path& root, const fs::path& dir) {
+  const fs::path aside =
+      root / (".trash-" + dir.filename().string() + "-" + std::to_string(common::nowNs()));
+  std::error_code ec;
+  fs::rename(dir, aside, ec);
+  if (ec) return makeError(ErrorCode::kIo, "cannot delete " + dir.string() + ": " + ec.message());
+  fs::remove_all(aside, ec);
+  return common::Ok{};
+}
+
+template <typename Message>
+void moveMessage(Message& m, const std::string& into, const std::string& vehicle) {
+  m.session_id = into;
+  m.vehicle_id = vehicle;
+}
+
+// `T` applied to a pose stored as position + x y z w quaternion.
+void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
+                   std::array<double, 4>& orientation) {
+  common::Rigid3 pose{common::Quat(orientation[3], orientation[0], orientation[1], orientation[2]),
+                      common::Vec3(position[0], position[1], position[2])};
+  pose = T * pose;
+  pose.rotation.normalize();
+  position = {pose.translation.x(), pose.translation.y(), pose.translation.z()};
+  orientation = {pose.rotation.x(), pose.rotation.y(), pose.rotation.z(), pose.rotation.w()};
+}
+
+}  // namespace
+
+common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& root,
+                                                               core::MapServer& server,
+                                                               SessionJournals* journals,
+                                                               const StoreAdminOptions& options) {
+  auto admin = std::unique_ptr<StoreAdmin>(new StoreAdmin(root, server, journals, options));
+  if (!options.writable) {
+    if (!fs::is_directory(root)) {
+      return makeError(ErrorCode::kNotFound, "no store at " + root.string());
+    }
+    return admin;
+  }
+  if (journals == nullptr) {
+    return makeError(ErrorCode::kInvalidArgument, "a writable store needs the journals");
+  }
+  auto files = SessionStore::open(root);
+  if (!files) return files.error();
+  admin->files_.emplace(std::move(files).value());
+  const fs::path lock = root / "store.lock";
+  admin->lock_fd_ = ::open(lock.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (admin->lock_fd_ < 0 || ::flock(admin->lock_fd_, LOCK_EX | LOCK_NB) != 0) {
+    return makeError(ErrorCode::kConflict,
+                     "the store " + root.string() +
+                         " is in use by another stereomap-server or stereomap-store (it holds " +
+                         lock.string() + "); stop it, or use the running server's REST API");
+  }
+  auto catalog = Catalog::open(root);
+  if (!catalog) return catalog.error();
+  admin->catalog_ = std::move(catalog).value();
+  admin->catalog_warning_ = admin->catalog_->warning();
+  return admin;
+}
+
+StoreAdmin::~StoreAdmin() {
+  if (lock_fd_ >= 0) ::close(lock_fd_);  // releases the lock
+}
+
+common::Status StoreAdmin::requireWritable(const char* what) const {
+  if (options_.writable) return common::Ok{};
+  return makeError(ErrorCode::kInvalidArgument,
+                   std::string("cannot ") + what + ": the store is open read-only");
+}
+
+bool StoreAdmin::isClosedOnDisk(const std::string& id) const {
+  return fs::exists(root_ / id / kClosedMarker);
+}
+
+std::vector<std::string> StoreAdmin::storedIds() const {
+  std::vector<std::string> ids;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(root_, ec)) {
+    const std::string name = entry.path().filename().string();
+    // Names that are not session ids are ours (.trash-*, .merge-*): never sessions.
+    if (entry.is_directory() && core::isValidId(name) && name[0] != '.' &&
+        fs::exists(entry.path() / kJournalName)) {
+      ids.push_back(name);
+    }
+  }
+  std::sort(ids.begin(), ids.end());
+  return ids;
+}
+
+void StoreAdmin::record(const core::SessionStatus& status) {
+  if (!catalog_) return;
+  if (auto recorded = catalog_->record(status, journalBytes(root_ / status.id)); !recorded) {
+    spdlog::warn("{}", recorded.error().message);
+  }
+}
+
+std::vector<RecoveredSession> StoreAdmin::recoverAll() {
+  std::lock_guard lock(mutex_);
+  std::vector<RecoveredSession> recovered;
+  if (options_.writable) {  // leftovers of an interrupted delete or merge
+    std::error_code ec;
+    for (const auto& entry : fs::directory_iterator(root_, ec)) {
+      const std::string name = entry.path().filename().string();
+      if (name.rfind(".trash-", 0) == 0 || name.rfind(".merge-", 0) == 0) {
+        fs::remove_all(entry.path(), ec);
+      }
+    }
+  }
+  for (const auto& id : storedIds()) {
+    if (isClosedOnDisk(id)) {
+      server_.markClosed(id);
+      record(statusFromJson(id, readJson(root_ / id / kStatusName)));
+      continue;
+    }
+    auto session = load(id, /*read_only=*/false);
+    if (!session) {
+      recovered.push_back({id, 0, 0, 0, session.error().message});
+      continue;
+    }
+    recovered.push_back(std::move(session).value());
+    if (auto live = server_.find(id)) record(live->status());
+  }
+  return recovered;
+}
+
+void StoreAdmin::checkpoint(bool all) {
+  std::lock_guard lock(mutex_);
+  if (!options_.writable) return;
+  for (const auto& session : server_.sessions()) {
+    const auto status = session->status();
+    record(status);
+    if (status.read_only || (!all && (!status.ended || status.backlog > 0))) continue;
+    const uint64_t version = session->voxels()->version + status.poses;
+    if (saved_versions_[session->id()] == version) continue;
+    if (auto saved = files_->save(*session); !saved) {
+      spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);
+      continue;
+    }
+    saved_versions_[session->id()] = version;
+    spdlog::info("session '{}' saved to {} ({} frames, {} voxels)", session->id(),
+                 (root_ / session->id()).string(), status.frames_fused, status.occupied_voxels);
+  }
+}
+
+common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool read_only) {
+  const fs::path dir = root_ / id;
+  if (!core::isValidId(id) || !fs::exists(dir / kJournalName)) {
+    return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store " + root_.string());
+  }
+  auto replay = readJournal(dir / kJournalName);
+  if (!replay) return replay.error();
+  auto created = server_.createSession(id, resolutionOf(dir, options_.default_resolution), read_only);
+  if (!created) return created.error();
+  const auto& session = *created;
+  RecoveredSession result{id};
+  result.problem = replay->problem;
+  // The newest snapshot that loads and that the intact journal covers; else a full replay.
+  size_t journal_frames = 0;
+  for (const auto& record : replay->records) {
+    journal_frames += std::holds_alternative<proto::CloudFrameMsg>(record);
+  }
+  for (const auto& [frames, path] : snapshotsIn(dir)) {
+    if (frames > journal_frames) continue;  // newer than the intact journal: not usable
+    std::ifstream ot(path, std::ios::binary);
+    if (auto restored = session->restore(ot, frames); restored) {
+      result.snapshot_frames = frames;
+      break;
+    } else {
+      result.problem += (result.problem.empty() ? "" : "; ") + path.filename().string() +
+                        " unusable (" + restored.error().message + ")";
+    }
+  }
+  size_t cloud_index = 0;
+  for (const auto& record : replay->records) {
+    if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+      const bool covered = cloud_index++ < result.snapshot_frames;
+      result.frames +=
+          server_.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay);
+    } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+      result.poses += server_.ingest(*pose, core::Origin::kReplay);
+    } else {
+      server_.ingest(std::get<proto::SessionEventMsg>(record), core::Origin::kReplay);
+    }
+  }
+  session->waitUntilIdle();
+  return result;
+}
+
+std::vector<core::SessionStatus> StoreAdmin::closedSessions() const {
+  std::vector<core::SessionStatus> closed;
+  for (const auto& id : storedIds()) {
+    if (isClosedOnDisk(id) && !server_.find(id)) {
+      closed.push_back(statusFromJson(id, readJson(root_ / id / kStatusName)));
+    }
+  }
+  return closed;
+}
+
+common::Status StoreAdmin::open(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  if (server_.find(id)) return makeError(ErrorCode::kConflict, "session '" + id + "' is already open");
+  auto loaded = load(id, /*read_only=*/true);
+  if (!loaded) {
+    if (options_.writable && isClosedOnDisk(id)) server_.markClosed(id);
+    return loaded.error();
+  }
+  if (!loaded->problem.empty()) spdlog::warn("session '{}': {}", id, loaded->problem);
+  spdlog::info("session '{}' opened read-only: {} frames ({} from a snapshot), {} poses", id,
+               loaded->frames, loaded->snapshot_frames, loaded->poses);
+  if (auto session = server_.find(id)) record(session->status());
+  return common::Ok{};
+}
+
+common::Status StoreAdmin::close(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  return closeLocked(id);
+}
+
+common::Status StoreAdmin::closeLocked(const std::string& id) {
+  if (auto writable = requireWritable("close a session"); !writable) return writable;
+  const auto session = server_.find(id);
+  if (!session) {
+    if (isClosedOnDisk(id)) return makeError(ErrorCode::kConflict, "session '" + id + "' is already closed");
+    return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
+  }
+  // The final snapshot makes the next open quick; then the map and trajectory files, then
+  // the marker: a crash before it leaves an ordinary session that recovery loads again.
+  const auto [frames, ot] = session->snapshotNow();
+  journals_->saveSnapshot(id, frames, ot);
+  if (auto saved = files_->save(*session, /*closed=*/true); !saved) return saved;
+  if (auto marked = writeAtomically(root_ / id / kClosedMarker, ""); !marked) return marked;
+  auto status = session->status();
+  status.closed = true;
+  status.read_only = false;
+  record(status);
+  server_.unload(id);
+  journals_->release(id);
+  spdlog::info("session '{}' closed into the store ({} frames, {} occupied voxels)", id,
+               status.frames_fused, status.occupied_voxels);
+  return common::Ok{};
+}
+
+common::Status StoreAdmin::remove(const std::string& id) {
+  std::lock_guard lock(mutex_);
+  if (auto writable = requireWritable("delete a session"); !writable) return writable;
+  const fs::path dir = root_ / id;
+  const auto session = server_.find(id);
+  if (session) {
+    const auto status = session->status();
+    if (!status.ended && !status.read_only) {
+      return makeError(ErrorCode::kConflict, "session '" + id +
+                                                 "' is live (its vehicle has not ended it): "
+                                                 "close it first");
+    }
+    session->waitUntilIdle();
+    server_.unload(id);
+  } else if (!core::isValidId(id) || !fs::is_directory(dir)) {
+    return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
+  }
+  journals_->release(id);
+  if (auto removed = removeTree(root_, dir); !removed) {
+    server_.markClosed(id);  // unloaded, still on disk: it stays closed
+    return removed;
+  }
+  if (catalog_) {
+    if (auto erased = catalog_->remove(id); !erased) spdlog::warn("{}", erased.error().message);
+  }
+  server_.forget(id);
+  spdlog::info("session '{}' deleted", id);
+  return common::Ok{};
+}
+
+common::Status StoreAdmin::merge(const core::MergeRequest& request) {
+  std::lock_guard lock(mutex_);
+  if (auto writable = requireWritable("merge sessions"); !writable) return writable;
+  for (const auto* id : {&request.first, &request.second, &request.into}) {
+    if (!core::isValidId(*id)) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "session id '" + *id + "' is not 1-64 of [A-Za-z0-9._-]");
+    }
+  }
+  if (request.first == request.second) {
+    return makeError(ErrorCode::kInvalidArgument, "merge needs two different sessions");
+  }
+  if (server_.find(request.into) || fs::exists(root_ / request.into)) {
+    return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");
+  }
+  std::vector<JournalReplay> sources;
+  for (const auto* id : {&request.first, &request.second}) {
+    if (!fs::exists(root_ / *id / kJournalName)) {
+      return makeError(ErrorCode::kNotFound, "no session '" + *id + "' in the store");
+    }
+    auto replay = readJournal(root_ / *id / kJournalName);
+    if (!replay) return replay.error();
+    if (!replay->problem.empty()) spdlog::warn("merging session '{}': {}", *id, replay->problem);
+    sources.push_back(std::move(replay).value());
+  }
+  // The second session's vehicles are renamed where the first has the same name: two
+  // flights of one vehicle are two trajectories in the merged session.
+  std::set<std::string> first_vehicles;
+  for (const auto& record : sources[0].records) {
+    std::visit([&](const auto& m) { first_vehicles.insert(m.vehicle_id); }, record);
+  }
+  auto renamed = [&](const std::string& vehicle) {
+    if (first_vehicles.count(vehicle) == 0) return vehicle;
+    return (vehicle + "-" + request.second).substr(0, proto::kMaxIdLength);
+  };
+
+  const fs::path staging =
+      root_ / (".merge-" + request.into + "-" + std::to_string(common::nowNs()));
+  std::error_code ec;
+  fs::create_directories(staging, ec);
+  const double resolution =
+      resolutionOf(root_ / request.first, options_.default_resolution);
+  // Born closed: it is opened read-only below, and stays in the store (not loaded at start).
+  common::Status written =
+      writeAtomically(staging / kMetaName, "{\"resolution\": " + std::to_string(resolution) + "}\n");
+  if (written) written = writeAtomically(staging / kClosedMarker, "");
+  if (written) {
+    auto journal = Journal::open(staging / kJournalName);
+    if (!journal) written = journal.error();
+    for (size_t source = 0; source < 2 && written; ++source) {
+      for (auto record : sources[source].records) {
+        std::visit(
+            [&](auto& m) {
+              moveMessage(m, request.into, source == 0 ? m.vehicle_id : renamed(m.vehicle_id));
+              if (source == 0) return;
+              using Message = std::decay_t<decltype(m)>;
+              if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
+                transformPose(request.T_first_second, m.sensor_position, m.sensor_orientation);
+              } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
+                transformPose(request.T_first_second, m.position, m.orientation);
+                // The velocity is in the map frame too.
+                const common::Vec3 v =
+                    request.T_first_second.rotation *
+                    common::Vec3(m.velocity[0], m.velocity[1], m.velocity[2]);
+                m.velocity = {v.x(), v.y(), v.z()};
+              }
+            },
+            record);
+        if (written = (*journal)->append(record); !written) break;
+      }
+    }
+  }
+  if (written) {
+    fs::rename(staging, root_ / request.into, ec);
+    if (ec) written = makeError(ErrorCode::kIo, "cannot create session '" + request.into + "': " + ec.message());
+  }
+  if (!written) {
+    fs::remove_all(staging, ec);
+    return written;
+  }
+  auto loaded = load(request.into, /*read_only=*/true);
+  if (!loaded) return loaded.error();
+  spdlog::info("sessions '{}' and '{}' merged into '{}': {} frames, {} poses", request.first,
+               request.second, request.into, loaded->frames, loaded->poses);
+  if (auto session = server_.find(request.into)) record(session->status());
+  return common::Ok{};
+}
+
+}  // namespace stereomap::store

@@ -1,0 +1,89 @@
+// Session management over the store, for stereomap-server (REST) and stereomap-store
+// (offline): start-up recovery (every session that is not closed is loaded: its newest
+// usable snapshot, then the journal after it, at the session's own resolution), opening a
+// stored session read-only, closing, deleting and merging sessions, and the SQLite catalog.
+//
+// One writer per store: a writable StoreAdmin holds an exclusive lock on <root>/store.lock
+// for its lifetime, so a second server or an offline delete cannot run beside a server.
+// A read-only StoreAdmin takes no lock and never writes (exports beside a running server).
+#pragma once
+
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "server/core/map_server.hpp"
+#include "server/core/session_admin.hpp"
+#include "server/store/catalog.hpp"
+#include "server/store/session_journals.hpp"
+#include "server/store/store.hpp"
+
+namespace stereomap::store {
+
+struct RecoveredSession {
+  std::string id;
+  size_t frames = 0, poses = 0;
+  uint64_t snapshot_frames = 0;  // frames restored from a snapshot rather than replayed
+  std::string problem;           // what was cut or could not be used, if anything
+};
+
+struct StoreAdminOptions {
+  double default_resolution = 0.1;  // for a session directory without meta.json
+  bool writable = true;
+};
+
+class StoreAdmin : public core::SessionAdmin {
+ public:
+  // `journals` (the server's IngestLog/SnapshotSink) is required when writable.
+  static common::Result<std::unique_ptr<StoreAdmin>> create(const std::filesystem::path& root,
+                                                            core::MapServer& server,
+                                                            SessionJournals* journals,
+                                                            const StoreAdminOptions& options);
+  ~StoreAdmin() override;
+
+  // Loads every stored session that is not closed into the server (waits until fused) and
+  // marks the closed ones, whose samples the server then refuses.
+  std::vector<RecoveredSession> recoverAll();
+  // Saves the map, trajectory and session.json of every loaded session that changed since
+  // (ended and idle ones only, unless `all`: at shutdown), and updates the catalog rows.
+  // Writable only.
+  void checkpoint(bool all);
+  // Set when the catalog was damaged and has been rebuilt.
+  const std::string& catalogWarning() const { return catalog_warning_; }
+  // Ids of every session on disk (those with a journal), sorted.
+  std::vector<std::string> storedIds() const;
+  const std::filesystem::path& root() const { return root_; }
+
+  std::vector<core::SessionStatus> closedSessions() const override;
+  common::Status open(const std::string& id) override;
+  common::Status close(const std::string& id) override;
+  common::Status remove(const std::string& id) override;
+  common::Status merge(const core::MergeRequest& request) override;
+
+ private:
+  StoreAdmin(std::filesystem::path root, core::MapServer& server, SessionJournals* journals,
+             const StoreAdminOptions& options)
+      : root_(std::move(root)), server_(server), journals_(journals), options_(options) {}
+  common::Result<RecoveredSession> load(const std::string& id, bool read_only);
+  common::Status closeLocked(const std::string& id);
+  common::Status requireWritable(const char* what) const;
+  void record(const core::SessionStatus& status);
+  bool isClosedOnDisk(const std::string& id) const;
+
+  std::filesystem::path root_;
+  core::MapServer& server_;
+  SessionJournals* journals_;
+  StoreAdminOptions options_;
+  std::optional<SessionStore> files_;  // writable only
+  std::unique_ptr<Catalog> catalog_;  // writable only
+  std::string catalog_warning_;
+  int lock_fd_ = -1;
+  std::map<std::string, uint64_t> saved_versions_;
+  mutable std::mutex mutex_;  // one operation at a time
+};
+
+}  // namespace stereomap::store

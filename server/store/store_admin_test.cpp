@@ -1,0 +1,203 @@
+// Session management over a real store directory (real files, real SQLite, real journals):
+// close, open read-only, per-session resolution, delete and merge, and the store lock.
+#include "server/store/store_admin.hpp"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include "tests/support/synthetic.hpp"
+
+namespace stereomap::store {
+namespace {
+
+namespace fs = std::filesystem;
+using common::ErrorCode;
+
+// A server's store side, as stereomap-server wires it (without DDS).
+struct Server {
+  Server(const fs::path& root, double resolution) : journals(root, resolution) {
+    core::MapServerOptions options;
+    options.resolution = resolution;
+    options.log = &journals;
+    options.snapshots = &journals;
+    options.snapshot_every = 4;
+    map = std::make_unique<core::MapServer>(options);
+    auto created = StoreAdmin::create(root, *map, &journals, {.default_resolution = resolution});
+    EXPECT_TRUE(created.ok()) << created.error().message;
+    admin = std::move(created).value();
+  }
+  SessionJournals journals;
+  std::unique_ptr<core::MapServer> map;
+  std::unique_ptr<StoreAdmin> admin;  // last: unlocks first
+};
+
+proto::CloudFrameMsg wallFrame(const std::string& session, uint64_t seq, double y_offset = 0,
+                               const std::string& vehicle = "v1") {
+  auto cloud = testing::planeCloud(2.05 + 0.1 * seq, 0.6, 0.05);
+  auto frame = testing::planeFrame(vehicle, session, seq, cloud);
+  frame.stamp_ns = 1'000'000'000 + static_cast<int64_t>(seq) * 100'000'000;
+  frame.sensor_position = {0, y_offset, 0};
+  return frame;
+}
+
+proto::PoseMsg pose(const std::string& session, uint64_t seq, const std::string& vehicle = "v1") {
+  proto::PoseMsg p;
+  p.vehicle_id = vehicle;
+  p.session_id = session;
+  p.seq = seq;
+  p.stamp_ns = 1'000'000'000 + static_cast<int64_t>(seq) * 100'000'000;
+  p.position = {0.1 * seq, 0, 1};
+  return p;
+}
+
+proto::SessionEventMsg ended(const std::string& session) {
+  proto::SessionEventMsg e;
+  e.vehicle_id = "v1";
+  e.session_id = session;
+  e.stamp_ns = 9'000'000'000;
+  e.kind = proto::SessionEventKind::kEnded;
+  return e;
+}
+
+void fly(core::MapServer& map, const std::string& session, int frames, double y_offset = 0) {
+  for (int i = 0; i < frames; ++i) {
+    ASSERT_TRUE(map.ingest(wallFrame(session, i, y_offset)));
+    ASSERT_TRUE(map.ingest(pose(session, i)));
+  }
+  map.find(session)->waitUntilIdle();
+}
+
+class StoreAdminTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string name = "stereomap-admin-";
+    name += std::to_string(::getpid());
+    name += ::testing::UnitTest::GetInstance()->current_test_info()->name();
+    root_ = fs::temp_directory_path() / name;
+    fs::remove_all(root_);
+  }
+  void TearDown() override { fs::remove_all(root_); }
+  fs::path root_;
+};
+
+TEST_F(StoreAdminTest, ClosedSessionReopensReadOnlyWithItsMapAndTrajectory) {
+  std::vector<fusion::VoxelIndex> voxels;
+  {
+    Server server(root_, 0.1);
+    fly(*server.map, "f1", 6);
+    voxels = server.map->find("f1")->voxels()->voxels;
+    ASSERT_FALSE(voxels.empty());
+    ASSERT_TRUE(server.admin->close("f1").ok());
+    EXPECT_EQ(server.map->find("f1"), nullptr);
+    EXPECT_TRUE(fs::exists(root_ / "f1" / "closed"));
+    EXPECT_EQ(server.admin->close("f1").error().code, ErrorCode::kConflict);
+    EXPECT_FALSE(server.map->ingest(wallFrame("f1", 7)));  // closed: refused, counted
+    EXPECT_NE(server.map->metricsText().find("reason=\"session_closed\""), std::string::npos);
+    const auto closed = server.admin->closedSessions();
+    ASSERT_EQ(closed.size(), 1u);
+    EXPECT_EQ(closed[0].frames_fused, 6u);
+    EXPECT_EQ(closed[0].occupied_voxels, voxels.size());
+  }
+  Server restarted(root_, 0.2);  // another default resolution: the session keeps its own
+  EXPECT_TRUE(restarted.admin->recoverAll().empty());  // closed sessions are not loaded
+  EXPECT_FALSE(restarted.map->ingest(wallFrame("f1", 8)));
+  EXPECT_EQ(restarted.admin->open("nope").error().code, ErrorCode::kNotFound);
+  ASSERT_TRUE(restarted.admin->open("f1").ok());
+  const auto session = restarted.map->find("f1");
+  ASSERT_NE(session, nullptr);
+  const auto status = session->status();
+  EXPECT_TRUE(status.read_only);
+  EXPECT_DOUBLE_EQ(status.resolution, 0.1);
+  EXPECT_EQ(status.poses, 6u);
+  EXPECT_EQ(session->voxels()->voxels, voxels);
+  EXPECT_FALSE(restarted.map->ingest(wallFrame("f1", 9)));  // read-only
+  EXPECT_NE(restarted.map->metricsText().find("reason=\"read_only\""), std::string::npos);
+  EXPECT_EQ(restarted.admin->open("f1").error().code, ErrorCode::kConflict);
+  EXPECT_TRUE(restarted.admin->closedSessions().empty());
+}
+
+TEST_F(StoreAdminTest, RecoveryUsesEachSessionsOwnResolution) {
+  std::vector<fusion::VoxelIndex> voxels;
+  {
+    Server server(root_, 0.05);
+    fly(*server.map, "fine", 5);  // 5 frames, snapshot every 4: snapshot + 1 replayed
+    voxels = server.map->find("fine")->voxels()->voxels;
+  }
+  Server restarted(root_, 0.2);
+  const auto recovered = restarted.admin->recoverAll();
+  ASSERT_EQ(recovered.size(), 1u);
+  EXPECT_EQ(recovered[0].snapshot_frames, 4u);
+  const auto session = restarted.map->find("fine");
+  ASSERT_NE(session, nullptr);
+  EXPECT_DOUBLE_EQ(session->status().resolution, 0.05);
+  EXPECT_FALSE(session->status().read_only);
+  EXPECT_EQ(session->voxels()->voxels, voxels);
+}
+
+TEST_F(StoreAdminTest, OnlyOneWriterPerStore) {
+  Server server(root_, 0.1);
+  core::MapServer other({});
+  SessionJournals journals(root_, 0.1);
+  auto second = StoreAdmin::create(root_, other, &journals, {});
+  ASSERT_FALSE(second.ok());
+  EXPECT_EQ(second.error().code, ErrorCode::kConflict);
+  EXPECT_NE(second.error().message.find("in use"), std::string::npos);
+  auto reader = StoreAdmin::create(root_, other, nullptr, {.writable = false});
+  ASSERT_TRUE(reader.ok());  // reading beside a server is fine...
+  EXPECT_EQ((*reader)->remove("x").error().code, ErrorCode::kInvalidArgument);  // ...writing not
+}
+
+TEST_F(StoreAdminTest, DeleteRefusesLiveSessionsAndRemovesEverything) {
+  Server server(root_, 0.1);
+  fly(*server.map, "gone", 3);
+  server.admin->checkpoint(true);
+  EXPECT_EQ(server.admin->remove("gone").error().code, ErrorCode::kConflict);  // live
+  ASSERT_TRUE(server.map->ingest(ended("gone")));
+  ASSERT_TRUE(server.admin->remove("gone").ok());
+  EXPECT_FALSE(fs::exists(root_ / "gone"));
+  EXPECT_EQ(server.map->find("gone"), nullptr);
+  EXPECT_EQ(server.admin->remove("gone").error().code, ErrorCode::kNotFound);
+  auto catalog = Catalog::openReadOnly(root_);
+  ASSERT_TRUE(catalog.ok());
+  EXPECT_TRUE((*catalog)->list()->empty());
+  // The id is free again: a new flight may use it.
+  EXPECT_TRUE(server.map->ingest(wallFrame("gone", 0)));
+}
+
+TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
+  Server server(root_, 0.1);
+  fly(*server.map, "a", 4);
+  fly(*server.map, "b", 4);  // the same vehicle and stamps: a second flight of v1
+  ASSERT_TRUE(server.admin->close("b").ok());
+  const auto a = server.map->find("a")->status();
+  const auto b = server.admin->closedSessions().at(0);
+
+  core::MergeRequest request{"a", "b", "ab", {}};
+  request.T_first_second.translation = {0, 5, 0};
+  ASSERT_TRUE(server.admin->merge(request).ok());
+  const auto merged = server.map->find("ab");
+  ASSERT_NE(merged, nullptr);
+  const auto status = merged->status();
+  EXPECT_TRUE(status.read_only);
+  EXPECT_EQ(status.frames_fused, 8u);
+  EXPECT_EQ(status.poses, 8u);
+  EXPECT_EQ(status.vehicles, (std::vector<std::string>{"v1", "v1-b"}));
+  EXPECT_NEAR(status.bounds.max.y() - a.bounds.max.y(), 5.0, 0.11);
+  const auto tum = merged->trajectoryTum("v1-b");
+  EXPECT_NE(tum.find(" 5.000000 1.000000 "), std::string::npos) << tum;  // moved +5 m in y
+  // The same map as fusing both flights directly, the second 5 m to the side.
+  for (int i = 0; i < 4; ++i) ASSERT_TRUE(server.map->ingest(wallFrame("direct", i)));
+  for (int i = 0; i < 4; ++i) ASSERT_TRUE(server.map->ingest(wallFrame("direct", i, 5.0, "w")));
+  server.map->find("direct")->waitUntilIdle();
+  EXPECT_EQ(merged->voxels()->voxels, server.map->find("direct")->voxels()->voxels);
+  EXPECT_GT(status.occupied_voxels, b.occupied_voxels);
+
+  EXPECT_EQ(server.admin->merge(request).error().code, ErrorCode::kConflict);  // exists
+  EXPECT_EQ(server.admin->merge({"a", "zz", "c", {}}).error().code, ErrorCode::kNotFound);
+  EXPECT_EQ(server.admin->merge({"a", "a", "c", {}}).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code,
+            ErrorCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace stereomap::store
