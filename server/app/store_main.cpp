@@ -56,10 +56,26 @@ int fail(const std::string& message) {
   return 1;
 }
 
-int list(const fs::path& root, bool as_json) {
-  auto catalog = store::Catalog::openReadOnly(root);
-  if (!catalog) return fail(catalog.error().message + " (is " + root.string() + " a store?)");
-  auto rows = (*catalog)->list();
+// The catalog's rows; without a catalog (a store no server has run on since it was added),
+// what the session directories say.
+common::Result<std::vector<store::CatalogRow>> catalogRows(Store& store) {
+  auto catalog = store::Catalog::openReadOnly(store.admin->root());
+  if (catalog) return (*catalog)->list();
+  spdlog::warn("{}; listing the session directories instead", catalog.error().message);
+  std::vector<store::CatalogRow> rows;
+  for (const auto& s : store.admin->savedSessions()) {
+    std::string vehicles;
+    for (const auto& v : s.vehicles) vehicles += (vehicles.empty() ? "" : ",") + v;
+    std::error_code ec;
+    const auto bytes = fs::file_size(store.admin->root() / s.id / store::kJournalName, ec);
+    rows.push_back({s.id, vehicles, s.closed ? "closed" : s.ended ? "ended" : "live",
+                    s.frames_fused, s.resolution, s.occupied_voxels, s.bounds, ec ? 0 : bytes, 0});
+  }
+  return rows;
+}
+
+int list(Store& store, bool as_json) {
+  auto rows = catalogRows(store);
   if (!rows) return fail(rows.error().message);
   if (as_json) {
     nlohmann::json out = nlohmann::json::array();
@@ -76,15 +92,15 @@ int list(const fs::path& root, bool as_json) {
     std::cout << out.dump(2) << "\n";
     return 0;
   }
-  std::printf("%-24s %-7s %-16s %7s %6s %9s %9s\n", "SESSION", "STATE", "VEHICLES", "FRAMES",
+  std::printf("%-28s %-7s %-16s %7s %6s %9s %10s\n", "SESSION", "STATE", "VEHICLES", "FRAMES",
               "RES_M", "VOXELS", "JOURNAL_MB");
   for (const auto& r : *rows) {
-    std::printf("%-24s %-7s %-16s %7llu %6.3f %9llu %9s\n", r.id.c_str(), r.state.c_str(),
+    std::printf("%-28s %-7s %-16s %7llu %6.3f %9llu %10s\n", r.id.c_str(), r.state.c_str(),
                 r.vehicles.c_str(), static_cast<unsigned long long>(r.frames), r.resolution,
                 static_cast<unsigned long long>(r.occupied_voxels),
                 megabytes(r.journal_bytes).c_str());
   }
-  if (rows->empty()) std::printf("(no sessions in %s)\n", root.string().c_str());
+  if (rows->empty()) std::printf("(no sessions in %s)\n", store.admin->root().string().c_str());
   return 0;
 }
 
@@ -108,6 +124,9 @@ int check(Store& store) {
                 snapshots.empty() ? "none" : std::to_string(snapshots.front().first).c_str(),
                 replay->problem.empty() ? "" : ": ", replay->problem.c_str());
     damaged += !replay->problem.empty();
+  }
+  if (store.admin->storedIds().empty()) {
+    std::printf("(no sessions in %s)\n", store.admin->root().string().c_str());
   }
   if (damaged > 0) {
     std::printf("%d damaged; the server (or stereomap-store close) keeps every intact record\n",
@@ -184,19 +203,25 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);
 
-  if (*list_cmd) return list(root, as_json);
   const bool writes = *close_cmd || *delete_cmd || *merge_cmd;
   if (*delete_cmd && !yes) return fail("delete is permanent: add --yes to delete '" + id + "'");
   auto store = openStore(root, resolution, writes);
   if (!store) return fail(store.error().message);
   auto& admin = *store->admin;
+  if (*list_cmd) return list(*store, as_json);
   if (app.got_subcommand("check")) return check(*store);
 
   if (*show_cmd || *export_cmd) {
+    const auto closed = admin.closedSessions();
+    const bool was_closed = std::any_of(closed.begin(), closed.end(),
+                                        [&](const auto& s) { return s.id == id; });
     if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
     const auto session = store->server->find(id);
-    if (*show_cmd) {
-      std::cout << core::sessionJson(session->status()) << "\n";
+    if (*show_cmd) {  // the state in the store, not that of this tool's read-only copy
+      auto status = session->status();
+      status.read_only = false;
+      status.closed = was_closed;
+      std::cout << core::sessionJson(status) << "\n";
       return 0;
     }
     std::string content;

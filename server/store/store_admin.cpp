@@ -273,13 +273,20 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   return result;
 }
 
-std::vector<core::SessionStatus> StoreAdmin::closedSessions() const {
-  std::vector<core::SessionStatus> closed;
+std::vector<core::SessionStatus> StoreAdmin::savedSessions() const {
+  std::vector<core::SessionStatus> saved;
   for (const auto& id : storedIds()) {
-    if (isClosedOnDisk(id) && !server_.find(id)) {
-      closed.push_back(statusFromJson(id, readJson(root_ / id / kStatusName)));
-    }
+    auto status = statusFromJson(id, readJson(root_ / id / kStatusName));
+    status.closed = isClosedOnDisk(id);
+    if (status.resolution <= 0) status.resolution = resolutionOf(root_ / id, 0);
+    saved.push_back(std::move(status));
   }
+  return saved;
+}
+
+std::vector<core::SessionStatus> StoreAdmin::closedSessions() const {
+  auto closed = savedSessions();
+  std::erase_if(closed, [&](const auto& s) { return !s.closed || server_.find(s.id) != nullptr; });
   return closed;
 }
 

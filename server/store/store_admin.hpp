@@ -56,6 +56,8 @@ class StoreAdmin : public core::SessionAdmin {
   const std::string& catalogWarning() const { return catalog_warning_; }
   // Ids of every session on disk (those with a journal), sorted.
   std::vector<std::string> storedIds() const;
+  // Their statuses as last saved (session.json; counts are zero for a session never saved).
+  std::vector<core::SessionStatus> savedSessions() const;
   const std::filesystem::path& root() const { return root_; }
 
   std::vector<core::SessionStatus> closedSessions() const override;
