@@ -1,12 +1,18 @@
-// stereomap-onboard: the vehicle side. Reads stereo frames from a source, computes depth,
-// and streams compressed clouds and poses to stereomap-server over DDS.
+// stereomap-onboard: the vehicle side. Reads stereo frames from a source, estimates its pose
+// by stereo visual odometry, computes depth, and streams compressed clouds and poses to
+// stereomap-server over DDS. With --no-publish it runs the odometry alone (trajectory files,
+// a progress bar and a summary).
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include <unistd.h>
+
+#include <cstdio>
 #include <ctime>
 #include <filesystem>
 
 #include "common/shutdown.hpp"
+#include "common/trajectory.hpp"
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/pipeline/pipeline.hpp"
 #include "onboard/sim/sim_source.hpp"
@@ -36,7 +42,9 @@ int main(int argc, char** argv) {
   proto::DdsOptions dds;
   uint32_t seed = 1;
   std::string stereo_preset = "fast";
-  double noise_sigma = 0;
+  double noise_sigma = 0, blur_sigma = 0;
+  std::string vo = "fast", trajectory_out, kitti_out;
+  bool no_publish = false;
   double wait_s = 3.0;
   double paper_resolution = 0;
   std::string calibration_file;
@@ -71,6 +79,20 @@ int main(int argc, char** argv) {
   app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")
       ->check(CLI::Range(0.0, 50.0))
       ->capture_default_str();
+  app.add_option("--image-blur", blur_sigma, "Sim: Gaussian blur of the images, pixels")
+      ->check(CLI::Range(0.0, 10.0))
+      ->capture_default_str();
+  app.add_option("--vo", vo,
+                 "Pose from: fast (stereo visual odometry), paper (the stereo-VO paper's "
+                 "method) or gt (the source's ground truth)")
+      ->check(CLI::IsMember({"fast", "paper", "gt"}))
+      ->capture_default_str();
+  app.add_option("--trajectory-out", trajectory_out,
+                 "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw");
+  app.add_option("--kitti-poses-out", kitti_out,
+                 "Write the left camera's poses relative to the first frame, KITTI format");
+  app.add_flag("--no-publish", no_publish,
+               "No DDS: run the odometry alone (with a progress bar and a summary)");
   app.add_option("--voxel-downsample", options.cloud.voxel_m,
                  "Keep one point per voxel of this edge, metres (0: off; the 5x2 blocks stay)")
       ->check(CLI::Range(0.0, 10.0))
@@ -106,7 +128,7 @@ int main(int argc, char** argv) {
         sim::SimSourceOptions{.seed = seed,
                               .rate_hz = rate_hz > 0 ? rate_hz : 10.0,
                               .max_frames = frames,
-                              .render = {.noise_sigma = noise_sigma}});
+                              .render = {.noise_sigma = noise_sigma, .blur_sigma = blur_sigma}});
   } else {
     camera::DatasetOptions dataset{.max_frames = frames, .rate_hz = rate_hz > 0 ? rate_hz : 10.0};
     if (!calibration_file.empty()) dataset.calibration_file = calibration_file;
@@ -127,21 +149,70 @@ int main(int argc, char** argv) {
                  camera.depthFromDisparity(options.matcher.min_disparity), paper_resolution);
   }
 
-  auto participant = proto::Participant::create(dds);
-  if (!participant) {
-    spdlog::error("{}", participant.error().message);
-    return 1;
-  }
-  auto publisher = pipeline::VehiclePublisher::create(*participant);
-  if (!publisher) {
-    spdlog::error("{}", publisher.error().message);
-    return 1;
-  }
+  options.pose_source = vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
+  options.odometry.mode = vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
+  options.depth = !no_publish;  // the clouds only matter to a server
 
-  spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}", options.vehicle_id,
-               options.session_id, dds.domain_id, source->describe(), rate_hz,
-               frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"));
-  const auto summary = pipeline::runPipeline(*source, publisher->get(), options, shutdown);
+  // Trajectory files, and a progress bar when running the odometry alone.
+  common::Trajectory trajectory, kitti_poses;
+  std::optional<common::Rigid3> first_camera;
+  const bool bar = no_publish && isatty(STDERR_FILENO);
+  options.on_frame = [&](const pipeline::FrameReport& r) {
+    const double t = static_cast<double>(r.stamp_ns) * 1e-9;
+    trajectory.push_back({t, r.T_map_body});
+    if (!first_camera) first_camera = r.T_map_camera;
+    kitti_poses.push_back({t, first_camera->inverse() * r.T_map_camera});
+    if (bar) {
+      const uint64_t n = trajectory.size();
+      const int filled = frames > 0 ? static_cast<int>(30 * n / frames) : static_cast<int>(n % 31);
+      std::fprintf(stderr, "\r[%-30s] %llu%s frames, odometry %s, %.1f ms", std::string(filled, '#').c_str(),
+                   static_cast<unsigned long long>(n),
+                   frames > 0 ? ("/" + std::to_string(frames)).c_str() : "",
+                   odometry::stateName(r.state), r.odometry_ms);
+    }
+  };
+  if (no_publish) options.progress_every = 0;
+
+  std::shared_ptr<proto::Participant> participant;
+  std::unique_ptr<pipeline::VehiclePublisher> publisher;
+  if (!no_publish) {
+    auto created = proto::Participant::create(dds);
+    if (!created) {
+      spdlog::error("{}", created.error().message);
+      return 1;
+    }
+    participant = std::move(created).value();
+    auto made = pipeline::VehiclePublisher::create(participant);
+    if (!made) {
+      spdlog::error("{}", made.error().message);
+      return 1;
+    }
+    publisher = std::move(made).value();
+    spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
+                 options.vehicle_id, options.session_id, dds.domain_id, source->describe(),
+                 rate_hz,
+                 frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"),
+                 vo);
+  } else {
+    spdlog::info("odometry ({}) on {}, nothing published", vo, source->describe());
+  }
+  const auto summary = pipeline::runPipeline(*source, publisher.get(), options, shutdown);
+  if (bar) std::fprintf(stderr, "\n");
+  for (const auto& [path, text] : {std::pair{trajectory_out, common::tumText(trajectory)},
+                                   std::pair{kitti_out, common::kittiText(kitti_poses)}}) {
+    if (path.empty()) continue;
+    if (auto written = common::writeText(path, text); !written) {
+      spdlog::error("{}", written.error().message);
+      return 1;
+    }
+    spdlog::info("wrote {} poses to {}", trajectory.size(), path);
+  }
+  if (options.pose_source == pipeline::PoseSource::kOdometry) {
+    spdlog::info("odometry: {} frames, {} lost, {} degraded, {:.1f} ms per frame (median)",
+                 summary.frames, summary.lost_frames, summary.degraded_frames,
+                 summary.median_odometry_ms);
+  }
+  if (no_publish) return 0;
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), {:.1f} KiB per frame, depth {:.1f} ms, "
       "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors",

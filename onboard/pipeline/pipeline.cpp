@@ -75,13 +75,27 @@ void address(Message& message, const PipelineOptions& options, uint64_t seq, int
 }
 
 proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
-                           const common::Rigid3& T_map_body, const common::Vec3& velocity) {
+                           const common::Rigid3& T_map_body, const common::Vec3& velocity,
+                           const odometry::VoEstimate* estimate) {
   proto::PoseMsg pose;
   address(pose, options, seq, stamp_ns);
   copyPose(T_map_body, pose.position, pose.orientation);
   pose.velocity = {velocity.x(), velocity.y(), velocity.z()};
   pose.tracking_state = proto::TrackingState::kOk;
   pose.source = proto::PoseSource::kGroundTruth;
+  if (estimate != nullptr) {
+    pose.source = proto::PoseSource::kVisualOdometry;
+    switch (estimate->state) {
+      case odometry::TrackingState::kInit: pose.tracking_state = proto::TrackingState::kInit; break;
+      case odometry::TrackingState::kOk: pose.tracking_state = proto::TrackingState::kOk; break;
+      case odometry::TrackingState::kDegraded: pose.tracking_state = proto::TrackingState::kDegraded; break;
+      case odometry::TrackingState::kLost: pose.tracking_state = proto::TrackingState::kLost; break;
+    }
+    // Row-major 6x6 over (rotation, translation) in the map frame.
+    for (int r = 0; r < 6; ++r) {
+      for (int c = 0; c < 6; ++c) pose.covariance[static_cast<size_t>(6 * r + c)] = estimate->covariance(r, c);
+    }
+  }
   return pose;
 }
 
@@ -147,7 +161,10 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
            "SessionEvent");
   }
 
-  std::vector<double> depth_ms, encode_ms, frame_ms;
+  std::vector<double> depth_ms, encode_ms, frame_ms, odometry_ms;
+  std::optional<odometry::StereoOdometry> odometry;
+  if (options.pose_source == PoseSource::kOdometry) odometry.emplace(source.camera(), options.odometry);
+  std::optional<common::Rigid3> anchor;  // T_map_camera of the odometry's world frame
   std::optional<common::Rigid3> previous_pose;
   int64_t previous_stamp = 0;
   const auto start = Clock::now();
@@ -166,9 +183,50 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     const auto frame_start = Clock::now();
     auto frame = source.next();
     if (!frame) break;
-    if (!frame->T_map_body || !frame->T_body_camera) {
-      spdlog::warn("frame {} has no pose; skipped (visual odometry is not built yet)",
-                   frame->index);
+    FrameReport report_frame{frame->index, frame->stamp_ns};
+    std::optional<odometry::VoEstimate> estimate;
+    // The left camera's mount; a forward-looking camera when the source does not say.
+    const common::Rigid3 T_body_camera =
+        frame->T_body_camera.value_or(
+            common::Rigid3{common::bodyFromCameraRotation(), common::Vec3::Zero()});
+    common::Rigid3 T_map_body;
+    if (odometry) {
+      estimate = odometry->track(frame->left, frame->right, frame->stamp_ns);
+      odometry_ms.push_back(estimate->milliseconds);
+      if (!anchor) anchor = frame->T_map_body.value_or(common::Rigid3{}) * T_body_camera;
+      T_map_body = *anchor * estimate->T_world_camera * T_body_camera.inverse();
+      report_frame.state = estimate->state;
+      report_frame.odometry_ms = estimate->milliseconds;
+      summary.lost_frames += estimate->state == odometry::TrackingState::kLost;
+      summary.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
+    } else if (frame->T_map_body) {
+      T_map_body = *frame->T_map_body;
+    } else {
+      spdlog::warn("frame {} has no ground-truth pose; skipped (use --vo fast)", frame->index);
+      continue;
+    }
+    report_frame.T_map_body = T_map_body;
+    report_frame.T_map_camera = T_map_body * T_body_camera;
+    common::Vec3 velocity = common::Vec3::Zero();
+    if (previous_pose && frame->stamp_ns > previous_stamp) {
+      velocity = (T_map_body.translation - previous_pose->translation) /
+                 common::nsToSeconds(frame->stamp_ns - previous_stamp);
+    }
+    previous_pose = T_map_body;
+    previous_stamp = frame->stamp_ns;
+    // A lost frame's pose is a guess: it is published (so that operators see the state) but
+    // its cloud is not, and nothing is computed that only feeds the map.
+    const bool mapped = options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
+    if (!mapped) {
+      if (publisher != nullptr) {
+        report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
+                                              velocity, estimate ? &*estimate : nullptr)),
+               "Pose");
+      }
+      ++summary.frames;
+      report_frame.frame_ms = msSince(frame_start);
+      frame_ms.push_back(report_frame.frame_ms);
+      if (options.on_frame) options.on_frame(report_frame);
       continue;
     }
     const auto depth_start = Clock::now();
@@ -177,18 +235,9 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
         stereo::cloudFromDisparity(disparity, frame->left, source.camera(), options.cloud);
     depth_ms.push_back(msSince(depth_start));
 
-    const common::Rigid3 T_map_body = *frame->T_map_body;
-    common::Vec3 velocity = common::Vec3::Zero();
-    if (previous_pose && frame->stamp_ns > previous_stamp) {
-      velocity = (T_map_body.translation - previous_pose->translation) /
-                 common::nsToSeconds(frame->stamp_ns - previous_stamp);
-    }
-    previous_pose = T_map_body;
-    previous_stamp = frame->stamp_ns;
-
     const auto encode_start = Clock::now();
     auto cloud_msg = makeCloudFrameMsg(options, summary.frames, frame->stamp_ns,
-                                       T_map_body * *frame->T_body_camera, cloud);
+                                       report_frame.T_map_camera, cloud);
     encode_ms.push_back(msSince(encode_start));
     if (!cloud_msg) {
       spdlog::error("frame {}: cannot encode the cloud: {}", frame->index,
@@ -196,15 +245,17 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       continue;
     }
     if (publisher != nullptr) {
-      report(publisher->publish(
-                 makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body, velocity)),
+      report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
+                                            velocity, estimate ? &*estimate : nullptr)),
              "Pose");
       report(publisher->publish(*cloud_msg), "CloudFrame");
     }
     ++summary.frames;
     summary.points += cloud.size();
     summary.payload_bytes += cloud_msg->payload.size();
-    frame_ms.push_back(msSince(frame_start));
+    report_frame.frame_ms = msSince(frame_start);
+    frame_ms.push_back(report_frame.frame_ms);
+    if (options.on_frame) options.on_frame(report_frame);
 
     if (options.progress_every != 0 && summary.frames % options.progress_every == 0) {
       spdlog::info("frame {}: {} points, {:.1f} KiB, depth {:.1f} ms, encode {:.1f} ms",
@@ -221,6 +272,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   summary.median_depth_ms = median(depth_ms);
   summary.median_encode_ms = median(encode_ms);
   summary.median_frame_ms = median(frame_ms);
+  summary.median_odometry_ms = median(odometry_ms);
   return summary;
 }
 

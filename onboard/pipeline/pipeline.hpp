@@ -1,22 +1,38 @@
-// The onboard pipeline: for each stereo frame of a source, compute disparity, turn it into
-// a down-sampled cloud in the camera frame, Draco-encode it and publish a CloudFrame (with
-// the sensor pose) and a Pose over DDS, paced to a frame rate. Main entry: runPipeline().
+// The onboard pipeline: for each stereo frame of a source, estimate the pose (stereo visual
+// odometry by default, or the source's ground truth), compute disparity, turn it into a
+// down-sampled cloud in the camera frame, Draco-encode it and publish a CloudFrame (with the
+// sensor pose) and a Pose over DDS, paced to a frame rate. Main entry: runPipeline().
 #pragma once
 
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 
 #include "common/result.hpp"
 #include "common/shutdown.hpp"
 #include "onboard/camera/frame_source.hpp"
+#include "onboard/odometry/odometry.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
 #include "proto/messages.hpp"
 
 namespace stereomap::pipeline {
+
+enum class PoseSource { kOdometry, kGroundTruth };
+
+// One frame's outcome, for progress displays and trajectory files.
+struct FrameReport {
+  uint64_t index = 0;
+  int64_t stamp_ns = 0;
+  odometry::TrackingState state = odometry::TrackingState::kOk;
+  common::Rigid3 T_map_body;
+  common::Rigid3 T_map_camera;
+  double odometry_ms = 0;
+  double frame_ms = 0;
+};
 
 struct PipelineOptions {
   std::string vehicle_id = "sim-1";
@@ -30,6 +46,10 @@ struct PipelineOptions {
   std::chrono::milliseconds wait_for_server{3000};
   // Log progress every this many frames (0: never).
   uint64_t progress_every = 50;
+  PoseSource pose_source = PoseSource::kOdometry;
+  odometry::VoOptions odometry;
+  bool depth = true;  // false: poses only (odometry runs without the clouds)
+  std::function<void(const FrameReport&)> on_frame;  // after every frame, if set
 };
 
 struct PipelineSummary {
@@ -42,6 +62,9 @@ struct PipelineSummary {
   double median_encode_ms = 0;
   double median_frame_ms = 0;  // whole frame, source included
   bool stopped = false;        // ended by a stop request rather than the end of the source
+  uint64_t lost_frames = 0;    // odometry lost: the pose was a guess, no cloud was sent
+  uint64_t degraded_frames = 0;
+  double median_odometry_ms = 0;
 };
 
 // The DDS side of the vehicle: one writer per topic.
@@ -62,7 +85,8 @@ class VehiclePublisher {
 
 // Messages for one frame (exposed for tests).
 proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
-                           const common::Rigid3& T_map_body, const common::Vec3& velocity);
+                           const common::Rigid3& T_map_body, const common::Vec3& velocity,
+                           const odometry::VoEstimate* estimate = nullptr);
 common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
                                                        int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
@@ -72,8 +96,9 @@ proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
                                         proto::SessionEventKind kind);
 
 // Runs until the source ends or `shutdown` is requested. With a null publisher nothing is
-// sent (depth only). Frames without a ground-truth pose are skipped with a warning until
-// visual odometry exists.
+// sent. With PoseSource::kGroundTruth, frames without a ground-truth pose are skipped with a
+// warning. Odometry poses start at the source's first ground-truth pose when it has one
+// (the map frame of a simulator or data set), else at the body frame's origin.
 PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publisher,
                             const PipelineOptions& options, const common::Shutdown& shutdown);
 

@@ -1,6 +1,9 @@
 #include "onboard/sim/renderer.hpp"
 
+#include <functional>
+
 #include <opencv2/core/utility.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <random>
 
@@ -80,10 +83,21 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
       }
     }
   });
+  if (image != nullptr && options_.blur_sigma > 0) {
+    cv::GaussianBlur(*image, *image, cv::Size(), options_.blur_sigma);
+  }
   if (image != nullptr && options_.noise_sigma > 0) {
+    // A fresh pattern per image (one seed for all would be fixed-pattern noise that stereo
+    // and tracking lock onto), reproducible from the seed and the pose.
+    uint64_t seed = options_.noise_seed;
+    for (const double v : {T_map_camera.translation.x(), T_map_camera.translation.y(),
+                           T_map_camera.translation.z(), T_map_camera.rotation.w(),
+                           T_map_camera.rotation.x(), T_map_camera.rotation.y()}) {
+      seed = seed * 0x9E3779B97F4A7C15ull ^ std::hash<double>{}(v);
+    }
     cv::Mat noise(image->size(), CV_16SC1);
-    cv::theRNG().state = options_.noise_seed;
-    cv::randn(noise, 0, options_.noise_sigma);
+    cv::RNG rng(seed);
+    rng.fill(noise, cv::RNG::NORMAL, 0, options_.noise_sigma);
     cv::Mat noisy;
     image->convertTo(noisy, CV_16SC1);
     noisy += noise;

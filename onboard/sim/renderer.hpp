@@ -19,8 +19,11 @@ struct StereoFrame {
 
 struct RenderOptions {
   double max_depth = 40.0;   // metres; farther surfaces are not rendered
-  double noise_sigma = 0.0;  // grey levels of Gaussian image noise (0 = exact images)
+  // Gaussian image noise, grey levels (0 = exact images): drawn afresh for every image, as a
+  // sensor's, reproducibly from the seed and the camera's pose.
+  double noise_sigma = 0.0;
   uint32_t noise_seed = 1;
+  double blur_sigma = 0.0;  // Gaussian blur (defocus, motion), pixels; 0 = sharp
 };
 
 class Renderer {

@@ -1,0 +1,262 @@
+#include "onboard/odometry/detail/fast_tracker.hpp"
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/features2d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/video/tracking.hpp>
+
+#include <algorithm>
+
+#include "onboard/odometry/detail/refine.hpp"
+
+namespace stereomap::odometry::detail {
+
+namespace {
+
+using common::Rigid3;
+using common::Vec3;
+
+const cv::TermCriteria kKltCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 30, 0.01);
+
+Rigid3 fromRvecTvec(const cv::Mat& rvec, const cv::Mat& tvec) {
+  const Eigen::Vector3d aa(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2));
+  const double angle = aa.norm();
+  Rigid3 T;
+  T.rotation = angle > 0 ? common::Quat(Eigen::AngleAxisd(angle, aa / angle)) : common::Quat::Identity();
+  T.translation = Vec3(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  return T;
+}
+
+void toRvecTvec(const Rigid3& T, cv::Mat& rvec, cv::Mat& tvec) {
+  const Eigen::AngleAxisd aa(T.rotation);
+  const Eigen::Vector3d v = aa.axis() * aa.angle();
+  rvec = (cv::Mat_<double>(3, 1) << v.x(), v.y(), v.z());
+  tvec = (cv::Mat_<double>(3, 1) << T.translation.x(), T.translation.y(), T.translation.z());
+}
+
+// Pose covariance moved into the world frame (both 3x3 blocks rotated by R).
+Eigen::Matrix<double, 6, 6> rotated(const Eigen::Matrix<double, 6, 6>& c, const Eigen::Matrix3d& R) {
+  Eigen::Matrix<double, 6, 6> G = Eigen::Matrix<double, 6, 6>::Zero();
+  G.topLeftCorner<3, 3>() = R;
+  G.bottomRightCorner<3, 3>() = R;
+  return G * c * G.transpose();
+}
+
+}  // namespace
+
+FastTracker::FastTracker(const camera::StereoCamera& camera, const VoOptions& options)
+    : camera_(camera), options_(options) {}
+
+std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
+                                           const cv::Mat& right,
+                                           const std::vector<cv::Point2f>& left_points,
+                                           const std::vector<float>* guess_disparity) {
+  std::vector<float> u_right(left_points.size(), -1.0f);
+  if (left_points.empty()) return u_right;
+  std::vector<cv::Mat> right_pyramid;
+  const cv::Size window(options_.klt_window, options_.klt_window);
+  cv::buildOpticalFlowPyramid(right, right_pyramid, window, options_.klt_levels + 1);
+  std::vector<cv::Point2f> guess(left_points);
+  for (size_t i = 0; guess_disparity != nullptr && i < guess.size(); ++i) {
+    if ((*guess_disparity)[i] > 0) guess[i].x -= (*guess_disparity)[i];
+  }
+  std::vector<uchar> status, back_status;
+  std::vector<float> error;
+  cv::calcOpticalFlowPyrLK(left_pyramid, right_pyramid, left_points, guess, status, error, window,
+                           options_.klt_levels + 1, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+  std::vector<cv::Point2f> back(left_points);
+  cv::calcOpticalFlowPyrLK(right_pyramid, left_pyramid, guess, back, back_status, error, window,
+                           1, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+  for (size_t i = 0; i < left_points.size(); ++i) {
+    const float disparity = left_points[i].x - guess[i].x;
+    const bool ok = status[i] && back_status[i] && std::abs(guess[i].y - left_points[i].y) < 1.0f &&
+                    cv::norm(back[i] - left_points[i]) < 0.5 && disparity > 0.5f;
+    if (ok) u_right[i] = guess[i].x;
+  }
+  return u_right;
+}
+
+void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
+                               const cv::Mat& right, std::vector<cv::Point2f> keep,
+                               const Rigid3& T_world_camera,
+                               const Eigen::Matrix<double, 6, 6>& covariance) {
+  // New FAST corners: the strongest per bucket, away from the points kept.
+  const int cell_w = (left.cols + options_.grid_cols - 1) / options_.grid_cols;
+  const int cell_h = (left.rows + options_.grid_rows - 1) / options_.grid_rows;
+  std::vector<int> per_cell(static_cast<size_t>(options_.grid_cols * options_.grid_rows), 0);
+  cv::Mat taken(left.rows / 8 + 1, left.cols / 8 + 1, CV_8UC1, cv::Scalar(0));
+  for (const auto& p : keep) {
+    const int cell = std::clamp(static_cast<int>(p.y) / cell_h, 0, options_.grid_rows - 1) *
+                         options_.grid_cols +
+                     std::clamp(static_cast<int>(p.x) / cell_w, 0, options_.grid_cols - 1);
+    ++per_cell[static_cast<size_t>(cell)];
+    taken.at<uchar>(std::clamp(static_cast<int>(p.y) / 8, 0, taken.rows - 1),
+                    std::clamp(static_cast<int>(p.x) / 8, 0, taken.cols - 1)) = 1;
+  }
+  std::vector<cv::KeyPoint> corners;
+  cv::FAST(left, corners, options_.fast_threshold, true);
+  std::sort(corners.begin(), corners.end(),
+            [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
+  const int border = options_.klt_window / 2 + 1;
+  for (const auto& k : corners) {
+    const int x = static_cast<int>(k.pt.x), y = static_cast<int>(k.pt.y);
+    if (x < border || y < border || x >= left.cols - border || y >= left.rows - border) continue;
+    const size_t cell = static_cast<size_t>((y / cell_h) * options_.grid_cols + x / cell_w);
+    if (per_cell[cell] >= options_.features_per_bucket) continue;
+    uchar& mark = taken.at<uchar>(y / 8, x / 8);
+    if (mark) continue;
+    mark = 1;
+    ++per_cell[cell];
+    keep.push_back(k.pt);
+  }
+  const std::vector<float> u_right = matchRight(pyramid, right, keep, nullptr);
+  keyframe_ = Keyframe{{}, T_world_camera, covariance};
+  tracks_.clear();
+  for (size_t i = 0; i < keep.size(); ++i) {
+    if (u_right[i] < 0) continue;
+    const double disparity = keep[i].x - u_right[i];
+    const double z = camera_.fx * camera_.baseline / disparity;
+    keyframe_.points.push_back(camera_.rayThrough(keep[i].x, keep[i].y) * z);
+    tracks_.push_back(keep[i]);
+  }
+  alive_.assign(tracks_.size(), true);
+  T_previous_keyframe_ = Rigid3::identity();
+}
+
+VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
+  VoEstimate estimate;
+  std::vector<cv::Mat> pyramid;
+  const cv::Size window(options_.klt_window, options_.klt_window);
+  cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
+  if (!initialised_) {
+    makeKeyframe(pyramid, left, right, {}, Rigid3::identity(),
+                 Eigen::Matrix<double, 6, 6>::Zero());
+    previous_pyramid_ = std::move(pyramid);
+    initialised_ = !keyframe_.points.empty();
+    estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
+    estimate.features = static_cast<int>(keyframe_.points.size());
+    estimate.keyframe = true;
+    return estimate;
+  }
+
+  // Temporal tracks from the previous frame, seeded by the constant-velocity prediction.
+  const Rigid3 predicted = motion_ * T_previous_keyframe_;
+  std::vector<size_t> index;
+  std::vector<cv::Point2f> from, to;
+  for (size_t i = 0; i < tracks_.size(); ++i) {
+    if (!alive_[i]) continue;
+    const auto guess = project(camera_, predicted * keyframe_.points[i]);
+    if (!guess) continue;
+    index.push_back(i);
+    from.push_back(tracks_[i]);
+    to.emplace_back(static_cast<float>(guess->x()), static_cast<float>(guess->y()));
+  }
+  std::vector<uchar> status, back_status;
+  std::vector<float> error;
+  if (!from.empty()) {
+    cv::calcOpticalFlowPyrLK(previous_pyramid_, pyramid, from, to, status, error, window,
+                             options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+    std::vector<cv::Point2f> back = from;
+    cv::calcOpticalFlowPyrLK(pyramid, previous_pyramid_, to, back, back_status, error, window,
+                             options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+    for (size_t k = 0; k < from.size(); ++k) {
+      const bool inside = to[k].x >= 0 && to[k].y >= 0 && to[k].x < left.cols - 1 &&
+                          to[k].y < left.rows - 1;
+      if (!status[k] || !back_status[k] || !inside ||
+          cv::norm(back[k] - from[k]) > options_.forward_backward_px) {
+        alive_[index[k]] = false;
+      }
+    }
+  }
+  std::vector<cv::Point3f> object;
+  std::vector<cv::Point2f> image;
+  std::vector<size_t> used;
+  for (size_t k = 0; k < index.size(); ++k) {
+    if (!alive_[index[k]]) continue;
+    const Vec3& p = keyframe_.points[index[k]];
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+    image.push_back(to[k]);
+    used.push_back(k);
+  }
+  estimate.features = static_cast<int>(object.size());
+
+  // 3D-2D RANSAC (P3P; OpenCV adapts the iterations to the inlier ratio), from the prediction.
+  Rigid3 T_current_keyframe = predicted;
+  std::vector<int> inliers;
+  bool solved = false;
+  if (object.size() >= 6) {
+    const cv::Matx33d K(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+    cv::Mat rvec, tvec;
+    toRvecTvec(predicted, rvec, tvec);
+    solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, true, 300,
+                                static_cast<float>(options_.ransac_px), 0.999, inliers,
+                                cv::SOLVEPNP_P3P);
+    if (solved) T_current_keyframe = fromRvecTvec(rvec, tvec);
+  }
+  if (!solved || static_cast<int>(inliers.size()) < options_.degraded_inliers) {
+    // Lost: keep moving as before, start again from this frame.
+    estimate.state = TrackingState::kLost;
+    const Rigid3 T_world_current =
+        keyframe_.T_world_keyframe * predicted.inverse();
+    makeKeyframe(pyramid, left, right, {}, T_world_current, keyframe_.covariance);
+    previous_pyramid_ = std::move(pyramid);
+    estimate.T_world_camera = T_world_current;
+    estimate.keyframe = true;
+    estimate.covariance = keyframe_.covariance;
+    return estimate;
+  }
+
+  // Refine with both cameras: stereo matches of the inliers in the current pair.
+  std::vector<cv::Point2f> inlier_points;
+  std::vector<float> guess_disparity;
+  for (int k : inliers) {
+    inlier_points.push_back(image[static_cast<size_t>(k)]);
+    const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
+    guess_disparity.push_back(static_cast<float>(camera_.fx * camera_.baseline / std::max(p.z(), 1e-3)));
+  }
+  const std::vector<float> u_right = matchRight(pyramid, right, inlier_points, &guess_disparity);
+  std::vector<Observation> observations;
+  for (size_t j = 0; j < inliers.size(); ++j) {
+    Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
+                  Eigen::Vector2d(inlier_points[j].x, inlier_points[j].y), std::nullopt};
+    if (u_right[j] >= 0) o.right_u = u_right[j];
+    observations.push_back(o);
+  }
+  RefineOptions refine;
+  refine.prior_rotation_rad = 0.05;  // weak: a frame's motion rarely changes more than this
+  refine.prior_translation_m = 0.5;
+  const RefineResult refined =
+      refinePose(camera_, observations, T_current_keyframe, predicted, refine);
+  T_current_keyframe = refined.T_current_reference;
+
+  // Inliers after refinement decide the state.
+  int good = 0;
+  for (const auto& o : observations) {
+    const auto pixel = project(camera_, T_current_keyframe * o.point);
+    good += pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
+  }
+  estimate.inliers = good;
+  estimate.state = good >= options_.ok_inliers         ? TrackingState::kOk
+                   : good >= options_.degraded_inliers ? TrackingState::kDegraded
+                                                       : TrackingState::kLost;
+  const Rigid3 T_world_current = keyframe_.T_world_keyframe * T_current_keyframe.inverse();
+  estimate.T_world_camera = T_world_current;
+  estimate.covariance =
+      keyframe_.covariance + rotated(refined.covariance, T_world_current.rotation.toRotationMatrix());
+  motion_ = T_current_keyframe * T_previous_keyframe_.inverse();
+  T_previous_keyframe_ = T_current_keyframe;
+  for (size_t k = 0; k < index.size(); ++k) tracks_[index[k]] = to[k];
+
+  const bool weak = good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
+                    good < 2 * options_.ok_inliers;
+  if (weak || estimate.state != TrackingState::kOk) {
+    std::vector<cv::Point2f> keep;
+    for (size_t j = 0; j < inliers.size(); ++j) keep.push_back(inlier_points[j]);
+    makeKeyframe(pyramid, left, right, keep, T_world_current, estimate.covariance);
+    estimate.keyframe = true;
+  }
+  previous_pyramid_ = std::move(pyramid);
+  return estimate;
+}
+
+}  // namespace stereomap::odometry::detail

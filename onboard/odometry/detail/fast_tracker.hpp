@@ -1,0 +1,44 @@
+// The default odometry (VoMode::kFast): see odometry.hpp.
+#pragma once
+
+#include <opencv2/core.hpp>
+#include <vector>
+
+#include "onboard/odometry/odometry.hpp"
+
+namespace stereomap::odometry::detail {
+
+class FastTracker {
+ public:
+  FastTracker(const camera::StereoCamera& camera, const VoOptions& options);
+  // Pose of the current left camera in the world (first camera) frame.
+  VoEstimate track(const cv::Mat& left, const cv::Mat& right);
+
+ private:
+  struct Keyframe {
+    std::vector<common::Vec3> points;  // keyframe camera frame
+    common::Rigid3 T_world_keyframe;
+    Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
+  };
+  // Stereo points of the current frame (features tracked into it plus new FAST corners).
+  void makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
+                    const cv::Mat& right, std::vector<cv::Point2f> keep,
+                    const common::Rigid3& T_world_camera,
+                    const Eigen::Matrix<double, 6, 6>& covariance);
+  // Left-to-right KLT on rectified images; u_right < 0 where no valid match.
+  std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid, const cv::Mat& right,
+                                const std::vector<cv::Point2f>& left_points,
+                                const std::vector<float>* guess_disparity);
+
+  camera::StereoCamera camera_;
+  VoOptions options_;
+  bool initialised_ = false;
+  Keyframe keyframe_;
+  std::vector<cv::Point2f> tracks_;  // each keyframe point in the previous frame
+  std::vector<bool> alive_;
+  std::vector<cv::Mat> previous_pyramid_;
+  common::Rigid3 T_previous_keyframe_;
+  common::Rigid3 motion_;  // T_current_previous of the last step (constant velocity)
+};
+
+}  // namespace stereomap::odometry::detail

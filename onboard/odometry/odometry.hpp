@@ -1,0 +1,93 @@
+// Stereo visual odometry: the pose of the left camera from rectified stereo pairs alone.
+//
+//   StereoOdometry vo(camera, {.mode = VoMode::kFast});
+//   for (each rectified pair) {
+//     const VoEstimate e = vo.track(left, right, stamp_ns);
+//     if (e.state != TrackingState::kLost) use(e.T_world_camera, e.covariance);
+//   }
+//
+// kFast (default): FAST corners bucketed over the image, pyramidal KLT between frames with a
+// forward-backward check and between left and right, 3D-2D RANSAC (P3P, adaptive iterations)
+// against the current keyframe's stereo points, then Ceres refinement of the reprojection
+// error in both cameras (Huber loss, constant-velocity prior), a 6x6 covariance, and an
+// explicit state: ok / degraded / lost (lost re-initialises at the next frame).
+// kPaper: the stereo-VO paper (docs/BENCHMARKS.md): Harris corners with 13x13 non-maximum
+// suppression, NCC 25x25 matching (left-right along rows, and circular between frames),
+// triangulation, RANSAC on 3 points (2 px, 20 iterations) and Levenberg-Marquardt on Euler
+// angles minimising the 3D-3D error.
+// The world frame is the first frame's left camera (OpenCV axes); callers re-anchor it.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <opencv2/core.hpp>
+
+#include "common/geometry.hpp"
+#include "onboard/camera/stereo_camera.hpp"
+
+namespace stereomap::odometry {
+
+enum class VoMode { kFast, kPaper };
+enum class TrackingState { kInit, kOk, kDegraded, kLost };
+const char* stateName(TrackingState state);
+
+struct VoOptions {
+  VoMode mode = VoMode::kFast;
+  // kFast
+  int grid_cols = 10, grid_rows = 4;  // buckets for an even spread of features
+  int features_per_bucket = 12;
+  int fast_threshold = 15;
+  int klt_window = 21;
+  int klt_levels = 3;
+  double forward_backward_px = 0.8;  // circular consistency of the temporal tracks
+  double ransac_px = 1.0;
+  int ok_inliers = 60;        // at least this many inliers: ok
+  int degraded_inliers = 15;  // fewer: lost
+  // A new keyframe when fewer than this share of the keyframe's points are still inliers.
+  double keyframe_inlier_share = 0.6;
+  // kPaper (the paper's values)
+  double harris_k = 0.04;
+  int paper_corners = 430;
+  int nms_window = 13;
+  int ncc_window = 25;
+  double ncc_min = 0.8;
+  int paper_ransac_iterations = 20;
+  double paper_ransac_px = 2.0;
+};
+
+struct VoEstimate {
+  TrackingState state = TrackingState::kInit;
+  common::Rigid3 T_world_camera;                           // left camera, OpenCV axes
+  Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();  // rot, trans
+  common::Vec3 velocity = common::Vec3::Zero();  // world frame, m/s (finite difference)
+  int features = 0;   // tracked or matched this frame
+  int inliers = 0;
+  bool keyframe = false;
+  double milliseconds = 0;
+};
+
+class StereoOdometry {
+ public:
+  StereoOdometry(const camera::StereoCamera& camera, const VoOptions& options = {});
+  ~StereoOdometry();
+  StereoOdometry(StereoOdometry&&) noexcept;
+  StereoOdometry& operator=(StereoOdometry&&) noexcept;
+
+  // One rectified CV_8UC1 pair; never throws for bad tracking (the state says so).
+  VoEstimate track(const cv::Mat& left, const cv::Mat& right, int64_t stamp_ns);
+  const VoOptions& options() const;
+
+  struct Impl;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+// The stereo-VO paper's attitude (eq. 12) from a rotation: pitch = asin(-r32),
+// yaw = atan(r31 / r33), roll = atan(r12 / r22), radians.
+struct EulerAngles {
+  double yaw = 0, pitch = 0, roll = 0;
+};
+EulerAngles paperAttitude(const Eigen::Matrix3d& R);
+
+}  // namespace stereomap::odometry
