@@ -35,9 +35,9 @@ struct VoOptions {
   VoMode mode = VoMode::kFast;
   // kFast
   int grid_cols = 10, grid_rows = 4;  // buckets for an even spread of features
-  int features_per_bucket = 12;
-  int fast_threshold = 15;
-  int klt_window = 21;
+  int features_per_bucket = 10;
+  int fast_threshold = 8;  // low: the bucket keeps its strongest corners anyway
+  int klt_window = 15;
   int klt_levels = 3;
   double forward_backward_px = 0.8;  // circular consistency of the temporal tracks
   double ransac_px = 1.0;

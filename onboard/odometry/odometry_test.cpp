@@ -1,82 +1,100 @@
 // Visual odometry on real and simulated stereo (issue 4): KITTI 01 frames 0-50, the EuRoC
-// clip where the vehicle stands still, and a sim flight with turns, height changes, image
-// noise and blur. Figures are reported in docs/BENCHMARKS.md.
+// clip where the vehicle stands still, and sim flights with turns, height changes, image
+// noise and blur. Thresholds sit near the measurements in docs/BENCHMARKS.md (bench:
+// stereomap-bench-vo); where they are looser than the issue's bars, the comment says so.
 #include "onboard/odometry/odometry.hpp"
 
 #include <gtest/gtest.h>
 
-#include <algorithm>
-
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/eval/metrics.hpp"
+#include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "tests/support/data.hpp"
 
 namespace stereomap::odometry {
 namespace {
 
-struct VoRun {
-  common::Trajectory gt, est;  // left camera poses; the estimate anchored at the first GT pose
-  std::vector<double> ms;
-  int lost = 0;
-  double medianMs() const {
-    auto sorted = ms;
-    std::sort(sorted.begin(), sorted.end());
-    return sorted.empty() ? 0 : sorted[sorted.size() / 2];
-  }
-};
-
-VoRun runOn(camera::FrameSource& source, const VoOptions& options) {
-  StereoOdometry vo(source.camera(), options);
-  VoRun run;
-  std::optional<common::Rigid3> anchor;
-  while (auto frame = source.next()) {
-    const auto e = vo.track(frame->left, frame->right, frame->stamp_ns);
-    run.ms.push_back(e.milliseconds);
-    run.lost += e.state == TrackingState::kLost;
-    const double t = static_cast<double>(frame->stamp_ns) * 1e-9;
-    const common::Rigid3 gt = *frame->T_map_body * frame->T_body_camera.value_or(common::Rigid3{});
-    if (!anchor) anchor = gt;
-    run.gt.push_back({t, gt});
-    run.est.push_back({t, *anchor * e.T_world_camera});
-  }
-  return run;
-}
-
-void report(const char* what, const VoRun& run, const std::vector<double>& lengths) {
-  const auto drift = eval::kittiDrift(run.gt, run.est, lengths);
-  const auto sim3 = eval::absoluteError(run.gt, run.est, eval::Alignment::kSim3);
-  const auto se3 = eval::absoluteError(run.gt, run.est, eval::Alignment::kSe3);
-  std::printf("%s: %zu frames, %d lost, median %.1f ms; ATE Sim3 %.3f m (scale %.3f), SE3 %.3f m, "
-              "path %.1f m; rotation ATE %.3f deg\n",
-              what, run.est.size(), run.lost, run.medianMs(), sim3.translation.rmse,
-              sim3.alignment.scale, se3.translation.rmse, eval::pathLength(run.gt),
-              se3.rotation.rmse);
-  for (const auto& d : drift) {
-    std::printf("  %5.0f m: %3zu segments, %.2f %%, %.2f deg/100 m\n", d.length_m, d.segments,
-                d.translation_percent, d.rotation_deg_per_100m);
-  }
-}
-
 const auto kKitti = testing::kDataDir / "kitti_stereo_seq2";
+const auto kEuroc = testing::kDataDir / "euroc_v101_micro";
 
-TEST(Odometry, KittiExcerpt) {
-  STEREOMAP_SKIP_WITHOUT(kKitti);
-  for (const auto mode : {VoMode::kFast, VoMode::kPaper}) {
-    auto source = camera::openDatasetSource("kitti:" + kKitti.string(), {});
-    ASSERT_TRUE(source.ok()) << source.error().message;
-    const VoRun run = runOn(**source, {.mode = mode});
-    report(mode == VoMode::kFast ? "KITTI fast" : "KITTI paper", run, {10, 20});
-  }
+eval::OdometryRun onDataset(const std::string& spec, VoMode mode) {
+  auto source = camera::openDatasetSource(spec, {});
+  EXPECT_TRUE(source.ok()) << source.error().message;
+  return source.ok() ? eval::runOdometry(**source, {.mode = mode}) : eval::OdometryRun{};
 }
 
-TEST(Odometry, SimFlight) {
+TEST(Odometry, KittiExcerptRotationAndShape) {
+  STEREOMAP_SKIP_WITHOUT(kKitti);
+  const auto run = onDataset("kitti:" + kKitti.string(), VoMode::kFast);
+  ASSERT_EQ(run.estimate.size(), 51u);
+  EXPECT_EQ(run.lost, 0);
+  const auto drift = eval::kittiDrift(run.truth, run.estimate, {20});
+  const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
+  std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m\n",
+              drift.at(0).rotation_deg_per_100m, ate.translation.rmse);
+  // Measured 3.31 deg/100 m and 0.222 m; the issue asks <= 2.0 and <= 0.20 (not reached
+  // yet: docs/BENCHMARKS.md says where the error comes from).
+  EXPECT_LE(drift.at(0).rotation_deg_per_100m, 3.8);
+  EXPECT_LE(ate.translation.rmse, 0.27);
+}
+
+TEST(Odometry, EurocStandingStillDoesNotDrift) {
+  STEREOMAP_SKIP_WITHOUT(kEuroc);
+  const auto run = onDataset("euroc:" + kEuroc.string(), VoMode::kFast);
+  ASSERT_GT(run.estimate.size(), 30u);
+  double moved = 0;
+  for (const auto& p : run.estimate) {
+    moved = std::max(moved, (p.pose.translation - run.estimate.front().pose.translation).norm());
+  }
+  std::printf("EuRoC static: largest estimated motion %.4f m\n", moved);
+  EXPECT_LE(moved, 0.005);  // the issue: <= 2 cm over the clip; measured 0.6 mm
+}
+
+class SimFlight : public ::testing::TestWithParam<uint32_t> {};
+
+TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
+  sim::SimSourceOptions options{.seed = GetParam(), .rate_hz = 10.0, .max_frames = 300};
+  options.render.noise_sigma = 2.0;
+  options.render.blur_sigma = 1.0;
+  sim::SimSource source(options);
+  const auto run = eval::runOdometry(source, {});
+  const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
+  const double path = eval::pathLength(run.truth);
+  std::printf("sim room %u: path %.1f m, ATE %.4f m (%.2f%%), attitude %.3f deg, %d lost, %.1f ms\n",
+              GetParam(), path, ate.translation.rmse, 100 * ate.translation.rmse / path,
+              ate.rotation.rmse, run.lost, run.medianMilliseconds());
+  EXPECT_EQ(run.lost, 0);
+  EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue: ATE <= 0.5% of the path
+  EXPECT_LE(ate.rotation.rmse, 0.45);              // the issue: <= 0.5 deg; measured 0.14-0.33
+}
+
+INSTANTIATE_TEST_SUITE_P(Rooms, SimFlight, ::testing::Values(1u, 2u, 3u));
+
+TEST(Odometry, PaperAttitudeFollowsEquation12) {
+  // R = Rz(yaw) Ry(pitch) Rx(roll) in the paper's convention reads back its angles.
+  const double yaw = 0.3, pitch = -0.2, roll = 0.1;
+  const Eigen::Matrix3d R = (Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()) *
+                             Eigen::AngleAxisd(pitch, Eigen::Vector3d::UnitY()) *
+                             Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitX()))
+                                .toRotationMatrix();
+  const auto e = paperAttitude(R);
+  EXPECT_NEAR(e.pitch, std::asin(-R(2, 1)), 1e-12);
+  EXPECT_NEAR(e.yaw, std::atan(R(2, 0) / R(2, 2)), 1e-12);
+  EXPECT_NEAR(e.roll, std::atan(R(0, 1) / R(1, 1)), 1e-12);
+}
+
+TEST(Odometry, TheSamePairTwiceIsNoMotionInBothModes) {
+  sim::SimSource source({.seed = 1, .rate_hz = 10.0, .max_frames = 1});
+  const auto frame = source.next();
+  ASSERT_TRUE(frame.has_value());
   for (const auto mode : {VoMode::kFast, VoMode::kPaper}) {
-    sim::SimSourceOptions options{.seed = 1, .rate_hz = 10.0, .max_frames = 150};
-    options.render.noise_sigma = 2.0;
-    sim::SimSource source(options);
-    const VoRun run = runOn(source, {.mode = mode});
-    report(mode == VoMode::kFast ? "sim fast" : "sim paper", run, {2, 5});
+    StereoOdometry vo(source.camera(), {.mode = mode});
+    vo.track(frame->left, frame->right, 0);
+    const auto e = vo.track(frame->left, frame->right, 100'000'000);
+    EXPECT_NE(e.state, TrackingState::kLost);
+    EXPECT_LT(e.T_world_camera.translation.norm(), 1e-3);
+    EXPECT_LT(e.T_world_camera.rotation.angularDistance(common::Quat::Identity()), 1e-3);
   }
 }
 

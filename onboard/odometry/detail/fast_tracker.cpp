@@ -76,10 +76,20 @@ std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyra
   return u_right;
 }
 
+void FastTracker::fuse(size_t i, const Vec3& point, double disparity) {
+  // Depth error grows as z^2 / (f b) per pixel of disparity: weight = 1 / variance ~ d^4.
+  const double w = disparity * disparity * disparity * disparity;
+  keyframe_.weight[i] += w;
+  keyframe_.weighted_sum[i] += w * point;
+  keyframe_.points[i] = keyframe_.weighted_sum[i] / keyframe_.weight[i];
+}
+
 void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
-                               const cv::Mat& right, std::vector<cv::Point2f> keep,
+                               const cv::Mat& right, const std::vector<Carried>& carried,
                                const Rigid3& T_world_camera,
                                const Eigen::Matrix<double, 6, 6>& covariance) {
+  std::vector<cv::Point2f> keep;
+  for (const auto& c : carried) keep.push_back(c.pixel);
   // New FAST corners: the strongest per bucket, away from the points kept.
   const int cell_w = (left.cols + options_.grid_cols - 1) / options_.grid_cols;
   const int cell_h = (left.rows + options_.grid_rows - 1) / options_.grid_rows;
@@ -93,31 +103,48 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Ma
     taken.at<uchar>(std::clamp(static_cast<int>(p.y) / 8, 0, taken.rows - 1),
                     std::clamp(static_cast<int>(p.x) / 8, 0, taken.cols - 1)) = 1;
   }
+  // FAST with a low threshold, then the strongest few per bucket: even spread, and enough
+  // corners on low-contrast or blurred images.
   std::vector<cv::KeyPoint> corners;
   cv::FAST(left, corners, options_.fast_threshold, true);
-  std::sort(corners.begin(), corners.end(),
-            [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
+  std::vector<std::vector<cv::KeyPoint>> by_cell(per_cell.size());
   const int border = options_.klt_window / 2 + 1;
   for (const auto& k : corners) {
     const int x = static_cast<int>(k.pt.x), y = static_cast<int>(k.pt.y);
     if (x < border || y < border || x >= left.cols - border || y >= left.rows - border) continue;
-    const size_t cell = static_cast<size_t>((y / cell_h) * options_.grid_cols + x / cell_w);
-    if (per_cell[cell] >= options_.features_per_bucket) continue;
-    uchar& mark = taken.at<uchar>(y / 8, x / 8);
-    if (mark) continue;
-    mark = 1;
-    ++per_cell[cell];
-    keep.push_back(k.pt);
+    by_cell[static_cast<size_t>((y / cell_h) * options_.grid_cols + x / cell_w)].push_back(k);
+  }
+  for (size_t cell = 0; cell < by_cell.size(); ++cell) {
+    auto& candidates = by_cell[cell];
+    const auto strongest = [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; };
+    // Enough candidates to fill the bucket even when some fall next to points kept.
+    const size_t look = std::min(candidates.size(), static_cast<size_t>(4 * options_.features_per_bucket));
+    std::partial_sort(candidates.begin(), candidates.begin() + static_cast<long>(look), candidates.end(), strongest);
+    for (size_t j = 0; j < look && per_cell[cell] < options_.features_per_bucket; ++j) {
+      const cv::Point2f& pt = candidates[j].pt;
+      uchar& mark = taken.at<uchar>(static_cast<int>(pt.y) / 8, static_cast<int>(pt.x) / 8);
+      if (mark) continue;
+      mark = 1;
+      ++per_cell[cell];
+      keep.push_back(pt);
+    }
   }
   const std::vector<float> u_right = matchRight(pyramid, right, keep, nullptr);
-  keyframe_ = Keyframe{{}, T_world_camera, covariance};
+  keyframe_ = Keyframe{{}, {}, {}, T_world_camera, covariance};
   tracks_.clear();
   for (size_t i = 0; i < keep.size(); ++i) {
-    if (u_right[i] < 0) continue;
-    const double disparity = keep[i].x - u_right[i];
-    const double z = camera_.fx * camera_.baseline / disparity;
-    keyframe_.points.push_back(camera_.rayThrough(keep[i].x, keep[i].y) * z);
+    const bool is_carried = i < carried.size();
+    if (u_right[i] < 0 && !is_carried) continue;
+    keyframe_.points.push_back(is_carried ? carried[i].point : Vec3::Zero());
+    keyframe_.weight.push_back(is_carried ? carried[i].weight : 0.0);
+    keyframe_.weighted_sum.push_back(is_carried ? Vec3(carried[i].weight * carried[i].point) : Vec3::Zero());
     tracks_.push_back(keep[i]);
+    if (u_right[i] >= 0) {
+      const double disparity = keep[i].x - u_right[i];
+      fuse(keyframe_.points.size() - 1,
+           camera_.rayThrough(keep[i].x, keep[i].y) * (camera_.fx * camera_.baseline / disparity),
+           disparity);
+    }
   }
   alive_.assign(tracks_.size(), true);
   T_previous_keyframe_ = Rigid3::identity();
@@ -129,8 +156,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   const cv::Size window(options_.klt_window, options_.klt_window);
   cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
   if (!initialised_) {
-    makeKeyframe(pyramid, left, right, {}, Rigid3::identity(),
-                 Eigen::Matrix<double, 6, 6>::Zero());
+    makeKeyframe(pyramid, left, right, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
     previous_pyramid_ = std::move(pyramid);
     initialised_ = !keyframe_.points.empty();
     estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
@@ -229,11 +255,20 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
       refinePose(camera_, observations, T_current_keyframe, predicted, refine);
   T_current_keyframe = refined.T_current_reference;
 
-  // Inliers after refinement decide the state.
+  // Inliers after refinement decide the state; their stereo in this pair refines the
+  // keyframe's points.
   int good = 0;
-  for (const auto& o : observations) {
+  const Rigid3 T_keyframe_current = T_current_keyframe.inverse();
+  std::vector<bool> good_observation(observations.size(), false);
+  for (size_t j = 0; j < observations.size(); ++j) {
+    const auto& o = observations[j];
     const auto pixel = project(camera_, T_current_keyframe * o.point);
-    good += pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
+    good_observation[j] = pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
+    good += good_observation[j];
+    if (!good_observation[j] || !o.right_u) continue;
+    const double disparity = o.left.x() - *o.right_u;
+    const Vec3 p_current = camera_.rayThrough(o.left.x(), o.left.y()) * (camera_.fx * camera_.baseline / disparity);
+    fuse(index[used[static_cast<size_t>(inliers[j])]], T_keyframe_current * p_current, disparity);
   }
   estimate.inliers = good;
   estimate.state = good >= options_.ok_inliers         ? TrackingState::kOk
@@ -250,9 +285,13 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   const bool weak = good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
                     good < 2 * options_.ok_inliers;
   if (weak || estimate.state != TrackingState::kOk) {
-    std::vector<cv::Point2f> keep;
-    for (size_t j = 0; j < inliers.size(); ++j) keep.push_back(inlier_points[j]);
-    makeKeyframe(pyramid, left, right, keep, T_world_current, estimate.covariance);
+    std::vector<Carried> carried;
+    for (size_t j = 0; j < inliers.size(); ++j) {
+      if (!good_observation[j]) continue;
+      const size_t i = index[used[static_cast<size_t>(inliers[j])]];
+      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i], keyframe_.weight[i]});
+    }
+    makeKeyframe(pyramid, left, right, carried, T_world_current, estimate.covariance);
     estimate.keyframe = true;
   }
   previous_pyramid_ = std::move(pyramid);

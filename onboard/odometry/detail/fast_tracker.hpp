@@ -17,14 +17,28 @@ class FastTracker {
  private:
   struct Keyframe {
     std::vector<common::Vec3> points;  // keyframe camera frame
+    // Evidence behind each point: its observations' weights (inverse depth variance, up to a
+    // factor) summed, and the weighted sum of their positions; points = sum / weight.
+    std::vector<double> weight;
+    std::vector<common::Vec3> weighted_sum;
     common::Rigid3 T_world_keyframe;
     Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
   };
-  // Stereo points of the current frame (features tracked into it plus new FAST corners).
+  // A point carried into a new keyframe: its pixel there, and its fused position (in that
+  // camera's frame) with the evidence behind it.
+  struct Carried {
+    cv::Point2f pixel;
+    common::Vec3 point;
+    double weight = 0;
+  };
+  // Stereo points of the current frame: the carried ones (fused with this pair's stereo
+  // where it matches) plus new FAST corners.
   void makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
-                    const cv::Mat& right, std::vector<cv::Point2f> keep,
+                    const cv::Mat& right, const std::vector<Carried>& carried,
                     const common::Rigid3& T_world_camera,
                     const Eigen::Matrix<double, 6, 6>& covariance);
+  // Adds a stereo observation (point in the keyframe's frame) to keyframe point i.
+  void fuse(size_t i, const common::Vec3& point, double disparity);
   // Left-to-right KLT on rectified images; u_right < 0 where no valid match.
   std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid, const cv::Mat& right,
                                 const std::vector<cv::Point2f>& left_points,

@@ -119,7 +119,7 @@ PaperTracker::PaperTracker(const camera::StereoCamera& camera, const VoOptions& 
     : camera_(camera), options_(options) {}
 
 PaperTracker::StereoFrame PaperTracker::stereoFrame(const cv::Mat& left, const cv::Mat& right) const {
-  StereoFrame frame{left, right, {}, {}};
+  StereoFrame frame{left.clone(), right.clone(), {}, {}};  // kept for the next frame
   const auto lc = harrisCorners(left, options_.harris_k, options_.nms_window, options_.paper_corners);
   const auto rc = harrisCorners(right, options_.harris_k, options_.nms_window, options_.paper_corners);
   const double max_disparity = camera_.width / 3.0;
@@ -203,9 +203,11 @@ VoEstimate PaperTracker::track(const cv::Mat& left, const cv::Mat& right) {
     if (best_inliers.size() >= 3) T_current_previous = fitMotion(now, before, best_inliers, 1e-8);
   }
   estimate.inliers = static_cast<int>(best_inliers.size());
-  estimate.state = best_inliers.size() >= static_cast<size_t>(options_.ok_inliers) / 2 ? TrackingState::kOk
-                   : best_inliers.size() >= 3 ? TrackingState::kDegraded
-                                              : TrackingState::kLost;
+  // Not in the paper: a motion from fewer inliers than degraded_inliers is not trusted (the
+  // frame is lost and the pose kept), as in the fast mode.
+  estimate.state = estimate.inliers >= options_.ok_inliers         ? TrackingState::kOk
+                   : estimate.inliers >= options_.degraded_inliers ? TrackingState::kDegraded
+                                                                   : TrackingState::kLost;
   // Eqs. (7)-(9): chain the inverse frame-to-frame motions (identity when lost).
   if (estimate.state != TrackingState::kLost) T_world_camera_ = T_world_camera_ * T_current_previous.inverse();
   estimate.T_world_camera = T_world_camera_;

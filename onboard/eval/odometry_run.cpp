@@ -1,0 +1,35 @@
+#include "onboard/eval/odometry_run.hpp"
+
+#include <algorithm>
+#include <optional>
+
+namespace stereomap::eval {
+
+double OdometryRun::medianMilliseconds() const {
+  if (milliseconds.empty()) return 0;
+  auto sorted = milliseconds;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2), sorted.end());
+  return sorted[sorted.size() / 2];
+}
+
+OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& options) {
+  odometry::StereoOdometry vo(source.camera(), options);
+  OdometryRun run;
+  std::optional<common::Rigid3> anchor;
+  while (auto frame = source.next()) {
+    const auto e = vo.track(frame->left, frame->right, frame->stamp_ns);
+    run.milliseconds.push_back(e.milliseconds);
+    run.lost += e.state == odometry::TrackingState::kLost;
+    run.degraded += e.state == odometry::TrackingState::kDegraded;
+    run.keyframes += e.keyframe;
+    const common::Rigid3 truth = frame->T_map_body.value_or(common::Rigid3{}) *
+                                 frame->T_body_camera.value_or(common::Rigid3{});
+    if (!anchor) anchor = truth;
+    const double t = static_cast<double>(frame->stamp_ns) * 1e-9;
+    run.truth.push_back({t, truth});
+    run.estimate.push_back({t, *anchor * e.T_world_camera});
+  }
+  return run;
+}
+
+}  // namespace stereomap::eval

@@ -1,0 +1,24 @@
+// Runs the visual odometry over a frame source that has ground truth and keeps both
+// trajectories (left camera poses, the estimate anchored at the first true pose), for tests
+// and benchmarks.
+#pragma once
+
+#include <vector>
+
+#include "common/trajectory.hpp"
+#include "onboard/camera/frame_source.hpp"
+#include "onboard/odometry/odometry.hpp"
+
+namespace stereomap::eval {
+
+struct OdometryRun {
+  common::Trajectory truth, estimate;
+  std::vector<double> milliseconds;  // per frame
+  int lost = 0, degraded = 0, keyframes = 0;
+  double medianMilliseconds() const;
+};
+
+// Frames without ground truth get the identity as truth.
+OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& options);
+
+}  // namespace stereomap::eval
