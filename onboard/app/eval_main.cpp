@@ -27,11 +27,12 @@ void printStats(const char* what, const eval::Stats& s, const char* unit) {
 struct Inputs {
   std::string gt, est, gt_times, est_times;
   double max_dt = 0.01;
+  bool by_index = false;  // set by load(): two KITTI files without times
 };
 
 // Reads both files and pairs their poses: by index when both are KITTI files without times,
 // by time otherwise.
-common::Result<eval::Associated> load(const Inputs& in) {
+common::Result<eval::Associated> load(Inputs& in) {
   common::TrajectoryFormat gt_format, est_format;
   auto gt = common::readTrajectory(in.gt, in.gt_times, &gt_format);
   if (!gt) return gt.error();
@@ -40,6 +41,7 @@ common::Result<eval::Associated> load(const Inputs& in) {
   const bool by_index = gt_format == common::TrajectoryFormat::kKitti &&
                         est_format == common::TrajectoryFormat::kKitti && in.gt_times.empty() &&
                         in.est_times.empty();
+  in.by_index = by_index;
   if (by_index && gt->size() != est->size()) {
     std::fprintf(stderr, "note: %zu reference and %zu estimated poses; comparing the first %zu\n",
                  gt->size(), est->size(), std::min(gt->size(), est->size()));
@@ -127,7 +129,7 @@ int main(int argc, char** argv) {
       std::snprintf(title, sizeof(title), "ATE (%s alignment): rmse %.4f m, max %.4f m, %zu poses",
                     name, result.translation.rmse, result.translation.max, result.translation.n);
       if (auto written = common::writeText(
-              plot, eval::plotPng(pairs->ref, result.aligned_est, result.errors, title));
+              plot, eval::plotPng(pairs->ref, result.aligned_est, result.errors, title, in.by_index));
           !written) {
         std::fprintf(stderr, "error: %s\n", written.error().message.c_str());
         return 1;

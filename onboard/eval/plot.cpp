@@ -27,7 +27,8 @@ std::string metres(double value) {
 }  // namespace
 
 std::string plotPng(const common::Trajectory& ref, const common::Trajectory& est,
-                    const std::vector<double>& errors, const std::string& title) {
+                    const std::vector<double>& errors, const std::string& title,
+                    bool frames) {
   cv::Mat image(600, 1400, CV_8UC3, cv::Scalar(255, 255, 255));
   label(image, title, {20, 30}, 0.6);
   if (ref.empty()) {
@@ -80,8 +81,8 @@ std::string plotPng(const common::Trajectory& ref, const common::Trajectory& est
   cv::polylines(image, curve, false, kEstimate, 1, cv::LINE_AA);
   label(image, "position error over time (0 to " + metres(top) + ")", {760, 565}, 0.45);
   char span[64];
-  std::snprintf(span, sizeof(span), "%.1f s", t1 - t0);
-  label(image, span, {plot.x + plot.width - 60, plot.y + plot.height + 20}, 0.45);
+  std::snprintf(span, sizeof(span), frames ? "%.0f frames" : "%.1f s", t1 - t0);
+  label(image, span, {plot.x + plot.width - 90, plot.y + plot.height + 20}, 0.45);
   std::vector<uchar> png;
   cv::imencode(".png", image, png);
   return {png.begin(), png.end()};

@@ -10,8 +10,10 @@
 
 namespace stereomap::eval {
 
-// PNG bytes (1400 x 600). `errors` has one value per pose pair.
+// PNG bytes (1400 x 600). `errors` has one value per pose pair. `frames`: the stamps are
+// frame numbers (KITTI files without times), not seconds.
 std::string plotPng(const common::Trajectory& ref, const common::Trajectory& aligned_est,
-                    const std::vector<double>& errors, const std::string& title);
+                    const std::vector<double>& errors, const std::string& title,
+                    bool frames = false);
 
 }  // namespace stereomap::eval
