@@ -33,7 +33,7 @@ TEST(Odometry, KittiExcerptRotationAndShape) {
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
   std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m\n",
               drift.at(0).rotation_deg_per_100m, ate.translation.rmse);
-  // Measured 3.31 deg/100 m and 0.222 m; the issue asks <= 2.0 and <= 0.20 (not reached
+  // Measured 3.45 deg/100 m and 0.260 m; the issue asks <= 2.0 and <= 0.20 (not reached
   // yet: docs/BENCHMARKS.md says where the error comes from).
   EXPECT_LE(drift.at(0).rotation_deg_per_100m, 3.8);
   EXPECT_LE(ate.translation.rmse, 0.27);
@@ -66,7 +66,7 @@ TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
               ate.rotation.rmse, run.lost, run.medianMilliseconds());
   EXPECT_EQ(run.lost, 0);
   EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue: ATE <= 0.5% of the path
-  EXPECT_LE(ate.rotation.rmse, 0.45);              // the issue: <= 0.5 deg; measured 0.14-0.33
+  EXPECT_LE(ate.rotation.rmse, 0.45);              // the issue: <= 0.5 deg; measured 0.15-0.21
 }
 
 INSTANTIATE_TEST_SUITE_P(Rooms, SimFlight, ::testing::Values(1u, 2u, 3u));

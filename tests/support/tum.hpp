@@ -14,6 +14,7 @@
 
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
+#include "common/trajectory.hpp"
 
 namespace stereomap::testing {
 
@@ -23,15 +24,8 @@ struct PosedCloud {
 };
 
 inline std::vector<PosedCloud> tumDepthFrames(const std::string& dir, size_t count, int step = 4) {
-  std::vector<std::pair<double, common::Rigid3>> truth;
-  std::ifstream gt(dir + "/groundtruth.txt");
-  for (std::string line; std::getline(gt, line);) {
-    if (line.empty() || line[0] == '#') continue;
-    double t, x, y, z, qx, qy, qz, qw;
-    if (std::istringstream(line) >> t >> x >> y >> z >> qx >> qy >> qz >> qw) {
-      truth.push_back({t, {common::Quat(qw, qx, qy, qz).normalized(), common::Vec3(x, y, z)}});
-    }
-  }
+  auto read = common::readTrajectory(dir + "/groundtruth.txt");
+  const common::Trajectory truth = read.ok() ? read.value() : common::Trajectory{};
   std::vector<PosedCloud> frames;
   std::ifstream list(dir + "/depth.txt");
   for (std::string line; std::getline(list, line) && frames.size() < count;) {
@@ -54,8 +48,8 @@ inline std::vector<PosedCloud> tumDepthFrames(const std::string& dir, size_t cou
     }
     frame.T_map_camera =
         std::min_element(truth.begin(), truth.end(), [&](const auto& a, const auto& b) {
-          return std::abs(a.first - stamp) < std::abs(b.first - stamp);
-        })->second;
+          return std::abs(a.t - stamp) < std::abs(b.t - stamp);
+        })->pose;
     frames.push_back(std::move(frame));
   }
   return frames;

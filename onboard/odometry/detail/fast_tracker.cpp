@@ -48,14 +48,12 @@ FastTracker::FastTracker(const camera::StereoCamera& camera, const VoOptions& op
     : camera_(camera), options_(options) {}
 
 std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
-                                           const cv::Mat& right,
+                                           const std::vector<cv::Mat>& right_pyramid,
                                            const std::vector<cv::Point2f>& left_points,
                                            const std::vector<float>* guess_disparity) {
   std::vector<float> u_right(left_points.size(), -1.0f);
   if (left_points.empty()) return u_right;
-  std::vector<cv::Mat> right_pyramid;
   const cv::Size window(options_.klt_window, options_.klt_window);
-  cv::buildOpticalFlowPyramid(right, right_pyramid, window, options_.klt_levels + 1);
   std::vector<cv::Point2f> guess(left_points);
   for (size_t i = 0; guess_disparity != nullptr && i < guess.size(); ++i) {
     if ((*guess_disparity)[i] > 0) guess[i].x -= (*guess_disparity)[i];
@@ -84,8 +82,9 @@ void FastTracker::fuse(size_t i, const Vec3& point, double disparity) {
   keyframe_.points[i] = keyframe_.weighted_sum[i] / keyframe_.weight[i];
 }
 
-void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
-                               const cv::Mat& right, const std::vector<Carried>& carried,
+void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
+                               const std::vector<cv::Mat>& right_pyramid, const cv::Mat& left,
+                               const std::vector<Carried>& carried,
                                const Rigid3& T_world_camera,
                                const Eigen::Matrix<double, 6, 6>& covariance) {
   std::vector<cv::Point2f> keep;
@@ -129,22 +128,28 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Ma
       keep.push_back(pt);
     }
   }
-  const std::vector<float> u_right = matchRight(pyramid, right, keep, nullptr);
+  // Carried points already hold this pair's stereo (fused by track()); only new corners are
+  // matched here.
+  const std::vector<cv::Point2f> fresh(keep.begin() + static_cast<long>(carried.size()), keep.end());
+  const std::vector<float> u_right = matchRight(pyramid, right_pyramid, fresh, nullptr);
   keyframe_ = Keyframe{{}, {}, {}, T_world_camera, covariance};
   tracks_.clear();
-  for (size_t i = 0; i < keep.size(); ++i) {
-    const bool is_carried = i < carried.size();
-    if (u_right[i] < 0 && !is_carried) continue;
-    keyframe_.points.push_back(is_carried ? carried[i].point : Vec3::Zero());
-    keyframe_.weight.push_back(is_carried ? carried[i].weight : 0.0);
-    keyframe_.weighted_sum.push_back(is_carried ? Vec3(carried[i].weight * carried[i].point) : Vec3::Zero());
-    tracks_.push_back(keep[i]);
-    if (u_right[i] >= 0) {
-      const double disparity = keep[i].x - u_right[i];
-      fuse(keyframe_.points.size() - 1,
-           camera_.rayThrough(keep[i].x, keep[i].y) * (camera_.fx * camera_.baseline / disparity),
-           disparity);
-    }
+  for (const auto& c : carried) {
+    keyframe_.points.push_back(c.point);
+    keyframe_.weight.push_back(c.weight);
+    keyframe_.weighted_sum.push_back(c.weight * c.point);
+    tracks_.push_back(c.pixel);
+  }
+  for (size_t i = 0; i < fresh.size(); ++i) {
+    if (u_right[i] < 0) continue;
+    const double disparity = fresh[i].x - u_right[i];
+    keyframe_.points.push_back(Vec3::Zero());
+    keyframe_.weight.push_back(0.0);
+    keyframe_.weighted_sum.push_back(Vec3::Zero());
+    tracks_.push_back(fresh[i]);
+    fuse(keyframe_.points.size() - 1,
+         camera_.rayThrough(fresh[i].x, fresh[i].y) * (camera_.fx * camera_.baseline / disparity),
+         disparity);
   }
   alive_.assign(tracks_.size(), true);
   T_previous_keyframe_ = Rigid3::identity();
@@ -155,8 +160,10 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   std::vector<cv::Mat> pyramid;
   const cv::Size window(options_.klt_window, options_.klt_window);
   cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
+  std::vector<cv::Mat> right_pyramid;  // for every stereo match of this frame
+  cv::buildOpticalFlowPyramid(right, right_pyramid, window, options_.klt_levels + 1);
   if (!initialised_) {
-    makeKeyframe(pyramid, left, right, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
+    makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
     previous_pyramid_ = std::move(pyramid);
     initialised_ = !keyframe_.points.empty();
     estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
@@ -224,7 +231,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     estimate.state = TrackingState::kLost;
     const Rigid3 T_world_current =
         keyframe_.T_world_keyframe * predicted.inverse();
-    makeKeyframe(pyramid, left, right, {}, T_world_current, keyframe_.covariance);
+    makeKeyframe(pyramid, right_pyramid, left, {}, T_world_current, keyframe_.covariance);
     previous_pyramid_ = std::move(pyramid);
     estimate.T_world_camera = T_world_current;
     estimate.keyframe = true;
@@ -240,7 +247,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
     guess_disparity.push_back(static_cast<float>(camera_.fx * camera_.baseline / std::max(p.z(), 1e-3)));
   }
-  const std::vector<float> u_right = matchRight(pyramid, right, inlier_points, &guess_disparity);
+  const std::vector<float> u_right = matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
   std::vector<Observation> observations;
   for (size_t j = 0; j < inliers.size(); ++j) {
     Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
@@ -291,7 +298,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
       const size_t i = index[used[static_cast<size_t>(inliers[j])]];
       carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i], keyframe_.weight[i]});
     }
-    makeKeyframe(pyramid, left, right, carried, T_world_current, estimate.covariance);
+    makeKeyframe(pyramid, right_pyramid, left, carried, T_world_current, estimate.covariance);
     estimate.keyframe = true;
   }
   previous_pyramid_ = std::move(pyramid);

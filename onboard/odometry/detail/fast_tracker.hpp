@@ -31,16 +31,17 @@ class FastTracker {
     common::Vec3 point;
     double weight = 0;
   };
-  // Stereo points of the current frame: the carried ones (fused with this pair's stereo
-  // where it matches) plus new FAST corners.
-  void makeKeyframe(const std::vector<cv::Mat>& pyramid, const cv::Mat& left,
-                    const cv::Mat& right, const std::vector<Carried>& carried,
+  // Stereo points of the current frame: the carried ones plus new FAST corners matched in
+  // the right image.
+  void makeKeyframe(const std::vector<cv::Mat>& pyramid, const std::vector<cv::Mat>& right_pyramid,
+                    const cv::Mat& left, const std::vector<Carried>& carried,
                     const common::Rigid3& T_world_camera,
                     const Eigen::Matrix<double, 6, 6>& covariance);
   // Adds a stereo observation (point in the keyframe's frame) to keyframe point i.
   void fuse(size_t i, const common::Vec3& point, double disparity);
   // Left-to-right KLT on rectified images; u_right < 0 where no valid match.
-  std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid, const cv::Mat& right,
+  std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid,
+                                const std::vector<cv::Mat>& right_pyramid,
                                 const std::vector<cv::Point2f>& left_points,
                                 const std::vector<float>* guess_disparity);
 
