@@ -22,6 +22,7 @@ OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& 
     run.lost += e.state == odometry::TrackingState::kLost;
     run.degraded += e.state == odometry::TrackingState::kDegraded;
     run.keyframes += e.keyframe;
+    run.right_offset_px = e.right_offset_px;
     const common::Rigid3 truth = frame->T_map_body.value_or(common::Rigid3{}) *
                                  frame->T_body_camera.value_or(common::Rigid3{});
     if (!anchor) anchor = truth;

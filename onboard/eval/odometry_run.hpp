@@ -15,6 +15,7 @@ struct OdometryRun {
   common::Trajectory truth, estimate;
   std::vector<double> milliseconds;  // per frame
   int lost = 0, degraded = 0, keyframes = 0;
+  double right_offset_px = 0;  // the odometry's estimate after the last frame
   double medianMilliseconds() const;
 };
 

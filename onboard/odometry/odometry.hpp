@@ -9,8 +9,10 @@
 // kFast (default): FAST corners bucketed over the image, pyramidal KLT between frames with a
 // forward-backward check and between left and right, 3D-2D RANSAC (P3P, adaptive iterations)
 // against the current keyframe's stereo points, then Ceres refinement of the reprojection
-// error in both cameras (Huber loss, constant-velocity prior), a 6x6 covariance, and an
-// explicit state: ok / degraded / lost (lost re-initialises at the next frame).
+// error in both cameras (Huber loss, constant-velocity prior), bundle adjustment over a
+// sliding window of frames (which also estimates the right image's offset against its
+// calibration), a 6x6 covariance, and an explicit state: ok / degraded / lost (lost
+// re-initialises at the next frame).
 // kPaper: the stereo-VO paper (docs/BENCHMARKS.md): Harris corners with 13x13 non-maximum
 // suppression, NCC 25x25 matching (left-right along rows, and circular between frames),
 // triangulation, RANSAC on 3 points (2 px, 20 iterations) and Levenberg-Marquardt on Euler
@@ -45,6 +47,13 @@ struct VoOptions {
   int degraded_inliers = 15;  // fewer: lost
   // A new keyframe when fewer than this share of the keyframe's points are still inliers.
   double keyframe_inlier_share = 0.6;
+  int window_frames = 5;  // bundle adjustment over the last frames (below 2: off)
+  int window_iterations = 5;
+  // Online estimate of the right image's horizontal offset against its calibration (a
+  // disparity bias; real rigs drift by a pixel or so): how far one window adjustment may move
+  // it (0: not estimated), and its bound.
+  double right_offset_step_px = 0.1;
+  double right_offset_max_px = 3.0;
   // kPaper (the paper's values)
   double harris_k = 0.04;
   int paper_corners = 430;
@@ -64,6 +73,9 @@ struct VoEstimate {
   int inliers = 0;
   bool keyframe = false;
   double milliseconds = 0;
+  // Estimated horizontal offset of the right image against its calibration, pixels (fast
+  // mode). Disparities are corrected by it; far from 0 means the rig needs recalibrating.
+  double right_offset_px = 0;
 };
 
 class StereoOdometry {

@@ -6,6 +6,8 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
@@ -33,10 +35,11 @@ TEST(Odometry, KittiExcerptRotationAndShape) {
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
   std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m\n",
               drift.at(0).rotation_deg_per_100m, ate.translation.rmse);
-  // Measured 3.45 deg/100 m and 0.260 m; the issue asks <= 2.0 and <= 0.20 (not reached
-  // yet: docs/BENCHMARKS.md says where the error comes from).
-  EXPECT_LE(drift.at(0).rotation_deg_per_100m, 3.8);
-  EXPECT_LE(ate.translation.rmse, 0.27);
+  // Measured 2.47 deg/100 m and 0.086 m. The issue asks <= 2.0 deg/100 m and <= 0.20 m; the
+  // rotation bar sits below what this excerpt's images and ground truth allow (a rotation-only
+  // estimate from 1000+ tracks per frame gets 2.51: docs/BENCHMARKS.md).
+  EXPECT_LE(drift.at(0).rotation_deg_per_100m, 2.7);
+  EXPECT_LE(ate.translation.rmse, 0.12);
 }
 
 TEST(Odometry, EurocStandingStillDoesNotDrift) {
@@ -53,11 +56,15 @@ TEST(Odometry, EurocStandingStillDoesNotDrift) {
 
 class SimFlight : public ::testing::TestWithParam<uint32_t> {};
 
-TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
-  sim::SimSourceOptions options{.seed = GetParam(), .rate_hz = 10.0, .max_frames = 300};
+sim::SimSourceOptions noisyFlight(uint32_t seed) {
+  sim::SimSourceOptions options{.seed = seed, .rate_hz = 10.0, .max_frames = 300};
   options.render.noise_sigma = 2.0;
   options.render.blur_sigma = 1.0;
-  sim::SimSource source(options);
+  return options;
+}
+
+TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
+  sim::SimSource source(noisyFlight(GetParam()));
   const auto run = eval::runOdometry(source, {});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
@@ -67,9 +74,49 @@ TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
   EXPECT_EQ(run.lost, 0);
   EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue: ATE <= 0.5% of the path
   EXPECT_LE(ate.rotation.rmse, 0.45);              // the issue: <= 0.5 deg; measured 0.15-0.21
+  // A well calibrated rig: the estimated offset of the right image stays near 0 (measured
+  // within 0.11 px over the flight).
+  EXPECT_LE(std::abs(run.right_offset_px), 0.15);
 }
 
 INSTANTIATE_TEST_SUITE_P(Rooms, SimFlight, ::testing::Values(1u, 2u, 3u));
+
+// A sim source whose right images sit `shift` whole pixels to the right of their calibration.
+class ShiftedRight : public camera::FrameSource {
+ public:
+  ShiftedRight(camera::FrameSource& inner, int shift) : inner_(inner), shift_(shift) {}
+  const camera::StereoCamera& camera() const override { return inner_.camera(); }
+  std::string describe() const override { return inner_.describe() + ", right image shifted"; }
+  std::optional<camera::SourceFrame> next() override {
+    auto frame = inner_.next();
+    if (!frame) return frame;
+    cv::Mat shifted(frame->right.size(), frame->right.type(), cv::Scalar(0));
+    const int w = frame->right.cols - shift_;
+    frame->right(cv::Rect(0, 0, w, frame->right.rows)).copyTo(shifted(cv::Rect(shift_, 0, w, frame->right.rows)));
+    frame->right = shifted;
+    return frame;
+  }
+
+ private:
+  camera::FrameSource& inner_;
+  int shift_;
+};
+
+TEST(Odometry, RightImageOffsetIsEstimatedAndCorrected) {
+  sim::SimSource sim(noisyFlight(1));
+  ShiftedRight source(sim, 1);
+  const auto run = eval::runOdometry(source, {});
+  const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
+  const double path = eval::pathLength(run.truth);
+  std::printf("right image 1 px off: estimated %.3f px, ATE %.4f m (%.2f%%), attitude %.3f deg\n",
+              run.right_offset_px, ate.translation.rmse, 100 * ate.translation.rmse / path,
+              ate.rotation.rmse);
+  // Measured: 0.92-1.05 px after 100 frames; without the estimate the ATE was 0.78 % of the
+  // path and the attitude 1.5 deg, with it 0.09 % and 0.23 deg.
+  EXPECT_NEAR(run.right_offset_px, 1.0, 0.15);
+  EXPECT_LE(ate.translation.rmse, 0.005 * path);
+  EXPECT_LE(ate.rotation.rmse, 0.45);
+}
 
 TEST(Odometry, PaperAttitudeFollowsEquation12) {
   // R = Rz(yaw) Ry(pitch) Rx(roll) in the paper's convention reads back its angles.

@@ -199,6 +199,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       report_frame.odometry_ms = estimate->milliseconds;
       summary.lost_frames += estimate->state == odometry::TrackingState::kLost;
       summary.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
+      summary.right_offset_px = estimate->right_offset_px;
     } else if (frame->T_map_body) {
       T_map_body = *frame->T_map_body;
     } else {

@@ -65,6 +65,8 @@ struct PipelineSummary {
   uint64_t lost_frames = 0;    // odometry lost: the pose was a guess, no cloud was sent
   uint64_t degraded_frames = 0;
   double median_odometry_ms = 0;
+  // The odometry's last estimate of the right image's offset against its calibration (px).
+  double right_offset_px = 0;
 };
 
 // The DDS side of the vehicle: one writer per topic.

@@ -6,8 +6,11 @@
 #include <opencv2/video/tracking.hpp>
 
 #include <algorithm>
+#include <cmath>
+#include <limits>
 
 #include "onboard/odometry/detail/refine.hpp"
+#include "onboard/odometry/detail/reprojection.hpp"
 
 namespace stereomap::odometry::detail {
 
@@ -19,17 +22,12 @@ using common::Vec3;
 const cv::TermCriteria kKltCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 30, 0.01);
 
 Rigid3 fromRvecTvec(const cv::Mat& rvec, const cv::Mat& tvec) {
-  const Eigen::Vector3d aa(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2));
-  const double angle = aa.norm();
-  Rigid3 T;
-  T.rotation = angle > 0 ? common::Quat(Eigen::AngleAxisd(angle, aa / angle)) : common::Quat::Identity();
-  T.translation = Vec3(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
-  return T;
+  return {quatOf(Eigen::Vector3d(rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2))),
+          Vec3(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2))};
 }
 
 void toRvecTvec(const Rigid3& T, cv::Mat& rvec, cv::Mat& tvec) {
-  const Eigen::AngleAxisd aa(T.rotation);
-  const Eigen::Vector3d v = aa.axis() * aa.angle();
+  const Eigen::Vector3d v = angleAxisOf(T.rotation);
   rvec = (cv::Mat_<double>(3, 1) << v.x(), v.y(), v.z());
   tvec = (cv::Mat_<double>(3, 1) << T.translation.x(), T.translation.y(), T.translation.z());
 }
@@ -45,18 +43,18 @@ Eigen::Matrix<double, 6, 6> rotated(const Eigen::Matrix<double, 6, 6>& c, const 
 }  // namespace
 
 FastTracker::FastTracker(const camera::StereoCamera& camera, const VoOptions& options)
-    : camera_(camera), options_(options) {}
+    : camera_(camera), options_(options), window_(camera, options.window_frames) {}
 
 std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
                                            const std::vector<cv::Mat>& right_pyramid,
                                            const std::vector<cv::Point2f>& left_points,
                                            const std::vector<float>* guess_disparity) {
-  std::vector<float> u_right(left_points.size(), -1.0f);
+  std::vector<float> u_right(left_points.size(), std::numeric_limits<float>::quiet_NaN());
   if (left_points.empty()) return u_right;
   const cv::Size window(options_.klt_window, options_.klt_window);
   std::vector<cv::Point2f> guess(left_points);
   for (size_t i = 0; guess_disparity != nullptr && i < guess.size(); ++i) {
-    if ((*guess_disparity)[i] > 0) guess[i].x -= (*guess_disparity)[i];
+    if ((*guess_disparity)[i] > 0) guess[i].x -= (*guess_disparity)[i] - static_cast<float>(right_offset_);
   }
   std::vector<uchar> status, back_status;
   std::vector<float> error;
@@ -66,10 +64,10 @@ std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyra
   cv::calcOpticalFlowPyrLK(right_pyramid, left_pyramid, guess, back, back_status, error, window,
                            1, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
   for (size_t i = 0; i < left_points.size(); ++i) {
-    const float disparity = left_points[i].x - guess[i].x;
+    const float disparity = left_points[i].x - guess[i].x + static_cast<float>(right_offset_);
     const bool ok = status[i] && back_status[i] && std::abs(guess[i].y - left_points[i].y) < 1.0f &&
                     cv::norm(back[i] - left_points[i]) < 0.5 && disparity > 0.5f;
-    if (ok) u_right[i] = guess[i].x;
+    if (ok) u_right[i] = guess[i].x - static_cast<float>(right_offset_);
   }
   return u_right;
 }
@@ -132,27 +130,49 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
   // matched here.
   const std::vector<cv::Point2f> fresh(keep.begin() + static_cast<long>(carried.size()), keep.end());
   const std::vector<float> u_right = matchRight(pyramid, right_pyramid, fresh, nullptr);
-  keyframe_ = Keyframe{{}, {}, {}, T_world_camera, covariance};
+  keyframe_ = Keyframe{{}, {}, {}, {}, T_world_camera, frame_, covariance};
   tracks_.clear();
   for (const auto& c : carried) {
     keyframe_.points.push_back(c.point);
+    keyframe_.ids.push_back(c.id);
     keyframe_.weight.push_back(c.weight);
     keyframe_.weighted_sum.push_back(c.weight * c.point);
     tracks_.push_back(c.pixel);
   }
   for (size_t i = 0; i < fresh.size(); ++i) {
-    if (u_right[i] < 0) continue;
+    if (std::isnan(u_right[i])) continue;
     const double disparity = fresh[i].x - u_right[i];
     keyframe_.points.push_back(Vec3::Zero());
+    keyframe_.ids.push_back(next_landmark_++);
     keyframe_.weight.push_back(0.0);
     keyframe_.weighted_sum.push_back(Vec3::Zero());
     tracks_.push_back(fresh[i]);
     fuse(keyframe_.points.size() - 1,
          camera_.rayThrough(fresh[i].x, fresh[i].y) * (camera_.fx * camera_.baseline / disparity),
          disparity);
+    window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y), u_right[i] + right_offset_},
+                    T_world_camera * keyframe_.points.back());
   }
   alive_.assign(tracks_.size(), true);
-  T_previous_keyframe_ = Rigid3::identity();
+  T_world_previous_ = T_world_camera;
+}
+
+void FastTracker::adjustWindow(Rigid3& T_world_current) {
+  const double step = options_.right_offset_step_px;
+  if (options_.window_frames < 2 ||
+      !window_.adjust(options_.window_iterations, options_.ransac_px, right_offset_, step)) {
+    return;
+  }
+  right_offset_ = std::clamp(right_offset_, -options_.right_offset_max_px, options_.right_offset_max_px);
+  T_world_current = *window_.pose(frame_);
+  if (const auto T = window_.pose(keyframe_.frame)) keyframe_.T_world_keyframe = *T;
+  const Rigid3 T_keyframe_world = keyframe_.T_world_keyframe.inverse();
+  for (size_t i = 0; i < keyframe_.points.size(); ++i) {
+    const auto p = alive_[i] ? window_.landmark(keyframe_.ids[i]) : std::nullopt;
+    if (!p) continue;
+    keyframe_.points[i] = T_keyframe_world * *p;
+    keyframe_.weighted_sum[i] = keyframe_.weight[i] * keyframe_.points[i];
+  }
 }
 
 VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
@@ -162,18 +182,22 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
   std::vector<cv::Mat> right_pyramid;  // for every stereo match of this frame
   cv::buildOpticalFlowPyramid(right, right_pyramid, window, options_.klt_levels + 1);
+  ++frame_;
   if (!initialised_) {
+    window_.clear();
+    window_.addFrame(frame_, Rigid3::identity());
     makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
     previous_pyramid_ = std::move(pyramid);
     initialised_ = !keyframe_.points.empty();
     estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
     estimate.features = static_cast<int>(keyframe_.points.size());
     estimate.keyframe = true;
+    estimate.right_offset_px = right_offset_;
     return estimate;
   }
 
   // Temporal tracks from the previous frame, seeded by the constant-velocity prediction.
-  const Rigid3 predicted = motion_ * T_previous_keyframe_;
+  const Rigid3 predicted = motion_ * T_world_previous_.inverse() * keyframe_.T_world_keyframe;
   std::vector<size_t> index;
   std::vector<cv::Point2f> from, to;
   for (size_t i = 0; i < tracks_.size(); ++i) {
@@ -229,13 +253,15 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   if (!solved || static_cast<int>(inliers.size()) < options_.degraded_inliers) {
     // Lost: keep moving as before, start again from this frame.
     estimate.state = TrackingState::kLost;
-    const Rigid3 T_world_current =
-        keyframe_.T_world_keyframe * predicted.inverse();
+    const Rigid3 T_world_current = keyframe_.T_world_keyframe * predicted.inverse();
+    window_.clear();
+    window_.addFrame(frame_, T_world_current);
     makeKeyframe(pyramid, right_pyramid, left, {}, T_world_current, keyframe_.covariance);
     previous_pyramid_ = std::move(pyramid);
     estimate.T_world_camera = T_world_current;
     estimate.keyframe = true;
     estimate.covariance = keyframe_.covariance;
+    estimate.right_offset_px = right_offset_;
     return estimate;
   }
 
@@ -252,7 +278,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   for (size_t j = 0; j < inliers.size(); ++j) {
     Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
                   Eigen::Vector2d(inlier_points[j].x, inlier_points[j].y), std::nullopt};
-    if (u_right[j] >= 0) o.right_u = u_right[j];
+    if (!std::isnan(u_right[j])) o.right_u = u_right[j];
     observations.push_back(o);
   }
   RefineOptions refine;
@@ -263,30 +289,39 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   T_current_keyframe = refined.T_current_reference;
 
   // Inliers after refinement decide the state; their stereo in this pair refines the
-  // keyframe's points.
+  // keyframe's points, and they join the window.
   int good = 0;
   const Rigid3 T_keyframe_current = T_current_keyframe.inverse();
+  window_.addFrame(frame_, keyframe_.T_world_keyframe * T_keyframe_current);
   std::vector<bool> good_observation(observations.size(), false);
   for (size_t j = 0; j < observations.size(); ++j) {
     const auto& o = observations[j];
     const auto pixel = project(camera_, T_current_keyframe * o.point);
     good_observation[j] = pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
     good += good_observation[j];
-    if (!good_observation[j] || !o.right_u) continue;
-    const double disparity = o.left.x() - *o.right_u;
-    const Vec3 p_current = camera_.rayThrough(o.left.x(), o.left.y()) * (camera_.fx * camera_.baseline / disparity);
-    fuse(index[used[static_cast<size_t>(inliers[j])]], T_keyframe_current * p_current, disparity);
+    if (!good_observation[j]) continue;
+    const size_t i = index[used[static_cast<size_t>(inliers[j])]];
+    if (o.right_u) {
+      const double disparity = o.left.x() - *o.right_u;
+      const Vec3 p_current = camera_.rayThrough(o.left.x(), o.left.y()) * (camera_.fx * camera_.baseline / disparity);
+      fuse(i, T_keyframe_current * p_current, disparity);
+    }
+    std::optional<double> raw_u;
+    if (o.right_u) raw_u = *o.right_u + right_offset_;
+    window_.observe({keyframe_.ids[i], o.left, raw_u}, keyframe_.T_world_keyframe * keyframe_.points[i]);
   }
   estimate.inliers = good;
   estimate.state = good >= options_.ok_inliers         ? TrackingState::kOk
                    : good >= options_.degraded_inliers ? TrackingState::kDegraded
                                                        : TrackingState::kLost;
-  const Rigid3 T_world_current = keyframe_.T_world_keyframe * T_current_keyframe.inverse();
+  Rigid3 T_world_current = keyframe_.T_world_keyframe * T_keyframe_current;
+  adjustWindow(T_world_current);
+  T_current_keyframe = T_world_current.inverse() * keyframe_.T_world_keyframe;
   estimate.T_world_camera = T_world_current;
   estimate.covariance =
       keyframe_.covariance + rotated(refined.covariance, T_world_current.rotation.toRotationMatrix());
-  motion_ = T_current_keyframe * T_previous_keyframe_.inverse();
-  T_previous_keyframe_ = T_current_keyframe;
+  motion_ = T_world_current.inverse() * window_.pose(frame_ - 1).value_or(T_world_previous_);
+  T_world_previous_ = T_world_current;
   for (size_t k = 0; k < index.size(); ++k) tracks_[index[k]] = to[k];
 
   const bool weak = good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
@@ -296,12 +331,14 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     for (size_t j = 0; j < inliers.size(); ++j) {
       if (!good_observation[j]) continue;
       const size_t i = index[used[static_cast<size_t>(inliers[j])]];
-      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i], keyframe_.weight[i]});
+      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i], keyframe_.weight[i],
+                         keyframe_.ids[i]});
     }
     makeKeyframe(pyramid, right_pyramid, left, carried, T_world_current, estimate.covariance);
     estimate.keyframe = true;
   }
   previous_pyramid_ = std::move(pyramid);
+  estimate.right_offset_px = right_offset_;
   return estimate;
 }
 

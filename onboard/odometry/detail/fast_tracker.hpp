@@ -4,6 +4,7 @@
 #include <opencv2/core.hpp>
 #include <vector>
 
+#include "onboard/odometry/detail/window.hpp"
 #include "onboard/odometry/odometry.hpp"
 
 namespace stereomap::odometry::detail {
@@ -17,11 +18,13 @@ class FastTracker {
  private:
   struct Keyframe {
     std::vector<common::Vec3> points;  // keyframe camera frame
+    std::vector<int64_t> ids;          // landmark ids, kept while a point is carried
     // Evidence behind each point: its observations' weights (inverse depth variance, up to a
     // factor) summed, and the weighted sum of their positions; points = sum / weight.
     std::vector<double> weight;
     std::vector<common::Vec3> weighted_sum;
     common::Rigid3 T_world_keyframe;
+    int64_t frame = 0;
     Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
   };
   // A point carried into a new keyframe: its pixel there, and its fused position (in that
@@ -30,6 +33,7 @@ class FastTracker {
     cv::Point2f pixel;
     common::Vec3 point;
     double weight = 0;
+    int64_t id = 0;
   };
   // Stereo points of the current frame: the carried ones plus new FAST corners matched in
   // the right image.
@@ -39,20 +43,31 @@ class FastTracker {
                     const Eigen::Matrix<double, 6, 6>& covariance);
   // Adds a stereo observation (point in the keyframe's frame) to keyframe point i.
   void fuse(size_t i, const common::Vec3& point, double disparity);
-  // Left-to-right KLT on rectified images; u_right < 0 where no valid match.
+  // Left-to-right KLT on rectified images: the right column corrected by the right camera's
+  // estimated offset (as a calibrated camera would see it); NaN where no valid match.
   std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid,
                                 const std::vector<cv::Mat>& right_pyramid,
                                 const std::vector<cv::Point2f>& left_points,
                                 const std::vector<float>* guess_disparity);
 
+  // Window adjustment after the frame's own refinement: moves the current pose, the keyframe's
+  // pose (while in the window) and the keyframe's points.
+  void adjustWindow(common::Rigid3& T_world_current);
+
   camera::StereoCamera camera_;
   VoOptions options_;
+  SlidingWindow window_;
   bool initialised_ = false;
+  int64_t frame_ = 0;
+  int64_t next_landmark_ = 0;
+  // Estimated horizontal offset of the right image against its calibration (pixels, raw
+  // column minus calibrated column); every disparity is corrected by it.
+  double right_offset_ = 0;
   Keyframe keyframe_;
   std::vector<cv::Point2f> tracks_;  // each keyframe point in the previous frame
   std::vector<bool> alive_;
   std::vector<cv::Mat> previous_pyramid_;
-  common::Rigid3 T_previous_keyframe_;
+  common::Rigid3 T_world_previous_;
   common::Rigid3 motion_;  // T_current_previous of the last step (constant velocity)
 };
 

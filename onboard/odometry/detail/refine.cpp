@@ -1,29 +1,24 @@
 #include "onboard/odometry/detail/refine.hpp"
 
 #include <ceres/ceres.h>
-#include <ceres/rotation.h>
+
+#include "onboard/odometry/detail/reprojection.hpp"
 
 namespace stereomap::odometry::detail {
 
 namespace {
 
+// A fixed point (the reference frame's) seen from the pose being refined.
 struct Reprojection {
   Reprojection(const camera::StereoCamera& c, const common::Vec3& p, double u, double v, double bx)
-      : fx(c.fx), fy(c.fy), cx(c.cx), cy(c.cy), bx(bx), u(u), v(v), point(p) {}
+      : residual(c, u, v, bx), point(p) {}
   template <typename T>
-  bool operator()(const T* angle_axis, const T* t, T* residual) const {
+  bool operator()(const T* angle_axis, const T* t, T* out) const {
     const T p[3] = {T(point.x()), T(point.y()), T(point.z())};
-    T q[3];
-    ceres::AngleAxisRotatePoint(angle_axis, p, q);
-    q[0] += t[0] - T(bx);
-    q[1] += t[1];
-    q[2] += t[2];
-    if (q[2] < T(1e-6)) q[2] = T(1e-6);
-    residual[0] = T(fx) * q[0] / q[2] + T(cx) - T(u);
-    residual[1] = T(fy) * q[1] / q[2] + T(cy) - T(v);
+    residual(angle_axis, t, p, out);
     return true;
   }
-  double fx, fy, cx, cy, bx, u, v;
+  PinholeResidual residual;
   common::Vec3 point;
 };
 
@@ -41,11 +36,6 @@ struct Prior {
   Eigen::Vector3d aa, t;
   double sr, st;
 };
-
-Eigen::Vector3d angleAxisOf(const common::Quat& q) {
-  const Eigen::AngleAxisd aa(q.normalized());
-  return aa.axis() * aa.angle();
-}
 
 }  // namespace
 
@@ -93,9 +83,7 @@ RefineResult refinePose(const camera::StereoCamera& camera,
   ceres::Solve(solver, &problem, &summary);
 
   RefineResult result;
-  const double angle = angle_axis.norm();
-  result.T_current_reference.rotation =
-      angle > 0 ? common::Quat(Eigen::AngleAxisd(angle, angle_axis / angle)) : common::Quat::Identity();
+  result.T_current_reference.rotation = quatOf(angle_axis);
   result.T_current_reference.translation = translation;
   const size_t residuals = static_cast<size_t>(summary.num_residuals);
   result.rms_px = residuals > 0 ? std::sqrt(2.0 * summary.final_cost / static_cast<double>(residuals)) : 0;
