@@ -232,8 +232,10 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
     const auto depth_start = Clock::now();
     const cv::Mat disparity = matcher.compute(frame->left, frame->right);
+    stereo::CloudOptions cloud_options = options.cloud;
+    if (estimate) cloud_options.disparity_offset_px = estimate->right_offset_px;  // see odometry.hpp
     const auto cloud =
-        stereo::cloudFromDisparity(disparity, frame->left, source.camera(), options.cloud);
+        stereo::cloudFromDisparity(disparity, frame->left, source.camera(), cloud_options);
     depth_ms.push_back(msSince(depth_start));
 
     const auto encode_start = Clock::now();

@@ -189,6 +189,7 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
   CV_Assert(options.block_cols >= 1 && options.block_rows >= 1);
   const double min_disparity = camera.disparityFromDepth(options.max_range_m);
   const double max_disparity = camera.disparityFromDepth(options.min_range_m);
+  const float offset = static_cast<float>(options.disparity_offset_px);
   const int block_pixels = options.block_cols * options.block_rows;
   const int grid_rows = disparity.rows / options.block_rows;
   const int grid_cols = disparity.cols / options.block_cols;
@@ -210,8 +211,8 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
         const float* row = disparity.ptr<float>(v) + u0;
         const uint8_t* grey = options.with_intensity ? left.ptr<uint8_t>(v) + u0 : nullptr;
         for (int i = 0; i < options.block_cols; ++i) {
-          const float d = row[i];
-          if (d > 0 && d >= min_disparity && d <= max_disparity) {
+          const float d = row[i] + offset;
+          if (row[i] > 0 && d >= min_disparity && d <= max_disparity) {
             valid[count++] = d;
             sum += d;
             lo = std::min(lo, d);

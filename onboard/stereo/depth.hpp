@@ -101,6 +101,9 @@ struct CloudOptions {
   // mismatch, whose points would land between or behind surfaces (at 0.05 m voxels: precision
   // 0.949 without, 0.966 with 0.5, on the sim; docs/BENCHMARKS.md).
   double max_block_span_px = 0.5;
+  // Added to every valid disparity before anything else: the right image's offset against its
+  // calibration (raw minus calibrated column), as the odometry estimates it.
+  double disparity_offset_px = 0;
 };
 
 // One point per block_cols x block_rows block: the mean valid disparity of the block (the

@@ -74,6 +74,22 @@ TEST(CloudFromDisparity, BlocksOfFiveByTwoOnAPlaneGiveOnePointEach) {
   }
 }
 
+TEST(CloudFromDisparity, TheDisparityOffsetCorrectsDepth) {
+  // The matcher saw 1 px less than the truth (right image 1 px off): the offset puts it back.
+  const double z = 4.0, offset = 1.0;
+  const cv::Mat disparity(kCamera.height, kCamera.width, CV_32FC1,
+                          cv::Scalar(kCamera.disparityFromDepth(z) - offset));
+  const cv::Mat left(kCamera.height, kCamera.width, CV_8UC1, cv::Scalar(77));
+  const auto biased = cloudFromDisparity(disparity, left, kCamera);
+  const auto corrected = cloudFromDisparity(disparity, left, kCamera, {.disparity_offset_px = offset});
+  ASSERT_EQ(corrected.size(), static_cast<size_t>(128 * 240));
+  EXPECT_GT(biased.points[0].z(), z + 0.2);
+  for (const auto& p : corrected.points) ASSERT_NEAR(p.z(), z, quantisationBound(z) * 1.01);
+  // A raw invalid disparity stays invalid whatever the offset.
+  const cv::Mat invalid(kCamera.height, kCamera.width, CV_32FC1, cv::Scalar(-1));
+  EXPECT_EQ(cloudFromDisparity(invalid, left, kCamera, {.disparity_offset_px = 3.0}).size(), 0u);
+}
+
 TEST(CloudFromDisparity, SpecklesOfBlocksAreDropped) {
   // A plane at 2.5 m with a 3x3-block island at another depth: the island is a speckle.
   cv::Mat disparity(kCamera.height, kCamera.width, CV_32FC1,

@@ -153,31 +153,38 @@ VoEstimate PaperTracker::track(const cv::Mat& left, const cv::Mat& right) {
     estimate.T_world_camera = T_world_camera_;
     return estimate;
   }
-  // Circular matching: current left <-> previous left (NCC within a search radius), kept only
-  // when current right <-> previous right agree too.
+  // Circular matching: current left -> previous left -> previous right (its stereo partner)
+  // -> current right -> current left must close: each step is the best NCC within the
+  // search radius, taken both ways between frames.
   const double radius = camera_.width / 8.0;
-  std::vector<Vec3> now, before;
-  std::vector<cv::Point2f> pixels;
-  for (size_t i = 0; i < current.corners.size(); ++i) {
-    double best = options_.ncc_min;
+  const auto best = [&](const cv::Mat& a, cv::Point2f p, const cv::Mat& b,
+                        const std::vector<cv::Point2f>& candidates) {
+    double top = options_.ncc_min;
     int pick = -1;
-    for (size_t j = 0; j < previous_.corners.size(); ++j) {
-      if (cv::norm(previous_.corners[j] - current.corners[i]) > radius) continue;
-      const double score = ncc(left, current.corners[i], previous_.left, previous_.corners[j],
-                               options_.ncc_window);
-      if (score > best) {
-        best = score;
+    for (size_t j = 0; j < candidates.size(); ++j) {
+      if (cv::norm(candidates[j] - p) > radius) continue;
+      const double score = ncc(a, p, b, candidates[j], options_.ncc_window);
+      if (score > top) {
+        top = score;
         pick = static_cast<int>(j);
       }
     }
-    if (pick < 0) continue;
-    const size_t j = static_cast<size_t>(pick);
-    if (ncc(right, current.right_corners[i], previous_.right, previous_.right_corners[j],
-            options_.ncc_window) < options_.ncc_min) {
+    return pick;
+  };
+  std::vector<Vec3> now, before;
+  std::vector<cv::Point2f> pixels;
+  for (size_t i = 0; i < current.corners.size(); ++i) {
+    const int j = best(left, current.corners[i], previous_.left, previous_.corners);
+    if (j < 0) continue;
+    const size_t pj = static_cast<size_t>(j);
+    if (best(previous_.left, previous_.corners[pj], left, current.corners) != static_cast<int>(i) ||
+        best(right, current.right_corners[i], previous_.right, previous_.right_corners) != j ||
+        best(previous_.right, previous_.right_corners[pj], right, current.right_corners) !=
+            static_cast<int>(i)) {
       continue;
     }
     now.push_back(triangulate(camera_, current.corners[i], current.right_corners[i]));
-    before.push_back(triangulate(camera_, previous_.corners[j], previous_.right_corners[j]));
+    before.push_back(triangulate(camera_, previous_.corners[pj], previous_.right_corners[pj]));
     pixels.push_back(current.corners[i]);
   }
   estimate.features = static_cast<int>(now.size());
