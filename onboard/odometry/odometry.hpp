@@ -50,8 +50,9 @@ struct VoOptions {
   int window_frames = 5;  // bundle adjustment over the last frames (below 2: off)
   int window_iterations = 5;
   // Online estimate of the right image's horizontal offset against its calibration (a
-  // disparity bias; real rigs drift by a pixel or so): how far one window adjustment may move
-  // it (0: not estimated), and its bound.
+  // disparity bias; real rigs drift by a pixel or so): the deviation of its prior around the
+  // last estimate at each window adjustment (0: not estimated), and a hard bound. A window
+  // that cannot tell it (standing still, only turning) leaves it as it is.
   double right_offset_step_px = 0.1;
   double right_offset_max_px = 3.0;
   // kPaper (the paper's values)

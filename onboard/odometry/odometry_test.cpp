@@ -35,11 +35,11 @@ TEST(Odometry, KittiExcerptRotationAndShape) {
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
   std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m\n",
               drift.at(0).rotation_deg_per_100m, ate.translation.rmse);
-  // Measured 2.47 deg/100 m and 0.086 m. The issue asks <= 2.0 deg/100 m and <= 0.20 m; the
+  // Measured 2.62 deg/100 m and 0.055 m. The issue asks <= 2.0 deg/100 m and <= 0.20 m; the
   // rotation bar sits below what this excerpt's images and ground truth allow (a rotation-only
   // estimate from 1000+ tracks per frame gets 2.51: docs/BENCHMARKS.md).
   EXPECT_LE(drift.at(0).rotation_deg_per_100m, 2.7);
-  EXPECT_LE(ate.translation.rmse, 0.12);
+  EXPECT_LE(ate.translation.rmse, 0.08);
 }
 
 TEST(Odometry, EurocStandingStillDoesNotDrift) {
@@ -51,7 +51,7 @@ TEST(Odometry, EurocStandingStillDoesNotDrift) {
     moved = std::max(moved, (p.pose.translation - run.estimate.front().pose.translation).norm());
   }
   std::printf("EuRoC static: largest estimated motion %.4f m\n", moved);
-  EXPECT_LE(moved, 0.005);  // the issue: <= 2 cm over the clip; measured 0.6 mm
+  EXPECT_LE(moved, 0.005);  // the issue: <= 2 cm over the clip; measured 1.0 mm
 }
 
 class SimFlight : public ::testing::TestWithParam<uint32_t> {};
@@ -73,15 +73,16 @@ TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
               ate.rotation.rmse, run.lost, run.medianMilliseconds());
   EXPECT_EQ(run.lost, 0);
   EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue: ATE <= 0.5% of the path
-  EXPECT_LE(ate.rotation.rmse, 0.45);              // the issue: <= 0.5 deg; measured 0.15-0.21
+  EXPECT_LE(ate.rotation.rmse, 0.3);               // the issue: <= 0.5 deg; measured 0.14-0.19
   // A well calibrated rig: the estimated offset of the right image stays near 0 (measured
-  // within 0.11 px over the flight).
+  // within 0.19 px over the flight, 0.02-0.05 at its end).
   EXPECT_LE(std::abs(run.right_offset_px), 0.15);
 }
 
 INSTANTIATE_TEST_SUITE_P(Rooms, SimFlight, ::testing::Values(1u, 2u, 3u));
 
-// A sim source whose right images sit `shift` whole pixels to the right of their calibration.
+// A sim source whose right images sit `shift` whole pixels to the right (negative: left) of
+// their calibration.
 class ShiftedRight : public camera::FrameSource {
  public:
   ShiftedRight(camera::FrameSource& inner, int shift) : inner_(inner), shift_(shift) {}
@@ -91,8 +92,8 @@ class ShiftedRight : public camera::FrameSource {
     auto frame = inner_.next();
     if (!frame) return frame;
     cv::Mat shifted(frame->right.size(), frame->right.type(), cv::Scalar(0));
-    const int w = frame->right.cols - shift_;
-    frame->right(cv::Rect(0, 0, w, frame->right.rows)).copyTo(shifted(cv::Rect(shift_, 0, w, frame->right.rows)));
+    const int w = frame->right.cols - std::abs(shift_), h = frame->right.rows;
+    frame->right(cv::Rect(std::max(-shift_, 0), 0, w, h)).copyTo(shifted(cv::Rect(std::max(shift_, 0), 0, w, h)));
     frame->right = shifted;
     return frame;
   }
@@ -102,21 +103,26 @@ class ShiftedRight : public camera::FrameSource {
   int shift_;
 };
 
-TEST(Odometry, RightImageOffsetIsEstimatedAndCorrected) {
+class MiscalibratedRig : public ::testing::TestWithParam<int> {};
+
+TEST_P(MiscalibratedRig, RightImageOffsetIsEstimatedAndCorrected) {
   sim::SimSource sim(noisyFlight(1));
-  ShiftedRight source(sim, 1);
+  ShiftedRight source(sim, GetParam());
   const auto run = eval::runOdometry(source, {});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
-  std::printf("right image 1 px off: estimated %.3f px, ATE %.4f m (%.2f%%), attitude %.3f deg\n",
-              run.right_offset_px, ate.translation.rmse, 100 * ate.translation.rmse / path,
+  std::printf("right image %+d px off: estimated %.3f px, ATE %.4f m (%.2f%%), attitude %.3f deg\n",
+              GetParam(), run.right_offset_px, ate.translation.rmse, 100 * ate.translation.rmse / path,
               ate.rotation.rmse);
-  // Measured: 0.92-1.05 px after 100 frames; without the estimate the ATE was 0.78 % of the
-  // path and the attitude 1.5 deg, with it 0.09 % and 0.23 deg.
-  EXPECT_NEAR(run.right_offset_px, 1.0, 0.15);
-  EXPECT_LE(ate.translation.rmse, 0.005 * path);
-  EXPECT_LE(ate.rotation.rmse, 0.45);
+  // Measured: within 0.1 px of the shift after 100 frames. Without the estimate (shift +1) the
+  // ATE was 0.78 % of the path and the attitude 1.5 deg; with it 0.11 % and 0.20-0.47 deg
+  // (rooms 1-3, shifts +-1; the first 100 frames fly on a biased depth).
+  EXPECT_NEAR(run.right_offset_px, GetParam(), 0.15);
+  EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue's bars for a sim flight
+  EXPECT_LE(ate.rotation.rmse, 0.5);
 }
+
+INSTANTIATE_TEST_SUITE_P(Shifts, MiscalibratedRig, ::testing::Values(1, -1));
 
 TEST(Odometry, PaperAttitudeFollowsEquation12) {
   // R = Rz(yaw) Ry(pitch) Rx(roll) in the paper's convention reads back its angles.

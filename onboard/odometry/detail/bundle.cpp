@@ -4,6 +4,9 @@
 #include <Eigen/Geometry>
 
 #include <cmath>
+#include <limits>
+
+#include "onboard/odometry/detail/rotation.hpp"
 
 namespace stereomap::odometry::detail {
 
@@ -19,17 +22,16 @@ Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
   return m;
 }
 
-common::Quat expRotation(const Eigen::Vector3d& w) {
-  const double angle = w.norm();
-  return angle > 1e-12 ? common::Quat(Eigen::AngleAxisd(angle, w / angle)) : common::Quat::Identity();
-}
+// A step that puts a point behind a camera that saw it costs as much as this error (px), so
+// that hiding an observation never pays.
+constexpr double kBehindPenaltyPx = 1000.0;
 
 // One observation's residual and Jacobians (pose as a left perturbation [rotation,
 // translation] of camera-from-world; point; offset).
 struct Linearised {
-  Eigen::Vector2d r;
-  Mat26 J_pose;
-  Mat23 J_point;
+  Eigen::Vector2d r = Eigen::Vector2d::Zero();
+  Mat26 J_pose = Mat26::Zero();
+  Mat23 J_point = Mat23::Zero();
   bool valid = false;
 };
 
@@ -41,9 +43,9 @@ Linearised linearise(const camera::StereoCamera& cam, const BundleProblem& p,
   const Eigen::Vector3d q = o.right ? Eigen::Vector3d(c.x() - cam.baseline, c.y(), c.z()) : c;
   if (q.z() < 1e-3) return l;
   const double iz = 1.0 / q.z();
+  l.valid = true;
   l.r = Eigen::Vector2d(cam.fx * q.x() * iz + cam.cx + (o.right ? p.right_offset : 0.0) - o.u,
                         cam.fy * q.y() * iz + cam.cy - o.v);
-  l.valid = true;
   if (!jacobians) return l;
   Mat23 J_q;
   J_q << cam.fx * iz, 0, -cam.fx * q.x() * iz * iz, 0, cam.fy * iz, -cam.fy * q.y() * iz * iz;
@@ -57,18 +59,64 @@ Linearised linearise(const camera::StereoCamera& cam, const BundleProblem& p,
 double huberWeight(double n, double k) { return n <= k ? 1.0 : k / n; }
 double huberCost(double n, double k) { return n <= k ? 0.5 * n * n : k * (n - 0.5 * k); }
 
-double cost(const camera::StereoCamera& cam, const BundleProblem& p, double offset0,
-            double k) {
+double cost(const camera::StereoCamera& cam, const BundleProblem& p, double offset0, double k) {
   double total = 0;
   for (const auto& o : p.observations) {
     const Linearised l = linearise(cam, p, o, false);
-    if (l.valid) total += huberCost(l.r.norm(), k);
+    total += huberCost(l.valid ? l.r.norm() : kBehindPenaltyPx, k);
   }
   if (p.right_offset_sigma > 0) {
     const double d = (p.right_offset - offset0) / p.right_offset_sigma;
     total += 0.5 * d * d;
   }
   return total;
+}
+
+// Per point: its normal-equation block, gradient, coupling to each observing pose (6x3) and
+// to the offset (1x3).
+struct PointBlock {
+  Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d b = Eigen::Vector3d::Zero();
+  std::vector<std::pair<int, Mat63>> poses;
+  Eigen::RowVector3d offset = Eigen::RowVector3d::Zero();
+  Eigen::Matrix3d H_inv = Eigen::Matrix3d::Zero();
+};
+
+// The camera system with the points eliminated (Schur complement), damped by lambda; `off` is
+// the offset's index (< 0: none). Leaves each block's damped inverse in H_inv.
+void eliminatePoints(const Eigen::MatrixXd& Hcc, const Eigen::VectorXd& bc,
+                     std::vector<PointBlock>& blocks, double lambda, int off, Eigen::MatrixXd& S,
+                     Eigen::VectorXd& rhs) {
+  S = Hcc;
+  S.diagonal() += lambda * Hcc.diagonal().cwiseMax(1e-9);
+  rhs = bc;
+  std::vector<Mat63> WH;
+  for (auto& block : blocks) {
+    Eigen::Matrix3d H = block.H;
+    H.diagonal() += lambda * H.diagonal().cwiseMax(1e-9) + Eigen::Vector3d::Constant(1e-9);
+    block.H_inv = H.inverse();
+    // S -= H_cp H_pp^-1 H_pc, block by block over the observing poses and the offset.
+    WH.resize(block.poses.size());
+    for (size_t x = 0; x < block.poses.size(); ++x) {
+      WH[x] = block.poses[x].second * block.H_inv;
+      const int a = 6 * (block.poses[x].first - 1);
+      rhs.segment<6>(a) -= WH[x] * block.b;
+      for (size_t y = 0; y < block.poses.size(); ++y) {
+        S.block<6, 6>(a, 6 * (block.poses[y].first - 1)) -=
+            WH[x] * block.poses[y].second.transpose();
+      }
+      if (off >= 0) {
+        const Eigen::Matrix<double, 6, 1> c = WH[x] * block.offset.transpose();
+        S.block<6, 1>(a, off) -= c;
+        S.block<1, 6>(off, a) -= c.transpose();
+      }
+    }
+    if (off >= 0) {
+      const Eigen::RowVector3d VH = block.offset * block.H_inv;
+      S(off, off) -= VH.dot(block.offset);
+      rhs(off) -= VH.dot(block.b);
+    }
+  }
 }
 
 }  // namespace
@@ -80,23 +128,17 @@ BundleSummary adjustBundle(const camera::StereoCamera& cam, BundleProblem& p,
   const bool with_offset = p.right_offset_sigma > 0;
   // Reduced (camera) system: poses 1..frames-1, then the offset.
   const int m = 6 * (frames - 1) + (with_offset ? 1 : 0);
-  const int off = m - 1;  // the offset's index when estimated
+  const int off = with_offset ? m - 1 : -1;
   const double offset0 = p.right_offset;
   const double k = options.huber_px;
+  double offset_information = with_offset ? 1.0 / (p.right_offset_sigma * p.right_offset_sigma) : 0;
 
   BundleSummary summary;
   summary.initial_cost = summary.final_cost = cost(cam, p, offset0, k);
   double lambda = 1e-4;
-  // Per point: its normal-equation block, gradient, coupling to each observing pose (6x3) and
-  // to the offset (1x3).
-  struct PointBlock {
-    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d b = Eigen::Vector3d::Zero();
-    std::vector<std::pair<int, Mat63>> poses;
-    Eigen::RowVector3d offset = Eigen::RowVector3d::Zero();
-    Eigen::Matrix3d H_inv = Eigen::Matrix3d::Zero();
-  };
   std::vector<PointBlock> blocks(points);
+  Eigen::MatrixXd S;
+  Eigen::VectorXd rhs;
   for (int iteration = 0; iteration < options.iterations && m > 0; ++iteration) {
     Eigen::MatrixXd Hcc = Eigen::MatrixXd::Zero(m, m);
     Eigen::VectorXd bc = Eigen::VectorXd::Zero(m);
@@ -127,43 +169,26 @@ BundleSummary adjustBundle(const camera::StereoCamera& cam, BundleProblem& p,
       }
     }
     if (with_offset) {
-      const double information = 1.0 / (p.right_offset_sigma * p.right_offset_sigma);
-      Hcc(off, off) += information;
-      bc(off) -= (p.right_offset - offset0) * information;
       Hcc.row(off).head(off) = Hcc.col(off).head(off).transpose();
+      if (iteration == 0) {
+        // How well the window alone determines the offset: its marginal deviation, with the
+        // poses and points free. Too weak (little motion, one depth): hold it.
+        eliminatePoints(Hcc, bc, blocks, 0.0, off, S, rhs);
+        const Eigen::VectorXd e = Eigen::VectorXd::Unit(m, off);
+        const double variance = S.ldlt().solve(e)(off);
+        summary.offset_sigma_px = variance > 0 && std::isfinite(variance)
+                                      ? std::sqrt(variance)
+                                      : std::numeric_limits<double>::infinity();
+        if (!(summary.offset_sigma_px <= options.offset_gate_px)) offset_information = 1e12;
+      }
+      Hcc(off, off) += offset_information;
+      bc(off) -= (p.right_offset - offset0) * offset_information;
     }
 
     // Levenberg-Marquardt: damp, eliminate the points, solve, keep the step if it helps.
     bool improved = false;
     for (int attempt = 0; attempt < 5 && !improved; ++attempt) {
-      Eigen::MatrixXd S = Hcc;
-      S.diagonal() += lambda * Hcc.diagonal().cwiseMax(1e-9);
-      Eigen::VectorXd rhs = bc;
-      for (auto& block : blocks) {
-        Eigen::Matrix3d H = block.H;
-        H.diagonal() += lambda * H.diagonal().cwiseMax(1e-9) + Eigen::Vector3d::Constant(1e-9);
-        block.H_inv = H.inverse();
-        // S -= H_cp H_pp^-1 H_pc, block by block over the observing poses and the offset.
-        std::vector<Mat63> WH(block.poses.size());
-        for (size_t x = 0; x < block.poses.size(); ++x) {
-          WH[x] = block.poses[x].second * block.H_inv;
-          const int a = 6 * (block.poses[x].first - 1);
-          rhs.segment<6>(a) -= WH[x] * block.b;
-          for (size_t y = 0; y < block.poses.size(); ++y) {
-            S.block<6, 6>(a, 6 * (block.poses[y].first - 1)) -= WH[x] * block.poses[y].second.transpose();
-          }
-          if (with_offset) {
-            const Eigen::Matrix<double, 6, 1> c = WH[x] * block.offset.transpose();
-            S.block<6, 1>(a, off) -= c;
-            S.block<1, 6>(off, a) -= c.transpose();
-          }
-        }
-        if (with_offset) {
-          const Eigen::RowVector3d VH = block.offset * block.H_inv;
-          S(off, off) -= VH.dot(block.offset);
-          rhs(off) -= VH.dot(block.b);
-        }
-      }
+      eliminatePoints(Hcc, bc, blocks, lambda, off, S, rhs);
       const Eigen::VectorXd dc = S.ldlt().solve(rhs);
       if (!dc.allFinite()) {
         lambda *= 10;
@@ -175,14 +200,15 @@ BundleSummary adjustBundle(const camera::StereoCamera& cam, BundleProblem& p,
       for (int f = 1; f < frames; ++f) {
         const Eigen::Matrix<double, 6, 1> xi = dc.segment<6>(6 * (f - 1));
         auto& T = poses[static_cast<size_t>(f)];
-        const common::Quat dq = expRotation(xi.head<3>());
+        const common::Quat dq = quatOf(xi.head<3>());
         T.rotation = (dq * T.rotation).normalized();
         T.translation = dq * T.translation + xi.tail<3>();
       }
       for (size_t j = 0; j < points; ++j) {
         const PointBlock& block = blocks[j];
         Eigen::Vector3d b = block.b;
-        for (const auto& [frame, W] : block.poses) b -= W.transpose() * dc.segment<6>(6 * (frame - 1));
+        for (const auto& [frame, W] : block.poses)
+          b -= W.transpose() * dc.segment<6>(6 * (frame - 1));
         if (with_offset) b -= block.offset.transpose() * dc(off);
         moved[j] += block.H_inv * b;
       }
@@ -202,8 +228,8 @@ BundleSummary adjustBundle(const camera::StereoCamera& cam, BundleProblem& p,
         lambda *= 10;
       }
     }
-    ++summary.iterations;
     if (!improved) break;
+    ++summary.iterations;
   }
   return summary;
 }

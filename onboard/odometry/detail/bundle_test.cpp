@@ -9,6 +9,7 @@
 #include <random>
 
 #include "onboard/odometry/detail/reprojection.hpp"
+#include "onboard/odometry/detail/rotation.hpp"
 
 namespace stereomap::odometry::detail {
 namespace {
@@ -44,11 +45,12 @@ BundleProblem scene(double noise_px, double offset, uint32_t seed) {
   }
   for (int f = 0; f < 5; ++f) {
     for (int j = 0; j < 150; ++j) {
-      const common::Vec3 c = p.T_camera_world[static_cast<size_t>(f)] * p.points[static_cast<size_t>(j)];
+      const common::Vec3 c =
+          p.T_camera_world[static_cast<size_t>(f)] * p.points[static_cast<size_t>(j)];
       const double u = cam.fx * c.x() / c.z() + cam.cx, v = cam.fy * c.y() / c.z() + cam.cy;
       const double ur = cam.fx * (c.x() - cam.baseline) / c.z() + cam.cx + offset;
       p.observations.push_back({f, j, u + noise(rng), v + noise(rng), false});
-      p.observations.push_back({f, j, ur + noise(rng), v, true});
+      p.observations.push_back({f, j, ur + noise(rng), v + noise(rng), true});
     }
   }
   return p;
@@ -59,7 +61,8 @@ void perturb(BundleProblem& p, uint32_t seed) {
   std::normal_distribution<double> n(0, 1);
   for (size_t f = 1; f < p.T_camera_world.size(); ++f) {
     p.T_camera_world[f].rotation =
-        common::Quat(Eigen::AngleAxisd(0.01, Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized())) *
+        common::Quat(
+            Eigen::AngleAxisd(0.01, Eigen::Vector3d(n(rng), n(rng), n(rng)).normalized())) *
         p.T_camera_world[f].rotation;
     p.T_camera_world[f].translation += 0.05 * common::Vec3(n(rng), n(rng), n(rng));
   }
@@ -70,7 +73,8 @@ double poseError(const BundleProblem& a, const BundleProblem& b) {
   double worst = 0;
   for (size_t f = 0; f < a.T_camera_world.size(); ++f) {
     const common::Rigid3 d = a.T_camera_world[f].inverse() * b.T_camera_world[f];
-    worst = std::max(worst, d.translation.norm() + d.rotation.angularDistance(common::Quat::Identity()));
+    worst = std::max(worst,
+                     d.translation.norm() + d.rotation.angularDistance(common::Quat::Identity()));
   }
   return worst;
 }
@@ -114,7 +118,8 @@ TEST(Bundle, AgreesWithCeresOnANoisyProblem) {
   perturb(p, 4);
   p.right_offset_sigma = 0.5;
   BundleProblem q = p;
-  adjustBundle(cam, p, {.iterations = 50, .huber_px = 1.0});
+  const auto summary = adjustBundle(cam, p, {.iterations = 50, .huber_px = 1.0});
+  EXPECT_LT(summary.offset_sigma_px, 0.5);  // determined by this window: refined
 
   std::vector<Eigen::Vector3d> aa, t;
   for (const auto& T : q.T_camera_world) {
@@ -128,10 +133,9 @@ TEST(Bundle, AgreesWithCeresOnANoisyProblem) {
   ceres::HuberLoss huber(1.0);
   for (const auto& o : q.observations) {
     const auto f = static_cast<size_t>(o.frame);
-    problem.AddResidualBlock(new ceres::AutoDiffCostFunction<CeresResidual, 2, 3, 3, 3, 1>(
-                                 new CeresResidual(cam, o)),
-                             &huber, aa[f].data(), t[f].data(), q.points[static_cast<size_t>(o.point)].data(),
-                             &offset);
+    problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<CeresResidual, 2, 3, 3, 3, 1>(new CeresResidual(cam, o)),
+        &huber, aa[f].data(), t[f].data(), q.points[static_cast<size_t>(o.point)].data(), &offset);
   }
   problem.AddResidualBlock(new ceres::AutoDiffCostFunction<CeresOffsetPrior, 1, 1>(
                                new CeresOffsetPrior{q.right_offset, q.right_offset_sigma}),
@@ -142,8 +146,8 @@ TEST(Bundle, AgreesWithCeresOnANoisyProblem) {
   solver.linear_solver_type = ceres::DENSE_SCHUR;
   solver.max_num_iterations = 100;
   solver.function_tolerance = solver.gradient_tolerance = solver.parameter_tolerance = 1e-14;
-  ceres::Solver::Summary summary;
-  ceres::Solve(solver, &problem, &summary);
+  ceres::Solver::Summary ceres_summary;
+  ceres::Solve(solver, &problem, &ceres_summary);
   for (size_t f = 0; f < aa.size(); ++f) q.T_camera_world[f] = {quatOf(aa[f]), t[f]};
 
   EXPECT_LT(poseError(p, q), 1e-5);
@@ -155,8 +159,26 @@ TEST(Bundle, HeldOffsetStaysPut) {
   BundleProblem p = scene(0.3, 0.0, 5);
   perturb(p, 6);
   p.right_offset = 0.25;  // right_offset_sigma = 0: not estimated
-  adjustBundle(testCamera(), p, {});
+  const auto summary = adjustBundle(testCamera(), p, {.iterations = 20});
   EXPECT_EQ(p.right_offset, 0.25);
+  EXPECT_LT(summary.final_cost, 0.5 * summary.initial_cost);  // the rest is still adjusted
+}
+
+TEST(Bundle, AWindowThatCannotTellTheOffsetHoldsIt) {
+  // Five identical poses (a vehicle standing still): depth and offset trade freely.
+  BundleProblem p = scene(0.3, 0.0, 7);
+  for (auto& T : p.T_camera_world) T = p.T_camera_world.front();
+  const auto cam = testCamera();
+  for (auto& o : p.observations) {  // re-observe from the one pose
+    const common::Vec3 c = p.T_camera_world[0] * p.points[static_cast<size_t>(o.point)];
+    o.u =
+        cam.fx * (c.x() - (o.right ? cam.baseline : 0.0)) / c.z() + cam.cx + (o.right ? 0.6 : 0.0);
+    o.v = cam.fy * c.y() / c.z() + cam.cy;
+  }
+  p.right_offset_sigma = 0.5;
+  const auto summary = adjustBundle(cam, p, {.iterations = 20});
+  EXPECT_GT(summary.offset_sigma_px, 10.0);
+  EXPECT_NEAR(p.right_offset, 0.0, 1e-6);
 }
 
 }  // namespace

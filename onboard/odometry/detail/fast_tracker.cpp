@@ -10,7 +10,7 @@
 #include <limits>
 
 #include "onboard/odometry/detail/refine.hpp"
-#include "onboard/odometry/detail/reprojection.hpp"
+#include "onboard/odometry/detail/rotation.hpp"
 
 namespace stereomap::odometry::detail {
 
@@ -45,12 +45,12 @@ Eigen::Matrix<double, 6, 6> rotated(const Eigen::Matrix<double, 6, 6>& c, const 
 FastTracker::FastTracker(const camera::StereoCamera& camera, const VoOptions& options)
     : camera_(camera), options_(options), window_(camera, options.window_frames) {}
 
-std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
+std::vector<cv::Point2f> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
                                            const std::vector<cv::Mat>& right_pyramid,
                                            const std::vector<cv::Point2f>& left_points,
                                            const std::vector<float>* guess_disparity) {
-  std::vector<float> u_right(left_points.size(), std::numeric_limits<float>::quiet_NaN());
-  if (left_points.empty()) return u_right;
+  std::vector<cv::Point2f> matches(left_points.size(), {std::numeric_limits<float>::quiet_NaN(), 0.0f});
+  if (left_points.empty()) return matches;
   const cv::Size window(options_.klt_window, options_.klt_window);
   std::vector<cv::Point2f> guess(left_points);
   for (size_t i = 0; guess_disparity != nullptr && i < guess.size(); ++i) {
@@ -67,9 +67,9 @@ std::vector<float> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyra
     const float disparity = left_points[i].x - guess[i].x + static_cast<float>(right_offset_);
     const bool ok = status[i] && back_status[i] && std::abs(guess[i].y - left_points[i].y) < 1.0f &&
                     cv::norm(back[i] - left_points[i]) < 0.5 && disparity > 0.5f;
-    if (ok) u_right[i] = guess[i].x - static_cast<float>(right_offset_);
+    if (ok) matches[i] = {guess[i].x - static_cast<float>(right_offset_), guess[i].y};
   }
-  return u_right;
+  return matches;
 }
 
 void FastTracker::fuse(size_t i, const Vec3& point, double disparity) {
@@ -129,7 +129,7 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
   // Carried points already hold this pair's stereo (fused by track()); only new corners are
   // matched here.
   const std::vector<cv::Point2f> fresh(keep.begin() + static_cast<long>(carried.size()), keep.end());
-  const std::vector<float> u_right = matchRight(pyramid, right_pyramid, fresh, nullptr);
+  const std::vector<cv::Point2f> right = matchRight(pyramid, right_pyramid, fresh, nullptr);
   keyframe_ = Keyframe{{}, {}, {}, {}, T_world_camera, frame_, covariance};
   tracks_.clear();
   for (const auto& c : carried) {
@@ -140,8 +140,8 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
     tracks_.push_back(c.pixel);
   }
   for (size_t i = 0; i < fresh.size(); ++i) {
-    if (std::isnan(u_right[i])) continue;
-    const double disparity = fresh[i].x - u_right[i];
+    if (std::isnan(right[i].x)) continue;
+    const double disparity = fresh[i].x - right[i].x;
     keyframe_.points.push_back(Vec3::Zero());
     keyframe_.ids.push_back(next_landmark_++);
     keyframe_.weight.push_back(0.0);
@@ -150,7 +150,7 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
     fuse(keyframe_.points.size() - 1,
          camera_.rayThrough(fresh[i].x, fresh[i].y) * (camera_.fx * camera_.baseline / disparity),
          disparity);
-    window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y), u_right[i] + right_offset_},
+    window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y), rawRight(Eigen::Vector2d(right[i].x, right[i].y))},
                     T_world_camera * keyframe_.points.back());
   }
   alive_.assign(tracks_.size(), true);
@@ -168,7 +168,7 @@ void FastTracker::adjustWindow(Rigid3& T_world_current) {
   if (const auto T = window_.pose(keyframe_.frame)) keyframe_.T_world_keyframe = *T;
   const Rigid3 T_keyframe_world = keyframe_.T_world_keyframe.inverse();
   for (size_t i = 0; i < keyframe_.points.size(); ++i) {
-    const auto p = alive_[i] ? window_.landmark(keyframe_.ids[i]) : std::nullopt;
+    const auto p = alive_[i] ? window_.adjustedLandmark(keyframe_.ids[i]) : std::nullopt;
     if (!p) continue;
     keyframe_.points[i] = T_keyframe_world * *p;
     keyframe_.weighted_sum[i] = keyframe_.weight[i] * keyframe_.points[i];
@@ -273,12 +273,13 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
     guess_disparity.push_back(static_cast<float>(camera_.fx * camera_.baseline / std::max(p.z(), 1e-3)));
   }
-  const std::vector<float> u_right = matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
+  const std::vector<cv::Point2f> right_matches =
+      matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
   std::vector<Observation> observations;
   for (size_t j = 0; j < inliers.size(); ++j) {
     Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
                   Eigen::Vector2d(inlier_points[j].x, inlier_points[j].y), std::nullopt};
-    if (!std::isnan(u_right[j])) o.right_u = u_right[j];
+    if (!std::isnan(right_matches[j].x)) o.right = Eigen::Vector2d(right_matches[j].x, right_matches[j].y);
     observations.push_back(o);
   }
   RefineOptions refine;
@@ -289,7 +290,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   T_current_keyframe = refined.T_current_reference;
 
   // Inliers after refinement decide the state; their stereo in this pair refines the
-  // keyframe's points, and they join the window.
+  // keyframe's points (the window's adjustment then replaces the points it refines: fusion
+  // covers the others, and runs where the window is off), and they join the window.
   int good = 0;
   const Rigid3 T_keyframe_current = T_current_keyframe.inverse();
   window_.addFrame(frame_, keyframe_.T_world_keyframe * T_keyframe_current);
@@ -301,21 +303,26 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     good += good_observation[j];
     if (!good_observation[j]) continue;
     const size_t i = index[used[static_cast<size_t>(inliers[j])]];
-    if (o.right_u) {
-      const double disparity = o.left.x() - *o.right_u;
+    if (o.right) {
+      const double disparity = o.left.x() - o.right->x();
       const Vec3 p_current = camera_.rayThrough(o.left.x(), o.left.y()) * (camera_.fx * camera_.baseline / disparity);
       fuse(i, T_keyframe_current * p_current, disparity);
     }
-    std::optional<double> raw_u;
-    if (o.right_u) raw_u = *o.right_u + right_offset_;
-    window_.observe({keyframe_.ids[i], o.left, raw_u}, keyframe_.T_world_keyframe * keyframe_.points[i]);
+    window_.observe({keyframe_.ids[i], o.left, rawRight(o.right)},
+                    keyframe_.T_world_keyframe * keyframe_.points[i]);
   }
   estimate.inliers = good;
   estimate.state = good >= options_.ok_inliers         ? TrackingState::kOk
                    : good >= options_.degraded_inliers ? TrackingState::kDegraded
                                                        : TrackingState::kLost;
   Rigid3 T_world_current = keyframe_.T_world_keyframe * T_keyframe_current;
-  adjustWindow(T_world_current);
+  if (estimate.state == TrackingState::kLost) {
+    // Too few inliers to trust: this frame starts the window again, as a failed RANSAC does.
+    window_.clear();
+    window_.addFrame(frame_, T_world_current);
+  } else {
+    adjustWindow(T_world_current);
+  }
   T_current_keyframe = T_world_current.inverse() * keyframe_.T_world_keyframe;
   estimate.T_world_camera = T_world_current;
   estimate.covariance =

@@ -2,6 +2,7 @@
 #pragma once
 
 #include <opencv2/core.hpp>
+#include <optional>
 #include <vector>
 
 #include "onboard/odometry/detail/window.hpp"
@@ -43,9 +44,10 @@ class FastTracker {
                     const Eigen::Matrix<double, 6, 6>& covariance);
   // Adds a stereo observation (point in the keyframe's frame) to keyframe point i.
   void fuse(size_t i, const common::Vec3& point, double disparity);
-  // Left-to-right KLT on rectified images: the right column corrected by the right camera's
-  // estimated offset (as a calibrated camera would see it); NaN where no valid match.
-  std::vector<float> matchRight(const std::vector<cv::Mat>& left_pyramid,
+  // Left-to-right KLT on rectified images: the match in the right image, its column corrected
+  // by the right camera's estimated offset (as a calibrated camera would see it); x NaN where
+  // no valid match.
+  std::vector<cv::Point2f> matchRight(const std::vector<cv::Mat>& left_pyramid,
                                 const std::vector<cv::Mat>& right_pyramid,
                                 const std::vector<cv::Point2f>& left_points,
                                 const std::vector<float>* guess_disparity);
@@ -53,6 +55,11 @@ class FastTracker {
   // Window adjustment after the frame's own refinement: moves the current pose, the keyframe's
   // pose (while in the window) and the keyframe's points.
   void adjustWindow(common::Rigid3& T_world_current);
+  // A right-image match with its column corrected, back to the raw one the window keeps.
+  std::optional<Eigen::Vector2d> rawRight(const std::optional<Eigen::Vector2d>& corrected) const {
+    if (!corrected) return std::nullopt;
+    return Eigen::Vector2d(corrected->x() + right_offset_, corrected->y());
+  }
 
   camera::StereoCamera camera_;
   VoOptions options_;

@@ -61,10 +61,10 @@ RefineResult refinePose(const camera::StereoCamera& camera,
         new ceres::AutoDiffCostFunction<Reprojection, 2, 3, 3>(
             new Reprojection(camera, o.point, o.left.x(), o.left.y(), 0.0)),
         &huber, angle_axis.data(), translation.data());
-    if (o.right_u) {
+    if (o.right) {
       problem.AddResidualBlock(
           new ceres::AutoDiffCostFunction<Reprojection, 2, 3, 3>(
-              new Reprojection(camera, o.point, *o.right_u, o.left.y(), camera.baseline)),
+              new Reprojection(camera, o.point, o.right->x(), o.right->y(), camera.baseline)),
           &huber, angle_axis.data(), translation.data());
     }
   }

@@ -14,7 +14,7 @@ namespace stereomap::odometry::detail {
 struct Observation {
   common::Vec3 point;          // in the reference frame
   Eigen::Vector2d left;        // pixel in the current left image
-  std::optional<double> right_u;  // the same point's column in the current right image
+  std::optional<Eigen::Vector2d> right;  // the same point in the current right image
 };
 
 struct RefineOptions {

@@ -1,12 +1,13 @@
-// The stereo reprojection residual shared by the pose refinement and the window adjustment:
-// a world point seen through a pose (angle-axis + translation, world to camera) by the left
-// camera (bx = 0) or the right one (bx = baseline), in pixels.
+// The stereo reprojection residual of the pose refinement, in Ceres' automatic-derivative
+// form (also the reference the window's own solver is tested against): a point seen through a
+// pose (angle-axis + translation, to camera) by the left camera (bx = 0) or the right one
+// (bx = baseline), in pixels.
 #pragma once
 
 #include <ceres/rotation.h>
 
-#include "common/geometry.hpp"
 #include "onboard/camera/stereo_camera.hpp"
+#include "onboard/odometry/detail/rotation.hpp"
 
 namespace stereomap::odometry::detail {
 
@@ -26,15 +27,5 @@ struct PinholeResidual {
   }
   double fx, fy, cx, cy, bx, u, v;
 };
-
-inline Eigen::Vector3d angleAxisOf(const common::Quat& q) {
-  const Eigen::AngleAxisd aa(q.normalized());
-  return aa.axis() * aa.angle();
-}
-
-inline common::Quat quatOf(const Eigen::Vector3d& angle_axis) {
-  const double angle = angle_axis.norm();
-  return angle > 0 ? common::Quat(Eigen::AngleAxisd(angle, angle_axis / angle)) : common::Quat::Identity();
-}
 
 }  // namespace stereomap::odometry::detail

@@ -1,6 +1,6 @@
 #include "onboard/odometry/detail/window.hpp"
 
-#include <algorithm>
+#include <cassert>
 
 #include "onboard/odometry/detail/bundle.hpp"
 
@@ -9,11 +9,12 @@ namespace stereomap::odometry::detail {
 void SlidingWindow::clear() {
   frames_.clear();
   landmarks_.clear();
+  adjusted_.clear();
 }
 
 void SlidingWindow::addFrame(int64_t frame, const common::Rigid3& T_world_camera) {
   frames_.push_back({frame, T_world_camera, {}});
-  if (frames_.size() <= std::max<size_t>(size_, 1)) return;
+  if (frames_.size() <= size_) return;
   frames_.pop_front();
   // Forget landmarks no frame in the window sees any more.
   std::unordered_map<int64_t, common::Vec3> kept;
@@ -24,12 +25,14 @@ void SlidingWindow::addFrame(int64_t frame, const common::Rigid3& T_world_camera
 }
 
 void SlidingWindow::observe(const WindowObservation& observation, const common::Vec3& world) {
+  assert(!frames_.empty());
   frames_.back().observations.push_back(observation);
   landmarks_.emplace(observation.landmark, world);
 }
 
 bool SlidingWindow::adjust(int iterations, double huber_px, double& right_offset,
                            double right_offset_sigma) {
+  adjusted_.clear();
   if (frames_.size() < 2) return false;
   // Landmarks seen by at least two frames constrain the poses; the rest only themselves.
   std::unordered_map<int64_t, int> seen;
@@ -52,7 +55,8 @@ bool SlidingWindow::adjust(int iterations, double huber_px, double& right_offset
       }
       const int frame = static_cast<int>(i);
       problem.observations.push_back({frame, it->second, o.left.x(), o.left.y(), false});
-      if (o.right_u) problem.observations.push_back({frame, it->second, *o.right_u, o.left.y(), true});
+      if (o.right)
+        problem.observations.push_back({frame, it->second, o.right->x(), o.right->y(), true});
     }
   }
   if (ids.empty()) return false;
@@ -60,7 +64,10 @@ bool SlidingWindow::adjust(int iterations, double huber_px, double& right_offset
   for (size_t i = 1; i < frames_.size(); ++i) {
     frames_[i].T_world_camera = problem.T_camera_world[i].inverse();
   }
-  for (size_t j = 0; j < ids.size(); ++j) landmarks_[ids[j]] = problem.points[j];
+  for (size_t j = 0; j < ids.size(); ++j) {
+    landmarks_[ids[j]] = problem.points[j];
+    adjusted_.insert(ids[j]);
+  }
   right_offset = problem.right_offset;
   return true;
 }
@@ -72,10 +79,9 @@ std::optional<common::Rigid3> SlidingWindow::pose(int64_t frame) const {
   return std::nullopt;
 }
 
-std::optional<common::Vec3> SlidingWindow::landmark(int64_t id) const {
-  const auto it = landmarks_.find(id);
-  if (it == landmarks_.end()) return std::nullopt;
-  return it->second;
+std::optional<common::Vec3> SlidingWindow::adjustedLandmark(int64_t id) const {
+  if (!adjusted_.contains(id)) return std::nullopt;
+  return landmarks_.at(id);
 }
 
 }  // namespace stereomap::odometry::detail
