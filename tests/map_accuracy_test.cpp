@@ -109,7 +109,7 @@ TEST(MapAccuracy, SimFlightMapMatchesTheRoomOverRealDds) {
       occupied.size(), precision, precision_1, coverage, seen.size());
   RecordProperty("precision", std::to_string(precision));
   RecordProperty("coverage", std::to_string(coverage));
-  // The issue asks for precision >= 0.90 and coverage >= 0.50; measured 0.979 and 0.924
+  // The issue asks for precision >= 0.90 and coverage >= 0.50; measured 0.977 and 0.923
   // flying on the odometry (docs/BENCHMARKS.md; the run is deterministic), so the bar sits
   // just below those.
   EXPECT_GE(precision, 0.97);
