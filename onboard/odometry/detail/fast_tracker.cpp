@@ -147,14 +147,17 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
     keyframe_.weight.push_back(0.0);
     keyframe_.weighted_sum.push_back(Vec3::Zero());
     tracks_.push_back(fresh[i]);
-    fuse(keyframe_.points.size() - 1,
-         camera_.rayThrough(fresh[i].x, fresh[i].y) * (camera_.fx * camera_.baseline / disparity),
-         disparity);
+    fuse(keyframe_.points.size() - 1, stereoPoint(fresh[i].x, fresh[i].y, disparity), disparity);
     window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y), rawRight(Eigen::Vector2d(right[i].x, right[i].y))},
                     T_world_camera * keyframe_.points.back());
   }
   alive_.assign(tracks_.size(), true);
   T_world_previous_ = T_world_camera;
+}
+
+void FastTracker::restartWindow(const Rigid3& T_world_current) {
+  window_.clear();
+  window_.addFrame(frame_, T_world_current);
 }
 
 void FastTracker::adjustWindow(Rigid3& T_world_current) {
@@ -184,8 +187,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   cv::buildOpticalFlowPyramid(right, right_pyramid, window, options_.klt_levels + 1);
   ++frame_;
   if (!initialised_) {
-    window_.clear();
-    window_.addFrame(frame_, Rigid3::identity());
+    restartWindow(Rigid3::identity());
     makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
     previous_pyramid_ = std::move(pyramid);
     initialised_ = !keyframe_.points.empty();
@@ -254,8 +256,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     // Lost: keep moving as before, start again from this frame.
     estimate.state = TrackingState::kLost;
     const Rigid3 T_world_current = keyframe_.T_world_keyframe * predicted.inverse();
-    window_.clear();
-    window_.addFrame(frame_, T_world_current);
+    restartWindow(T_world_current);
     makeKeyframe(pyramid, right_pyramid, left, {}, T_world_current, keyframe_.covariance);
     previous_pyramid_ = std::move(pyramid);
     estimate.T_world_camera = T_world_current;
@@ -271,7 +272,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   for (int k : inliers) {
     inlier_points.push_back(image[static_cast<size_t>(k)]);
     const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
-    guess_disparity.push_back(static_cast<float>(camera_.fx * camera_.baseline / std::max(p.z(), 1e-3)));
+    guess_disparity.push_back(static_cast<float>(camera_.disparityFromDepth(std::max(p.z(), 1e-3))));
   }
   const std::vector<cv::Point2f> right_matches =
       matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
@@ -305,8 +306,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     const size_t i = index[used[static_cast<size_t>(inliers[j])]];
     if (o.right) {
       const double disparity = o.left.x() - o.right->x();
-      const Vec3 p_current = camera_.rayThrough(o.left.x(), o.left.y()) * (camera_.fx * camera_.baseline / disparity);
-      fuse(i, T_keyframe_current * p_current, disparity);
+      fuse(i, T_keyframe_current * stereoPoint(o.left.x(), o.left.y(), disparity), disparity);
     }
     window_.observe({keyframe_.ids[i], o.left, rawRight(o.right)},
                     keyframe_.T_world_keyframe * keyframe_.points[i]);
@@ -318,8 +318,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   Rigid3 T_world_current = keyframe_.T_world_keyframe * T_keyframe_current;
   if (estimate.state == TrackingState::kLost) {
     // Too few inliers to trust: this frame starts the window again, as a failed RANSAC does.
-    window_.clear();
-    window_.addFrame(frame_, T_world_current);
+    restartWindow(T_world_current);
   } else {
     adjustWindow(T_world_current);
   }

@@ -55,6 +55,12 @@ class FastTracker {
   // Window adjustment after the frame's own refinement: moves the current pose, the keyframe's
   // pose (while in the window) and the keyframe's points.
   void adjustWindow(common::Rigid3& T_world_current);
+  // The window begins again at the current frame (start, or a lost frame).
+  void restartWindow(const common::Rigid3& T_world_current);
+  // A left pixel and its disparity as a point in the camera frame.
+  common::Vec3 stereoPoint(double u, double v, double disparity) const {
+    return camera_.rayThrough(u, v) * camera_.depthFromDisparity(disparity);
+  }
   // A right-image match with its column corrected, back to the raw one the window keeps.
   std::optional<Eigen::Vector2d> rawRight(const std::optional<Eigen::Vector2d>& corrected) const {
     if (!corrected) return std::nullopt;
