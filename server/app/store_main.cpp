@@ -64,12 +64,7 @@ common::Result<std::vector<store::CatalogRow>> catalogRows(Store& store) {
   spdlog::warn("{}; listing the session directories instead", catalog.error().message);
   std::vector<store::CatalogRow> rows;
   for (const auto& s : store.admin->savedSessions()) {
-    std::string vehicles;
-    for (const auto& v : s.vehicles) vehicles += (vehicles.empty() ? "" : ",") + v;
-    std::error_code ec;
-    const auto bytes = fs::file_size(store.admin->root() / s.id / store::kJournalName, ec);
-    rows.push_back({s.id, vehicles, s.closed ? "closed" : s.ended ? "ended" : "live",
-                    s.frames_fused, s.resolution, s.occupied_voxels, s.bounds, ec ? 0 : bytes, 0});
+    rows.push_back(store::catalogRow(s, store::journalBytes(store.admin->root() / s.id)));
   }
   return rows;
 }
@@ -212,9 +207,7 @@ int main(int argc, char** argv) {
   if (app.got_subcommand("check")) return check(*store);
 
   if (*show_cmd || *export_cmd) {
-    const auto closed = admin.closedSessions();
-    const bool was_closed = std::any_of(closed.begin(), closed.end(),
-                                        [&](const auto& s) { return s.id == id; });
+    const bool was_closed = admin.isClosedOnDisk(id);
     if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
     const auto session = store->server->find(id);
     if (*show_cmd) {  // the state in the store, not that of this tool's read-only copy
@@ -224,21 +217,9 @@ int main(int argc, char** argv) {
       std::cout << core::sessionJson(status) << "\n";
       return 0;
     }
-    std::string content;
-    if (format == "bt") content = session->mapBinary();
-    if (format == "ot") content = session->mapFull();
-    if (format == "ply") content = session->occupiedPly();
-    if (format == "png") {
-      content = session->occupancyPng(z_min, z_max, scale);
-      if (content.empty()) return fail("no occupied voxels in that height band");
-    }
-    if (format == "tum") {
-      const auto vehicles = session->status().vehicles;
-      if (!vehicle.empty() && std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
-        return fail("session '" + id + "' has no vehicle '" + vehicle + "'");
-      }
-      content = session->trajectoryTum(!vehicle.empty() ? vehicle : vehicles.empty() ? "" : vehicles[0]);
-    }
+    const auto exported = core::exportSession(*session, id, {format, z_min, z_max, scale, vehicle});
+    if (!exported) return fail(exported.error().message);
+    const std::string& content = exported->content;
     if (out.empty()) out = id + "." + format;
     std::ofstream file(out, std::ios::binary | std::ios::trunc);
     file.write(content.data(), static_cast<std::streamsize>(content.size()));
@@ -247,9 +228,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   if (*close_cmd) {
-    for (const auto& closed : admin.closedSessions()) {
-      if (closed.id == id) return fail("session '" + id + "' is already closed");
-    }
+    if (admin.isClosedOnDisk(id)) return fail("session '" + id + "' is already closed");
     if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
     if (auto closed = admin.close(id); !closed) return fail(closed.error().message);
     std::printf("session '%s' closed\n", id.c_str());

@@ -2,6 +2,9 @@
 
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
+#include <map>
+
 #include "common/transform_args.hpp"
 
 namespace stereomap::core {
@@ -118,45 +121,57 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts.size() == 3) {
     return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
   }
-  if (parts.size() == 4 && parts[3] == "trajectory.tum") {
-    const std::string vehicle = queryValue(target, "vehicle");
-    auto vehicles = session->status().vehicles;
-    if (!vehicle.empty() &&
-        std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
-      return error(404, "session '" + parts[2] + "' has no vehicle '" + vehicle + "'");
+  // Resource -> export format; the height band and scale come from the query.
+  static const std::map<std::string, std::string, std::less<>> kFormats = {
+      {"trajectory.tum", "tum"}, {"map.ot", "ot"}, {"map.ply", "ply"}, {"map.png", "png"}, {"map.bt", "bt"}};
+  const auto format = parts.size() == 4 ? kFormats.find(parts[3]) : kFormats.end();
+  if (format != kFormats.end()) {
+    ExportRequest request{format->second};
+    request.vehicle = queryValue(target, "vehicle");
+    if (request.format == "png") {
+      // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
+      try {
+        if (auto v = queryValue(target, "zmin"); !v.empty()) request.z_min = std::stod(v);
+        if (auto v = queryValue(target, "zmax"); !v.empty()) request.z_max = std::stod(v);
+        if (auto v = queryValue(target, "scale"); !v.empty()) request.scale = std::stoi(v);
+      } catch (const std::exception&) {
+        return error(400, "zmin and zmax must be numbers (metres), scale a whole number");
+      }
+      if (!(request.z_min <= request.z_max)) return error(400, "zmin must not exceed zmax");
+      if (request.scale < 1 || request.scale > 16) return error(400, "scale must be 1..16 pixels per voxel");
     }
-    // One vehicle per file: the given one, else the session's first.
-    const std::string chosen = !vehicle.empty() ? vehicle : vehicles.empty() ? "" : vehicles[0];
-    return HttpAnswer{200, "text/plain", session->trajectoryTum(chosen),
-                      parts[2] + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
-  }
-  if (parts.size() == 4 && parts[3] == "map.ot") {
-    return HttpAnswer{200, "application/octet-stream", session->mapFull(), parts[2] + ".ot"};
-  }
-  if (parts.size() == 4 && parts[3] == "map.ply") {
-    return HttpAnswer{200, "application/octet-stream", session->occupiedPly(), parts[2] + ".ply"};
-  }
-  if (parts.size() == 4 && parts[3] == "map.png") {
-    // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
-    double z_min = -1e9, z_max = 1e9;
-    int scale = 1;
-    try {
-      if (auto v = queryValue(target, "zmin"); !v.empty()) z_min = std::stod(v);
-      if (auto v = queryValue(target, "zmax"); !v.empty()) z_max = std::stod(v);
-      if (auto v = queryValue(target, "scale"); !v.empty()) scale = std::stoi(v);
-    } catch (const std::exception&) {
-      return error(400, "zmin and zmax must be numbers (metres), scale a whole number");
-    }
-    if (!(z_min <= z_max)) return error(400, "zmin must not exceed zmax");
-    if (scale < 1 || scale > 16) return error(400, "scale must be 1..16 pixels per voxel");
-    std::string png = session->occupancyPng(z_min, z_max, scale);
-    if (png.empty()) return error(404, "no occupied voxels in that height band");
-    return HttpAnswer{200, "image/png", std::move(png), parts[2] + ".png"};
-  }
-  if (parts.size() == 4 && parts[3] == "map.bt") {
-    return HttpAnswer{200, "application/octet-stream", session->mapBinary(), parts[2] + ".bt"};
+    auto file = exportSession(*session, parts[2], request);
+    if (!file) return error(404, file.error().message);
+    return HttpAnswer{200, file->content_type, std::move(file->content), file->name};
   }
   return error(404, "unknown session resource '" + std::string(target) + "'");
+}
+
+common::Result<ExportFile> exportSession(const Session& session, const std::string& id,
+                                         const ExportRequest& request) {
+  const std::string binary = "application/octet-stream";
+  const std::string name = id + "." + request.format;
+  if (request.format == "bt") return ExportFile{session.mapBinary(), binary, name};
+  if (request.format == "ot") return ExportFile{session.mapFull(), binary, name};
+  if (request.format == "ply") return ExportFile{session.occupiedPly(), binary, name};
+  if (request.format == "png") {
+    std::string png = session.occupancyPng(request.z_min, request.z_max, request.scale);
+    if (png.empty()) return common::makeError(common::ErrorCode::kNotFound, "no occupied voxels in that height band");
+    return ExportFile{std::move(png), "image/png", name};
+  }
+  if (request.format == "tum") {
+    const auto vehicles = session.status().vehicles;
+    const std::string& wanted = request.vehicle;
+    if (!wanted.empty() && std::find(vehicles.begin(), vehicles.end(), wanted) == vehicles.end()) {
+      return common::makeError(common::ErrorCode::kNotFound,
+                               "session '" + id + "' has no vehicle '" + wanted + "'");
+    }
+    const std::string chosen = !wanted.empty() ? wanted : vehicles.empty() ? "" : vehicles[0];
+    return ExportFile{session.trajectoryTum(chosen), "text/plain",
+                      id + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
+  }
+  return common::makeError(common::ErrorCode::kInvalidArgument,
+                           "unknown export format '" + request.format + "' (bt, ot, ply, png, tum)");
 }
 
 bool isAdminRequest(std::string_view method, std::string_view target) {

@@ -122,11 +122,6 @@ void MapServer::forget(const std::string& id) {
   closed_.erase(id);
 }
 
-bool MapServer::isClosed(const std::string& id) const {
-  std::lock_guard lock(mutex_);
-  return closed_.count(id) != 0;
-}
-
 std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& vehicle_id,
                                           const std::string& session_id,
                                           std::optional<Rejection> rejection, Origin origin) {

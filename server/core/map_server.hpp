@@ -73,7 +73,6 @@ class MapServer {
   // Marks ids as closed (kept in the store, not loaded) or forgets them (deleted).
   void markClosed(const std::string& id);
   void forget(const std::string& id);
-  bool isClosed(const std::string& id) const;
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;

@@ -79,11 +79,11 @@ common::Status Session::restore(std::istream& ot, uint64_t frames) {
   {
     std::lock_guard lock(map_mutex_);
     if (auto status = map_.readFull(ot); !status) return status;
+    last_fused_index_ = frames;
   }
   {
     std::lock_guard state(state_mutex_);
     frames_fused_ = frames_received_ = frames;
-    last_fused_index_ = frames;
   }
   publishSnapshot();
   return common::Ok{};
@@ -122,6 +122,7 @@ void Session::run() {
     {
       std::lock_guard lock(map_mutex_);
       map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m);
+      last_fused_index_ = job.received_index;
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -130,7 +131,6 @@ void Session::run() {
       std::lock_guard state(state_mutex_);
       fused = ++frames_fused_;
       fusion_seconds_ += seconds;
-      last_fused_index_ = job.received_index;
     }
     publishSnapshot();
     if (options_.snapshot_every > 0 && options_.on_snapshot &&
@@ -148,9 +148,8 @@ void Session::run() {
 std::pair<uint64_t, std::string> Session::snapshotNow() const {
   waitUntilIdle();
   std::ostringstream ot;
-  std::lock_guard lock(map_mutex_);
+  std::lock_guard lock(map_mutex_);  // the map and its journal place change together
   map_.writeFull(ot);
-  std::lock_guard state(state_mutex_);
   return {last_fused_index_, ot.str()};
 }
 

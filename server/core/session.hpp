@@ -135,6 +135,7 @@ class Session {
 
   mutable std::mutex map_mutex_;  // the worker holds it while inserting
   fusion::OccupancyMap map_;
+  uint64_t last_fused_index_ = 0;  // journal place of the last frame in map_
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
@@ -143,7 +144,6 @@ class Session {
   std::shared_ptr<const VoxelSnapshot> snapshot_;
   common::Box3 bounds_;
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
-  uint64_t last_fused_index_ = 0;  // journal place of the last frame fused
   double fusion_seconds_ = 0;
   bool ended_ = false;
 

@@ -94,7 +94,15 @@ common::Status Catalog::remove(const std::string& id) {
   return common::Ok{};
 }
 
+CatalogRow catalogRow(const core::SessionStatus& s, uint64_t journal_bytes) {
+  CatalogRow row{s.id, "", core::stateName(s), s.frames_fused, s.resolution, s.occupied_voxels,
+                 s.bounds, journal_bytes, 0};
+  for (const auto& v : s.vehicles) row.vehicles += (row.vehicles.empty() ? "" : ",") + v;
+  return row;
+}
+
 common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_bytes) {
+  const CatalogRow row = catalogRow(s, journal_bytes);
   try {
     SQLite::Statement upsert(impl_->db, R"(
       INSERT INTO sessions VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)
@@ -104,24 +112,22 @@ common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_by
         min_y = excluded.min_y, min_z = excluded.min_z, max_x = excluded.max_x,
         max_y = excluded.max_y, max_z = excluded.max_z, journal_bytes = excluded.journal_bytes,
         updated_ns = excluded.updated_ns)");
-    std::string vehicles;
-    for (const auto& v : s.vehicles) vehicles += (vehicles.empty() ? "" : ",") + v;
-    upsert.bind(1, s.id);
-    upsert.bind(2, vehicles);
-    upsert.bind(3, core::stateName(s));
-    upsert.bind(4, static_cast<int64_t>(s.frames_fused));
-    upsert.bind(5, s.resolution);
-    upsert.bind(6, static_cast<int64_t>(s.occupied_voxels));
+    upsert.bind(1, row.id);
+    upsert.bind(2, row.vehicles);
+    upsert.bind(3, row.state);
+    upsert.bind(4, static_cast<int64_t>(row.frames));
+    upsert.bind(5, row.resolution);
+    upsert.bind(6, static_cast<int64_t>(row.occupied_voxels));
     for (int i = 0; i < 3; ++i) {
-      if (s.bounds.empty()) {
+      if (row.bounds.empty()) {
         upsert.bind(7 + i);
         upsert.bind(10 + i);
       } else {
-        upsert.bind(7 + i, s.bounds.min[i]);
-        upsert.bind(10 + i, s.bounds.max[i]);
+        upsert.bind(7 + i, row.bounds.min[i]);
+        upsert.bind(10 + i, row.bounds.max[i]);
       }
     }
-    upsert.bind(13, static_cast<int64_t>(journal_bytes));
+    upsert.bind(13, static_cast<int64_t>(row.journal_bytes));
     upsert.bind(14, static_cast<int64_t>(common::nowNs()));
     upsert.exec();
   } catch (const SQLite::Exception& e) {

@@ -26,6 +26,9 @@ struct CatalogRow {
   int64_t updated_ns = 0;
 };
 
+// A session's row as record() stores it (updated_ns left for the caller).
+CatalogRow catalogRow(const core::SessionStatus& status, uint64_t journal_bytes);
+
 class Catalog {
  public:
   // Opens (or creates) <root>/catalog.sqlite. A file that is not a healthy SQLite database

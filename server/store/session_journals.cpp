@@ -10,6 +10,12 @@ namespace stereomap::store {
 
 namespace fs = std::filesystem;
 
+uint64_t journalBytes(const fs::path& session_dir) {
+  std::error_code ec;
+  const auto bytes = fs::file_size(session_dir / kJournalName, ec);
+  return ec ? 0 : bytes;
+}
+
 std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
   std::vector<std::pair<uint64_t, fs::path>> found;
   std::error_code ec;

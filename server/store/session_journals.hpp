@@ -46,6 +46,8 @@ std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(
 common::Status writeAtomically(const std::filesystem::path& path, const std::string& content);
 
 inline constexpr const char* kJournalName = "journal.smj";
+// The size of a session directory's journal (0 when there is none).
+uint64_t journalBytes(const std::filesystem::path& session_dir);
 inline constexpr const char* kMetaName = "meta.json";
 
 }  // namespace stereomap::store

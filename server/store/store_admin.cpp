@@ -76,12 +76,6 @@ core::SessionStatus statusFromJson(const std::string& id, const json& doc) {
   return s;
 }
 
-uint64_t journalBytes(const fs::path& dir) {
-  std::error_code ec;
-  const auto bytes = fs::file_size(dir / kJournalName, ec);
-  return ec ? 0 : bytes;
-}
-
 // Deletes a directory tree, renaming it aside first so that it vanishes from the store at
 // once even if the removal is interrupted (leftovers are swept at the next start).
 common::Status removeTree(const fs::path& root, const fs::path& dir) {
@@ -294,10 +288,7 @@ common::Status StoreAdmin::open(const std::string& id) {
   std::lock_guard lock(mutex_);
   if (server_.find(id)) return makeError(ErrorCode::kConflict, "session '" + id + "' is already open");
   auto loaded = load(id, /*read_only=*/true);
-  if (!loaded) {
-    if (options_.writable && isClosedOnDisk(id)) server_.markClosed(id);
-    return loaded.error();
-  }
+  if (!loaded) return loaded.error();
   if (!loaded->problem.empty()) spdlog::warn("session '{}': {}", id, loaded->problem);
   spdlog::info("session '{}' opened read-only: {} frames ({} from a snapshot), {} poses", id,
                loaded->frames, loaded->snapshot_frames, loaded->poses);

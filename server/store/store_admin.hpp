@@ -61,6 +61,8 @@ class StoreAdmin : public core::SessionAdmin {
   const std::filesystem::path& root() const { return root_; }
 
   std::vector<core::SessionStatus> closedSessions() const override;
+  // Whether the store holds session `id` closed (its session.json says so).
+  bool isClosedOnDisk(const std::string& id) const;
   common::Status open(const std::string& id) override;
   common::Status close(const std::string& id) override;
   common::Status remove(const std::string& id) override;
@@ -74,7 +76,6 @@ class StoreAdmin : public core::SessionAdmin {
   common::Status closeLocked(const std::string& id);
   common::Status requireWritable(const char* what) const;
   void record(const core::SessionStatus& status);
-  bool isClosedOnDisk(const std::string& id) const;
 
   std::filesystem::path root_;
   core::MapServer& server_;
