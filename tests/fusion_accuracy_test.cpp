@@ -38,9 +38,7 @@ Accuracy measure(uint32_t seed) {
     const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
                                                   frame->left, camera, {.max_range_m = kMaxRange});
     // As the onboard client sends it: rays as long as the farthest point (corners exceed z).
-    float longest = kMaxRange;
-    for (const auto& p : cloud.points) longest = std::max(longest, p.norm());
-    map.insertCloud(cloud, T_map_camera, longest * 1.001);
+    map.insertCloud(cloud, T_map_camera, stereo::farthestPoint(cloud, kMaxRange) * 1.001);
     poses.push_back(T_map_camera);
   }
   EXPECT_EQ(poses.size(), static_cast<size_t>(kFrames));

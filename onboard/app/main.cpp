@@ -155,16 +155,18 @@ int main(int argc, char** argv) {
   options.depth = !no_publish;  // the clouds only matter to a server
 
   // Trajectory files, and a progress bar when running the odometry alone.
+  // Kept only when asked for: a live vehicle runs until Ctrl-C.
   common::Trajectory trajectory, kitti_poses;
   std::optional<common::Rigid3> first_camera;
+  uint64_t n = 0;
   const bool bar = no_publish && isatty(STDERR_FILENO);
   options.on_frame = [&](const pipeline::FrameReport& r) {
     const double t = static_cast<double>(r.stamp_ns) * 1e-9;
-    trajectory.push_back({t, r.T_map_body});
+    ++n;
+    if (!trajectory_out.empty()) trajectory.push_back({t, r.T_map_body});
     if (!first_camera) first_camera = r.T_map_camera;
-    kitti_poses.push_back({t, first_camera->inverse() * r.T_map_camera});
+    if (!kitti_out.empty()) kitti_poses.push_back({t, first_camera->inverse() * r.T_map_camera});
     if (bar) {
-      const uint64_t n = trajectory.size();
       const int filled = frames > 0 ? static_cast<int>(30 * n / frames) : static_cast<int>(n % 31);
       std::fprintf(stderr, "\r[%-30s] %llu%s frames, odometry %s, %.1f ms", std::string(filled, '#').c_str(),
                    static_cast<unsigned long long>(n),
@@ -206,7 +208,7 @@ int main(int argc, char** argv) {
       spdlog::error("{}", written.error().message);
       return 1;
     }
-    spdlog::info("wrote {} poses to {}", trajectory.size(), path);
+    spdlog::info("wrote {} poses to {}", n, path);
   }
   if (options.pose_source == pipeline::PoseSource::kOdometry) {
     spdlog::info("odometry: {} frames, {} lost, {} degraded, {:.1f} ms per frame (median)",

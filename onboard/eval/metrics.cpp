@@ -183,6 +183,14 @@ double pathLength(const Trajectory& trajectory) {
   return length;
 }
 
+double largestDisplacement(const Trajectory& trajectory) {
+  double largest = 0;
+  for (const auto& p : trajectory) {
+    largest = std::max(largest, (p.pose.translation - trajectory.front().pose.translation).norm());
+  }
+  return largest;
+}
+
 std::vector<double> defaultDriftLengths(const Trajectory& ref) {
   const double path = pathLength(ref);
   std::vector<double> lengths;

@@ -83,5 +83,7 @@ std::vector<Drift> kittiDrift(const common::Trajectory& ref, const common::Traje
 // of it (short excerpts).
 std::vector<double> defaultDriftLengths(const common::Trajectory& ref);
 double pathLength(const common::Trajectory& trajectory);
+// The farthest any position gets from the first (a standing vehicle's drift).
+double largestDisplacement(const common::Trajectory& trajectory);
 
 }  // namespace stereomap::eval

@@ -13,6 +13,7 @@
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "tests/support/data.hpp"
+#include "tests/support/sim_flights.hpp"
 
 namespace stereomap::odometry {
 namespace {
@@ -46,25 +47,15 @@ TEST(Odometry, EurocStandingStillDoesNotDrift) {
   STEREOMAP_SKIP_WITHOUT(kEuroc);
   const auto run = onDataset("euroc:" + kEuroc.string(), VoMode::kFast);
   ASSERT_GT(run.estimate.size(), 30u);
-  double moved = 0;
-  for (const auto& p : run.estimate) {
-    moved = std::max(moved, (p.pose.translation - run.estimate.front().pose.translation).norm());
-  }
+  const double moved = eval::largestDisplacement(run.estimate);
   std::printf("EuRoC static: largest estimated motion %.4f m\n", moved);
   EXPECT_LE(moved, 0.005);  // the issue: <= 2 cm over the clip; measured 1.0 mm
 }
 
 class SimFlight : public ::testing::TestWithParam<uint32_t> {};
 
-sim::SimSourceOptions noisyFlight(uint32_t seed) {
-  sim::SimSourceOptions options{.seed = seed, .rate_hz = 10.0, .max_frames = 300};
-  options.render.noise_sigma = 2.0;
-  options.render.blur_sigma = 1.0;
-  return options;
-}
-
 TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
-  sim::SimSource source(noisyFlight(GetParam()));
+  sim::SimSource source(testing::noisyFlight(GetParam()));
   const auto run = eval::runOdometry(source, {});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
@@ -106,7 +97,7 @@ class ShiftedRight : public camera::FrameSource {
 class MiscalibratedRig : public ::testing::TestWithParam<int> {};
 
 TEST_P(MiscalibratedRig, RightImageOffsetIsEstimatedAndCorrected) {
-  sim::SimSource sim(noisyFlight(1));
+  sim::SimSource sim(testing::noisyFlight(1));
   ShiftedRight source(sim, GetParam());
   const auto run = eval::runOdometry(source, {});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);

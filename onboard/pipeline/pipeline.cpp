@@ -108,11 +108,7 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
   proto::CloudFrameMsg frame;
   address(frame, options, seq, stamp_ns);
   copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
-  // Points are kept by depth (z), so rays to the image's corners are longer than the range
-  // limit: the octree must not cut them.
-  float longest = static_cast<float>(options.cloud.max_range_m);
-  for (const auto& p : cloud_camera.points) longest = std::max(longest, p.norm());
-  frame.max_range = longest * 1.001f;
+  frame.max_range = stereo::farthestPoint(cloud_camera, static_cast<float>(options.cloud.max_range_m)) * 1.001f;
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());
   frame.encoding = proto::CloudEncoding::kDraco;
   frame.quantization_bits = static_cast<uint8_t>(options.codec.quantization_bits);

@@ -262,6 +262,12 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
   return options.voxel_m > 0 ? voxelGridDownsample(cloud, options.voxel_m) : cloud;
 }
 
+float farthestPoint(const common::PointCloud& cloud, float at_least) {
+  float longest = at_least;
+  for (const auto& p : cloud.points) longest = std::max(longest, p.norm());
+  return longest;
+}
+
 common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m) {
   CV_Assert(voxel_m > 0);
   struct Cell {

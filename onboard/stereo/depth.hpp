@@ -119,6 +119,11 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
 
 // One point per occupied cubic voxel of edge `voxel_m` (the centroid of its points, with
 // their mean intensity), in order of first appearance. voxel_m must be positive.
+// The distance to the cloud's farthest point, at least `at_least`: clouds are cut by depth
+// (z), so rays to the image's corners are longer than max_range_m, and an octree given the
+// range limit alone would cut them.
+float farthestPoint(const common::PointCloud& cloud, float at_least);
+
 common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m);
 
 }  // namespace stereomap::stereo

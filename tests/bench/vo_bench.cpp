@@ -19,6 +19,7 @@
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
+#include "tests/support/sim_flights.hpp"
 
 using namespace stereomap;
 
@@ -30,10 +31,7 @@ void row(const char* data, const char* mode, const eval::OdometryRun& run,
   const auto sim3 = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
   const auto se3 = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
-  double moved = 0;
-  for (const auto& p : run.estimate) {
-    moved = std::max(moved, (p.pose.translation - run.estimate.front().pose.translation).norm());
-  }
+  const double moved = eval::largestDisplacement(run.estimate);
   std::printf("| %s | %s | %zu | %d | %.2f %% / %.2f | %.3f m (scale %.3f) | %.3f m (%.2f %% of %.1f m) | %.3f | %.4f | %+.2f | %.1f |\n",
               data, mode, run.estimate.size(), run.lost,
               drift.empty() ? 0.0 : drift.back().translation_percent,
@@ -130,10 +128,7 @@ int main(int argc, char** argv) {
     }
     for (uint32_t seed : {1u, 2u, 3u}) {
       if (ablation && seed > 1) break;
-      sim::SimSourceOptions sim_options{.seed = seed, .rate_hz = 10.0, .max_frames = 300};
-      sim_options.render.noise_sigma = 2.0;
-      sim_options.render.blur_sigma = 1.0;
-      sim::SimSource source(sim_options);
+      sim::SimSource source(testing::noisyFlight(seed));
       const std::string label = "sim room " + std::to_string(seed) + ", noise 2, blur 1 (5 m segments)";
       row(label.c_str(), mode, eval::runOdometry(source, options), {5});
     }
