@@ -10,7 +10,15 @@
 namespace stereomap::common {
 
 // kConflict: the request clashes with the current state (already loaded, live, exists).
-enum class ErrorCode { kInvalidArgument, kNotFound, kIo, kCorrupt, kTooLarge, kUnavailable, kConflict };
+enum class ErrorCode {
+  kInvalidArgument,
+  kNotFound,
+  kIo,
+  kCorrupt,
+  kTooLarge,
+  kUnavailable,
+  kConflict
+};
 
 struct Error {
   ErrorCode code = ErrorCode::kInvalidArgument;
@@ -31,6 +39,7 @@ class [[nodiscard]] Result {
   T* operator->() { return &value(); }
   const T* operator->() const { return &value(); }
   T& operator*() & { return value(); }
+  const T& operator*() const& { return value(); }
   const Error& error() const { return std::get<Error>(state_); }
 
  private:

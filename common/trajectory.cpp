@@ -5,6 +5,8 @@
 #include <fstream>
 #include <sstream>
 
+#include "common/files.hpp"
+
 namespace stereomap::common {
 
 namespace {
@@ -93,7 +95,8 @@ Result<Trajectory> readTrajectory(const std::filesystem::path& path,
     }
     trajectory.push_back(pose);
   }
-  if (trajectory.empty()) return makeError(ErrorCode::kInvalidArgument, path.string() + ": no poses");
+  if (trajectory.empty())
+    return makeError(ErrorCode::kInvalidArgument, path.string() + ": no poses");
   if (format != nullptr) *format = columns == 8 ? TrajectoryFormat::kTum : TrajectoryFormat::kKitti;
   return trajectory;
 }
@@ -117,20 +120,17 @@ std::string kittiText(const Trajectory& trajectory) {
   for (const auto& p : trajectory) {
     const Eigen::Matrix3d R = p.pose.rotation.toRotationMatrix();
     const auto& t = p.pose.translation;
-    std::snprintf(line, sizeof(line), "%.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e\n",
-                  R(0, 0), R(0, 1), R(0, 2), t.x(), R(1, 0), R(1, 1), R(1, 2), t.y(), R(2, 0),
-                  R(2, 1), R(2, 2), t.z());
+    std::snprintf(line, sizeof(line),
+                  "%.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e %.9e\n", R(0, 0), R(0, 1),
+                  R(0, 2), t.x(), R(1, 0), R(1, 1), R(1, 2), t.y(), R(2, 0), R(2, 1), R(2, 2),
+                  t.z());
     text += line;
   }
   return text;
 }
 
 Status writeText(const std::filesystem::path& path, const std::string& text) {
-  std::ofstream out(path, std::ios::trunc);
-  out << text;
-  out.flush();
-  if (!out) return makeError(ErrorCode::kIo, "cannot write " + path.string());
-  return Ok{};
+  return writeFileAtomically(path, text);
 }
 
 }  // namespace stereomap::common

@@ -28,7 +28,7 @@ Result<Trajectory> readTrajectory(const std::filesystem::path& path,
 
 std::string tumText(const Trajectory& trajectory);
 std::string kittiText(const Trajectory& trajectory);
-// Writes atomically enough for a tool (truncate + write); fails naming the file.
+// Writes the whole file atomically (common::writeFileAtomically); fails naming the file.
 Status writeText(const std::filesystem::path& path, const std::string& text);
 
 }  // namespace stereomap::common

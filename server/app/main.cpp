@@ -3,7 +3,11 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include <cctype>
+#include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <optional>
 #include <thread>
 
 #include "common/shutdown.hpp"
@@ -29,6 +33,40 @@ void pump(proto::Reader<T>& reader, core::MapServer& server, const common::Shutd
   }
 }
 
+// The token from --token, --token-file or $STEREOMAP_TOKEN (at most one of the flags);
+// exits 2 with a message on a bad file. Empty: none.
+std::optional<std::string> resolveToken(const std::string& flag, const std::string& file) {
+  if (!flag.empty() && !file.empty()) {
+    spdlog::error("pass either --token or --token-file, not both");
+    return std::nullopt;
+  }
+  if (!flag.empty()) {
+    spdlog::warn(
+        "--token is visible to every local user in the process list; prefer "
+        "--token-file FILE or the STEREOMAP_TOKEN environment variable");
+    return flag;
+  }
+  if (!file.empty()) {
+    std::ifstream in(file);
+    std::string token;
+    if (!in || !std::getline(in, token)) {
+      spdlog::error("--token-file {}: cannot read a token from it", file);
+      return std::nullopt;
+    }
+    while (!token.empty() && std::isspace(static_cast<unsigned char>(token.back())))
+      token.pop_back();
+    if (token.empty()) {
+      spdlog::error("--token-file {}: the first line is empty", file);
+      return std::nullopt;
+    }
+    return token;
+  }
+  const char* from_environment = std::getenv("STEREOMAP_TOKEN");
+  std::string token = from_environment != nullptr ? from_environment : "";
+  ::unsetenv("STEREOMAP_TOKEN");  // not handed on to anything this process starts
+  return token;
+}
+
 bool isLoopback(const std::string& address) {
   return address == "127.0.0.1" || address == "::1" || address.rfind("127.", 0) == 0 ||
          address == "localhost";
@@ -45,7 +83,7 @@ int main(int argc, char** argv) {
   core::MapServerOptions options;
   proto::DdsOptions dds;
   std::string web_root;
-  std::string token;
+  std::string token, token_file;
   app.add_option("--http", http_spec, "Address and port for HTTP and WebSocket")
       ->capture_default_str();
   app.add_option("--store", store_dir, "Directory where sessions are kept")->capture_default_str();
@@ -54,8 +92,13 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   proto::addDdsFlags(app, dds);
   app.add_option("--web-root", web_root, "The built viewer (default: ../web beside this binary)");
+  app.add_option("--token-file", token_file,
+                 "File whose first line is the token clients must present (Authorization: "
+                 "Bearer T or ?token=T); required when --http is not a loopback address. Or set "
+                 "STEREOMAP_TOKEN in the environment");
   app.add_option("--token", token,
-                 "Token clients must present (required when --http is not a loopback address)");
+                 "The token itself (visible to every local user in the process list: prefer "
+                 "--token-file or STEREOMAP_TOKEN)");
   app.add_option("--max-cloud-bytes", options.limits.max_payload_bytes,
                  "Largest accepted cloud payload, bytes")
       ->check(CLI::Range(size_t{1024}, proto::kMaxPayloadBytes))
@@ -88,14 +131,16 @@ int main(int argc, char** argv) {
     return 2;
   }
   if (http.address == "localhost") http.address = "127.0.0.1";
-  if (!isLoopback(http.address) && token.empty()) {
+  const auto resolved_token = resolveToken(token, token_file);
+  if (!resolved_token) return 2;
+  if (!isLoopback(http.address) && resolved_token->empty()) {
     spdlog::error(
-        "--http {} is not a loopback address: pass --token so that only your "
-        "operators can see the maps",
+        "--http {} is not a loopback address: give a token (--token-file FILE or "
+        "STEREOMAP_TOKEN) so that only your operators can see the maps",
         http_spec);
     return 2;
   }
-  http.token = token;
+  http.token = *resolved_token;
   http.web_root = web_root.empty()
                       ? std::filesystem::canonical("/proc/self/exe").parent_path() / ".." / "web"
                       : std::filesystem::path(web_root);
@@ -137,7 +182,10 @@ int main(int argc, char** argv) {
   if (!(*admin)->catalogWarning().empty()) spdlog::warn("{}", (*admin)->catalogWarning());
   for (const auto& session : (*admin)->recoverAll()) {
     if (!session.problem.empty()) {
-      spdlog::warn("session '{}': journal damaged, {}", session.id, session.problem);
+      spdlog::warn(
+          "session '{}': {} ({} records lost; `stereomap-store check` and `repair` "
+          "say more)",
+          session.id, session.problem, session.lost_records);
     }
     spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
                  session.frames, session.snapshot_frames, session.poses);

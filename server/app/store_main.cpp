@@ -13,6 +13,8 @@
 #include "common/transform_args.hpp"
 #include "server/core/api.hpp"
 #include "server/core/map_server.hpp"
+#include "server/core/validate.hpp"
+#include "server/fusion/occupancy_map.hpp"
 #include "server/store/journal.hpp"
 #include "server/store/store_admin.hpp"
 
@@ -99,10 +101,21 @@ int list(Store& store, bool as_json) {
   return 0;
 }
 
+// Whether a snapshot file reads back as a map (a .ot the server could start from).
+std::string snapshotProblem(const fs::path& path, double resolution) {
+  std::ifstream in(path, std::ios::binary);
+  fusion::OccupancyMap map({.resolution = resolution});
+  auto read = map.readFull(in);
+  return read ? "" : read.error().message;
+}
+
 // Reads every session's journal and snapshots; exit code 1 when anything is damaged.
 int check(Store& store) {
   int damaged = 0;
-  for (const auto& id : store.admin->storedIds()) {
+  const auto ids = store.admin->storedIds();
+  const auto saved = store.admin->savedSessions();
+  for (size_t i = 0; i < ids.size(); ++i) {
+    const auto& id = ids[i];
     const fs::path dir = store.admin->root() / id;
     auto replay = store::readJournal(dir / store::kJournalName);
     if (!replay) {
@@ -113,21 +126,64 @@ int check(Store& store) {
     size_t frames = 0;
     for (const auto& r : replay->records) frames += std::holds_alternative<proto::CloudFrameMsg>(r);
     const auto snapshots = store::snapshotsIn(dir);
-    std::printf("%-24s %-9s %zu records, %zu frames, %s MB, newest snapshot %s%s%s\n", id.c_str(),
-                replay->problem.empty() ? "ok" : "DAMAGED", replay->records.size(), frames,
-                megabytes(replay->good_bytes).c_str(),
-                snapshots.empty() ? "none" : std::to_string(snapshots.front().first).c_str(),
-                replay->problem.empty() ? "" : ": ", replay->problem.c_str());
-    damaged += !replay->problem.empty();
+    bool bad = !replay->problem.empty();
+    std::printf("%-24s %-9s %zu records, %zu frames, %s MB (format %d), %zu snapshot(s)\n",
+                id.c_str(), bad ? "DAMAGED" : "ok", replay->records.size(), frames,
+                megabytes(replay->file_bytes).c_str(), replay->version, snapshots.size());
+    if (replay->header_damaged) std::printf("  journal: file header damaged (records kept)\n");
+    for (const auto& damage : replay->damage) {
+      std::printf("  journal: %s\n", damage.describe().c_str());
+    }
+    if (replay->good_bytes < replay->file_bytes) {
+      std::printf(
+          "  journal: torn tail at byte %llu (%llu bytes; cut when the session is next "
+          "written)\n",
+          static_cast<unsigned long long>(replay->good_bytes),
+          static_cast<unsigned long long>(replay->file_bytes - replay->good_bytes));
+    }
+    for (const auto& [label, path] : snapshots) {
+      const std::string problem =
+          snapshotProblem(path, saved[i].resolution > 0 ? saved[i].resolution : 0.1);
+      if (problem.empty()) continue;
+      std::printf("  %s: unusable (%s)\n", path.filename().string().c_str(), problem.c_str());
+      bad = true;
+    }
+    damaged += bad;
   }
-  if (store.admin->storedIds().empty()) {
-    std::printf("(no sessions in %s)\n", store.admin->root().string().c_str());
-  }
+  if (ids.empty()) std::printf("(no sessions in %s)\n", store.admin->root().string().c_str());
   if (damaged > 0) {
-    std::printf("%d damaged; the server (or stereomap-store close) keeps every intact record\n",
-                damaged);
+    std::printf(
+        "%d damaged: the server skips damaged records and keeps every intact one; "
+        "`stereomap-store repair ID` rewrites a journal without them\n",
+        damaged);
   }
   return damaged > 0 ? 1 : 0;
+}
+
+// Rewrites damaged (or format 1) journals without their unreadable records.
+int repair(Store& store, const std::vector<std::string>& ids) {
+  int failed = 0;
+  for (const auto& id : ids) {
+    if (!core::isValidId(id) || !fs::exists(store.admin->root() / id / store::kJournalName)) {
+      std::printf("%s: no such session\n", id.c_str());
+      ++failed;
+      continue;
+    }
+    auto report = store::repairJournal(store.admin->root() / id);
+    if (!report) {
+      std::printf("%s: not repaired: %s\n", id.c_str(), report.error().message.c_str());
+      ++failed;
+    } else if (report->problem.empty()) {
+      std::printf("%s: intact, nothing to do\n", id.c_str());
+    } else {
+      std::printf("%s: rewritten with %llu records (%llu lost: %s)%s%s\n", id.c_str(),
+                  static_cast<unsigned long long>(report->records_kept),
+                  static_cast<unsigned long long>(report->records_lost), report->problem.c_str(),
+                  report->original.empty() ? "" : "; the damaged original is kept as ",
+                  report->original.string().c_str());
+    }
+  }
+  return failed > 0 ? 1 : 0;
 }
 
 }  // namespace
@@ -146,10 +202,20 @@ int main(int argc, char** argv) {
       ->capture_default_str();
 
   bool as_json = false;
-  auto* list_cmd = app.add_subcommand("list", "Sessions in the catalog (as the server last saw them)");
+  auto* list_cmd =
+      app.add_subcommand("list", "Sessions in the catalog (as the server last saw them)");
   list_cmd->add_flag("--json", as_json, "JSON instead of a table");
 
-  app.add_subcommand("check", "Read every journal and snapshot; exit 1 if any is damaged");
+  app.add_subcommand("check",
+                     "Read every journal and snapshot; name each damaged record; exit 1 if any "
+                     "is damaged");
+
+  std::vector<std::string> repair_ids;
+  auto* repair_cmd = app.add_subcommand(
+      "repair",
+      "Rewrite damaged journals without their unreadable records (the original is kept beside "
+      "it as journal.smj.damaged-TIME); needs the store to itself");
+  repair_cmd->add_option("session", repair_ids, "Session ids (default: every damaged one)");
 
   std::string id;
   auto* show_cmd = app.add_subcommand("show", "Replay one session and print its status (JSON)");
@@ -182,11 +248,13 @@ int main(int argc, char** argv) {
   std::vector<double> transform;
   auto* merge_cmd = app.add_subcommand(
       "merge", "Merge two sessions into a new, closed one (the second moved by --transform)");
-  merge_cmd->add_option("first", first, "First session (its map frame is the result's)")->required();
+  merge_cmd->add_option("first", first, "First session (its map frame is the result's)")
+      ->required();
   merge_cmd->add_option("second", second, "Second session")->required();
   merge_cmd->add_option("--into", into, "The new session's id")->required();
-  merge_cmd->add_option("--transform", transform,
-                        "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
+  merge_cmd
+      ->add_option("--transform", transform,
+                   "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
       ->delimiter(',')
       ->expected(7);
 
@@ -198,13 +266,24 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);
 
-  const bool writes = *close_cmd || *delete_cmd || *merge_cmd;
+  const bool writes = *close_cmd || *delete_cmd || *merge_cmd || *repair_cmd;
   if (*delete_cmd && !yes) return fail("delete is permanent: add --yes to delete '" + id + "'");
   auto store = openStore(root, resolution, writes);
   if (!store) return fail(store.error().message);
   auto& admin = *store->admin;
   if (*list_cmd) return list(*store, as_json);
   if (app.got_subcommand("check")) return check(*store);
+  if (*repair_cmd) {
+    if (repair_ids.empty()) {
+      for (const auto& stored : admin.storedIds()) {
+        auto replay = store::readJournal(admin.root() / stored / store::kJournalName);
+        if (!replay || !replay->problem.empty() || replay->version == 1)
+          repair_ids.push_back(stored);
+      }
+      if (repair_ids.empty()) std::printf("every journal is intact\n");
+    }
+    return repair(*store, repair_ids);
+  }
 
   if (*show_cmd || *export_cmd) {
     const bool was_closed = admin.isClosedOnDisk(id);
@@ -242,15 +321,16 @@ int main(int argc, char** argv) {
   core::MergeRequest request{first, second, into, common::Rigid3::identity()};
   if (!transform.empty()) {
     const auto T = common::rigidFromTxyzQxyzw(transform);
-    if (!T) return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
+    if (!T)
+      return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
     request.T_first_second = *T;
   }
   if (auto merged = admin.merge(request); !merged) return fail(merged.error().message);
   const auto status = store->server->find(into)->status();
   if (auto closed = admin.close(into); !closed) return fail(closed.error().message);
-  std::printf("merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
-              first.c_str(), second.c_str(), into.c_str(),
-              static_cast<unsigned long long>(status.frames_fused), status.poses,
-              status.occupied_voxels);
+  std::printf(
+      "merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
+      first.c_str(), second.c_str(), into.c_str(),
+      static_cast<unsigned long long>(status.frames_fused), status.poses, status.occupied_voxels);
   return 0;
 }

@@ -6,6 +6,7 @@
 #include <map>
 
 #include "common/transform_args.hpp"
+#include "server/core/validate.hpp"
 
 namespace stereomap::core {
 
@@ -13,8 +14,19 @@ namespace {
 
 using nlohmann::json;
 
+// Messages may quote request bytes: invalid UTF-8 is replaced, never thrown.
 HttpAnswer error(int status, const std::string& message) {
-  return {status, "application/json", json{{"error", message}}.dump() + "\n", ""};
+  return {status, "application/json",
+          json{{"error", message}}.dump(-1, ' ', false, json::error_handler_t::replace) + "\n", ""};
+}
+
+// Ids come from URLs and bodies and name directories: checked before anything else sees them.
+std::optional<HttpAnswer> badId(const std::string& what, const std::string& id) {
+  if (isValidId(id)) return std::nullopt;
+  const std::string shown =
+      id.size() > 80 ? id.substr(0, 80) + "... (" + std::to_string(id.size()) + " bytes)" : id;
+  return error(400, what + " '" + shown + "' is not 1-" + std::to_string(proto::kMaxIdLength) +
+                        " of [A-Za-z0-9._-] (and not . or ..)");
 }
 
 json boundsJson(const common::Box3& bounds) {
@@ -35,7 +47,9 @@ json statusJson(const SessionStatus& s) {
           {"fusion_backlog", s.backlog},
           {"occupied_voxels", s.occupied_voxels},
           {"poses", s.poses},
-          {"bounds", boundsJson(s.bounds)}};
+          {"bounds", boundsJson(s.bounds)},
+          {"store_error", s.store_error.empty() ? json(nullptr) : json(s.store_error)},
+          {"samples_refused", s.samples_refused}};
 }
 
 // Splits "/api/sessions/x/y?q" into path segments (query dropped).
@@ -82,16 +96,32 @@ bool isApiPath(std::string_view target) {
          (parts.size() == 1 && (parts[0] == "healthz" || parts[0] == "metrics"));
 }
 
+bool needsToken(std::string_view target) {
+  if (!isApiPath(target)) return false;
+  const auto parts = segments(target);
+  return !(parts.size() == 1 && parts[0] == "healthz");
+}
+
 std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin* admin,
                                     std::string_view method, std::string_view target) {
   if (!isApiPath(target)) return std::nullopt;
   const auto parts = segments(target);
   if (method != "GET" && method != "HEAD") {
-    return error(405, "use GET here (POST .../open, .../close and /api/sessions/merge, "
-                      "DELETE /api/sessions/{id} manage sessions)");
+    return error(405,
+                 "use GET here (POST .../open, .../close and /api/sessions/merge, "
+                 "DELETE /api/sessions/{id} manage sessions)");
   }
 
-  if (parts[0] == "healthz") return HttpAnswer{200, "text/plain", "ok\n", ""};
+  if (parts[0] == "healthz") {
+    // 503 while degraded, so that health checks (Docker, load balancers) notice.
+    const auto health = server.storeHealth();
+    if (health.ok) return HttpAnswer{200, "text/plain", "ok\n", ""};
+    return HttpAnswer{503, "text/plain",
+                      "degraded: " + health.reason +
+                          "; serving stored maps read-only, new samples are refused until the "
+                          "store can be written again\n",
+                      ""};
+  }
   if (parts[0] == "metrics") {
     return HttpAnswer{200, "text/plain; version=0.0.4", server.metricsText(), ""};
   }
@@ -105,6 +135,11 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
       for (const auto& closed : admin->closedSessions()) list.push_back(statusJson(closed));
     }
     return HttpAnswer{200, "application/json", list.dump() + "\n", ""};
+  }
+  if (auto bad = badId("session id", parts[2])) return bad;
+  const std::string vehicle = queryValue(target, "vehicle");
+  if (!vehicle.empty()) {
+    if (auto bad = badId("vehicle id", vehicle)) return bad;
   }
   const auto session = server.find(parts[2]);
   if (!session && admin != nullptr) {
@@ -123,11 +158,15 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   }
   // Resource -> export format; the height band and scale come from the query.
   static const std::map<std::string, std::string, std::less<>> kFormats = {
-      {"trajectory.tum", "tum"}, {"map.ot", "ot"}, {"map.ply", "ply"}, {"map.png", "png"}, {"map.bt", "bt"}};
+      {"trajectory.tum", "tum"},
+      {"map.ot", "ot"},
+      {"map.ply", "ply"},
+      {"map.png", "png"},
+      {"map.bt", "bt"}};
   const auto format = parts.size() == 4 ? kFormats.find(parts[3]) : kFormats.end();
   if (format != kFormats.end()) {
     ExportRequest request{format->second};
-    request.vehicle = queryValue(target, "vehicle");
+    request.vehicle = vehicle;
     if (request.format == "png") {
       // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
       try {
@@ -138,7 +177,8 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
         return error(400, "zmin and zmax must be numbers (metres), scale a whole number");
       }
       if (!(request.z_min <= request.z_max)) return error(400, "zmin must not exceed zmax");
-      if (request.scale < 1 || request.scale > 16) return error(400, "scale must be 1..16 pixels per voxel");
+      if (request.scale < 1 || request.scale > 16)
+        return error(400, "scale must be 1..16 pixels per voxel");
     }
     auto file = exportSession(*session, parts[2], request);
     if (!file) return error(404, file.error().message);
@@ -156,7 +196,9 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
   if (request.format == "ply") return ExportFile{session.occupiedPly(), binary, name};
   if (request.format == "png") {
     std::string png = session.occupancyPng(request.z_min, request.z_max, request.scale);
-    if (png.empty()) return common::makeError(common::ErrorCode::kNotFound, "no occupied voxels in that height band");
+    if (png.empty())
+      return common::makeError(common::ErrorCode::kNotFound,
+                               "no occupied voxels in that height band");
     return ExportFile{std::move(png), "image/png", name};
   }
   if (request.format == "tum") {
@@ -170,8 +212,9 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
     return ExportFile{session.trajectoryTum(chosen), "text/plain",
                       id + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
   }
-  return common::makeError(common::ErrorCode::kInvalidArgument,
-                           "unknown export format '" + request.format + "' (bt, ot, ply, png, tum)");
+  return common::makeError(
+      common::ErrorCode::kInvalidArgument,
+      "unknown export format '" + request.format + "' (bt, ot, ply, png, tum)");
 }
 
 bool isAdminRequest(std::string_view method, std::string_view target) {
@@ -204,8 +247,15 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
                    "\"transform\": [tx, ty, tz, qx, qy, qz, qw] (optional, a unit quaternion; "
                    "maps the second session's frame into the first's)}");
     }
+    for (const auto& [what, value] :
+         {std::pair{"first", request.first}, std::pair{"second", request.second},
+          std::pair{"into", request.into}}) {
+      if (auto bad = badId(std::string("merge: ") + what, value)) return *bad;
+    }
     id = request.into;
     done = admin->merge(request);
+  } else if (auto bad = badId("session id", parts[2])) {
+    return *bad;
   } else if (method == "POST" && parts.size() == 4 && parts[3] == "open") {
     id = parts[2];
     done = admin->open(id);
@@ -214,7 +264,8 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
     done = admin->close(id);
   } else if (method == "DELETE" && parts.size() == 3) {
     done = admin->remove(parts[2]);
-    if (done) return HttpAnswer{200, "application/json", json{{"deleted", parts[2]}}.dump() + "\n", ""};
+    if (done)
+      return HttpAnswer{200, "application/json", json{{"deleted", parts[2]}}.dump() + "\n", ""};
   } else {
     return error(404, "unknown request " + std::string(method) + " " + std::string(target));
   }
@@ -230,7 +281,8 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
     return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
   }
   for (const auto& closed : admin->closedSessions()) {
-    if (closed.id == id) return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
+    if (closed.id == id)
+      return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
   }
   return HttpAnswer{200, "application/json", json{{"id", id}}.dump() + "\n", ""};
 }

@@ -21,6 +21,9 @@ struct HttpAnswer {
 
 // True for the paths answerApi() serves (/healthz, /metrics, /api/...).
 bool isApiPath(std::string_view target);
+// True for the API paths that need the token when one is set: all but /healthz, which
+// health checks (Docker, load balancers) call without one.
+bool needsToken(std::string_view target);
 
 // The answer for a GET/HEAD of an API path, or nullopt when `target` is not an API path
 // (static files). `admin` (may be null) adds the store's closed sessions to listings.

@@ -4,6 +4,8 @@
 
 #include <algorithm>
 
+#include "common/time.hpp"
+
 namespace stereomap::core {
 
 namespace {
@@ -12,6 +14,8 @@ constexpr const char* kAccepted = "stereomap_samples_accepted_total";
 constexpr const char* kRejected = "stereomap_samples_rejected_total";
 constexpr const char* kDropped = "stereomap_fusion_dropped_frames_total";
 constexpr const char* kDuplicates = "stereomap_samples_duplicate_total";
+constexpr const char* kStoreHealthy = "stereomap_store_healthy";
+constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 }  // namespace
 
 MapServer::MapServer(const MapServerOptions& options) : options_(options) {
@@ -21,6 +25,10 @@ MapServer::MapServer(const MapServerOptions& options) : options_(options) {
   metrics_.describe(kDropped, "counter", "Frames dropped because fusion fell behind");
   metrics_.describe(kDuplicates, "counter",
                     "Samples received again (DDS history after a restart), skipped, by topic");
+  metrics_.describe(kStoreHealthy, "gauge",
+                    "1 when the store can be written, 0 when degraded (a full or failing disk)");
+  metrics_.describe(kStoreErrors, "counter", "Failed writes to the store's journals, by topic");
+  metrics_.set(kStoreHealthy, {}, 1);
   metrics_.describe("stereomap_sessions", "gauge", "Sessions known to this server");
   metrics_.describe("stereomap_session_frames_fused", "gauge", "Frames fused, by session");
   metrics_.describe("stereomap_session_occupied_voxels", "gauge", "Occupied voxels, by session");
@@ -49,9 +57,9 @@ Session::Options MapServer::sessionOptions(const std::string& id, double resolut
   Session::Options session_options{resolution, options_.queue_capacity, read_only};
   if (options_.snapshots != nullptr) {
     session_options.snapshot_every = options_.snapshot_every;
-    session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t frames,
+    session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t journal_number,
                                                                   const std::string& ot) {
-      sink->saveSnapshot(id, frames, ot);
+      return sink->saveSnapshot(id, journal_number, ot);
     };
   }
   return session_options;
@@ -85,7 +93,8 @@ common::Result<std::shared_ptr<Session>> MapServer::createSession(const std::str
                                                                   double resolution,
                                                                   bool read_only) {
   using common::ErrorCode;
-  if (!isValidId(id)) return common::makeError(ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
+  if (!isValidId(id))
+    return common::makeError(ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
   std::lock_guard lock(mutex_);
   if (sessions_.count(id) != 0) {
     return common::makeError(ErrorCode::kConflict, "session '" + id + "' is already loaded");
@@ -129,8 +138,8 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& 
   std::shared_ptr<Session> session;
   if (!rejection) session = sessionFor(session_id, topic, rejection);
   if (session && session->readOnly() && origin == Origin::kLive) {
-    rejection = Rejection{"read_only", "session '" + session_id +
-                                           "' was opened read-only from the store"};
+    rejection =
+        Rejection{"read_only", "session '" + session_id + "' was opened read-only from the store"};
   }
   if (rejection) {
     reject(topic, *rejection, vehicle_id + "/" + session_id);
@@ -141,36 +150,83 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& 
 }
 
 template <typename Message>
-bool MapServer::record(const char* topic, const Message& message, Session& session, Origin origin) {
+std::optional<uint64_t> MapServer::record(const char* topic, const Message& message,
+                                          Session& session, Origin origin) {
   uint64_t seq = 0;  // session events carry no seq: their stamp tells them apart
   if constexpr (requires { message.seq; }) seq = message.seq;
-  if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
-    metrics_.add(kDuplicates, {{"topic", topic}});
-    return false;
-  }
-  if (origin == Origin::kLive && options_.log != nullptr) {
-    // Durable first: a frame the journal could not keep was not received.
-    if (auto logged = options_.log->append(message); !logged) {
-      reject(topic, {"journal_failed", logged.error().message},
-             message.vehicle_id + "/" + message.session_id);
-      return false;
+  if (origin != Origin::kLive || options_.log == nullptr) {
+    if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
+      metrics_.add(kDuplicates, {{"topic", topic}});
+      return std::nullopt;
     }
+    return 0;
   }
-  return true;
+  // Durable first: a sample the journal could not keep was not received, and is not
+  // claimed, so that DDS redelivering it later is not taken for a duplicate.
+  if (session.seen(topic, message.vehicle_id, seq, message.stamp_ns)) {
+    metrics_.add(kDuplicates, {{"topic", topic}});
+    return std::nullopt;
+  }
+  auto logged = options_.log->append(message);
+  if (!logged) {
+    metrics_.add(kStoreErrors, {{"topic", topic}});
+    session.noteStoreError(logged.error().message);
+    reportStoreProblem("journal write failed: " + logged.error().message);
+    reject(topic, {"journal_failed", logged.error().message},
+           message.vehicle_id + "/" + message.session_id);
+    return std::nullopt;
+  }
+  session.claim(topic, message.vehicle_id, seq, message.stamp_ns);
+  session.noteStoreError("");
+  reportStoreOk();
+  return *logged;
 }
 
-bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin) {
+void MapServer::reportStoreProblem(const std::string& reason) {
+  std::lock_guard lock(mutex_);
+  const bool was_ok = store_health_.ok;
+  store_health_ = {false, reason, was_ok ? common::nowNs() : store_health_.since_ns};
+  store_ok_ = false;
+  metrics_.set(kStoreHealthy, {}, 0);
+  if (was_ok) {
+    spdlog::error(
+        "store degraded: {}; serving what it has, refusing new samples until a write "
+        "succeeds",
+        reason);
+  }
+}
+
+void MapServer::reportStoreOk() {
+  if (store_ok_) return;
+  std::lock_guard lock(mutex_);
+  if (store_health_.ok) return;
+  spdlog::info("store writable again (degraded for {:.1f} s: {})",
+               (common::nowNs() - store_health_.since_ns) * 1e-9, store_health_.reason);
+  store_health_ = {};
+  store_ok_ = true;
+  metrics_.set(kStoreHealthy, {}, 1);
+}
+
+StoreHealth MapServer::storeHealth() const {
+  std::lock_guard lock(mutex_);
+  return store_health_;
+}
+
+bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
   ValidCloud valid;
   const auto rejection = validateCloudFrame(frame, options_.limits, valid);
   auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection, origin);
-  if (!session || !record("CloudFrame", frame, *session, origin)) return false;
+  if (!session) return false;
+  const auto logged = record("CloudFrame", frame, *session, origin);
+  if (!logged) return false;
   if (origin == Origin::kCovered) {
     session->countCovered(frame.vehicle_id);
     return true;
   }
-  const bool queued = session->enqueue({frame.vehicle_id, frame.seq, std::move(valid.cloud_camera),
-                                        valid.T_map_camera, valid.max_range_m},
-                                       /*wait_for_room=*/origin == Origin::kReplay);
+  const bool queued = session->enqueue(
+      {frame.vehicle_id, frame.seq, std::move(valid.cloud_camera), valid.T_map_camera,
+       valid.max_range_m, origin == Origin::kLive ? *logged : journal_number},
+      /*wait_for_room=*/origin == Origin::kReplay);
   if (!queued) {
     metrics_.add(kDropped, {{"session", frame.session_id}});
     spdlog::warn("session '{}': fusion is behind ({} frames queued); frame {} dropped",

@@ -3,6 +3,7 @@
 // Thread-safe: ingest() may be called from several DDS reader threads at once.
 #pragma once
 
+#include <atomic>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -20,21 +21,31 @@
 namespace stereomap::core {
 
 // Where accepted samples are made durable before they count as received (the store's
-// journal). Called from the ingest threads; implementations are thread-safe.
+// journal). Each append returns the sample's journal record number (> 0, growing). Called
+// from the ingest threads; implementations are thread-safe.
 class IngestLog {
  public:
   virtual ~IngestLog() = default;
-  virtual common::Status append(const proto::CloudFrameMsg& frame) = 0;
-  virtual common::Status append(const proto::PoseMsg& pose) = 0;
-  virtual common::Status append(const proto::SessionEventMsg& event) = 0;
+  virtual common::Result<uint64_t> append(const proto::CloudFrameMsg& frame) = 0;
+  virtual common::Result<uint64_t> append(const proto::PoseMsg& pose) = 0;
+  virtual common::Result<uint64_t> append(const proto::SessionEventMsg& event) = 0;
 };
 
-// Where sessions' map snapshots go (the store). Called from fusion worker threads.
+// Where sessions' map snapshots go (the store): a .ot of the map holding every frame up to
+// journal record `journal_number`. Called from fusion worker threads.
 class SnapshotSink {
  public:
   virtual ~SnapshotSink() = default;
-  virtual void saveSnapshot(const std::string& session, uint64_t frames_fused,
-                            const std::string& ot) = 0;
+  virtual common::Status saveSnapshot(const std::string& session, uint64_t journal_number,
+                                      const std::string& ot) = 0;
+};
+
+// Whether the store can be written. Degraded (a full or failing disk): the server serves what
+// it has and refuses new samples, which it cannot keep, until a write succeeds again.
+struct StoreHealth {
+  bool ok = true;
+  std::string reason;    // when degraded: what failed, naming the file and the cause
+  int64_t since_ns = 0;  // when it became degraded
 };
 
 // A live sample is journaled; a replayed one (crash recovery) already was, and waits for
@@ -59,7 +70,9 @@ class MapServer {
   // Each returns true when the sample was accepted. A sample seen before (same vehicle, a
   // seq and stamp no newer than the last accepted: DDS redelivering its history to a
   // restarted server) is counted as a duplicate and skipped.
-  bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive);
+  // `journal_number`: a replayed or covered frame's record number in the journal.
+  bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive,
+              uint64_t journal_number = 0);
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event, Origin origin = Origin::kLive);
 
@@ -73,6 +86,12 @@ class MapServer {
   // Marks ids as closed (kept in the store, not loaded) or forgets them (deleted).
   void markClosed(const std::string& id);
   void forget(const std::string& id);
+
+  // The store's state: set degraded by a failed journal write (or by the store at start-up),
+  // ok again by the next write that succeeds. Shown by /healthz, /metrics and the log.
+  void reportStoreProblem(const std::string& reason);
+  void reportStoreOk();
+  StoreHealth storeHealth() const;
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;
@@ -88,12 +107,14 @@ class MapServer {
   Session::Options sessionOptions(const std::string& id, double resolution, bool read_only) const;
   // Counts the sample and returns its session, or nullptr (counted, logged) when rejected.
   std::shared_ptr<Session> admit(const char* topic, const std::string& vehicle_id,
-                                 const std::string& session_id,
-                                 std::optional<Rejection> rejection, Origin origin);
+                                 const std::string& session_id, std::optional<Rejection> rejection,
+                                 Origin origin);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
-  // Skips duplicates and journals live samples; false when the sample must go no further.
+  // Skips duplicates and journals live samples: the journal record number (0 when nothing
+  // was journaled), or nullopt when the sample must go no further.
   template <typename Message>
-  bool record(const char* topic, const Message& message, Session& session, Origin origin);
+  std::optional<uint64_t> record(const char* topic, const Message& message, Session& session,
+                                 Origin origin);
 
   const MapServerOptions options_;
   mutable Metrics metrics_;
@@ -102,6 +123,8 @@ class MapServer {
   std::vector<std::string> order_;
   std::set<std::string> closed_;
   std::map<std::string, uint64_t> rejections_by_reason_;  // for rate-limited logging
+  std::atomic<bool> store_ok_{true};                      // fast path of reportStoreOk()
+  StoreHealth store_health_;                              // under mutex_
 };
 
 }  // namespace stereomap::core

@@ -4,6 +4,8 @@
 #include <chrono>
 #include <iomanip>
 
+#include <spdlog/spdlog.h>
+
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
@@ -53,10 +55,26 @@ bool Session::claim(const std::string& topic, const std::string& vehicle, uint64
   return true;
 }
 
+bool Session::seen(const std::string& topic, const std::string& vehicle, uint64_t seq,
+                   int64_t stamp_ns) const {
+  std::lock_guard state(state_mutex_);
+  const auto found = last_claimed_.find({topic, vehicle});
+  if (found == last_claimed_.end()) return false;
+  const auto& [last_seq, last_stamp] = found->second;
+  return seq <= last_seq && stamp_ns <= last_stamp;
+}
+
+void Session::noteStoreError(const std::string& error) {
+  std::lock_guard state(state_mutex_);
+  if (!error.empty()) ++samples_refused_;
+  store_error_ = error;
+}
+
 bool Session::enqueue(FusionJob job, bool wait_for_room) {
   {
     std::lock_guard state(state_mutex_);
-    job.received_index = ++frames_received_;
+    ++frames_received_;
+    if (job.journal_number == 0) job.journal_number = frames_received_;
     noteVehicle(vehicles_, job.vehicle_id);
   }
   {
@@ -75,15 +93,11 @@ bool Session::enqueue(FusionJob job, bool wait_for_room) {
   return true;
 }
 
-common::Status Session::restore(std::istream& ot, uint64_t frames) {
+common::Status Session::restore(std::istream& ot, uint64_t journal_number) {
   {
     std::lock_guard lock(map_mutex_);
     if (auto status = map_.readFull(ot); !status) return status;
-    last_fused_index_ = frames;
-  }
-  {
-    std::lock_guard state(state_mutex_);
-    frames_fused_ = frames_received_ = frames;
+    last_fused_number_ = journal_number;
   }
   publishSnapshot();
   return common::Ok{};
@@ -92,6 +106,8 @@ common::Status Session::restore(std::istream& ot, uint64_t frames) {
 void Session::countCovered(const std::string& vehicle_id) {
   std::lock_guard state(state_mutex_);
   noteVehicle(vehicles_, vehicle_id);
+  ++frames_received_;
+  ++frames_fused_;
 }
 
 void Session::addPose(PoseRecord pose) {
@@ -122,7 +138,7 @@ void Session::run() {
     {
       std::lock_guard lock(map_mutex_);
       map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m);
-      last_fused_index_ = job.received_index;
+      last_fused_number_ = job.journal_number;
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -140,7 +156,10 @@ void Session::run() {
         std::lock_guard lock(map_mutex_);
         map_.writeFull(ot);
       }
-      options_.on_snapshot(job.received_index, ot.str());
+      if (auto saved = options_.on_snapshot(job.journal_number, ot.str()); !saved) {
+        // The journal still holds every frame: only the next recovery gets slower.
+        spdlog::warn("session '{}': snapshot not kept: {}", id_, saved.error().message);
+      }
     }
   }
 }
@@ -150,7 +169,7 @@ std::pair<uint64_t, std::string> Session::snapshotNow() const {
   std::ostringstream ot;
   std::lock_guard lock(map_mutex_);  // the map and its journal place change together
   map_.writeFull(ot);
-  return {last_fused_index_, ot.str()};
+  return {last_fused_number_, ot.str()};
 }
 
 void Session::publishSnapshot() {
@@ -187,6 +206,8 @@ SessionStatus Session::status() const {
   status.ended = ended_;
   status.read_only = options_.read_only;
   status.fusion_seconds = fusion_seconds_;
+  status.store_error = store_error_;
+  status.samples_refused = samples_refused_;
   return status;
 }
 

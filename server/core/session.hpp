@@ -37,7 +37,8 @@ struct FusionJob {
   common::PointCloud cloud_camera;
   common::Rigid3 T_map_camera;
   double max_range_m = 0;
-  uint64_t received_index = 0;  // set by enqueue(): this frame's 1-based place in the journal
+  // The frame's journal record number; 0: none (no journal), enqueue() numbers it by arrival.
+  uint64_t journal_number = 0;
 };
 
 struct VoxelSnapshot {
@@ -58,9 +59,12 @@ struct SessionStatus {
   common::Box3 bounds;
   size_t poses = 0;
   bool ended = false;
-  bool read_only = false;  // opened from the store: takes no new samples
-  bool closed = false;     // kept in the store only (not loaded)
+  bool read_only = false;     // opened from the store: takes no new samples
+  bool closed = false;        // kept in the store only (not loaded)
   double fusion_seconds = 0;  // total time spent inserting clouds
+  // Why the last sample could not be journaled ("" once one could again): it was refused.
+  std::string store_error;
+  uint64_t samples_refused = 0;  // samples the journal could not keep
 };
 
 // "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
@@ -73,9 +77,9 @@ class Session {
     size_t queue_capacity = 200;  // frames waiting for fusion before new ones are dropped
     bool read_only = false;       // opened from the store (the MapServer refuses live samples)
     // Every this many fused frames the worker hands a .ot of the map to on_snapshot, with
-    // the number of journaled frames it covers (dropped ones included). 0: off.
+    // the journal record number of the last frame in it. 0: off.
     size_t snapshot_every = 0;
-    std::function<void(uint64_t journal_frames, const std::string& ot)> on_snapshot;
+    std::function<common::Status(uint64_t journal_number, const std::string& ot)> on_snapshot;
   };
 
   Session(std::string id, const Options& options);
@@ -85,9 +89,10 @@ class Session {
 
   const std::string& id() const { return id_; }
   bool readOnly() const { return options_.read_only; }
-  // Starts from a snapshot (a .ot of the journal's first `frames` frames); before any
-  // enqueue. Fails when the snapshot is damaged or its resolution is not the session's.
-  common::Status restore(std::istream& ot, uint64_t frames);
+  // Starts from a snapshot (a .ot of the journal's frames up to record `journal_number`);
+  // before any enqueue. Fails when the snapshot is damaged or its resolution is not the
+  // session's.
+  common::Status restore(std::istream& ot, uint64_t journal_number);
   // Counts a frame that the restored snapshot already holds (replayed, not fused again).
   void countCovered(const std::string& vehicle_id);
   // Hands a frame to fusion; false (and counted) when the queue is full, unless
@@ -96,6 +101,11 @@ class Session {
   // True the first time a (topic, vehicle) sample with this seq and stamp is seen: false
   // when neither is newer than the last claimed one (a redelivered sample).
   bool claim(const std::string& topic, const std::string& vehicle, uint64_t seq, int64_t stamp_ns);
+  // Whether claim() would call this sample a duplicate (it claims nothing).
+  bool seen(const std::string& topic, const std::string& vehicle, uint64_t seq,
+            int64_t stamp_ns) const;
+  // Why a sample could not be journaled; "" when one was journaled again.
+  void noteStoreError(const std::string& error);
   void addPose(PoseRecord pose);
   void markEnded();
 
@@ -117,7 +127,7 @@ class Session {
   std::string occupancyPng(double z_min, double z_max, int pixels_per_voxel = 1) const;
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
-  // A .ot of the map and the number of journaled frames it covers, once idle (close()).
+  // A .ot of the map and the journal record number it covers up to, once idle (close()).
   std::pair<uint64_t, std::string> snapshotNow() const;
 
  private:
@@ -135,7 +145,7 @@ class Session {
 
   mutable std::mutex map_mutex_;  // the worker holds it while inserting
   fusion::OccupancyMap map_;
-  uint64_t last_fused_index_ = 0;  // journal place of the last frame in map_
+  uint64_t last_fused_number_ = 0;  // journal record number of the last frame in map_
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
@@ -146,6 +156,8 @@ class Session {
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
   double fusion_seconds_ = 0;
   bool ended_ = false;
+  std::string store_error_;
+  uint64_t samples_refused_ = 0;
 
   std::thread worker_;
 };

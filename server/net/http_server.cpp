@@ -9,15 +9,15 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <deque>
 #include <functional>
 #include <mutex>
-#include <deque>
-#include <fstream>
 #include <set>
 #include <thread>
 
 #include "server/core/api.hpp"
 #include "server/core/viewer_feed.hpp"
+#include "server/net/viewer_files.hpp"
 
 namespace stereomap::net {
 
@@ -32,41 +32,6 @@ namespace {
 constexpr size_t kMaxRequestBodyBytes = 64 * 1024;
 constexpr auto kIdleTimeout = std::chrono::seconds(60);
 
-std::string_view mimeType(const std::filesystem::path& path) {
-  const std::string ext = path.extension().string();
-  if (ext == ".html") return "text/html; charset=utf-8";
-  if (ext == ".js" || ext == ".mjs") return "text/javascript; charset=utf-8";
-  if (ext == ".css") return "text/css; charset=utf-8";
-  if (ext == ".json" || ext == ".map") return "application/json";
-  if (ext == ".svg") return "image/svg+xml";
-  if (ext == ".png") return "image/png";
-  if (ext == ".ico") return "image/x-icon";
-  if (ext == ".wasm") return "application/wasm";
-  return "application/octet-stream";
-}
-
-// The viewer file for a URL path, or an empty path when it is outside the web root.
-std::filesystem::path staticFile(const std::filesystem::path& root, std::string_view target) {
-  std::string path(target.substr(0, target.find_first_of("?#")));
-  if (path.empty() || path.back() == '/') path += "index.html";
-  for (size_t start = 0; start < path.size();) {  // refuse any ".." segment
-    const size_t end = std::min(path.find('/', start), path.size());
-    if (path.compare(start, end - start, "..") == 0) return {};
-    start = end + 1;
-  }
-  if (path.find('\0') != std::string::npos || path.find('\\') != std::string::npos) return {};
-  return root / path.substr(1);
-}
-
-bool readFile(const std::filesystem::path& path, std::string& out) {
-  std::error_code ec;
-  if (!std::filesystem::is_regular_file(path, ec)) return false;
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return false;
-  out.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-  return true;
-}
-
 std::string tokenFrom(const http::request<http::string_body>& request) {
   const std::string auth(request[http::field::authorization]);
   if (auth.starts_with("Bearer ")) return auth.substr(7);
@@ -77,6 +42,24 @@ std::string tokenFrom(const http::request<http::string_body>& request) {
   }
   const std::string_view rest = target.substr(at + 6);
   return std::string(rest.substr(0, rest.find('&')));
+}
+
+// Compares in time that depends only on the lengths, so the token cannot be guessed byte by
+// byte from response times.
+bool sameToken(const std::string& given, const std::string& expected) {
+  unsigned char difference = given.size() == expected.size() ? 0 : 1;
+  for (size_t i = 0; i < given.size(); ++i) {
+    difference |= static_cast<unsigned char>(given[i] ^ expected[i % expected.size()]);
+  }
+  return difference == 0;
+}
+
+// JSON text of an error message that may carry bytes from a request (invalid UTF-8 is
+// replaced rather than thrown).
+std::string errorBody(const std::string& message) {
+  return nlohmann::json{{"error", message}}.dump(-1, ' ', false,
+                                                 nlohmann::json::error_handler_t::replace) +
+         "\n";
 }
 
 // Runs session-management requests (a replay can take seconds) one at a time, off the
@@ -133,6 +116,7 @@ struct Hub {
   core::SessionAdmin* admin;  // may be null
   HttpServerOptions options;
   core::ViewerFeed feed;
+  ViewerFiles viewer;
   std::set<std::shared_ptr<WebSocketSession>> viewers;
   std::atomic<size_t> viewer_count{0};
   AdminWorker admin_worker;
@@ -232,12 +216,26 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
                      });
   }
 
+  // Any failure nobody foresaw answers 500 and leaves the server (and this connection) up.
   void handle(http::request<http::string_body> request) {
+    const unsigned version = request.version();
+    const bool keep_alive = request.keep_alive();
+    try {
+      route(std::move(request));
+    } catch (const std::exception& e) {
+      spdlog::error("internal error answering a request: {}", e.what());
+      sendError(http::status::internal_server_error, std::string("internal error: ") + e.what(),
+                keep_alive, version);
+    }
+  }
+
+  void route(http::request<http::string_body> request) {
     const std::string_view target(request.target().data(), request.target().size());
     const std::string method(request.method_string());
-    // The viewer's files are public; maps, poses and metrics need the token when one is set.
-    const bool is_data = websocket::is_upgrade(request) || core::isApiPath(target);
-    if (is_data && !hub_.options.token.empty() && tokenFrom(request) != hub_.options.token) {
+    // The viewer's files and /healthz are public; maps, poses and metrics need the token.
+    const bool is_data = websocket::is_upgrade(request) || core::needsToken(target);
+    if (is_data && !hub_.options.token.empty() &&
+        !sameToken(tokenFrom(request), hub_.options.token)) {
       return sendError(http::status::unauthorized,
                        "a valid token is required (Authorization: Bearer T or ?token=T)",
                        request.keep_alive());
@@ -254,7 +252,14 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
                               body = std::move(request.body()), version = request.version(),
                               keep_alive = request.keep_alive()] {
-        auto answer = core::answerAdmin(self->hub_.admin, self->hub_.server, method, target, body);
+        core::HttpAnswer answer;
+        try {
+          answer = core::answerAdmin(self->hub_.admin, self->hub_.server, method, target, body);
+        } catch (const std::exception& e) {
+          spdlog::error("internal error in {} {}: {}", method, target.substr(0, 200), e.what());
+          answer = {500, "application/json", errorBody(std::string("internal error: ") + e.what()),
+                    ""};
+        }
         asio::post(self->stream_.get_executor(),
                    [self, answer = std::move(answer), version, keep_alive]() mutable {
                      self->sendAnswer(std::move(answer), version, false, keep_alive);
@@ -263,33 +268,29 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       return;
     }
     if (auto answer = core::answerApi(hub_.server, hub_.admin, method, target)) {
-      return sendAnswer(std::move(*answer), request.version(),
-                        request.method() == http::verb::head, request.keep_alive());
+      return sendAnswer(std::move(*answer), request.version(), request.method() == http::verb::head,
+                        request.keep_alive());
     }
     if (request.method() != http::verb::get && request.method() != http::verb::head) {
       return sendError(http::status::method_not_allowed, "only GET is supported",
                        request.keep_alive());
     }
-    const auto path = staticFile(hub_.options.web_root, target);
-    std::string body;
-    if (path.empty()) {
-      return sendError(http::status::bad_request, "path leaves the viewer's folder",
-                       request.keep_alive());
-    }
-    if (!readFile(path, body)) {
-      if (path.filename() == "index.html") {
+    const ViewerFiles::File* file = hub_.viewer.find(target);
+    if (file == nullptr) {
+      if (hub_.viewer.size() == 0) {
         return sendError(http::status::not_found,
-                         "the viewer is not built (no " + path.string() +
+                         "the viewer is not built (nothing in " + hub_.viewer.root().string() +
                              "): run ./scripts/build or pass --web-root",
                          request.keep_alive());
       }
-      return sendError(http::status::not_found, "no file " + std::string(target),
+      return sendError(http::status::not_found,
+                       "no viewer file " + std::string(target.substr(0, 200)),
                        request.keep_alive());
     }
     auto response =
         std::make_shared<http::response<http::string_body>>(http::status::ok, request.version());
-    response->set(http::field::content_type, std::string(mimeType(path)));
-    response->body() = request.method() == http::verb::head ? "" : std::move(body);
+    response->set(http::field::content_type, file->content_type);
+    if (request.method() != http::verb::head) response->body() = file->content;
     write(response, request.keep_alive());
   }
 
@@ -306,10 +307,11 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     write(response, keep_alive);
   }
 
-  void sendError(http::status status, const std::string& message, bool keep_alive) {
-    auto response = std::make_shared<http::response<http::string_body>>(status, 11);
+  void sendError(http::status status, const std::string& message, bool keep_alive,
+                 unsigned version = 11) {
+    auto response = std::make_shared<http::response<http::string_body>>(status, version);
     response->set(http::field::content_type, "application/json");
-    response->body() = nlohmann::json{{"error", message}}.dump() + "\n";
+    response->body() = errorBody(message);
     write(response, keep_alive);
   }
 
@@ -339,7 +341,9 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
 
 struct HttpServer::Impl {
   Impl(const HttpServerOptions& options, const core::MapServer& server, core::SessionAdmin* admin)
-      : hub{server, admin, options, core::ViewerFeed(server), {}, {}, {}}, acceptor(io), timer(io) {}
+      : hub{server, admin, options, core::ViewerFeed(server), {}, {}, {}, {}},
+        acceptor(io),
+        timer(io) {}
 
   void accept() {
     acceptor.async_accept([this](beast::error_code ec, tcp::socket socket) {
@@ -380,6 +384,15 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
                                                                const core::MapServer& server,
                                                                core::SessionAdmin* admin) {
   auto impl = std::make_unique<Impl>(options, server, admin);
+  impl->hub.viewer = ViewerFiles::load(options.web_root);
+  if (impl->hub.viewer.size() > 0) {
+    spdlog::info("viewer files: {} ({} kB) from {}{}", impl->hub.viewer.size(),
+                 impl->hub.viewer.bytes() / 1024, impl->hub.viewer.root().string(),
+                 impl->hub.viewer.skipped() > 0
+                     ? " (" + std::to_string(impl->hub.viewer.skipped()) +
+                           " left out: links leaving the folder, unreadable or too large)"
+                     : "");
+  }
   beast::error_code ec;
   const auto address = asio::ip::make_address(options.address, ec);
   if (ec) {
@@ -402,7 +415,17 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
 void HttpServer::start() {
   impl_->accept();
   impl_->schedulePush();
-  impl_->thread = std::thread([this] { impl_->io.run(); });
+  impl_->thread = std::thread([this] {
+    // A handler that throws past its own catch would end io.run(): log it and serve on.
+    for (;;) {
+      try {
+        impl_->io.run();
+        return;
+      } catch (const std::exception& e) {
+        spdlog::error("internal error on the network thread: {}", e.what());
+      }
+    }
+  });
 }
 
 void HttpServer::stop() {

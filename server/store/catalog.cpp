@@ -1,6 +1,7 @@
 #include "server/store/catalog.hpp"
 
 #include <SQLiteCpp/SQLiteCpp.h>
+#include <sqlite3.h>
 
 #include "common/time.hpp"
 
@@ -52,6 +53,12 @@ common::Result<std::unique_ptr<Catalog>> Catalog::open(const fs::path& root) {
   try {
     impl = openHealthy(path);
   } catch (const SQLite::Exception& e) {
+    // A full or failing disk is not damage: leave the file alone and say why.
+    const int code = e.getErrorCode() & 0xFF;  // the primary result code
+    if (code == SQLITE_FULL || code == SQLITE_IOERR || code == SQLITE_READONLY ||
+        code == SQLITE_CANTOPEN || code == SQLITE_BUSY || code == SQLITE_LOCKED) {
+      return makeError(ErrorCode::kIo, path.string() + ": cannot open the catalog: " + e.what());
+    }
     // The journals hold the truth: keep the damaged file for inspection, start afresh.
     const fs::path aside =
         path.string() + ".corrupt-" + std::to_string(common::nowNs() / 1'000'000'000);
@@ -95,8 +102,15 @@ common::Status Catalog::remove(const std::string& id) {
 }
 
 CatalogRow catalogRow(const core::SessionStatus& s, uint64_t journal_bytes) {
-  CatalogRow row{s.id, "", core::stateName(s), s.frames_fused, s.resolution, s.occupied_voxels,
-                 s.bounds, journal_bytes, 0};
+  CatalogRow row{s.id,
+                 "",
+                 core::stateName(s),
+                 s.frames_fused,
+                 s.resolution,
+                 s.occupied_voxels,
+                 s.bounds,
+                 journal_bytes,
+                 0};
   for (const auto& v : s.vehicles) row.vehicles += (row.vehicles.empty() ? "" : ",") + v;
   return row;
 }

@@ -1,10 +1,16 @@
 #include "server/store/journal.hpp"
 
+#include <fcntl.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
+#include <cerrno>
 #include <cstring>
 #include <fstream>
+#include <optional>
+
+#include "common/files.hpp"
 
 namespace stereomap::store {
 
@@ -14,7 +20,12 @@ using common::makeError;
 
 namespace {
 
-constexpr char kMagic[8] = {'S', 'M', 'J', 'O', 'U', 'R', 'N', '1'};
+constexpr char kMagicV1[8] = {'S', 'M', 'J', 'O', 'U', 'R', 'N', '1'};
+constexpr char kMagicV2[8] = {'S', 'M', 'J', 'O', 'U', 'R', 'N', '2'};
+constexpr size_t kMagicBytes = 8;
+constexpr uint8_t kMarker[4] = {'S', 'M', 'R', 2};
+constexpr size_t kHeaderBytes = 24;   // marker, length, number, body CRC, header CRC
+constexpr size_t kV1HeaderBytes = 8;  // length, CRC
 constexpr uint32_t kMaxRecordBytes = 64u << 20;
 enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2, kSessionEvent = 3 };
 
@@ -173,7 +184,189 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
   return r.ok();
 }
 
+// Type byte + body, as the record's checksummed payload.
+std::vector<uint8_t> payloadOf(const JournalRecord& record) {
+  uint8_t type = 0;
+  std::vector<uint8_t> body = encode(record, type);
+  body.insert(body.begin(), type);
+  return body;
+}
+
+void putU32(uint8_t* at, uint32_t value) { std::memcpy(at, &value, 4); }
+void putU64(uint8_t* at, uint64_t value) { std::memcpy(at, &value, 8); }
+uint32_t getU32(const uint8_t* at) {
+  uint32_t value;
+  std::memcpy(&value, at, 4);
+  return value;
+}
+uint64_t getU64(const uint8_t* at) {
+  uint64_t value;
+  std::memcpy(&value, at, 8);
+  return value;
+}
+
+// One format 2 record: header + payload.
+std::vector<uint8_t> framed(const std::vector<uint8_t>& payload, uint64_t number) {
+  std::vector<uint8_t> bytes(kHeaderBytes + payload.size());
+  std::memcpy(bytes.data(), kMarker, 4);
+  putU32(&bytes[4], static_cast<uint32_t>(payload.size()));
+  putU64(&bytes[8], number);
+  putU32(&bytes[16], crc32(payload.data(), payload.size()));
+  putU32(&bytes[20], crc32(bytes.data(), 20));
+  std::memcpy(&bytes[kHeaderBytes], payload.data(), payload.size());
+  return bytes;
+}
+
+struct Header {
+  uint32_t length = 0;
+  uint64_t number = 0;
+  uint32_t body_crc = 0;
+};
+
+// The format 2 header at `at`, if one is there and its own checksum holds.
+std::optional<Header> headerAt(const std::vector<uint8_t>& bytes, size_t at) {
+  if (bytes.size() - at < kHeaderBytes || std::memcmp(&bytes[at], kMarker, 4) != 0) return {};
+  if (crc32(&bytes[at], 20) != getU32(&bytes[at + 20])) return {};
+  Header header{getU32(&bytes[at + 4]), getU64(&bytes[at + 8]), getU32(&bytes[at + 16])};
+  if (header.length == 0 || header.length > kMaxRecordBytes || header.number == 0) return {};
+  return header;
+}
+
+// The next offset at or after `from` where a valid format 2 header starts, or npos.
+size_t nextHeader(const std::vector<uint8_t>& bytes, size_t from) {
+  const auto begin = bytes.begin() + static_cast<long>(std::min(from, bytes.size()));
+  for (auto it = begin; (it = std::search(it, bytes.end(), kMarker, kMarker + 4)) != bytes.end();
+       ++it) {
+    const size_t at = static_cast<size_t>(it - bytes.begin());
+    if (headerAt(bytes, at)) return at;
+  }
+  return std::string::npos;
+}
+
+// Format 2: records with markers and numbers; damage is skipped up to the next valid header.
+void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay) {
+  size_t at = start;
+  replay.good_bytes = at;
+  while (at < bytes.size()) {
+    const auto header = headerAt(bytes, at);
+    if (!header) {
+      const size_t next = nextHeader(bytes, at + 1);
+      if (next == std::string::npos) break;  // nothing whole after it: a torn tail
+      const uint64_t number = getU64(&bytes[next + 8]);
+      JournalDamage damage{at, next, replay.last_number + 1, number - 1, "unreadable bytes"};
+      if (damage.last_lost < damage.first_lost) damage.first_lost = damage.last_lost = 0;
+      replay.damage.push_back(std::move(damage));
+      at = next;
+      continue;
+    }
+    const size_t end = at + kHeaderBytes + header->length;
+    if (end > bytes.size()) break;  // the record was being written: a torn tail
+    const uint8_t* payload = &bytes[at + kHeaderBytes];
+    JournalRecord decoded;
+    const bool whole = crc32(payload, header->length) == header->body_crc;
+    if (whole && decode(payload[0], payload + 1, header->length - 1, decoded)) {
+      replay.records.push_back(std::move(decoded));
+      replay.numbers.push_back(header->number);
+    } else {
+      replay.damage.push_back({at, end, header->number, header->number,
+                               whole ? "undecodable record" : "checksum mismatch"});
+    }
+    replay.last_number = std::max(replay.last_number, header->number);
+    at = end;
+    replay.good_bytes = at;
+  }
+}
+
+// A whole, checksummed format 1 record at `at`: its length, or 0.
+size_t v1RecordAt(const std::vector<uint8_t>& bytes, size_t at, JournalRecord* decoded) {
+  if (bytes.size() - at < kV1HeaderBytes + 1) return 0;
+  const uint32_t length = getU32(&bytes[at]);
+  if (length == 0 || length > kMaxRecordBytes || bytes.size() - at - kV1HeaderBytes < length) {
+    return 0;
+  }
+  const uint8_t* payload = &bytes[at + kV1HeaderBytes];
+  // Cheap tests first: the scan below tries every offset.
+  if (payload[0] < kCloudFrame || payload[0] > kSessionEvent) return 0;
+  if (crc32(payload, length) != getU32(&bytes[at + 4])) return 0;
+  JournalRecord scratch;
+  if (!decode(payload[0], payload + 1, length - 1, decoded ? *decoded : scratch)) return 0;
+  return kV1HeaderBytes + length;
+}
+
+// Format 1: no markers, so after damage every later offset is tried for a whole record.
+void readV1(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay) {
+  size_t at = start;
+  replay.good_bytes = at;
+  while (at < bytes.size()) {
+    JournalRecord decoded;
+    if (const size_t length = v1RecordAt(bytes, at, &decoded)) {
+      replay.records.push_back(std::move(decoded));
+      replay.numbers.push_back(replay.records.size());
+      at += length;
+      replay.good_bytes = at;
+      continue;
+    }
+    size_t next = at + 1;
+    while (next < bytes.size() && v1RecordAt(bytes, next, nullptr) == 0) ++next;
+    if (next >= bytes.size()) break;
+    replay.damage.push_back({at, next, 0, 0, "unreadable bytes (format 1: records not numbered)"});
+    at = next;
+  }
+  replay.last_number = replay.records.size();
+}
+
+std::string summary(const JournalReplay& replay) {
+  std::string text;
+  auto add = [&](const std::string& part) { text += (text.empty() ? "" : "; ") + part; };
+  if (replay.header_damaged) add("file header damaged");
+  for (const auto& damage : replay.damage) add(damage.describe());
+  if (replay.good_bytes < replay.file_bytes) {
+    add("torn tail at byte " + std::to_string(replay.good_bytes) + " (" +
+        std::to_string(replay.file_bytes - replay.good_bytes) + " bytes cut)");
+  }
+  if (!text.empty()) {
+    text += "; kept " + std::to_string(replay.records.size()) + " records";
+    if (const uint64_t lost = replay.lostRecords()) text += ", lost " + std::to_string(lost);
+  }
+  return text;
+}
+
+// Writes all of `bytes` at `offset` or fails with errno set.
+bool writeAllAt(int fd, const uint8_t* data, size_t size, uint64_t offset) {
+  while (size > 0) {
+    const ssize_t n = ::pwrite(fd, data, size, static_cast<off_t>(offset));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) {
+      if (n == 0) errno = EIO;
+      return false;
+    }
+    data += n;
+    size -= static_cast<size_t>(n);
+    offset += static_cast<uint64_t>(n);
+  }
+  return true;
+}
+
 }  // namespace
+
+std::string JournalDamage::describe() const {
+  std::string who;
+  if (first_lost == 0) {
+    who = "no numbered record lost";
+  } else if (first_lost == last_lost) {
+    who = "record " + std::to_string(first_lost) + " lost";
+  } else {
+    who = "records " + std::to_string(first_lost) + "-" + std::to_string(last_lost) + " lost";
+  }
+  return reason + " at bytes " + std::to_string(begin) + "-" + std::to_string(end) + " (" + who +
+         ")";
+}
+
+uint64_t JournalReplay::lostRecords() const {
+  uint64_t lost = 0;
+  for (const auto& d : damage) lost += d.first_lost == 0 ? 0 : d.last_lost - d.first_lost + 1;
+  return lost;
+}
 
 uint32_t crc32(const uint8_t* data, size_t size) {
   static const std::array<uint32_t, 256> table = [] {
@@ -195,109 +388,119 @@ common::Result<JournalReplay> readJournal(const fs::path& path) {
   if (!in) return makeError(ErrorCode::kNotFound, path.string() + ": cannot open the journal");
   std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)),
                              std::istreambuf_iterator<char>());
+  if (in.bad()) return makeError(ErrorCode::kIo, path.string() + ": cannot read the journal");
   JournalReplay replay;
   replay.file_bytes = bytes.size();
-  if (bytes.size() < sizeof(kMagic) || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
-    if (bytes.empty()) return replay;  // created but never written: an empty journal
-    replay.problem = "not a stereomap journal (bad header); nothing kept";
+  // A header cut short by a failed first write (a prefix of either magic) is an empty journal.
+  if (bytes.size() < kMagicBytes && (std::memcmp(bytes.data(), kMagicV1, bytes.size()) == 0 ||
+                                     std::memcmp(bytes.data(), kMagicV2, bytes.size()) == 0)) {
+    if (!bytes.empty()) replay.problem = summary(replay);
     return replay;
   }
-  size_t at = sizeof(kMagic);
-  replay.good_bytes = at;
-  // Record: u32 length, u32 CRC-32 of (type + body), u8 type, body.
-  while (at < bytes.size()) {
-    const size_t record = at;
-    if (bytes.size() - at < 9) {
-      replay.problem = "torn record header at byte " + std::to_string(record);
-      break;
+  const bool v1 =
+      bytes.size() >= kMagicBytes && std::memcmp(bytes.data(), kMagicV1, kMagicBytes) == 0;
+  const bool v2 =
+      bytes.size() >= kMagicBytes && std::memcmp(bytes.data(), kMagicV2, kMagicBytes) == 0;
+  if (v1) {
+    replay.version = 1;
+    readV1(bytes, kMagicBytes, replay);
+  } else {
+    // A damaged file header costs nothing when records follow it.
+    readV2(bytes, kMagicBytes, replay);
+    replay.header_damaged = !v2;
+    if (!v2 && replay.records.empty()) {
+      JournalReplay not_ours;
+      not_ours.file_bytes = bytes.size();
+      not_ours.problem = "not a stereomap journal (bad header); nothing kept";
+      return not_ours;
     }
-    uint32_t length, checksum;
-    std::memcpy(&length, &bytes[at], 4);
-    std::memcpy(&checksum, &bytes[at + 4], 4);
-    at += 8;
-    if (length == 0 || length > kMaxRecordBytes) {
-      replay.problem = "impossible record length " + std::to_string(length) + " at byte " +
-                       std::to_string(record);
-      break;
-    }
-    if (bytes.size() - at < length) {
-      replay.problem = "torn record at byte " + std::to_string(record) + " (" +
-                       std::to_string(bytes.size() - at) + " of " + std::to_string(length) +
-                       " bytes)";
-      break;
-    }
-    if (crc32(&bytes[at], length) != checksum) {
-      replay.problem = "checksum mismatch in the record at byte " + std::to_string(record);
-      break;
-    }
-    JournalRecord decoded;
-    if (!decode(bytes[at], &bytes[at + 1], length - 1, decoded)) {
-      replay.problem = "undecodable record at byte " + std::to_string(record);
-      break;
-    }
-    replay.records.push_back(std::move(decoded));
-    at += length;
-    replay.good_bytes = at;
   }
-  if (!replay.problem.empty()) {
-    replay.problem += "; cut " + std::to_string(replay.file_bytes - replay.good_bytes) +
-                      " bytes, kept " + std::to_string(replay.records.size()) + " records";
-  }
+  replay.problem = summary(replay);
   return replay;
 }
 
-common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path) {
+common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
+                                                       uint64_t first_number) {
   auto journal = std::unique_ptr<Journal>(new Journal());
   journal->path_ = path;
-  std::error_code ec;
-  if (fs::exists(path, ec)) {
-    auto replay = readJournal(path);
-    if (!replay) return replay.error();
+  auto replay = readJournal(path);
+  if (replay) {
     journal->recovered_ = std::move(replay).value();
-    if (journal->recovered_.good_bytes == 0 && journal->recovered_.file_bytes > 0) {
-      // Not ours: refuse rather than overwrite whatever this file is.
-      return makeError(ErrorCode::kCorrupt, path.string() + ": " + journal->recovered_.problem);
-    }
-    if (journal->recovered_.good_bytes < journal->recovered_.file_bytes) {
-      fs::resize_file(path, journal->recovered_.good_bytes, ec);
-      if (ec) {
-        return makeError(ErrorCode::kIo,
-                         path.string() + ": cannot cut the damaged tail: " + ec.message());
-      }
-    }
+  } else if (replay.error().code != ErrorCode::kNotFound) {
+    return replay.error();
   }
-  journal->file_ = std::fopen(path.c_str(), "ab");
-  if (journal->file_ == nullptr) {
-    return makeError(ErrorCode::kIo, path.string() + ": cannot open the journal for writing");
+  auto& recovered = journal->recovered_;
+  if (recovered.version == 1 && recovered.good_bytes > 0) {
+    return makeError(ErrorCode::kConflict,
+                     path.string() + ": a format 1 journal; rewrite it as format 2 first");
   }
-  journal->bytes_ = journal->recovered_.good_bytes;
-  if (journal->bytes_ == 0) {
-    if (std::fwrite(kMagic, 1, sizeof(kMagic), journal->file_) != sizeof(kMagic) ||
-        std::fflush(journal->file_) != 0) {
-      return makeError(ErrorCode::kIo, path.string() + ": cannot write the journal header");
+  if (recovered.good_bytes == 0 && recovered.file_bytes >= kMagicBytes) {
+    // Not ours: refuse rather than overwrite whatever this file is.
+    return makeError(ErrorCode::kCorrupt, path.string() + ": " + recovered.problem);
+  }
+  journal->fd_ = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (journal->fd_ < 0) {
+    return makeError(ErrorCode::kIo, path.string() + ": cannot open the journal for writing: " +
+                                         common::systemError(errno));
+  }
+  const bool fresh = recovered.good_bytes < kMagicBytes;
+  journal->bytes_ = fresh ? 0 : recovered.good_bytes;
+  journal->needs_cut_ = recovered.file_bytes > journal->bytes_;  // a torn tail or header
+  if (journal->needs_cut_ && !journal->cutBack()) {
+    return makeError(ErrorCode::kIo,
+                     path.string() + ": cannot cut the torn tail: " + common::systemError(errno));
+  }
+  if (fresh || recovered.header_damaged) {
+    const auto* magic = reinterpret_cast<const uint8_t*>(kMagicV2);
+    if (!writeAllAt(journal->fd_, magic, kMagicBytes, 0) || ::fdatasync(journal->fd_) != 0) {
+      const int error = errno;
+      if (fresh) journal->cutBack();
+      return makeError(ErrorCode::kIo, path.string() + ": cannot write the journal header: " +
+                                           common::systemError(error));
     }
-    journal->bytes_ = sizeof(kMagic);
+    if (fresh) journal->bytes_ = kMagicBytes;
   }
+  journal->next_number_ = std::max(recovered.last_number + 1, first_number);
   return journal;
 }
 
 Journal::~Journal() {
-  if (file_ != nullptr) std::fclose(file_);
+  if (fd_ >= 0) ::close(fd_);
 }
 
-common::Status Journal::append(const JournalRecord& record) {
-  uint8_t type = 0;
-  std::vector<uint8_t> body = encode(record, type);
-  body.insert(body.begin(), type);
-  const uint32_t length = static_cast<uint32_t>(body.size());
-  const uint32_t checksum = crc32(body.data(), body.size());
-  if (std::fwrite(&length, 4, 1, file_) != 1 || std::fwrite(&checksum, 4, 1, file_) != 1 ||
-      std::fwrite(body.data(), 1, body.size(), file_) != body.size() || std::fflush(file_) != 0 ||
-      ::fdatasync(::fileno(file_)) != 0) {
-    return makeError(ErrorCode::kIo, path_.string() + ": journal write failed");
+bool Journal::cutBack() {
+  if (::ftruncate(fd_, static_cast<off_t>(bytes_)) != 0 || ::fdatasync(fd_) != 0) return false;
+  needs_cut_ = false;
+  return true;
+}
+
+common::Result<uint64_t> Journal::append(const JournalRecord& record) {
+  if (needs_cut_ && !cutBack()) {
+    return makeError(ErrorCode::kIo, path_.string() +
+                                         ": the journal still ends in a failed write and cannot "
+                                         "be cut back: " +
+                                         common::systemError(errno));
   }
-  bytes_ += 8 + body.size();
-  return common::Ok{};
+  const std::vector<uint8_t> bytes = framed(payloadOf(record), next_number_);
+  if (!writeAllAt(fd_, bytes.data(), bytes.size(), bytes_) || ::fdatasync(fd_) != 0) {
+    const int error = errno;
+    needs_cut_ = true;
+    cutBack();  // if this fails too, the next append tries again before writing
+    return makeError(ErrorCode::kIo,
+                     path_.string() + ": journal write failed: " + common::systemError(error));
+  }
+  bytes_ += bytes.size();
+  return next_number_++;
+}
+
+common::Status rewriteJournal(const fs::path& path, const std::vector<JournalRecord>& records,
+                              const std::vector<uint64_t>& numbers) {
+  std::string content(kMagicV2, kMagicBytes);
+  for (size_t i = 0; i < records.size(); ++i) {
+    const auto bytes = framed(payloadOf(records[i]), numbers[i]);
+    content.append(reinterpret_cast<const char*>(bytes.data()), bytes.size());
+  }
+  return common::writeFileAtomically(path, content);
 }
 
 }  // namespace stereomap::store

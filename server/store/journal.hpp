@@ -1,15 +1,21 @@
-// A session's journal: an append-only file of the frames and poses the server received,
-// each record length-prefixed and CRC-32 checksummed, flushed to disk (fdatasync) before
-// append() returns, so a frame counts as received only once it is durable. Reading stops at
-// the first torn or corrupt record; recovery cuts the file there and keeps everything before.
+// A session's journal: an append-only file of the frames, poses and session events the server
+// received, flushed to disk (fdatasync) before append() returns, so a sample counts as
+// received only once its record is whole on disk. A failed write is cut back at once: the
+// file always ends at its last whole record before anything else is appended.
 //
-//   auto journal = Journal::open("sessions/s1/journal.smj");   // recovers a torn tail
-//   journal->append(cloud_frame);
-//   auto replay = readJournal("sessions/s1/journal.smj");     // records + what was cut
+// Format 2 (docs/PROTOCOL.md, "Journal"): the header "SMJOURN2", then records, each a 24-byte
+// header (marker "SMR\x02", body length, record number, CRC-32 of the body, CRC-32 of the
+// header) and the body. Record numbers start at 1 and only grow; snapshots name the record
+// they cover up to. Reading resynchronises on the next valid header after any damage, so one
+// flipped byte costs at most the record it is in, and every lost record is reported by
+// number. Format 1 journals (no markers, no numbers) are still read, with a slower resync.
+//
+//   auto journal = Journal::open("sessions/s1/journal.smj");   // cuts a torn tail
+//   auto number = journal->append(cloud_frame);
+//   auto replay = readJournal("sessions/s1/journal.smj");     // records + what was lost
 #pragma once
 
 #include <cstdint>
-#include <cstdio>
 #include <filesystem>
 #include <memory>
 #include <string>
@@ -23,39 +29,72 @@ namespace stereomap::store {
 
 using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg>;
 
-struct JournalReplay {
-  std::vector<JournalRecord> records;
-  uint64_t good_bytes = 0;  // length of the intact prefix
-  uint64_t file_bytes = 0;
-  std::string problem;  // empty when the whole file was intact; else what was cut
+// A stretch of the file that could not be read. Reading continued after it.
+struct JournalDamage {
+  uint64_t begin = 0, end = 0;  // bytes [begin, end)
+  // Record numbers that were in it, when the neighbours tell (0, 0: none known lost).
+  uint64_t first_lost = 0, last_lost = 0;
+  std::string reason;
+  std::string describe() const;  // "record 202 (bytes 1234-5678): checksum mismatch"
 };
 
-// Reads every intact record. A missing file is an error; a damaged tail is not (it is
-// described in `problem`).
+struct JournalReplay {
+  int version = 2;
+  std::vector<JournalRecord> records;
+  std::vector<uint64_t> numbers;      // numbers[i]: records[i]'s record number
+  std::vector<JournalDamage> damage;  // inside the file; the records around it are kept
+  uint64_t good_bytes = 0;            // end of the last whole record: where appending continues
+  uint64_t file_bytes = 0;            // a torn tail is what lies between the two
+  uint64_t last_number = 0;           // highest number in any whole record, damaged ones included
+  bool header_damaged = false;
+  // Empty when the file was intact; else every damage and what was cut, for people.
+  std::string problem;
+  uint64_t lostRecords() const;  // counted from the numbers around each damage
+};
+
+// Reads every intact record. A missing file is an error; damage is not (see `damage` and
+// `problem`). A file that is not a journal has good_bytes 0 and a problem.
 common::Result<JournalReplay> readJournal(const std::filesystem::path& path);
 
 class Journal {
  public:
-  // Opens for appending, creating the file if needed. An existing file is checked first: a
-  // torn or corrupt tail is cut off (described in recovered().problem) and everything before
-  // it kept.
-  static common::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& path);
+  // Opens for appending, creating the file (format 2) if needed. An existing file is read
+  // first: a torn tail is cut, damage inside is left for readers to skip (and for
+  // `stereomap-store repair`). New records are numbered above every number the file holds
+  // and at least `first_number` (callers pass one past their newest snapshot's).
+  // A format 1 file is refused (kConflict): rewriteJournal() upgrades it.
+  static common::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& path,
+                                                       uint64_t first_number = 1);
   ~Journal();
   Journal(const Journal&) = delete;
   Journal& operator=(const Journal&) = delete;
 
-  // Appends and makes the record durable before returning.
-  common::Status append(const JournalRecord& record);
+  // Appends and makes the record durable; its record number. On failure (a full disk) the
+  // partial record is cut off again before anything else is written, and the error names
+  // the cause; while it cannot be cut, every append fails.
+  common::Result<uint64_t> append(const JournalRecord& record);
   const JournalReplay& recovered() const { return recovered_; }
   uint64_t bytes() const { return bytes_; }
+  uint64_t nextNumber() const { return next_number_; }
 
  private:
   Journal() = default;
-  std::FILE* file_ = nullptr;
+  // Cuts the file back to bytes_ after a failed write; false when even that failed.
+  bool cutBack();
+  int fd_ = -1;
   std::filesystem::path path_;
   JournalReplay recovered_;
   uint64_t bytes_ = 0;
+  uint64_t next_number_ = 1;
+  bool needs_cut_ = false;
 };
+
+// Writes `records` (with their numbers, which must grow) as a new format 2 journal at
+// `path`, atomically: a temporary file, fsync, rename. Used to repair a damaged journal and
+// to upgrade a format 1 one.
+common::Status rewriteJournal(const std::filesystem::path& path,
+                              const std::vector<JournalRecord>& records,
+                              const std::vector<uint64_t>& numbers);
 
 // CRC-32 (IEEE 802.3), as zlib's crc32().
 uint32_t crc32(const uint8_t* data, size_t size);

@@ -1,8 +1,8 @@
 // The server side of the store's durability: one Journal per session under the store root
 // (<root>/<session>/journal.smj, the MapServer's IngestLog; a new session's directory also
-// gets meta.json with its resolution) and periodic map snapshots
-// (<root>/<session>/snapshot-<journal frames>.ot, the MapServer's SnapshotSink).
-// Recovery lives in store_admin.hpp.
+// gets meta.json with its resolution), periodic map snapshots
+// (<root>/<session>/snapshot-<record number>.ot, the MapServer's SnapshotSink), and the
+// repair of damaged or format 1 journals. Recovery lives in store_admin.hpp.
 #pragma once
 
 #include <filesystem>
@@ -21,29 +21,45 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
   // `resolution`: what new sessions are created with (the server's --resolution).
   SessionJournals(std::filesystem::path root, double resolution)
       : root_(std::move(root)), resolution_(resolution) {}
-  common::Status append(const proto::CloudFrameMsg& frame) override;
-  common::Status append(const proto::PoseMsg& pose) override;
-  common::Status append(const proto::SessionEventMsg& event) override;
+  common::Result<uint64_t> append(const proto::CloudFrameMsg& frame) override;
+  common::Result<uint64_t> append(const proto::PoseMsg& pose) override;
+  common::Result<uint64_t> append(const proto::SessionEventMsg& event) override;
   // Written atomically (temporary file + rename); older snapshots are then removed.
-  void saveSnapshot(const std::string& session, uint64_t journal_frames,
-                    const std::string& ot) override;
+  common::Status saveSnapshot(const std::string& session, uint64_t journal_number,
+                              const std::string& ot) override;
   // Closes a session's journal file (the session was closed or deleted).
   void release(const std::string& session);
 
  private:
-  common::Status appendTo(const std::string& session, const JournalRecord& record);
+  common::Result<uint64_t> appendTo(const std::string& session, const JournalRecord& record);
+  common::Result<std::unique_ptr<Journal>> openJournal(const std::string& session);
   std::filesystem::path root_;
   double resolution_;
   std::mutex mutex_;
   std::map<std::string, std::unique_ptr<Journal>> journals_;
 };
 
-// <dir>/snapshot-*.ot, newest (most journal frames) first: (frames, path).
+// <dir>/snapshot-*.ot, newest first: (label, path). The label is the journal record number
+// the snapshot covers up to (format 1 journals: the number of cloud frames).
 std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(
     const std::filesystem::path& dir);
 
-// Writes `content` to a temporary file beside `path`, flushes it, and renames it over `path`.
-common::Status writeAtomically(const std::filesystem::path& path, const std::string& content);
+// The record number a format 1 snapshot label (a count of cloud frames) stands for in
+// `replay` (format 1, numbered 1..n), or 0 when it cannot be told (damage, too few frames).
+uint64_t legacySnapshotNumber(const JournalReplay& replay, uint64_t frames);
+
+struct RepairReport {
+  uint64_t records_kept = 0, records_lost = 0;
+  std::string problem;             // what was wrong (JournalReplay::problem)
+  std::filesystem::path original;  // where the damaged file was kept (empty: not kept)
+};
+
+// Rewrites <dir>/journal.smj as an intact format 2 journal of every readable record
+// (numbers kept, so snapshots stay valid; a format 1 journal's snapshots are renamed to
+// record numbers, or removed when damage makes them ambiguous). A damaged original is kept
+// beside it as journal.smj.damaged-<unix time>. Nothing is written when the journal is
+// intact and already format 2.
+common::Result<RepairReport> repairJournal(const std::filesystem::path& dir);
 
 inline constexpr const char* kJournalName = "journal.smj";
 // The size of a session directory's journal (0 when there is none).

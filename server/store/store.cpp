@@ -2,6 +2,8 @@
 
 #include <fstream>
 
+#include "common/files.hpp"
+
 #include "server/core/api.hpp"
 #include "server/store/session_journals.hpp"
 
@@ -14,16 +16,22 @@ using common::makeError;
 common::Result<SessionStore> SessionStore::open(const fs::path& root) {
   std::error_code ec;
   fs::create_directories(root, ec);
-  if (ec || !fs::is_directory(root)) {
+  if (ec || !fs::is_directory(root, ec)) {
     return makeError(ErrorCode::kIo, "cannot create the store directory " + root.string() +
                                          (ec ? ": " + ec.message() : ""));
   }
-  const fs::path probe = root / ".write-test";
-  if (auto status = writeAtomically(probe, "ok"); !status) {
-    return makeError(ErrorCode::kIo, "the store directory " + root.string() + " is not writable");
-  }
-  fs::remove(probe, ec);
   return SessionStore(root);
+}
+
+common::Status SessionStore::probe() const {
+  const fs::path probe = root_ / ".write-test";
+  if (auto status = common::writeFileAtomically(probe, "ok"); !status) {
+    return makeError(ErrorCode::kIo, "the store " + root_.string() + " cannot be written (" +
+                                         status.error().message + ")");
+  }
+  std::error_code ec;
+  fs::remove(probe, ec);
+  return common::Ok{};
 }
 
 common::Status SessionStore::save(const core::Session& session, bool closed) const {
@@ -31,16 +39,17 @@ common::Status SessionStore::save(const core::Session& session, bool closed) con
   std::error_code ec;
   fs::create_directories(dir, ec);
   if (ec) return makeError(ErrorCode::kIo, "cannot create " + dir.string() + ": " + ec.message());
-  if (auto s = writeAtomically(dir / "map.bt", session.mapBinary()); !s) return s;
+  if (auto s = common::writeFileAtomically(dir / "map.bt", session.mapBinary()); !s) return s;
   const auto vehicles = session.status().vehicles;
   for (size_t i = 0; i < vehicles.size(); ++i) {  // one TUM file per vehicle
     const std::string name = i == 0 ? "trajectory.tum" : "trajectory-" + vehicles[i] + ".tum";
-    if (auto s = writeAtomically(dir / name, session.trajectoryTum(vehicles[i])); !s) return s;
+    if (auto s = common::writeFileAtomically(dir / name, session.trajectoryTum(vehicles[i])); !s)
+      return s;
   }
   auto status = session.status();
   status.closed = closed;
   if (closed) status.read_only = false;
-  return writeAtomically(dir / "session.json", core::sessionJson(status) + "\n");
+  return common::writeFileAtomically(dir / "session.json", core::sessionJson(status) + "\n");
 }
 
 }  // namespace stereomap::store

@@ -14,8 +14,10 @@ namespace stereomap::store {
 
 class SessionStore {
  public:
-  // Creates `root` if needed; fails with a message naming it when it cannot be written.
+  // Creates `root` if needed; fails with a message naming it when it is not a directory.
   static common::Result<SessionStore> open(const std::filesystem::path& root);
+  // Whether a file can be written in the store now (a full disk: no, naming the cause).
+  common::Status probe() const;
   // `closed`: the session is being closed into the store (session.json says so).
   common::Status save(const core::Session& session, bool closed = false) const;
   const std::filesystem::path& root() const { return root_; }

@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 #include <set>
 
+#include "common/files.hpp"
 #include "common/time.hpp"
 #include "server/core/validate.hpp"
 
@@ -112,8 +113,9 @@ common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& r
                                                                SessionJournals* journals,
                                                                const StoreAdminOptions& options) {
   auto admin = std::unique_ptr<StoreAdmin>(new StoreAdmin(root, server, journals, options));
+  std::error_code ec;
   if (!options.writable) {
-    if (!fs::is_directory(root)) {
+    if (!fs::is_directory(root, ec)) {
       return makeError(ErrorCode::kNotFound, "no store at " + root.string());
     }
     return admin;
@@ -124,6 +126,10 @@ common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& r
   auto files = SessionStore::open(root);
   if (!files) return files.error();
   admin->files_.emplace(std::move(files).value());
+  if (auto probed = admin->files_->probe(); !probed) {
+    // A full disk: serve what the store holds; writes resume once one succeeds.
+    server.reportStoreProblem(probed.error().message);
+  }
   const fs::path lock = root / "store.lock";
   admin->lock_fd_ = ::open(lock.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
   if (admin->lock_fd_ < 0 || ::flock(admin->lock_fd_, LOCK_EX | LOCK_NB) != 0) {
@@ -132,11 +138,18 @@ common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& r
                          " is in use by another stereomap-server or stereomap-store (it holds " +
                          lock.string() + "); stop it, or use the running server's REST API");
   }
-  auto catalog = Catalog::open(root);
-  if (!catalog) return catalog.error();
-  admin->catalog_ = std::move(catalog).value();
-  admin->catalog_warning_ = admin->catalog_->warning();
+  admin->openCatalog();
   return admin;
+}
+
+void StoreAdmin::openCatalog() {
+  auto catalog = Catalog::open(root_);
+  if (!catalog) {  // the journals are the truth: go on without, try again at a checkpoint
+    catalog_warning_ = catalog.error().message + "; the catalog is rebuilt once it can be written";
+    return;
+  }
+  catalog_ = std::move(catalog).value();
+  catalog_warning_ = catalog_->warning();
 }
 
 StoreAdmin::~StoreAdmin() {
@@ -150,17 +163,20 @@ common::Status StoreAdmin::requireWritable(const char* what) const {
 }
 
 bool StoreAdmin::isClosedOnDisk(const std::string& id) const {
-  return fs::exists(root_ / id / kClosedMarker);
+  std::error_code ec;
+  return core::isValidId(id) && fs::exists(root_ / id / kClosedMarker, ec);
 }
 
 std::vector<std::string> StoreAdmin::storedIds() const {
   std::vector<std::string> ids;
-  std::error_code ec;
-  for (const auto& entry : fs::directory_iterator(root_, ec)) {
-    const std::string name = entry.path().filename().string();
+  const auto entries = common::directoryEntries(root_);
+  if (!entries) return ids;
+  for (const auto& path : *entries) {
+    const std::string name = path.filename().string();
+    std::error_code ec;
     // Names that are not session ids are ours (.trash-*, .merge-*): never sessions.
-    if (entry.is_directory() && core::isValidId(name) && name[0] != '.' &&
-        fs::exists(entry.path() / kJournalName)) {
+    if (core::isValidId(name) && name[0] != '.' && fs::is_directory(path, ec) &&
+        fs::exists(path / kJournalName, ec)) {
       ids.push_back(name);
     }
   }
@@ -179,11 +195,12 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
   std::lock_guard lock(mutex_);
   std::vector<RecoveredSession> recovered;
   if (options_.writable) {  // leftovers of an interrupted delete or merge
-    std::error_code ec;
-    for (const auto& entry : fs::directory_iterator(root_, ec)) {
-      const std::string name = entry.path().filename().string();
+    const auto entries = common::directoryEntries(root_);
+    for (const auto& path : entries ? *entries : std::vector<fs::path>{}) {
+      const std::string name = path.filename().string();
+      std::error_code ec;
       if (name.rfind(".trash-", 0) == 0 || name.rfind(".merge-", 0) == 0) {
-        fs::remove_all(entry.path(), ec);
+        fs::remove_all(path, ec);
       }
     }
   }
@@ -195,7 +212,7 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
     }
     auto session = load(id, /*read_only=*/false);
     if (!session) {
-      recovered.push_back({id, 0, 0, 0, session.error().message});
+      recovered.push_back({.id = id, .problem = session.error().message});
       continue;
     }
     recovered.push_back(std::move(session).value());
@@ -207,6 +224,10 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
 void StoreAdmin::checkpoint(bool all) {
   std::lock_guard lock(mutex_);
   if (!options_.writable) return;
+  if (!server_.storeHealth().ok) {  // degraded: find out whether the disk has room again
+    if (files_->probe()) server_.reportStoreOk();
+  }
+  if (!catalog_ && server_.storeHealth().ok) openCatalog();
   for (const auto& session : server_.sessions()) {
     const auto status = session->status();
     record(status);
@@ -214,9 +235,14 @@ void StoreAdmin::checkpoint(bool all) {
     const uint64_t version = session->voxels()->version + status.poses;
     if (saved_versions_[session->id()] == version) continue;
     if (auto saved = files_->save(*session); !saved) {
-      spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);
+      // Once per cause, not every few seconds while the disk stays full.
+      if (save_errors_[session->id()] != saved.error().message) {
+        spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);
+        save_errors_[session->id()] = saved.error().message;
+      }
       continue;
     }
+    save_errors_.erase(session->id());
     saved_versions_[session->id()] = version;
     spdlog::info("session '{}' saved to {} ({} frames, {} voxels)", session->id(),
                  (root_ / session->id()).string(), status.frames_fused, status.occupied_voxels);
@@ -225,38 +251,43 @@ void StoreAdmin::checkpoint(bool all) {
 
 common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool read_only) {
   const fs::path dir = root_ / id;
-  if (!core::isValidId(id) || !fs::exists(dir / kJournalName)) {
-    return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store " + root_.string());
+  std::error_code ec;
+  if (!core::isValidId(id) || !fs::exists(dir / kJournalName, ec)) {
+    return makeError(ErrorCode::kNotFound,
+                     "no session '" + id + "' in the store " + root_.string());
   }
   auto replay = readJournal(dir / kJournalName);
   if (!replay) return replay.error();
-  auto created = server_.createSession(id, resolutionOf(dir, options_.default_resolution), read_only);
+  auto created =
+      server_.createSession(id, resolutionOf(dir, options_.default_resolution), read_only);
   if (!created) return created.error();
   const auto& session = *created;
   RecoveredSession result{id};
   result.problem = replay->problem;
-  // The newest snapshot that loads and that the intact journal covers; else a full replay.
-  size_t journal_frames = 0;
-  for (const auto& record : replay->records) {
-    journal_frames += std::holds_alternative<proto::CloudFrameMsg>(record);
-  }
-  for (const auto& [frames, path] : snapshotsIn(dir)) {
-    if (frames > journal_frames) continue;  // newer than the intact journal: not usable
+  result.lost_records = replay->lostRecords();
+  // The newest snapshot that loads: it holds every frame up to its record number, even
+  // ones the journal has lost since. Else a full replay.
+  uint64_t covered_up_to = 0;
+  for (const auto& [label, path] : snapshotsIn(dir)) {
+    const uint64_t number = replay->version == 1 ? legacySnapshotNumber(*replay, label) : label;
+    if (number == 0) continue;  // a format 1 label that damage makes ambiguous
     std::ifstream ot(path, std::ios::binary);
-    if (auto restored = session->restore(ot, frames); restored) {
-      result.snapshot_frames = frames;
+    if (auto restored = session->restore(ot, number); restored) {
+      covered_up_to = number;
       break;
     } else {
       result.problem += (result.problem.empty() ? "" : "; ") + path.filename().string() +
                         " unusable (" + restored.error().message + ")";
     }
   }
-  size_t cloud_index = 0;
-  for (const auto& record : replay->records) {
+  for (size_t i = 0; i < replay->records.size(); ++i) {
+    const auto& record = replay->records[i];
+    const uint64_t number = replay->numbers[i];
     if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
-      const bool covered = cloud_index++ < result.snapshot_frames;
+      const bool covered = number <= covered_up_to;
       result.frames +=
-          server_.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay);
+          server_.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
+      result.snapshot_frames += covered;
     } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
       result.poses += server_.ingest(*pose, core::Origin::kReplay);
     } else {
@@ -286,7 +317,8 @@ std::vector<core::SessionStatus> StoreAdmin::closedSessions() const {
 
 common::Status StoreAdmin::open(const std::string& id) {
   std::lock_guard lock(mutex_);
-  if (server_.find(id)) return makeError(ErrorCode::kConflict, "session '" + id + "' is already open");
+  if (server_.find(id))
+    return makeError(ErrorCode::kConflict, "session '" + id + "' is already open");
   auto loaded = load(id, /*read_only=*/true);
   if (!loaded) return loaded.error();
   if (!loaded->problem.empty()) spdlog::warn("session '{}': {}", id, loaded->problem);
@@ -305,15 +337,20 @@ common::Status StoreAdmin::closeLocked(const std::string& id) {
   if (auto writable = requireWritable("close a session"); !writable) return writable;
   const auto session = server_.find(id);
   if (!session) {
-    if (isClosedOnDisk(id)) return makeError(ErrorCode::kConflict, "session '" + id + "' is already closed");
+    if (isClosedOnDisk(id))
+      return makeError(ErrorCode::kConflict, "session '" + id + "' is already closed");
     return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
   }
   // The final snapshot makes the next open quick; then the map and trajectory files, then
   // the marker: a crash before it leaves an ordinary session that recovery loads again.
-  const auto [frames, ot] = session->snapshotNow();
-  journals_->saveSnapshot(id, frames, ot);
+  const auto [journal_number, ot] = session->snapshotNow();
+  if (auto saved = journals_->saveSnapshot(id, journal_number, ot); !saved) {
+    spdlog::warn("session '{}': final snapshot not kept ({}); its next open replays the journal",
+                 id, saved.error().message);
+  }
   if (auto saved = files_->save(*session, /*closed=*/true); !saved) return saved;
-  if (auto marked = writeAtomically(root_ / id / kClosedMarker, ""); !marked) return marked;
+  if (auto marked = common::writeFileAtomically(root_ / id / kClosedMarker, ""); !marked)
+    return marked;
   auto status = session->status();
   status.closed = true;
   status.read_only = false;
@@ -328,7 +365,9 @@ common::Status StoreAdmin::closeLocked(const std::string& id) {
 common::Status StoreAdmin::remove(const std::string& id) {
   std::lock_guard lock(mutex_);
   if (auto writable = requireWritable("delete a session"); !writable) return writable;
+  if (!core::isValidId(id)) return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
   const fs::path dir = root_ / id;
+  std::error_code ec;
   const auto session = server_.find(id);
   if (session) {
     const auto status = session->status();
@@ -339,7 +378,7 @@ common::Status StoreAdmin::remove(const std::string& id) {
     }
     session->waitUntilIdle();
     server_.unload(id);
-  } else if (!core::isValidId(id) || !fs::is_directory(dir)) {
+  } else if (!fs::is_directory(dir, ec)) {
     return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
   }
   journals_->release(id);
@@ -367,12 +406,13 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
   if (request.first == request.second) {
     return makeError(ErrorCode::kInvalidArgument, "merge needs two different sessions");
   }
-  if (server_.find(request.into) || fs::exists(root_ / request.into)) {
+  std::error_code ec;
+  if (server_.find(request.into) || fs::exists(root_ / request.into, ec)) {
     return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");
   }
   std::vector<JournalReplay> sources;
   for (const auto* id : {&request.first, &request.second}) {
-    if (!fs::exists(root_ / *id / kJournalName)) {
+    if (!fs::exists(root_ / *id / kJournalName, ec)) {
       return makeError(ErrorCode::kNotFound, "no session '" + *id + "' in the store");
     }
     auto replay = readJournal(root_ / *id / kJournalName);
@@ -393,14 +433,12 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
 
   const fs::path staging =
       root_ / (".merge-" + request.into + "-" + std::to_string(common::nowNs()));
-  std::error_code ec;
   fs::create_directories(staging, ec);
-  const double resolution =
-      resolutionOf(root_ / request.first, options_.default_resolution);
+  const double resolution = resolutionOf(root_ / request.first, options_.default_resolution);
   // Born closed: it is opened read-only below, and stays in the store (not loaded at start).
-  common::Status written =
-      writeAtomically(staging / kMetaName, "{\"resolution\": " + std::to_string(resolution) + "}\n");
-  if (written) written = writeAtomically(staging / kClosedMarker, "");
+  common::Status written = common::writeFileAtomically(
+      staging / kMetaName, "{\"resolution\": " + std::to_string(resolution) + "}\n");
+  if (written) written = common::writeFileAtomically(staging / kClosedMarker, "");
   if (written) {
     auto journal = Journal::open(staging / kJournalName);
     if (!journal) written = journal.error();
@@ -416,20 +454,24 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
               } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
                 transformPose(request.T_first_second, m.position, m.orientation);
                 // The velocity is in the map frame too.
-                const common::Vec3 v =
-                    request.T_first_second.rotation *
-                    common::Vec3(m.velocity[0], m.velocity[1], m.velocity[2]);
+                const common::Vec3 v = request.T_first_second.rotation *
+                                       common::Vec3(m.velocity[0], m.velocity[1], m.velocity[2]);
                 m.velocity = {v.x(), v.y(), v.z()};
               }
             },
             record);
-        if (written = (*journal)->append(record); !written) break;
+        if (auto appended = (*journal)->append(record); !appended) {
+          written = appended.error();
+          break;
+        }
       }
     }
   }
   if (written) {
     fs::rename(staging, root_ / request.into, ec);
-    if (ec) written = makeError(ErrorCode::kIo, "cannot create session '" + request.into + "': " + ec.message());
+    if (ec)
+      written = makeError(ErrorCode::kIo,
+                          "cannot create session '" + request.into + "': " + ec.message());
   }
   if (!written) {
     fs::remove_all(staging, ec);

@@ -28,7 +28,8 @@ struct RecoveredSession {
   std::string id;
   size_t frames = 0, poses = 0;
   uint64_t snapshot_frames = 0;  // frames restored from a snapshot rather than replayed
-  std::string problem;           // what was cut or could not be used, if anything
+  uint64_t lost_records = 0;     // records the journal's damage cost
+  std::string problem;           // what was damaged, cut or could not be used, if anything
 };
 
 struct StoreAdminOptions {
@@ -75,6 +76,7 @@ class StoreAdmin : public core::SessionAdmin {
   common::Result<RecoveredSession> load(const std::string& id, bool read_only);
   common::Status closeLocked(const std::string& id);
   common::Status requireWritable(const char* what) const;
+  void openCatalog();  // catalog_ stays null (and catalog_warning_ says why) when it cannot
   void record(const core::SessionStatus& status);
 
   std::filesystem::path root_;
@@ -82,11 +84,12 @@ class StoreAdmin : public core::SessionAdmin {
   SessionJournals* journals_;
   StoreAdminOptions options_;
   std::optional<SessionStore> files_;  // writable only
-  std::unique_ptr<Catalog> catalog_;  // writable only
+  std::unique_ptr<Catalog> catalog_;   // writable only
   std::string catalog_warning_;
   int lock_fd_ = -1;
   std::map<std::string, uint64_t> saved_versions_;
-  mutable std::mutex mutex_;  // one operation at a time
+  std::map<std::string, std::string> save_errors_;  // last logged failure, per session
+  mutable std::mutex mutex_;                        // one operation at a time
 };
 
 }  // namespace stereomap::store

@@ -81,7 +81,7 @@ void ChildProcess::kill9() {
 HttpReply httpGet(int port, const std::string& path) { return httpRequest(port, "GET", path); }
 
 HttpReply httpRequest(int port, const std::string& method, const std::string& path,
-                      const std::string& body) {
+                      const std::string& body, const std::string& headers) {
   HttpReply reply;
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   if (fd < 0) return reply;
@@ -95,10 +95,10 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
     ::close(fd);
     return reply;
   }
-  const std::string request = method + " " + path +
-                              " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n"
-                              "Content-Type: application/json\r\nContent-Length: " +
-                              std::to_string(body.size()) + "\r\n\r\n" + body;
+  const std::string request =
+      method + " " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n" + headers +
+      "Content-Type: application/json\r\nContent-Length: " + std::to_string(body.size()) +
+      "\r\n\r\n" + body;
   if (::send(fd, request.data(), request.size(), 0) != static_cast<ssize_t>(request.size())) {
     ::close(fd);
     return reply;

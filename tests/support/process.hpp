@@ -48,10 +48,11 @@ struct HttpReply {
 };
 
 // GET (or `method`, with a JSON body) http://127.0.0.1:port/path with a 60 s timeout;
-// status 0 when nothing answered.
+// status 0 when nothing answered. `path` is sent exactly as given (no normalisation);
+// `headers` are extra "Name: value\r\n" lines.
 HttpReply httpGet(int port, const std::string& path);
 HttpReply httpRequest(int port, const std::string& method, const std::string& path,
-                      const std::string& body = "");
+                      const std::string& body = "", const std::string& headers = "");
 
 // Calls `done` until it returns true or `timeout` passes; true when it did.
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,

@@ -12,11 +12,12 @@ namespace stereomap::testing {
 
 class ServerProcess {
  public:
-  // Starts the server and waits until it serves /healthz; throws with the log on failure.
+  // Starts the server and waits until it answers /healthz (200, or any answer when
+  // `require_healthy` is false: a degraded store); throws with the log on failure.
   // With `store` given the server uses (and the fixture keeps) that directory; otherwise a
   // temporary one, removed at the end.
   ServerProcess(int domain, const std::vector<std::string>& extra_args = {},
-                const std::string& store = "");
+                const std::string& store = "", bool require_healthy = true);
   ~ServerProcess();
   int port() const { return port_; }
   const std::string& store() const { return store_; }
@@ -24,8 +25,8 @@ class ServerProcess {
   std::string log() const;
   HttpReply get(const std::string& path) const { return httpGet(port_, path); }
   HttpReply request(const std::string& method, const std::string& path,
-                    const std::string& body = "") const {
-    return httpRequest(port_, method, path, body);
+                    const std::string& body = "", const std::string& headers = "") const {
+    return httpRequest(port_, method, path, body, headers);
   }
   ChildProcess& process() { return *process_; }
 

@@ -1,0 +1,25 @@
+// File-system helpers that report every failure as a value (never throw): atomic whole-file
+// writes (temporary file, fsync, rename, fsync of the folder) and directory listings.
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "common/result.hpp"
+
+namespace stereomap::common {
+
+// Writes `content` to `path` so that a crash or a full disk leaves either the old file or the
+// new one, never a mix: written to `path`.tmp, flushed to disk, renamed over `path`. On
+// failure the temporary file is removed and the message names the file and the cause
+// ("No space left on device").
+Status writeFileAtomically(const std::filesystem::path& path, const std::string& content);
+
+// The entries of `dir` (files, folders, links; unsorted). kNotFound or kIo naming the folder.
+Result<std::vector<std::filesystem::path>> directoryEntries(const std::filesystem::path& dir);
+
+// errno as text, e.g. "No space left on device".
+std::string systemError(int error_number);
+
+}  // namespace stereomap::common
