@@ -97,7 +97,7 @@ struct Topic<PoseMsg> {
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_Pose_desc; }
   static constexpr const char* kName = "stereomap_Pose";
   static dds_qos_t* qos() { return poseQos(); }
-  static dds_qos_t* readerQos() { return poseQos(); }
+  static dds_qos_t* readerQos() { return poseReaderQos(); }
 
   static Status toC(const PoseMsg& m, C& c) {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
@@ -329,6 +329,11 @@ Status Writer<T>::write(const T& message) {
   const dds_return_t rc = dds_write(impl_->writer, &sample);
   if (rc != DDS_RETCODE_OK) return ddsError(std::string("write on ") + Topic<T>::kName, rc);
   return common::Ok{};
+}
+
+template <typename T>
+bool Writer<T>::waitForAcks(std::chrono::milliseconds timeout) const {
+  return dds_wait_for_acks(impl_->writer, DDS_MSECS(timeout.count())) == DDS_RETCODE_OK;
 }
 
 template <typename T>

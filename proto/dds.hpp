@@ -54,6 +54,9 @@ class Writer {
   int matchedReaders() const;
   // Waits until at least `count` readers matched or `timeout` passed; true if matched.
   bool waitForReaders(int count, std::chrono::milliseconds timeout) const;
+  // Waits until every matched reader acknowledged every sample written (at once when none is
+  // matched) or `timeout` passed; true when all were.
+  bool waitForAcks(std::chrono::milliseconds timeout) const;
 
  private:
   struct Impl;

@@ -17,7 +17,17 @@ dds_qos_t* sessionEventQos() {
   return qos;
 }
 
-dds_qos_t* poseQos() { return reliable(10); }
+dds_qos_t* poseQos() {
+  dds_qos_t* qos = reliable(kPoseHistory);
+  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
+  return qos;
+}
+
+dds_qos_t* poseReaderQos() {
+  dds_qos_t* qos = poseQos();
+  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
+  return qos;
+}
 
 dds_qos_t* cloudQos() {
   dds_qos_t* qos = reliable(kCloudHistory);

@@ -8,8 +8,11 @@ namespace stereomap::proto {
 
 // Reliable, transient-local: a late-joining server learns the live sessions.
 dds_qos_t* sessionEventQos();
-// Reliable, keep-last 10.
+// Reliable, transient-local, keep-last kPoseHistory: a server restarted within a few seconds
+// gets the poses it missed, as it does the clouds.
 dds_qos_t* poseQos();
+// The same, keep-all on the reader: a backlog of history is never overwritten before it is read.
+dds_qos_t* poseReaderQos();
 // Reliable, transient-local, keep-last kCloudHistory: a restarted server catches up on the
 // most recent frames.
 dds_qos_t* cloudQos();
@@ -19,5 +22,6 @@ dds_qos_t* cloudQos();
 dds_qos_t* cloudReaderQos();
 
 inline constexpr int kCloudHistory = 32;
+inline constexpr int kPoseHistory = 256;  // 25 s at 10 Hz; a pose sample is ~0.4 kB
 
 }  // namespace stereomap::proto

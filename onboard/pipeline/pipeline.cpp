@@ -64,6 +64,17 @@ common::Status VehiclePublisher::publish(const proto::CloudFrameMsg& frame) {
 bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);
 }
+bool VehiclePublisher::flush(std::chrono::milliseconds timeout) const {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  auto left = [&] {
+    return std::max(std::chrono::milliseconds(0),
+                    std::chrono::duration_cast<std::chrono::milliseconds>(
+                        deadline - std::chrono::steady_clock::now()));
+  };
+  const bool clouds = clouds_->waitForAcks(left());
+  const bool poses = poses_->waitForAcks(left());
+  return events_->waitForAcks(left()) && clouds && poses;
+}
 
 // The fields every message of this vehicle starts with.
 template <typename Message>
@@ -86,14 +97,23 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
   if (estimate != nullptr) {
     pose.source = proto::PoseSource::kVisualOdometry;
     switch (estimate->state) {
-      case odometry::TrackingState::kInit: pose.tracking_state = proto::TrackingState::kInit; break;
-      case odometry::TrackingState::kOk: pose.tracking_state = proto::TrackingState::kOk; break;
-      case odometry::TrackingState::kDegraded: pose.tracking_state = proto::TrackingState::kDegraded; break;
-      case odometry::TrackingState::kLost: pose.tracking_state = proto::TrackingState::kLost; break;
+      case odometry::TrackingState::kInit:
+        pose.tracking_state = proto::TrackingState::kInit;
+        break;
+      case odometry::TrackingState::kOk:
+        pose.tracking_state = proto::TrackingState::kOk;
+        break;
+      case odometry::TrackingState::kDegraded:
+        pose.tracking_state = proto::TrackingState::kDegraded;
+        break;
+      case odometry::TrackingState::kLost:
+        pose.tracking_state = proto::TrackingState::kLost;
+        break;
     }
     // Row-major 6x6 over (rotation, translation) in the map frame.
     for (int r = 0; r < 6; ++r) {
-      for (int c = 0; c < 6; ++c) pose.covariance[static_cast<size_t>(6 * r + c)] = estimate->covariance(r, c);
+      for (int c = 0; c < 6; ++c)
+        pose.covariance[static_cast<size_t>(6 * r + c)] = estimate->covariance(r, c);
     }
   }
   return pose;
@@ -108,7 +128,8 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
   proto::CloudFrameMsg frame;
   address(frame, options, seq, stamp_ns);
   copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
-  frame.max_range = stereo::farthestPoint(cloud_camera, static_cast<float>(options.cloud.max_range_m)) * 1.001f;
+  frame.max_range =
+      stereo::farthestPoint(cloud_camera, static_cast<float>(options.cloud.max_range_m)) * 1.001f;
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());
   frame.encoding = proto::CloudEncoding::kDraco;
   frame.quantization_bits = static_cast<uint8_t>(options.codec.quantization_bits);
@@ -159,7 +180,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
 
   std::vector<double> depth_ms, encode_ms, frame_ms, odometry_ms;
   std::optional<odometry::StereoOdometry> odometry;
-  if (options.pose_source == PoseSource::kOdometry) odometry.emplace(source.camera(), options.odometry);
+  if (options.pose_source == PoseSource::kOdometry)
+    odometry.emplace(source.camera(), options.odometry);
   std::optional<common::Rigid3> anchor;  // T_map_camera of the odometry's world frame
   std::optional<common::Rigid3> previous_pose;
   int64_t previous_stamp = 0;
@@ -182,9 +204,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     FrameReport report_frame{frame->index, frame->stamp_ns};
     std::optional<odometry::VoEstimate> estimate;
     // The left camera's mount; a forward-looking camera when the source does not say.
-    const common::Rigid3 T_body_camera =
-        frame->T_body_camera.value_or(
-            common::Rigid3{common::bodyFromCameraRotation(), common::Vec3::Zero()});
+    const common::Rigid3 T_body_camera = frame->T_body_camera.value_or(
+        common::Rigid3{common::bodyFromCameraRotation(), common::Vec3::Zero()});
     common::Rigid3 T_map_body;
     if (odometry) {
       estimate = odometry->track(frame->left, frame->right, frame->stamp_ns);
@@ -213,7 +234,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     previous_stamp = frame->stamp_ns;
     // A lost frame's pose is a guess: it is published (so that operators see the state) but
     // its cloud is not, and nothing is computed that only feeds the map.
-    const bool mapped = options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
+    const bool mapped =
+        options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
     if (!mapped) {
       if (publisher != nullptr) {
         report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
@@ -229,7 +251,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     const auto depth_start = Clock::now();
     const cv::Mat disparity = matcher.compute(frame->left, frame->right);
     stereo::CloudOptions cloud_options = options.cloud;
-    if (estimate) cloud_options.disparity_offset_px = estimate->right_offset_px;  // see odometry.hpp
+    if (estimate)
+      cloud_options.disparity_offset_px = estimate->right_offset_px;  // see odometry.hpp
     const auto cloud =
         stereo::cloudFromDisparity(disparity, frame->left, source.camera(), cloud_options);
     depth_ms.push_back(msSince(depth_start));
@@ -267,6 +290,13 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     report(publisher->publish(
                makeSessionEvent(options, source.camera(), proto::SessionEventKind::kEnded)),
            "SessionEvent");
+    // Leaving at once would drop what the server has not acknowledged yet (the end event).
+    if (!publisher->flush(options.flush_timeout)) {
+      spdlog::warn(
+          "the server did not acknowledge the last samples within {} ms; it learns of "
+          "the end when the vehicle falls silent",
+          options.flush_timeout.count());
+    }
   }
   summary.median_depth_ms = median(depth_ms);
   summary.median_encode_ms = median(encode_ms);

@@ -44,6 +44,8 @@ struct PipelineOptions {
   // How long to wait for a server's readers before the first frame (frames are kept by
   // DDS's durable history either way; this only avoids a silent start).
   std::chrono::milliseconds wait_for_server{3000};
+  // At the end: how long to wait for the server to acknowledge the last samples.
+  std::chrono::milliseconds flush_timeout{5000};
   // Log progress every this many frames (0: never).
   uint64_t progress_every = 50;
   PoseSource pose_source = PoseSource::kOdometry;
@@ -78,6 +80,9 @@ class VehiclePublisher {
   common::Status publish(const proto::PoseMsg& pose);
   common::Status publish(const proto::CloudFrameMsg& frame);
   bool waitForServer(std::chrono::milliseconds timeout) const;
+  // Waits until the server acknowledged everything published (the final SessionEvent
+  // included), up to `timeout`; false when something is still unacknowledged.
+  bool flush(std::chrono::milliseconds timeout) const;
 
  private:
   std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events_;

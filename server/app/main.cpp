@@ -108,6 +108,12 @@ int main(int argc, char** argv) {
                  "the last one)")
       ->check(CLI::Range(1, 1000000))
       ->capture_default_str();
+  double vehicle_timeout_s = 60;
+  app.add_option("--vehicle-timeout", vehicle_timeout_s,
+                 "Seconds without samples after which a live session counts as ended (its "
+                 "vehicle stopped unseen, e.g. while the server was down); 0: never")
+      ->check(CLI::Range(0.0, 86400.0))
+      ->capture_default_str();
   app.add_option("--queue", options.queue_capacity,
                  "Frames per session waiting for fusion before new ones are dropped")
       ->check(CLI::Range(1, 100000))
@@ -213,7 +219,11 @@ int main(int argc, char** argv) {
   spdlog::info("viewer: http://{}:{}/", http.address, (*http_server)->port());
 
   size_t last_voxels = 0;
-  while (!shutdown.waitFor(std::chrono::seconds(5))) {
+  const auto vehicle_timeout =
+      std::chrono::milliseconds(static_cast<int64_t>(vehicle_timeout_s * 1000));
+  for (int tick = 1; !shutdown.waitFor(std::chrono::seconds(1)); ++tick) {
+    if (vehicle_timeout.count() > 0) server.endSilentSessions(vehicle_timeout);
+    if (tick % 5 != 0) continue;
     (*admin)->checkpoint(/*all=*/false);
     size_t voxels = 0, frames = 0, backlog = 0;
     const auto sessions = server.sessions();

@@ -48,6 +48,7 @@ json statusJson(const SessionStatus& s) {
           {"occupied_voxels", s.occupied_voxels},
           {"poses", s.poses},
           {"bounds", boundsJson(s.bounds)},
+          {"ended_by", s.ended_by.empty() ? json(nullptr) : json(s.ended_by)},
           {"store_error", s.store_error.empty() ? json(nullptr) : json(s.store_error)},
           {"samples_refused", s.samples_refused}};
 }

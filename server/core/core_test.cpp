@@ -119,9 +119,13 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   ASSERT_TRUE(png && png->status == 200);
   EXPECT_EQ(png->content_type, "image/png");
   EXPECT_EQ(png->body.substr(1, 3), "PNG");
-  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status, 404);
-  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status, 400);
-  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?scale=40")->status, 400);
+  EXPECT_EQ(
+      answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status,
+      404);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=x")->status,
+            400);
+  EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?scale=40")->status,
+            400);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/nope/map.bt")->status, 404);
   EXPECT_EQ(answerApi(server, nullptr, "POST", "/api/sessions")->status, 405);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/other")->status, 404);

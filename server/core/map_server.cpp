@@ -154,6 +154,7 @@ std::optional<uint64_t> MapServer::record(const char* topic, const Message& mess
                                           Session& session, Origin origin) {
   uint64_t seq = 0;  // session events carry no seq: their stamp tells them apart
   if constexpr (requires { message.seq; }) seq = message.seq;
+  if (origin == Origin::kLive) session.noteLive(common::nowNs());
   if (origin != Origin::kLive || options_.log == nullptr) {
     if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
       metrics_.add(kDuplicates, {{"topic", topic}});
@@ -178,14 +179,16 @@ std::optional<uint64_t> MapServer::record(const char* topic, const Message& mess
   }
   session.claim(topic, message.vehicle_id, seq, message.stamp_ns);
   session.noteStoreError("");
-  reportStoreOk();
+  // A small pose may still fit where a cloud did not: only a cloud tells there is room again.
+  if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) reportStoreOk();
   return *logged;
 }
 
 void MapServer::reportStoreProblem(const std::string& reason) {
   std::lock_guard lock(mutex_);
   const bool was_ok = store_health_.ok;
-  store_health_ = {false, reason, was_ok ? common::nowNs() : store_health_.since_ns};
+  const int64_t now = common::nowNs();
+  store_health_ = {false, reason, was_ok ? now : store_health_.since_ns, now};
   store_ok_ = false;
   metrics_.set(kStoreHealthy, {}, 0);
   if (was_ok) {
@@ -253,6 +256,18 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
   }
   return true;
+}
+
+void MapServer::endSilentSessions(std::chrono::milliseconds timeout) {
+  const int64_t now = common::nowNs();
+  for (const auto& session : sessions()) {
+    if (session->endIfSilent(now, static_cast<int64_t>(timeout.count()) * 1'000'000)) {
+      spdlog::info(
+          "session '{}': no samples for {} s: marked ended (its vehicle stopped unseen, "
+          "or its link is down; it goes on if samples come again)",
+          session->id(), timeout.count() / 1000.0);
+    }
+  }
 }
 
 std::vector<std::shared_ptr<Session>> MapServer::sessions() const {

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -44,8 +45,9 @@ class SnapshotSink {
 // it has and refuses new samples, which it cannot keep, until a write succeeds again.
 struct StoreHealth {
   bool ok = true;
-  std::string reason;    // when degraded: what failed, naming the file and the cause
-  int64_t since_ns = 0;  // when it became degraded
+  std::string reason;           // when degraded: what failed, naming the file and the cause
+  int64_t since_ns = 0;         // when it became degraded
+  int64_t last_failure_ns = 0;  // the latest failed write
 };
 
 // A live sample is journaled; a replayed one (crash recovery) already was, and waits for
@@ -92,6 +94,10 @@ class MapServer {
   void reportStoreProblem(const std::string& reason);
   void reportStoreOk();
   StoreHealth storeHealth() const;
+
+  // Marks ended every live session whose vehicles sent nothing for `timeout` (a vehicle that
+  // stopped while the server was down never says so). Called periodically.
+  void endSilentSessions(std::chrono::milliseconds timeout);
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;

@@ -6,6 +6,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include "common/time.hpp"
+
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
@@ -30,7 +32,8 @@ Session::Session(std::string id, const Options& options)
     : id_(std::move(id)),
       options_(options),
       map_({.resolution = options.resolution}),
-      snapshot_(std::make_shared<VoxelSnapshot>(VoxelSnapshot{0, options.resolution, {}})) {
+      snapshot_(std::make_shared<VoxelSnapshot>(VoxelSnapshot{0, options.resolution, {}})),
+      last_live_ns_(common::nowNs()) {
   worker_ = std::thread([this] { run(); });
 }
 
@@ -119,6 +122,21 @@ void Session::addPose(PoseRecord pose) {
 void Session::markEnded() {
   std::lock_guard lock(state_mutex_);
   ended_ = true;
+  ended_by_ = "vehicle";
+}
+
+void Session::noteLive(int64_t now_ns) {
+  std::lock_guard lock(state_mutex_);
+  last_live_ns_ = std::max(last_live_ns_, now_ns);
+  if (ended_by_ == "silence") ended_ = false, ended_by_.clear();
+}
+
+bool Session::endIfSilent(int64_t now_ns, int64_t timeout_ns) {
+  std::lock_guard lock(state_mutex_);
+  if (ended_ || options_.read_only || now_ns - last_live_ns_ < timeout_ns) return false;
+  ended_ = true;
+  ended_by_ = "silence";
+  return true;
 }
 
 void Session::run() {
@@ -204,6 +222,7 @@ SessionStatus Session::status() const {
   status.bounds = bounds_;
   status.poses = trajectory_.size();
   status.ended = ended_;
+  status.ended_by = ended_by_;
   status.read_only = options_.read_only;
   status.fusion_seconds = fusion_seconds_;
   status.store_error = store_error_;

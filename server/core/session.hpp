@@ -59,6 +59,9 @@ struct SessionStatus {
   common::Box3 bounds;
   size_t poses = 0;
   bool ended = false;
+  // Who ended it: "vehicle" (its end event) or "silence" (no samples for the server's
+  // --vehicle-timeout: the vehicle stopped unseen, e.g. while the server was down).
+  std::string ended_by;
   bool read_only = false;     // opened from the store: takes no new samples
   bool closed = false;        // kept in the store only (not loaded)
   double fusion_seconds = 0;  // total time spent inserting clouds
@@ -107,7 +110,12 @@ class Session {
   // Why a sample could not be journaled; "" when one was journaled again.
   void noteStoreError(const std::string& error);
   void addPose(PoseRecord pose);
-  void markEnded();
+  void markEnded();  // by its vehicle's end event
+  // A live sample arrived (a new one or DDS history): the vehicle is there. Revives a
+  // session that silence had ended.
+  void noteLive(int64_t now_ns);
+  // Ends a live session whose vehicles sent nothing for `timeout_ns`; true when it did now.
+  bool endIfSilent(int64_t now_ns, int64_t timeout_ns);
 
   SessionStatus status() const;
   std::shared_ptr<const VoxelSnapshot> voxels() const;
@@ -156,6 +164,8 @@ class Session {
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
   double fusion_seconds_ = 0;
   bool ended_ = false;
+  std::string ended_by_;
+  int64_t last_live_ns_ = 0;  // the last live sample (or the session's creation)
   std::string store_error_;
   uint64_t samples_refused_ = 0;
 

@@ -224,8 +224,12 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
 void StoreAdmin::checkpoint(bool all) {
   std::lock_guard lock(mutex_);
   if (!options_.writable) return;
-  if (!server_.storeHealth().ok) {  // degraded: find out whether the disk has room again
-    if (files_->probe()) server_.reportStoreOk();
+  // Degraded with no sample refused lately (no vehicle flying, or a start on a full disk):
+  // a test write tells whether there is room again. While samples are refused, only a
+  // cloud that fits does.
+  if (const auto health = server_.storeHealth();
+      !health.ok && common::nowNs() - health.last_failure_ns > 10'000'000'000 && files_->probe()) {
+    server_.reportStoreOk();
   }
   if (!catalog_ && server_.storeHealth().ok) openCatalog();
   for (const auto& session : server_.sessions()) {
@@ -235,6 +239,8 @@ void StoreAdmin::checkpoint(bool all) {
     const uint64_t version = session->voxels()->version + status.poses;
     if (saved_versions_[session->id()] == version) continue;
     if (auto saved = files_->save(*session); !saved) {
+      server_.reportStoreProblem("session '" + session->id() +
+                                 "' not saved: " + saved.error().message);
       // Once per cause, not every few seconds while the disk stays full.
       if (save_errors_[session->id()] != saved.error().message) {
         spdlog::error("session '{}' not saved: {}", session->id(), saved.error().message);

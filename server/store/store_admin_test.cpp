@@ -195,8 +195,7 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_EQ(server.admin->merge(request).error().code, ErrorCode::kConflict);  // exists
   EXPECT_EQ(server.admin->merge({"a", "zz", "c", {}}).error().code, ErrorCode::kNotFound);
   EXPECT_EQ(server.admin->merge({"a", "a", "c", {}}).error().code, ErrorCode::kInvalidArgument);
-  EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code,
-            ErrorCode::kInvalidArgument);
+  EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code, ErrorCode::kInvalidArgument);
 }
 
 }  // namespace
