@@ -12,24 +12,21 @@ namespace fs = std::filesystem;
 
 std::string systemError(int error_number) { return std::strerror(error_number); }
 
-namespace {
-
-// Writes all of `size` bytes or fails with errno set.
-bool writeAll(int fd, const char* data, size_t size) {
+bool writeAllAt(int fd, const void* data, size_t size, uint64_t offset) {
+  const auto* bytes = static_cast<const char*>(data);
   while (size > 0) {
-    const ssize_t n = ::write(fd, data, size);
+    const ssize_t n = ::pwrite(fd, bytes, size, static_cast<off_t>(offset));
     if (n < 0 && errno == EINTR) continue;
     if (n <= 0) {
       if (n == 0) errno = EIO;
       return false;
     }
-    data += n;
+    bytes += n;
     size -= static_cast<size_t>(n);
+    offset += static_cast<uint64_t>(n);
   }
   return true;
 }
-
-}  // namespace
 
 Status writeFileAtomically(const fs::path& path, const std::string& content) {
   const fs::path temporary = path.string() + ".tmp";
@@ -38,7 +35,7 @@ Status writeFileAtomically(const fs::path& path, const std::string& content) {
     return makeError(ErrorCode::kIo,
                      "cannot create " + temporary.string() + ": " + systemError(errno));
   }
-  const bool written = writeAll(fd, content.data(), content.size()) && ::fsync(fd) == 0;
+  const bool written = writeAllAt(fd, content.data(), content.size(), 0) && ::fsync(fd) == 0;
   const int write_error = errno;
   const bool closed = ::close(fd) == 0;
   if (!written || !closed) {

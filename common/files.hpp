@@ -2,6 +2,8 @@
 // writes (temporary file, fsync, rename, fsync of the folder) and directory listings.
 #pragma once
 
+#include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -18,6 +20,10 @@ Status writeFileAtomically(const std::filesystem::path& path, const std::string&
 
 // The entries of `dir` (files, folders, links; unsorted). kNotFound or kIo naming the folder.
 Result<std::vector<std::filesystem::path>> directoryEntries(const std::filesystem::path& dir);
+
+// Writes all `size` bytes at `offset` of the open file `fd` (pwrite, retried on EINTR and
+// short writes); false with errno set when the kernel refuses (ENOSPC, EFBIG, EIO).
+bool writeAllAt(int fd, const void* data, size_t size, uint64_t offset);
 
 // errno as text, e.g. "No space left on device".
 std::string systemError(int error_number);

@@ -3,42 +3,29 @@
 namespace stereomap::proto {
 
 namespace {
-dds_qos_t* reliable(int depth) {
+
+// Reliable and transient-local: a writer keeps its last `depth` samples for readers that
+// join late (a restarted server).
+dds_qos_t* reliableWithHistory(int depth) {
   dds_qos_t* qos = dds_create_qos();
   dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_SECS(2));
   dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, depth);
+  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
   return qos;
 }
+
+// The reader's side of it: keep-all, so a backlog of history is never overwritten unread.
+dds_qos_t* keepingAll(dds_qos_t* qos) {
+  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
+  return qos;
+}
+
 }  // namespace
 
-dds_qos_t* sessionEventQos() {
-  dds_qos_t* qos = reliable(4);
-  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
-  return qos;
-}
-
-dds_qos_t* poseQos() {
-  dds_qos_t* qos = reliable(kPoseHistory);
-  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
-  return qos;
-}
-
-dds_qos_t* poseReaderQos() {
-  dds_qos_t* qos = poseQos();
-  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
-  return qos;
-}
-
-dds_qos_t* cloudQos() {
-  dds_qos_t* qos = reliable(kCloudHistory);
-  dds_qset_durability(qos, DDS_DURABILITY_TRANSIENT_LOCAL);
-  return qos;
-}
-
-dds_qos_t* cloudReaderQos() {
-  dds_qos_t* qos = cloudQos();
-  dds_qset_history(qos, DDS_HISTORY_KEEP_ALL, 0);
-  return qos;
-}
+dds_qos_t* sessionEventQos() { return reliableWithHistory(4); }
+dds_qos_t* poseQos() { return reliableWithHistory(kPoseHistory); }
+dds_qos_t* poseReaderQos() { return keepingAll(poseQos()); }
+dds_qos_t* cloudQos() { return reliableWithHistory(kCloudHistory); }
+dds_qos_t* cloudReaderQos() { return keepingAll(cloudQos()); }
 
 }  // namespace stereomap::proto

@@ -164,7 +164,8 @@ int check(Store& store) {
 int repair(Store& store, const std::vector<std::string>& ids) {
   int failed = 0;
   for (const auto& id : ids) {
-    if (!core::isValidId(id) || !fs::exists(store.admin->root() / id / store::kJournalName)) {
+    std::error_code ec;
+    if (!core::isValidId(id) || !fs::exists(store.admin->root() / id / store::kJournalName, ec)) {
       std::printf("%s: no such session\n", id.c_str());
       ++failed;
       continue;

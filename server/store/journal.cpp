@@ -331,22 +331,6 @@ std::string summary(const JournalReplay& replay) {
   return text;
 }
 
-// Writes all of `bytes` at `offset` or fails with errno set.
-bool writeAllAt(int fd, const uint8_t* data, size_t size, uint64_t offset) {
-  while (size > 0) {
-    const ssize_t n = ::pwrite(fd, data, size, static_cast<off_t>(offset));
-    if (n < 0 && errno == EINTR) continue;
-    if (n <= 0) {
-      if (n == 0) errno = EIO;
-      return false;
-    }
-    data += n;
-    size -= static_cast<size_t>(n);
-    offset += static_cast<uint64_t>(n);
-  }
-  return true;
-}
-
 }  // namespace
 
 std::string JournalDamage::describe() const {
@@ -452,7 +436,8 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
   }
   if (fresh || recovered.header_damaged) {
     const auto* magic = reinterpret_cast<const uint8_t*>(kMagicV2);
-    if (!writeAllAt(journal->fd_, magic, kMagicBytes, 0) || ::fdatasync(journal->fd_) != 0) {
+    if (!common::writeAllAt(journal->fd_, magic, kMagicBytes, 0) ||
+        ::fdatasync(journal->fd_) != 0) {
       const int error = errno;
       if (fresh) journal->cutBack();
       return makeError(ErrorCode::kIo, path.string() + ": cannot write the journal header: " +
@@ -482,7 +467,7 @@ common::Result<uint64_t> Journal::append(const JournalRecord& record) {
                                          common::systemError(errno));
   }
   const std::vector<uint8_t> bytes = framed(payloadOf(record), next_number_);
-  if (!writeAllAt(fd_, bytes.data(), bytes.size(), bytes_) || ::fdatasync(fd_) != 0) {
+  if (!common::writeAllAt(fd_, bytes.data(), bytes.size(), bytes_) || ::fdatasync(fd_) != 0) {
     const int error = errno;
     needs_cut_ = true;
     cutBack();  // if this fails too, the next append tries again before writing

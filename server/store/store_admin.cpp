@@ -187,7 +187,11 @@ std::vector<std::string> StoreAdmin::storedIds() const {
 void StoreAdmin::record(const core::SessionStatus& status) {
   if (!catalog_) return;
   if (auto recorded = catalog_->record(status, journalBytes(root_ / status.id)); !recorded) {
-    spdlog::warn("{}", recorded.error().message);
+    // Once per cause, not every few seconds while the disk stays full.
+    if (catalog_error_ != recorded.error().message) spdlog::warn("{}", recorded.error().message);
+    catalog_error_ = recorded.error().message;
+  } else {
+    catalog_error_.clear();
   }
 }
 

@@ -89,6 +89,7 @@ class StoreAdmin : public core::SessionAdmin {
   int lock_fd_ = -1;
   std::map<std::string, uint64_t> saved_versions_;
   std::map<std::string, std::string> save_errors_;  // last logged failure, per session
+  std::string catalog_error_;                       // the last one logged
   mutable std::mutex mutex_;                        // one operation at a time
 };
 
