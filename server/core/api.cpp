@@ -192,8 +192,11 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
                                          const ExportRequest& request) {
   const std::string binary = "application/octet-stream";
   const std::string name = id + "." + request.format;
-  if (request.format == "bt") return ExportFile{session.mapBinary(), binary, name};
-  if (request.format == "ot") return ExportFile{session.mapFull(), binary, name};
+  if (request.format == "bt" || request.format == "ot") {
+    auto map = request.format == "bt" ? session.mapBinary() : session.mapFull();
+    if (!map) return map.error();
+    return ExportFile{std::move(*map), binary, name};
+  }
   if (request.format == "ply") return ExportFile{session.occupiedPly(), binary, name};
   if (request.format == "png") {
     std::string png = session.occupancyPng(request.z_min, request.z_max, request.scale);

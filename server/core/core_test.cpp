@@ -160,7 +160,7 @@ TEST(ViewerFeed, DiffsReproduceTheOccupiedSetForOldAndNewViewers) {
   for (const auto& m : feed.welcome()) apply(late_viewer, m);
 
   std::set<std::tuple<int, int, int>> truth;
-  for (const auto& v : server.find("s")->voxels()->voxels) truth.insert({v.x, v.y, v.z});
+  for (const auto& v : server.find("s")->occupiedVoxels()) truth.insert({v.x, v.y, v.z});
   EXPECT_GT(truth.size(), 200u);
   EXPECT_EQ(early_viewer, truth);
   EXPECT_EQ(late_viewer, truth);

@@ -1,5 +1,7 @@
 #include "server/core/map_server.hpp"
 
+#include <thread>
+
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -18,7 +20,10 @@ constexpr const char* kStoreHealthy = "stereomap_store_healthy";
 constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 }  // namespace
 
-MapServer::MapServer(const MapServerOptions& options) : options_(options) {
+MapServer::MapServer(const MapServerOptions& options)
+    : options_(options),
+      pool_(std::make_shared<common::WorkerPool>(
+          std::max(1u, std::thread::hardware_concurrency()) - 1)) {
   metrics_.describe(kReceived, "counter", "DDS samples received, by topic");
   metrics_.describe(kAccepted, "counter", "DDS samples that passed validation, by topic");
   metrics_.describe(kRejected, "counter", "DDS samples rejected, by topic and reason");
@@ -55,6 +60,7 @@ void MapServer::reject(const char* topic, const Rejection& rejection, const std:
 Session::Options MapServer::sessionOptions(const std::string& id, double resolution,
                                            bool read_only) const {
   Session::Options session_options{resolution, options_.queue_capacity, read_only};
+  session_options.pool = pool_;
   if (options_.snapshots != nullptr) {
     session_options.snapshot_every = options_.snapshot_every;
     session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t journal_number,

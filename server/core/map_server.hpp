@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "common/result.hpp"
+#include "common/worker_pool.hpp"
 #include "proto/messages.hpp"
 #include "server/core/metrics.hpp"
 #include "server/core/session.hpp"
@@ -123,6 +124,8 @@ class MapServer {
                                  Origin origin);
 
   const MapServerOptions options_;
+  // Fusion's helper threads, shared by every session's worker (they live with the process).
+  std::shared_ptr<common::WorkerPool> pool_;
   mutable Metrics metrics_;
   mutable std::mutex mutex_;
   std::map<std::string, std::shared_ptr<Session>> sessions_;

@@ -6,6 +6,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "common/forked_write.hpp"
 #include "common/time.hpp"
 
 #include <opencv2/imgcodecs.hpp>
@@ -31,8 +32,9 @@ const char* stateName(const SessionStatus& status) {
 Session::Session(std::string id, const Options& options)
     : id_(std::move(id)),
       options_(options),
-      map_({.resolution = options.resolution}),
-      snapshot_(std::make_shared<VoxelSnapshot>(VoxelSnapshot{0, options.resolution, {}})),
+      map_({.resolution = options.resolution, .pool = options.pool.get()}),
+      tiles_(id_, options.resolution),
+      snapshot_due_(options.snapshot_every),
       last_live_ns_(common::nowNs()) {
   worker_ = std::thread([this] { run(); });
 }
@@ -44,6 +46,7 @@ Session::~Session() {
   }
   queue_changed_.notify_all();
   worker_.join();
+  if (snapshot_writer_.joinable()) snapshot_writer_.join();
 }
 
 bool Session::claim(const std::string& topic, const std::string& vehicle, uint64_t seq,
@@ -101,8 +104,8 @@ common::Status Session::restore(std::istream& ot, uint64_t journal_number) {
     std::lock_guard lock(map_mutex_);
     if (auto status = map_.readFull(ot); !status) return status;
     last_fused_number_ = journal_number;
+    tiles_.rebuild(map_);
   }
-  publishSnapshot();
   return common::Ok{};
 }
 
@@ -155,8 +158,14 @@ void Session::run() {
     const auto start = std::chrono::steady_clock::now();
     {
       std::lock_guard lock(map_mutex_);
-      map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m);
+      map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m, &changes_);
       last_fused_number_ = job.journal_number;
+    }
+    // The tiles follow the frame's changes without the map; only changes they cannot take
+    // (a block larger than a tile) need a walk of the map.
+    if (!tiles_.apply(changes_)) {
+      std::lock_guard lock(map_mutex_);
+      tiles_.rebuild(map_);
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -166,43 +175,74 @@ void Session::run() {
       fused = ++frames_fused_;
       fusion_seconds_ += seconds;
     }
-    publishSnapshot();
-    if (options_.snapshot_every > 0 && options_.on_snapshot &&
-        fused % options_.snapshot_every == 0) {
-      std::ostringstream ot;
-      {
-        std::lock_guard lock(map_mutex_);
-        map_.writeFull(ot);
-      }
-      if (auto saved = options_.on_snapshot(job.journal_number, ot.str()); !saved) {
-        // The journal still holds every frame: only the next recovery gets slower.
-        spdlog::warn("session '{}': snapshot not kept: {}", id_, saved.error().message);
-      }
-    }
+    snapshotIfDue(fused);
   }
 }
 
-std::pair<uint64_t, std::string> Session::snapshotNow() const {
-  waitUntilIdle();
-  std::ostringstream ot;
-  std::lock_guard lock(map_mutex_);  // the map and its journal place change together
-  map_.writeFull(ot);
-  return {last_fused_number_, ot.str()};
-}
-
-void Session::publishSnapshot() {
-  auto snapshot = std::make_shared<VoxelSnapshot>();
-  common::Box3 bounds;
+void Session::snapshotIfDue(uint64_t fused) {
+  if (options_.snapshot_every == 0 || !options_.on_snapshot || fused < snapshot_due_ ||
+      snapshot_writing_) {
+    return;
+  }
+  if (snapshot_writer_.joinable()) snapshot_writer_.join();  // the previous one, done
+  const auto start = std::chrono::steady_clock::now();
+  uint64_t journal_number = 0;
+  std::optional<common::ForkedWrite> job;
   {
     std::lock_guard lock(map_mutex_);
-    snapshot->voxels = map_.occupiedVoxels();
-    bounds = map_.occupiedBounds();
+    auto started =
+        common::ForkedWrite::start([this](std::ostream& out) { return map_.writeFull(out); });
+    if (!started) {
+      spdlog::warn("session '{}': snapshot not started: {}", id_, started.error().message);
+      snapshot_due_ = fused + options_.snapshot_every;
+      return;
+    }
+    job.emplace(std::move(*started));
+    journal_number = last_fused_number_;
   }
-  snapshot->resolution = options_.resolution;
-  std::lock_guard state(state_mutex_);
-  snapshot->version = snapshot_->version + 1;
-  snapshot_ = std::move(snapshot);
-  bounds_ = bounds;
+  const double stall =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  {
+    std::lock_guard state(state_mutex_);
+    snapshot_stall_max_seconds_ = std::max(snapshot_stall_max_seconds_, stall);
+  }
+  snapshot_due_ = fused + options_.snapshot_every;
+  snapshot_writing_ = true;
+  snapshot_writer_ = std::thread([this, job = std::move(*job), journal_number]() mutable {
+    auto ot = job.finish();
+    common::Status saved =
+        ot ? options_.on_snapshot(journal_number, *ot) : common::Status(ot.error());
+    if (saved) {
+      std::lock_guard state(state_mutex_);
+      ++snapshots_;
+    } else {
+      // The journal still holds every frame: only the next recovery gets slower.
+      spdlog::warn("session '{}': snapshot not kept: {}", id_, saved.error().message);
+    }
+    snapshot_writing_ = false;
+  });
+}
+
+common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journal_number) const {
+  std::optional<common::ForkedWrite> job;
+  {
+    std::lock_guard lock(map_mutex_);  // the map and its journal place, as of one frame
+    auto started = common::ForkedWrite::start([this, full](std::ostream& out) {
+      return full ? map_.writeFull(out) : map_.writeBinary(out);
+    });
+    if (!started) return started.error();
+    job.emplace(std::move(*started));
+    if (journal_number != nullptr) *journal_number = last_fused_number_;
+  }
+  return job->finish();
+}
+
+common::Result<std::pair<uint64_t, std::string>> Session::snapshotNow() const {
+  waitUntilIdle();
+  uint64_t journal_number = 0;
+  auto ot = serialiseForked(/*full=*/true, &journal_number);
+  if (!ot) return ot.error();
+  return std::pair{journal_number, std::move(*ot)};
 }
 
 SessionStatus Session::status() const {
@@ -218,8 +258,12 @@ SessionStatus Session::status() const {
   status.frames_received = frames_received_;
   status.frames_fused = frames_fused_;
   status.frames_dropped = frames_dropped_;
-  status.occupied_voxels = snapshot_->voxels.size();
-  status.bounds = bounds_;
+  const auto map = tiles_.summary();
+  status.occupied_voxels = map.occupied_voxels;
+  status.bounds = map.bounds;
+  status.map_version = map.version;
+  status.snapshots = snapshots_;
+  status.snapshot_stall_max_seconds = snapshot_stall_max_seconds_;
   status.poses = trajectory_.size();
   status.ended = ended_;
   status.ended_by = ended_by_;
@@ -230,9 +274,14 @@ SessionStatus Session::status() const {
   return status;
 }
 
-std::shared_ptr<const VoxelSnapshot> Session::voxels() const {
-  std::lock_guard state(state_mutex_);
-  return snapshot_;
+std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
+  std::vector<fusion::VoxelIndex> voxels;
+  for (const auto& tile : tiles_.all()) {
+    const auto in_tile = tile->voxels();
+    voxels.insert(voxels.end(), in_tile.begin(), in_tile.end());
+  }
+  std::sort(voxels.begin(), voxels.end());
+  return voxels;
 }
 
 std::vector<PoseRecord> Session::trajectory(size_t from) const {
@@ -256,41 +305,35 @@ std::string Session::trajectoryTum(const std::string& vehicle_id) const {
   return out.str();
 }
 
-std::string Session::mapBinary() const {
-  std::ostringstream out;
-  std::lock_guard lock(map_mutex_);
-  map_.writeBinary(out);
-  return out.str();
+common::Result<std::string> Session::mapBinary() const {
+  return serialiseForked(/*full=*/false, nullptr);
 }
 
-std::string Session::mapFull() const {
-  std::ostringstream out;
-  std::lock_guard lock(map_mutex_);
-  map_.writeFull(out);
-  return out.str();
+common::Result<std::string> Session::mapFull() const {
+  return serialiseForked(/*full=*/true, nullptr);
 }
 
 std::string Session::occupiedPly() const {
-  const auto snapshot = voxels();
+  const auto voxels = occupiedVoxels();
+  const double resolution = options_.resolution;
   std::ostringstream out;
   out << "ply\nformat binary_little_endian 1.0\ncomment stereomap session " << id_
-      << ", occupied voxel centres, resolution " << snapshot->resolution << " m\nelement vertex "
-      << snapshot->voxels.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
+      << ", occupied voxel centres, resolution " << resolution << " m\nelement vertex "
+      << voxels.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
       << "end_header\n";
-  for (const auto& v : snapshot->voxels) {
-    const float xyz[3] = {static_cast<float>((v.x + 0.5) * snapshot->resolution),
-                          static_cast<float>((v.y + 0.5) * snapshot->resolution),
-                          static_cast<float>((v.z + 0.5) * snapshot->resolution)};
+  for (const auto& v : voxels) {
+    const float xyz[3] = {static_cast<float>((v.x + 0.5) * resolution),
+                          static_cast<float>((v.y + 0.5) * resolution),
+                          static_cast<float>((v.z + 0.5) * resolution)};
     out.write(reinterpret_cast<const char*>(xyz), sizeof(xyz));
   }
   return out.str();
 }
 
 std::string Session::occupancyPng(double z_min, double z_max, int pixels_per_voxel) const {
-  const auto snapshot = voxels();
   std::vector<fusion::VoxelIndex> band;
-  for (const auto& v : snapshot->voxels) {
-    const double z = (v.z + 0.5) * snapshot->resolution;
+  for (const auto& v : occupiedVoxels()) {
+    const double z = (v.z + 0.5) * options_.resolution;
     if (z >= z_min && z <= z_max) band.push_back(v);
   }
   if (band.empty()) return "";

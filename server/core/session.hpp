@@ -1,11 +1,14 @@
 // One mapping session on the server: its occupancy map, fed by a fusion worker thread
-// through a bounded queue (so DDS reading never blocks), its vehicles' trajectory, and
-// snapshots of the occupied voxels for viewers (the network never reads the live map).
+// through a bounded queue (so DDS reading never blocks), its vehicles' trajectory, and the
+// map's tiles (server/tiles), which the worker keeps current from what each frame changed:
+// viewers, counts and exports read the tiles, never the live map. Snapshots and map exports
+// are serialised by a forked child (common/forked_write), so fusion stops only for the fork.
 //
-// Threads: enqueue()/addPose() from ingest threads; status()/voxels()/trajectory()/
+// Threads: enqueue()/addPose() from ingest threads; status()/tiles()/trajectory()/
 // mapBinary() from any thread; the fusion worker is owned by the session.
 #pragma once
 
+#include <atomic>
 #include <condition_variable>
 #include <deque>
 #include <functional>
@@ -13,6 +16,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <thread>
@@ -21,7 +25,9 @@
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
 #include "common/result.hpp"
+#include "common/worker_pool.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "server/tiles/tile_set.hpp"
 
 namespace stereomap::core {
 
@@ -41,12 +47,6 @@ struct FusionJob {
   uint64_t journal_number = 0;
 };
 
-struct VoxelSnapshot {
-  uint64_t version = 0;  // bumps whenever the occupied set may have changed
-  double resolution = 0;
-  std::vector<fusion::VoxelIndex> voxels;  // sorted
-};
-
 struct SessionStatus {
   std::string id;
   std::vector<std::string> vehicles;  // in order of first appearance
@@ -64,7 +64,11 @@ struct SessionStatus {
   std::string ended_by;
   bool read_only = false;     // opened from the store: takes no new samples
   bool closed = false;        // kept in the store only (not loaded)
-  double fusion_seconds = 0;  // total time spent inserting clouds
+  double fusion_seconds = 0;  // total time spent inserting clouds and updating tiles
+  uint64_t map_version = 0;   // the tiles' version: bumps with every change of the map
+  uint64_t snapshots = 0;     // snapshots handed to the store
+  // The longest time fusion stopped for a snapshot (the fork of the writer).
+  double snapshot_stall_max_seconds = 0;
   // Why the last sample could not be journaled ("" once one could again): it was refused.
   std::string store_error;
   uint64_t samples_refused = 0;  // samples the journal could not keep
@@ -81,8 +85,11 @@ class Session {
     bool read_only = false;       // opened from the store (the MapServer refuses live samples)
     // Every this many fused frames the worker hands a .ot of the map to on_snapshot, with
     // the journal record number of the last frame in it. 0: off.
+    // on_snapshot runs on a thread of its own while fusion goes on; a snapshot still being
+    // written when the next one is due delays that one to the next frame.
     size_t snapshot_every = 0;
     std::function<common::Status(uint64_t journal_number, const std::string& ot)> on_snapshot;
+    std::shared_ptr<common::WorkerPool> pool;  // fusion's helper threads; null: its own
   };
 
   Session(std::string id, const Options& options);
@@ -118,15 +125,19 @@ class Session {
   bool endIfSilent(int64_t now_ns, int64_t timeout_ns);
 
   SessionStatus status() const;
-  std::shared_ptr<const VoxelSnapshot> voxels() const;
+  // The map as tiles: what viewers and tile requests read.
+  const tiles::TileSet& tiles() const { return tiles_; }
+  // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
+  std::vector<fusion::VoxelIndex> occupiedVoxels() const;
   // Poses [from, end) in arrival order.
   std::vector<PoseRecord> trajectory(size_t from = 0) const;
   // TUM lines "t tx ty tz qx qy qz qw" for one vehicle (all vehicles when empty).
   std::string trajectoryTum(const std::string& vehicle_id = "") const;
-  // OctoMap binary of the map as it is now (waits for the frame being fused, if any).
-  std::string mapBinary() const;
-  // OctoMap full format (.ot, log-odds kept).
-  std::string mapFull() const;
+  // OctoMap binary of the map as it is now (after the frame being fused, if any), written by a
+  // forked child; an error when the fork or the child failed.
+  common::Result<std::string> mapBinary() const;
+  // OctoMap full format (.ot, log-odds kept), likewise.
+  common::Result<std::string> mapFull() const;
   // Binary PLY of the occupied voxels' centres (map frame, metres).
   std::string occupiedPly() const;
   // A top-down PNG of the occupied voxels with centres in [z_min, z_max] (one pixel per
@@ -136,11 +147,14 @@ class Session {
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
   // A .ot of the map and the journal record number it covers up to, once idle (close()).
-  std::pair<uint64_t, std::string> snapshotNow() const;
+  common::Result<std::pair<uint64_t, std::string>> snapshotNow() const;
 
  private:
   void run();
-  void publishSnapshot();
+  // After a fused frame: hands a snapshot to on_snapshot when one is due (off this thread).
+  void snapshotIfDue(uint64_t fused);
+  // The map serialised by a forked child; the map lock is held only for the fork.
+  common::Result<std::string> serialiseForked(bool full, uint64_t* journal_number) const;
 
   const std::string id_;
   const Options options_;
@@ -154,15 +168,20 @@ class Session {
   mutable std::mutex map_mutex_;  // the worker holds it while inserting
   fusion::OccupancyMap map_;
   uint64_t last_fused_number_ = 0;  // journal record number of the last frame in map_
+  tiles::TileSet tiles_;            // written by the worker only
+  fusion::MapChanges changes_;      // the worker's scratch
+  std::thread snapshot_writer_;     // the snapshot being written, if any
+  std::atomic<bool> snapshot_writing_{false};
+  uint64_t snapshot_due_ = 0;  // fused-frame count at which the next snapshot is due
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
   std::map<std::pair<std::string, std::string>, std::pair<uint64_t, int64_t>> last_claimed_;
   std::vector<PoseRecord> trajectory_;
-  std::shared_ptr<const VoxelSnapshot> snapshot_;
-  common::Box3 bounds_;
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
   double fusion_seconds_ = 0;
+  uint64_t snapshots_ = 0;
+  double snapshot_stall_max_seconds_ = 0;
   bool ended_ = false;
   std::string ended_by_;
   int64_t last_live_ns_ = 0;  // the last live sample (or the session's creation)

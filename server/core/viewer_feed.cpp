@@ -26,15 +26,11 @@ json flatten(const std::vector<VoxelIndex>& voxels) {
   return flat;
 }
 
-std::string voxelsMessage(const std::string& session, const VoxelSnapshot& snapshot, bool reset,
-                          const std::vector<VoxelIndex>& add,
+std::string voxelsMessage(const std::string& session, double resolution, uint64_t version,
+                          bool reset, const std::vector<VoxelIndex>& add,
                           const std::vector<VoxelIndex>& remove) {
-  return json{{"type", "voxels"},
-              {"session", session},
-              {"resolution", snapshot.resolution},
-              {"version", snapshot.version},
-              {"reset", reset},
-              {"add", flatten(add)},
+  return json{{"type", "voxels"},         {"session", session}, {"resolution", resolution},
+              {"version", version},       {"reset", reset},     {"add", flatten(add)},
               {"remove", flatten(remove)}}
       .dump();
 }
@@ -72,7 +68,12 @@ std::vector<std::string> ViewerFeed::welcome() const {
   for (const auto& id : order_) {
     const auto& state = sessions_.at(id);
     out.push_back(state.status_json);
-    out.push_back(voxelsMessage(id, *state.sent, true, state.sent->voxels, {}));
+    std::vector<VoxelIndex> voxels;
+    for (const auto& [key, tile] : state.tiles) {
+      const auto in_tile = tile->voxels();
+      voxels.insert(voxels.end(), in_tile.begin(), in_tile.end());
+    }
+    out.push_back(voxelsMessage(id, state.resolution, state.version, true, voxels, {}));
     const auto session = server_.find(id);
     auto poses = session ? session->trajectory(0) : std::vector<PoseRecord>{};
     poses.resize(std::min(poses.size(), state.poses_sent));
@@ -99,23 +100,41 @@ std::vector<std::string> ViewerFeed::poll() {
   for (const auto& session : sessions) {
     auto [it, inserted] = sessions_.try_emplace(session->id());
     SessionState& state = it->second;
-    if (inserted) {
-      order_.push_back(session->id());
-      state.sent = std::make_shared<VoxelSnapshot>();
+    if (inserted) order_.push_back(session->id());
+    // The tiles changed since the last poll, as voxels added and removed.
+    const auto& tiles = session->tiles();
+    state.resolution = tiles.resolution();
+    auto changed = tiles.changedSince(state.version);
+    if (!changed) {  // too far behind: compare every tile
+      changed.emplace();
+      for (const auto& info : tiles.list()) changed->emplace_back(info.key, info.version);
+      for (const auto& [key, tile] : state.tiles) changed->emplace_back(key, 0);
     }
-    const auto snapshot = session->voxels();
-    if (inserted || snapshot->version != state.sent->version) {
-      std::vector<VoxelIndex> add, remove;
-      std::set_difference(snapshot->voxels.begin(), snapshot->voxels.end(),
-                          state.sent->voxels.begin(), state.sent->voxels.end(),
+    std::vector<VoxelIndex> add, remove;
+    for (const auto& [key, version] : *changed) {
+      state.version = std::max(state.version, version);
+      auto tile = tiles.find(key);
+      auto& sent = state.tiles[key];
+      if (tile == sent) continue;
+      auto now = tile ? tile->voxels() : std::vector<VoxelIndex>{};
+      auto before = sent ? sent->voxels() : std::vector<VoxelIndex>{};
+      std::sort(now.begin(), now.end());
+      std::sort(before.begin(), before.end());
+      std::set_difference(now.begin(), now.end(), before.begin(), before.end(),
                           std::back_inserter(add));
-      std::set_difference(state.sent->voxels.begin(), state.sent->voxels.end(),
-                          snapshot->voxels.begin(), snapshot->voxels.end(),
+      std::set_difference(before.begin(), before.end(), now.begin(), now.end(),
                           std::back_inserter(remove));
-      if (inserted || !add.empty() || !remove.empty()) {
-        out.push_back(voxelsMessage(session->id(), *snapshot, inserted, add, remove));
+      state.occupied += now.size();
+      state.occupied -= before.size();
+      if (tile) {
+        sent = std::move(tile);
+      } else {
+        state.tiles.erase(key);
       }
-      state.sent = snapshot;
+    }
+    if (inserted || !add.empty() || !remove.empty()) {
+      out.push_back(
+          voxelsMessage(session->id(), state.resolution, state.version, inserted, add, remove));
     }
     const auto new_poses = session->trajectory(state.poses_sent);
     if (!new_poses.empty()) {
@@ -124,7 +143,7 @@ std::vector<std::string> ViewerFeed::poll() {
     }
     // Status last, so that its counts are never ahead of the voxels already sent.
     SessionStatus status = session->status();
-    status.occupied_voxels = state.sent->voxels.size();
+    status.occupied_voxels = state.occupied;
     std::string status_json = sessionJson(status, "session");
     if (status_json != state.status_json) {
       state.status_json = status_json;

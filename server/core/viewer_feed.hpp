@@ -23,7 +23,10 @@ class ViewerFeed {
 
  private:
   struct SessionState {
-    std::shared_ptr<const VoxelSnapshot> sent;
+    std::map<tiles::TileKey, std::shared_ptr<const tiles::Tile>> tiles;  // as sent
+    uint64_t version = 0;                                                // of the tiles as sent
+    double resolution = 0;
+    size_t occupied = 0;
     size_t poses_sent = 0;
     std::string status_json;
   };

@@ -10,12 +10,6 @@
 
 namespace stereomap::fusion {
 
-namespace {
-// OctoMap keys are offset so that key 32768 starts at coordinate 0 (16-level tree).
-constexpr int32_t kKeyOffset = 32768;
-constexpr unsigned kTreeDepth = 16;
-}  // namespace
-
 OccupancyMap::Options OccupancyMap::Options::octomapPreset(double resolution) {
   Options options;
   options.resolution = resolution;
@@ -48,7 +42,8 @@ OccupancyMap::OccupancyMap(const Options& options) : impl_(std::make_unique<Impl
 OccupancyMap::~OccupancyMap() = default;
 
 void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
-                               const common::Rigid3& T_map_sensor, double max_range_m) {
+                               const common::Rigid3& T_map_sensor, double max_range_m,
+                               MapChanges* changes) {
   std::vector<octomap::point3d> points;
   points.reserve(cloud_sensor.size());
   for (const auto& p : cloud_sensor.points) {
@@ -63,8 +58,11 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
     // Scratch buffers (several MB) live with the thread, so that a fusion worker reuses
     // them across frames and maps instead of faulting fresh pages in every time.
     thread_local detail::BulkInserter inserter;
-    inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads);
+    inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads,
+                    impl_->options.pool, changes != nullptr ? &changes->voxels : nullptr);
+    if (changes != nullptr) changes->complete = true;
   } else {
+    if (changes != nullptr) *changes = {.complete = false, .voxels = {}};
     octomap::Pointcloud scan;
     scan.reserve(points.size());
     for (const auto& p : points) scan.push_back(p);
@@ -134,6 +132,44 @@ std::vector<VoxelIndex> OccupancyMap::occupiedVoxelsIn(const common::Box3& box) 
   }
   std::sort(inside.begin(), inside.end());
   return inside;
+}
+
+namespace {
+// Occupied nodes below `node` (at `depth`, first voxel `code`) in code order: children in
+// index order are in code order (child bit 0 is x, as in the code).
+void visitOccupiedRecurs(const octomap::OcTree& tree, const octomap::OcTreeNode* node,
+                         unsigned depth, uint64_t code,
+                         const OccupancyMap::OccupiedVisitor& visit) {
+  if (!tree.nodeHasChildren(node)) {
+    if (tree.isNodeOccupied(node)) visit(code, depth, detail::occupancyByte(node->getLogOdds()));
+    return;
+  }
+  const unsigned child_shift = 3 * (kTreeDepth - depth - 1);
+  for (unsigned i = 0; i < 8; ++i) {
+    if (!tree.nodeChildExists(node, i)) continue;
+    visitOccupiedRecurs(tree, tree.getNodeChild(node, i), depth + 1,
+                        code | uint64_t{i} << child_shift, visit);
+  }
+}
+}  // namespace
+
+void OccupancyMap::visitOccupied(uint64_t code, unsigned depth,
+                                 const OccupiedVisitor& visit) const {
+  const auto& tree = impl_->tree;
+  const octomap::OcTreeNode* node = tree.getRoot();
+  if (node == nullptr || depth > kTreeDepth) return;
+  code &= ~((uint64_t{1} << 3 * (kTreeDepth - depth)) - 1);  // the node's first voxel
+  // Down to the node; a leaf on the way (pruned) covers it: report the part inside it.
+  for (unsigned d = 0; d < depth; ++d) {
+    if (!tree.nodeHasChildren(node)) {
+      if (tree.isNodeOccupied(node)) visit(code, depth, detail::occupancyByte(node->getLogOdds()));
+      return;
+    }
+    const auto child = static_cast<unsigned>(code >> 3 * (kTreeDepth - d - 1) & 7);
+    if (!tree.nodeChildExists(node, child)) return;
+    node = tree.getNodeChild(node, child);
+  }
+  visitOccupiedRecurs(tree, node, depth, code, visit);
 }
 
 std::vector<VoxelIndex> OccupancyMap::occupiedVoxels() const {

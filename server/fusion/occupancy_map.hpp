@@ -7,8 +7,8 @@
 //   for (VoxelIndex v : map.occupiedVoxels()) ...
 #pragma once
 
-#include <compare>
 #include <cstdint>
+#include <functional>
 #include <iosfwd>
 #include <memory>
 #include <vector>
@@ -16,15 +16,10 @@
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
 #include "common/result.hpp"
+#include "common/worker_pool.hpp"
+#include "server/fusion/voxel_code.hpp"
 
 namespace stereomap::fusion {
-
-// A voxel at the map's finest resolution: its centre is ((x + 0.5) * r, (y + 0.5) * r, ...)
-// in the map frame for resolution r.
-struct VoxelIndex {
-  int32_t x = 0, y = 0, z = 0;
-  auto operator<=>(const VoxelIndex&) const = default;
-};
 
 enum class Occupancy { kUnknown, kFree, kOccupied };
 
@@ -33,6 +28,14 @@ struct MapAgreement {
   uint64_t voxels = 0;    // known (free or occupied) in at least one map
   uint64_t agreeing = 0;  // same class in both
   double fraction() const { return voxels ? static_cast<double>(agreeing) / voxels : 1.0; }
+};
+
+// What one insertion changed: every voxel or block whose class or quantised value moved,
+// sorted by code, so that tiles and counts follow the map without walking it.
+struct MapChanges {
+  // False when the insertion path cannot tell (Insertion::kOctomap): anything may have changed.
+  bool complete = true;
+  std::vector<VoxelChange> voxels;
 };
 
 class OccupancyMap {
@@ -53,6 +56,9 @@ class OccupancyMap {
     double free_threshold = 0.5;       // free when P <= this (and not occupied); else unknown
     Insertion insertion = Insertion::kFast;
     unsigned threads = 2;  // ray casting threads of the fast path
+    // Where the fast path runs its second thread (not owned; it outlives the map); null: a
+    // thread of its own per step.
+    common::WorkerPool* pool = nullptr;
 
     // OctoMap's defaults (above).
     static Options octomapPreset(double resolution);
@@ -68,13 +74,19 @@ class OccupancyMap {
 
   // Inserts `cloud_sensor` (points in the sensor frame) seen from T_map_sensor: the voxels
   // along each ray become more free, the end voxel more occupied; rays longer than
-  // `max_range_m` only clear free space up to that range. Uses OctoMap's insertPointCloud.
+  // `max_range_m` only clear free space up to that range. Same result as OctoMap's
+  // insertPointCloud. `changes` (optional) receives what changed.
   void insertCloud(const common::PointCloud& cloud_sensor, const common::Rigid3& T_map_sensor,
-                   double max_range_m);
+                   double max_range_m, MapChanges* changes = nullptr);
 
   // The voxel's class: occupied (P >= occupancy_threshold), free (P <= free_threshold) or
   // unknown (never observed, or in between).
   Occupancy query(const common::Vec3& p_map) const;
+  // Calls visit(code, depth, value) for every occupied node below the node of `depth` whose
+  // first voxel has `code` (depth 0: the whole map), in code order: a voxel (depth 16) or a
+  // pruned block of 2^(16 - depth) voxels per axis; value = round(255 P).
+  using OccupiedVisitor = std::function<void(uint64_t code, unsigned depth, uint8_t value)>;
+  void visitOccupied(uint64_t code, unsigned depth, const OccupiedVisitor& visit) const;
   // Occupied voxels at the finest resolution, sorted (pruned nodes are expanded).
   std::vector<VoxelIndex> occupiedVoxels() const;
   size_t occupiedCount() const;

@@ -39,7 +39,9 @@ common::Status SessionStore::save(const core::Session& session, bool closed) con
   std::error_code ec;
   fs::create_directories(dir, ec);
   if (ec) return makeError(ErrorCode::kIo, "cannot create " + dir.string() + ": " + ec.message());
-  if (auto s = common::writeFileAtomically(dir / "map.bt", session.mapBinary()); !s) return s;
+  const auto map = session.mapBinary();
+  if (!map) return map.error();
+  if (auto s = common::writeFileAtomically(dir / "map.bt", *map); !s) return s;
   const auto vehicles = session.status().vehicles;
   for (size_t i = 0; i < vehicles.size(); ++i) {  // one TUM file per vehicle
     const std::string name = i == 0 ? "trajectory.tum" : "trajectory-" + vehicles[i] + ".tum";

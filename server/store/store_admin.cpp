@@ -240,7 +240,7 @@ void StoreAdmin::checkpoint(bool all) {
     const auto status = session->status();
     record(status);
     if (status.read_only || (!all && (!status.ended || status.backlog > 0))) continue;
-    const uint64_t version = session->voxels()->version + status.poses;
+    const uint64_t version = status.map_version + status.poses;
     if (saved_versions_[session->id()] == version) continue;
     if (auto saved = files_->save(*session); !saved) {
       server_.reportStoreProblem("session '" + session->id() +
@@ -353,8 +353,11 @@ common::Status StoreAdmin::closeLocked(const std::string& id) {
   }
   // The final snapshot makes the next open quick; then the map and trajectory files, then
   // the marker: a crash before it leaves an ordinary session that recovery loads again.
-  const auto [journal_number, ot] = session->snapshotNow();
-  if (auto saved = journals_->saveSnapshot(id, journal_number, ot); !saved) {
+  auto snapshot = session->snapshotNow();
+  common::Status saved =
+      snapshot ? journals_->saveSnapshot(id, snapshot->first, snapshot->second)
+               : common::Status(snapshot.error());
+  if (!saved) {
     spdlog::warn("session '{}': final snapshot not kept ({}); its next open replays the journal",
                  id, saved.error().message);
   }

@@ -85,7 +85,7 @@ TEST_F(StoreAdminTest, ClosedSessionReopensReadOnlyWithItsMapAndTrajectory) {
   {
     Server server(root_, 0.1);
     fly(*server.map, "f1", 6);
-    voxels = server.map->find("f1")->voxels()->voxels;
+    voxels = server.map->find("f1")->occupiedVoxels();
     ASSERT_FALSE(voxels.empty());
     ASSERT_TRUE(server.admin->close("f1").ok());
     EXPECT_EQ(server.map->find("f1"), nullptr);
@@ -109,7 +109,7 @@ TEST_F(StoreAdminTest, ClosedSessionReopensReadOnlyWithItsMapAndTrajectory) {
   EXPECT_TRUE(status.read_only);
   EXPECT_DOUBLE_EQ(status.resolution, 0.1);
   EXPECT_EQ(status.poses, 6u);
-  EXPECT_EQ(session->voxels()->voxels, voxels);
+  EXPECT_EQ(session->occupiedVoxels(), voxels);
   EXPECT_FALSE(restarted.map->ingest(wallFrame("f1", 9)));  // read-only
   EXPECT_NE(restarted.map->metricsText().find("reason=\"read_only\""), std::string::npos);
   EXPECT_EQ(restarted.admin->open("f1").error().code, ErrorCode::kConflict);
@@ -121,7 +121,7 @@ TEST_F(StoreAdminTest, RecoveryUsesEachSessionsOwnResolution) {
   {
     Server server(root_, 0.05);
     fly(*server.map, "fine", 5);  // 5 frames, snapshot every 4: snapshot + 1 replayed
-    voxels = server.map->find("fine")->voxels()->voxels;
+    voxels = server.map->find("fine")->occupiedVoxels();
   }
   Server restarted(root_, 0.2);
   const auto recovered = restarted.admin->recoverAll();
@@ -131,7 +131,7 @@ TEST_F(StoreAdminTest, RecoveryUsesEachSessionsOwnResolution) {
   ASSERT_NE(session, nullptr);
   EXPECT_DOUBLE_EQ(session->status().resolution, 0.05);
   EXPECT_FALSE(session->status().read_only);
-  EXPECT_EQ(session->voxels()->voxels, voxels);
+  EXPECT_EQ(session->occupiedVoxels(), voxels);
 }
 
 TEST_F(StoreAdminTest, OnlyOneWriterPerStore) {
@@ -189,7 +189,7 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   for (int i = 0; i < 4; ++i) ASSERT_TRUE(server.map->ingest(wallFrame("direct", i)));
   for (int i = 0; i < 4; ++i) ASSERT_TRUE(server.map->ingest(wallFrame("direct", i, 5.0, "w")));
   server.map->find("direct")->waitUntilIdle();
-  EXPECT_EQ(merged->voxels()->voxels, server.map->find("direct")->voxels()->voxels);
+  EXPECT_EQ(merged->occupiedVoxels(), server.map->find("direct")->occupiedVoxels());
   EXPECT_GT(status.occupied_voxels, b.occupied_voxels);
 
   EXPECT_EQ(server.admin->merge(request).error().code, ErrorCode::kConflict);  // exists

@@ -15,26 +15,6 @@ using octomap::point3d;
 
 namespace {
 
-uint64_t spreadBits(uint64_t v) {  // 16 bits -> every third bit
-  v &= 0xFFFF;
-  v = (v | v << 32) & 0x1F00000000FFFFull;
-  v = (v | v << 16) & 0x1F0000FF0000FFull;
-  v = (v | v << 8) & 0x100F00F00F00F00Full;
-  v = (v | v << 4) & 0x10C30C30C30C30C3ull;
-  v = (v | v << 2) & 0x1249249249249249ull;
-  return v;
-}
-
-uint64_t compactBits(uint64_t v) {
-  v &= 0x1249249249249249ull;
-  v = (v ^ (v >> 2)) & 0x10C30C30C30C30C3ull;
-  v = (v ^ (v >> 4)) & 0x100F00F00F00F00Full;
-  v = (v ^ (v >> 8)) & 0x1F0000FF0000FFull;
-  v = (v ^ (v >> 16)) & 0x1F00000000FFFFull;
-  v = (v ^ (v >> 32)) & 0x1FFFFFull;
-  return v;
-}
-
 // LSD radix sort of 64-bit values whose set bits are below `bits`. (Splitting it over two
 // threads measured no faster: it is memory-bound.)
 void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch,
@@ -205,14 +185,24 @@ void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vec
 
 }  // namespace
 
-uint64_t mortonCode(const OcTreeKey& key) {
-  return spreadBits(key[0]) | spreadBits(key[1]) << 1 | spreadBits(key[2]) << 2;
+uint8_t occupancyByte(float log_odds) {
+  return static_cast<uint8_t>(std::lround(255.0f / (1.0f + std::exp(-log_odds))));
 }
 
+void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
+            const std::function<void()>& second) {
+  if (pool != nullptr) return pool->runPair(first, second);
+  std::thread helper(second);
+  first();
+  helper.join();
+}
+
+uint64_t mortonCode(const OcTreeKey& key) { return mortonOfKeys(key[0], key[1], key[2]); }
+
 OcTreeKey mortonDecode(uint64_t code) {
-  return OcTreeKey(static_cast<uint16_t>(compactBits(code)),
-                   static_cast<uint16_t>(compactBits(code >> 1)),
-                   static_cast<uint16_t>(compactBits(code >> 2)));
+  return OcTreeKey(static_cast<uint16_t>(fusion::detail::compactBits(code)),
+                   static_cast<uint16_t>(fusion::detail::compactBits(code >> 1)),
+                   static_cast<uint16_t>(fusion::detail::compactBits(code >> 2)));
 }
 
 namespace {
@@ -234,8 +224,11 @@ void forEachChildRun(unsigned tree_depth, unsigned depth, const uint64_t* begin,
 }
 }  // namespace
 
-void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads) {
+void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads,
+                                    common::WorkerPool* pool, std::vector<VoxelChange>* changes) {
+  if (changes != nullptr) changes->clear();
   if (codes.empty()) return;
+  changes_ = changes;
   bool created = false;
   if (root == nullptr) {
     root = new OcTreeNode();  // as updateNode() does for an empty tree
@@ -244,6 +237,7 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned
   }
   if (threads < 2) {
     descend(root, created, 0, codes.data(), codes.data() + codes.size());
+    changes_ = nullptr;
     return;
   }
   // Top levels serially (create or expand the nodes down to kTaskDepth), the subtrees below
@@ -258,6 +252,8 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned
   twin.setClampingThresMin(getClampingThresMin());
   twin.setClampingThresMax(getClampingThresMax());
   twin.setOccupancyThres(getOccupancyThres());
+  std::vector<VoxelChange> twin_changes;
+  if (changes != nullptr) twin.changes_ = &twin_changes;
   std::atomic<size_t> next{0};
   auto work = [&tasks, &next](BulkOcTree& tree) {
     for (size_t i; (i = next.fetch_add(1)) < tasks.size();) {
@@ -265,9 +261,16 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned
       tree.descend(t.node, t.just_created, kTaskDepth, t.begin, t.end);
     }
   };
-  std::thread helper(work, std::ref(twin));
-  work(*this);
-  helper.join();
+  runTwo(
+      pool, [&] { work(*this); }, [&] { work(twin); });
+  if (changes != nullptr) {
+    // Each thread took tasks in ascending order, so each list is sorted: one merge.
+    const auto middle = static_cast<std::ptrdiff_t>(changes->size());
+    changes->insert(changes->end(), twin_changes.begin(), twin_changes.end());
+    std::inplace_merge(changes->begin(), changes->begin() + middle, changes->end(),
+                       [](const VoxelChange& a, const VoxelChange& b) { return a.code < b.code; });
+  }
+  changes_ = nullptr;
   tree_size += twin.tree_size;  // wraps correctly when the twin pruned more than it made
   twin.tree_size = 0;
   size_changed = true;
@@ -310,7 +313,11 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
                          const uint64_t* begin, const uint64_t* end) {
   if (depth == tree_depth) {
     // Each key appears once: one hit or one miss, clamped as updateNode() does.
+    const float before = node->getLogOdds();
     updateNodeLogOdds(node, (*begin & 1) ? prob_hit_log : prob_miss_log);
+    if (changes_ != nullptr) {
+      noteChange(*begin >> 1, depth, node_just_created, before, node->getLogOdds());
+    }
     return;
   }
   // Every voxel below a childless node gets the same update (common in free space near the
@@ -321,7 +328,11 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
   if (count == size_t{1} << (3 * (tree_depth - depth)) && !nodeHasChildren(node)) {
     const uint64_t flag = *begin & 1;
     if (std::all_of(begin, end, [flag](uint64_t c) { return (c & 1) == flag; })) {
+      const float before = node->getLogOdds();
       updateNodeLogOdds(node, flag ? prob_hit_log : prob_miss_log);
+      if (changes_ != nullptr) {
+        noteChange(*begin >> 1, depth, node_just_created, before, node->getLogOdds());
+      }
       return;
     }
   }
@@ -332,14 +343,28 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
   if (!pruneNode(node)) node->updateOccupancyChildren();
 }
 
+void BulkOcTree::noteChange(uint64_t code, unsigned depth, bool just_created, float before,
+                            float after) {
+  // A node made just now was unknown before, whatever value it was created with.
+  const bool was_occupied = !just_created && before >= occ_prob_thres_log;
+  const bool occupied = after >= occ_prob_thres_log;
+  if (!was_occupied && !occupied) return;  // free or unknown: nobody draws it
+  if (was_occupied && occupied && before == after) return;
+  const uint8_t value = occupied ? occupancyByte(after) : 0;
+  if (was_occupied && occupied && occupancyByte(before) == value) return;
+  changes_->push_back({code, static_cast<uint8_t>(depth), value, occupied});
+}
+
 void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
-                          const point3d& origin, double max_range, unsigned threads) {
+                          const point3d& origin, double max_range, unsigned threads,
+                          common::WorkerPool* pool, std::vector<VoxelChange>* changes) {
   threads = std::clamp(threads, 1u, 2u);
   // Ray ends: measured points, or the point at max_range along a longer ray (free only).
   std::vector<point3d> ends(points.size());
   std::vector<uint8_t> hit(points.size());
   BrickBox box;
   OcTreeKey key;
+  if (changes != nullptr) changes->clear();
   if (!tree.coordToKeyChecked(origin, key)) return;
   std::array<int, 3> lo{key[0], key[1], key[2]}, hi = lo;
   for (size_t i = 0; i < points.size(); ++i) {
@@ -364,9 +389,9 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
     castRays(tree, origin, ends, from, to, box, free_bits_[t]);
   };
   if (threads == 2) {
-    std::thread helper(castRange, 1u, points.size() / 2, points.size());
-    castRange(0, 0, points.size() / 2);
-    helper.join();
+    runTwo(
+        pool, [&] { castRange(0, 0, points.size() / 2); },
+        [&] { castRange(1, points.size() / 2, points.size()); });
   } else {
     castRange(0, 0, points.size());
   }
@@ -424,7 +449,7 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
       codes_.push_back((base | bit) << 1 | ((occupied >> bit) & 1));
     }
   }
-  tree.applySortedUpdates(codes_, threads);
+  tree.applySortedUpdates(codes_, threads, pool, changes);
 }
 
 }  // namespace stereomap::fusion::detail

@@ -12,9 +12,20 @@
 #include <octomap/OcTree.h>
 
 #include <cstdint>
+#include <functional>
 #include <vector>
 
+#include "common/worker_pool.hpp"
+#include "server/fusion/voxel_code.hpp"
+
 namespace stereomap::fusion::detail {
+
+// round(255 * P) for log-odds L (P = 1 / (1 + e^-L)).
+uint8_t occupancyByte(float log_odds);
+
+// Runs two halves of a step: on the pool when there is one, else on a thread of their own.
+void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
+            const std::function<void()>& second);
 
 // octomap::OcTree with a bulk update (it needs the tree's protected root).
 class BulkOcTree : public octomap::OcTree {
@@ -22,8 +33,12 @@ class BulkOcTree : public octomap::OcTree {
   explicit BulkOcTree(double resolution) : octomap::OcTree(resolution) {}
   // `codes`: Morton code of each key shifted left by one, lowest bit set for an occupied
   // (hit) update and clear for a free (miss) update; sorted ascending, no key twice.
-  // threads >= 2: subtrees below depth 3 are updated on two threads.
-  void applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads = 1);
+  // threads >= 2: subtrees below depth 3 are updated on two threads (`pool`'s, or threads
+  // of their own when it is null). `changes` (optional) receives every node whose class or
+  // value changed, sorted by code.
+  void applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads = 1,
+                          common::WorkerPool* pool = nullptr,
+                          std::vector<VoxelChange>* changes = nullptr);
 
  private:
   struct Task {
@@ -40,14 +55,20 @@ class BulkOcTree : public octomap::OcTree {
                const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks);
   void closeTop(octomap::OcTreeNode* node, unsigned depth, const uint64_t* begin,
                 const uint64_t* end);
+  // Records a node's update in changes_ when its class or quantised value moved.
+  void noteChange(uint64_t code, unsigned depth, bool just_created, float before, float after);
+
+  std::vector<VoxelChange>* changes_ = nullptr;
 };
 
 // Reusable buffers for insertions (one per map; not thread-safe).
 class BulkInserter {
  public:
   // Points in the map frame; rays from `origin`, clipped at max_range (< 0: no limit).
+  // `changes` (optional): as BulkOcTree::applySortedUpdates.
   void insert(BulkOcTree& tree, const std::vector<octomap::point3d>& points,
-              const octomap::point3d& origin, double max_range, unsigned threads);
+              const octomap::point3d& origin, double max_range, unsigned threads,
+              common::WorkerPool* pool = nullptr, std::vector<VoxelChange>* changes = nullptr);
 
  private:
   std::vector<uint64_t> free_bits_[2], occupied_bits_;

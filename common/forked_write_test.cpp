@@ -1,0 +1,67 @@
+#include "common/forked_write.hpp"
+
+#include <gtest/gtest.h>
+
+#include <ostream>
+#include <thread>
+#include <vector>
+
+#include "common/worker_pool.hpp"
+
+namespace stereomap::common {
+namespace {
+
+TEST(ForkedWrite, CollectsWhatTheChildWroteAsOfTheFork) {
+  std::vector<char> data(4 << 20, 'a');  // larger than a pipe's buffer
+  auto job = ForkedWrite::start([&](std::ostream& out) {
+    out.write(data.data(), static_cast<std::streamsize>(data.size()));
+    return true;
+  });
+  ASSERT_TRUE(job) << job.error().message;
+  std::fill(data.begin(), data.end(), 'b');  // after the fork: the child keeps its copy
+  auto bytes = job->finish();
+  ASSERT_TRUE(bytes) << bytes.error().message;
+  EXPECT_EQ(*bytes, std::string(4 << 20, 'a'));
+}
+
+TEST(ForkedWrite, AFailedWriteIsAnError) {
+  auto job = ForkedWrite::start([](std::ostream& out) {
+    out << "partial";
+    return false;
+  });
+  ASSERT_TRUE(job);
+  auto bytes = job->finish();
+  ASSERT_FALSE(bytes);
+  EXPECT_NE(bytes.error().message.find("failed"), std::string::npos);
+}
+
+TEST(ForkedWrite, AnUncollectedChildIsKilledAndReaped) {
+  auto job = ForkedWrite::start([](std::ostream& out) {
+    for (;;) out << std::string(1 << 16, 'x');  // blocks on the full pipe
+    return true;
+  });
+  ASSERT_TRUE(job);
+  { auto abandoned = std::move(*job); }  // must return, not hang
+  SUCCEED();
+}
+
+TEST(WorkerPool, RunsBothHalvesEvenWhenItsThreadsAreBusy) {
+  WorkerPool pool(1);
+  std::atomic<int> done{0};
+  std::vector<std::thread> callers;
+  for (int c = 0; c < 4; ++c) {
+    callers.emplace_back([&] {
+      for (int i = 0; i < 200; ++i) {
+        int first = 0, second = 0;
+        pool.runPair([&] { first = 1; }, [&] { second = 1; });
+        ASSERT_EQ(first + second, 2);
+        ++done;
+      }
+    });
+  }
+  for (auto& caller : callers) caller.join();
+  EXPECT_EQ(done, 800);
+}
+
+}  // namespace
+}  // namespace stereomap::common
