@@ -37,6 +37,9 @@ Session::Session(std::string id, const Options& options)
       snapshot_due_(options.snapshot_every),
       last_live_ns_(common::nowNs()) {
   worker_ = std::thread([this] { run(); });
+  if (options_.snapshot_every > 0 && options_.on_snapshot) {
+    snapshot_writer_ = std::thread([this] { writeSnapshots(); });
+  }
 }
 
 Session::~Session() {
@@ -46,7 +49,14 @@ Session::~Session() {
   }
   queue_changed_.notify_all();
   worker_.join();
-  if (snapshot_writer_.joinable()) snapshot_writer_.join();
+  if (snapshot_writer_.joinable()) {
+    {
+      std::lock_guard lock(snapshot_mutex_);
+      snapshot_stopping_ = true;
+    }
+    snapshot_changed_.notify_one();
+    snapshot_writer_.join();
+  }
 }
 
 bool Session::claim(const std::string& topic, const std::string& vehicle, uint64_t seq,
@@ -180,59 +190,62 @@ void Session::run() {
 }
 
 void Session::snapshotIfDue(uint64_t fused) {
-  if (options_.snapshot_every == 0 || !options_.on_snapshot || fused < snapshot_due_ ||
-      snapshot_writing_) {
-    return;
-  }
-  if (snapshot_writer_.joinable()) snapshot_writer_.join();  // the previous one, done
-  const auto start = std::chrono::steady_clock::now();
-  uint64_t journal_number = 0;
-  std::optional<common::ForkedWrite> job;
+  if (!snapshot_writer_.joinable() || fused < snapshot_due_) return;
   {
-    std::lock_guard lock(map_mutex_);
-    auto started =
-        common::ForkedWrite::start([this](std::ostream& out) { return map_.writeFull(out); });
-    if (!started) {
-      spdlog::warn("session '{}': snapshot not started: {}", id_, started.error().message);
-      snapshot_due_ = fused + options_.snapshot_every;
-      return;
-    }
-    job.emplace(std::move(*started));
-    journal_number = last_fused_number_;
-  }
-  const double stall =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  {
-    std::lock_guard state(state_mutex_);
-    snapshot_stall_max_seconds_ = std::max(snapshot_stall_max_seconds_, stall);
+    std::lock_guard lock(snapshot_mutex_);
+    if (snapshot_wanted_ || snapshot_writing_) return;  // one at a time: next frame again
+    snapshot_wanted_ = true;
   }
   snapshot_due_ = fused + options_.snapshot_every;
-  snapshot_writing_ = true;
-  snapshot_writer_ = std::thread([this, job = std::move(*job), journal_number]() mutable {
-    auto ot = job.finish();
+  snapshot_changed_.notify_one();
+}
+
+// The writer forks (so the child dies with this thread, which outlives every snapshot it
+// starts) and waits for the child while fusion goes on.
+void Session::writeSnapshots() {
+  for (;;) {
+    {
+      std::unique_lock lock(snapshot_mutex_);
+      snapshot_changed_.wait(lock, [this] { return snapshot_stopping_ || snapshot_wanted_; });
+      if (!snapshot_wanted_) return;
+      snapshot_wanted_ = false;
+      snapshot_writing_ = true;
+    }
+    uint64_t journal_number = 0;
+    double stall_seconds = 0;
+    auto ot = serialiseForked(/*full=*/true, &journal_number, &stall_seconds);
     common::Status saved =
         ot ? options_.on_snapshot(journal_number, *ot) : common::Status(ot.error());
-    if (saved) {
+    {
       std::lock_guard state(state_mutex_);
-      ++snapshots_;
-    } else {
+      snapshot_stall_max_seconds_ = std::max(snapshot_stall_max_seconds_, stall_seconds);
+      if (saved) ++snapshots_;
+    }
+    if (!saved) {
       // The journal still holds every frame: only the next recovery gets slower.
       spdlog::warn("session '{}': snapshot not kept: {}", id_, saved.error().message);
     }
+    std::lock_guard lock(snapshot_mutex_);
     snapshot_writing_ = false;
-  });
+  }
 }
 
-common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journal_number) const {
+common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journal_number,
+                                                     double* locked_seconds) const {
   std::optional<common::ForkedWrite> job;
   {
     std::lock_guard lock(map_mutex_);  // the map and its journal place, as of one frame
+    const auto locked = std::chrono::steady_clock::now();
     auto started = common::ForkedWrite::start([this, full](std::ostream& out) {
       return full ? map_.writeFull(out) : map_.writeBinary(out);
     });
     if (!started) return started.error();
     job.emplace(std::move(*started));
     if (journal_number != nullptr) *journal_number = last_fused_number_;
+    if (locked_seconds != nullptr) {
+      *locked_seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - locked).count();
+    }
   }
   return job->finish();
 }
@@ -240,7 +253,7 @@ common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journa
 common::Result<std::pair<uint64_t, std::string>> Session::snapshotNow() const {
   waitUntilIdle();
   uint64_t journal_number = 0;
-  auto ot = serialiseForked(/*full=*/true, &journal_number);
+  auto ot = serialiseForked(/*full=*/true, &journal_number, nullptr);
   if (!ot) return ot.error();
   return std::pair{journal_number, std::move(*ot)};
 }
@@ -306,11 +319,11 @@ std::string Session::trajectoryTum(const std::string& vehicle_id) const {
 }
 
 common::Result<std::string> Session::mapBinary() const {
-  return serialiseForked(/*full=*/false, nullptr);
+  return serialiseForked(/*full=*/false, nullptr, nullptr);
 }
 
 common::Result<std::string> Session::mapFull() const {
-  return serialiseForked(/*full=*/true, nullptr);
+  return serialiseForked(/*full=*/true, nullptr, nullptr);
 }
 
 std::string Session::occupiedPly() const {

@@ -151,10 +151,13 @@ class Session {
 
  private:
   void run();
-  // After a fused frame: hands a snapshot to on_snapshot when one is due (off this thread).
+  // After a fused frame: asks the snapshot writer for a snapshot when one is due.
   void snapshotIfDue(uint64_t fused);
-  // The map serialised by a forked child; the map lock is held only for the fork.
-  common::Result<std::string> serialiseForked(bool full, uint64_t* journal_number) const;
+  void writeSnapshots();  // the snapshot writer thread
+  // The map serialised by a forked child; the map lock is held only for the fork (its
+  // duration goes to `locked_seconds`).
+  common::Result<std::string> serialiseForked(bool full, uint64_t* journal_number,
+                                              double* locked_seconds) const;
 
   const std::string id_;
   const Options options_;
@@ -170,9 +173,11 @@ class Session {
   uint64_t last_fused_number_ = 0;  // journal record number of the last frame in map_
   tiles::TileSet tiles_;            // written by the worker only
   fusion::MapChanges changes_;      // the worker's scratch
-  std::thread snapshot_writer_;     // the snapshot being written, if any
-  std::atomic<bool> snapshot_writing_{false};
-  uint64_t snapshot_due_ = 0;  // fused-frame count at which the next snapshot is due
+  uint64_t snapshot_due_ = 0;       // fused-frame count at which the next snapshot is due (worker)
+  std::mutex snapshot_mutex_;
+  std::condition_variable snapshot_changed_;
+  bool snapshot_wanted_ = false, snapshot_writing_ = false, snapshot_stopping_ = false;
+  std::thread snapshot_writer_;  // runs while snapshots are on
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;

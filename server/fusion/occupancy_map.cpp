@@ -5,6 +5,8 @@
 #include "server/fusion/detail/bulk_insert.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <cstring>
 #include <istream>
 #include <sstream>
 
@@ -229,36 +231,196 @@ double OccupancyMap::resolution() const { return impl_->tree.getResolution(); }
 
 bool OccupancyMap::writeFull(std::ostream& out) const { return impl_->tree.write(out); }
 
-common::Status OccupancyMap::readFull(std::istream& in) {
-  using common::ErrorCode;
-  using common::makeError;
-  auto& tree = impl_->tree;
-  tree.clear();
-  // The header of AbstractOcTree::write: comment lines, then id, size, res, data.
-  std::string line, id;
-  double res = 0;
-  while (std::getline(in, line)) {
+namespace {
+
+using common::ErrorCode;
+using common::makeError;
+
+constexpr size_t kMaxMapFileBytes = size_t{4} << 30;
+
+enum class TreeFormat { kBinary, kFull };
+
+struct TreeFile {
+  TreeFormat format = TreeFormat::kFull;
+  double resolution = 0;
+  uint64_t nodes = 0;  // the header's node count
+  std::string data;    // the bytes after "data"
+};
+
+// The header of OctoMap's .bt and .ot files: a first line naming the format, comment lines,
+// then "id", "size", "res" and "data" lines (AbstractOcTree::readHeader).
+common::Result<TreeFile> readTreeFile(std::istream& in) {
+  TreeFile file;
+  std::string line;
+  if (!std::getline(in, line)) return makeError(ErrorCode::kCorrupt, "the file is empty");
+  if (line.rfind("# Octomap OcTree binary file", 0) == 0) {
+    file.format = TreeFormat::kBinary;
+  } else if (line.rfind("# Octomap OcTree file", 0) == 0) {
+    file.format = TreeFormat::kFull;
+  } else {
+    return makeError(ErrorCode::kCorrupt,
+                     "not an OctoMap file (its first line is not '# Octomap OcTree binary file' "
+                     "or '# Octomap OcTree file')");
+  }
+  std::string id;
+  bool has_size = false, has_data = false;
+  for (int lines = 0; lines < 1000 && std::getline(in, line); ++lines) {
     if (line.empty() || line[0] == '#') continue;
     std::istringstream fields(line);
     std::string key;
     fields >> key;
     if (key == "id") fields >> id;
-    if (key == "res") fields >> res;
-    if (key == "data") break;
+    if (key == "res") fields >> file.resolution;
+    if (key == "size") has_size = static_cast<bool>(fields >> file.nodes);
+    if (key == "data") {
+      has_data = true;
+      break;
+    }
   }
-  if (!in || line.rfind("data", 0) != 0) return makeError(ErrorCode::kCorrupt, "no .ot header");
-  if (id != "OcTree") return makeError(ErrorCode::kCorrupt, "not an OcTree ('" + id + "')");
-  if (std::abs(res - tree.getResolution()) > 1e-9) {
-    return makeError(ErrorCode::kInvalidArgument, "resolution " + std::to_string(res) +
+  if (!has_data || !has_size) {
+    return makeError(ErrorCode::kCorrupt, "the OctoMap header has no 'size' or 'data' line");
+  }
+  if (id != "OcTree") {
+    return makeError(ErrorCode::kCorrupt,
+                     "not an occupancy OcTree (id '" + id.substr(0, 40) + "')");
+  }
+  if (!(file.resolution >= 1e-4 && file.resolution <= 100)) {
+    return makeError(ErrorCode::kCorrupt, "resolution out of range (0.0001 .. 100 m)");
+  }
+  std::ostringstream data;
+  data << in.rdbuf();
+  file.data = data.str();
+  if (file.data.size() > kMaxMapFileBytes) return makeError(ErrorCode::kTooLarge, "file too large");
+  return file;
+}
+
+// Walks the node structure OctoMap's reader would follow (readBinaryNode/readNodesRecurs,
+// which check nothing) and tells whether it stays inside the bytes and the tree's 16 levels.
+class TreeDataCheck {
+ public:
+  TreeDataCheck(const TreeFile& file) : file_(file) {}
+  common::Status run() {
+    if (file_.nodes == 0) {
+      if (!file_.data.empty()) return makeError(ErrorCode::kCorrupt, "data after an empty tree");
+      return common::Ok{};
+    }
+    if (!(file_.format == TreeFormat::kBinary ? binaryNode(0) : fullNode(0))) {
+      return makeError(ErrorCode::kCorrupt, problem_);
+    }
+    if (at_ != file_.data.size()) {
+      return makeError(ErrorCode::kCorrupt, std::to_string(file_.data.size() - at_) +
+                                                " bytes after the tree's last node");
+    }
+    if (nodes_ != file_.nodes) {
+      return makeError(ErrorCode::kCorrupt, "the tree holds " + std::to_string(nodes_) +
+                                                " nodes, its header says " +
+                                                std::to_string(file_.nodes));
+    }
+    return common::Ok{};
+  }
+
+ private:
+  bool take(size_t bytes) {
+    if (file_.data.size() - at_ < bytes) {
+      problem_ = "the map data is truncated";
+      return false;
+    }
+    at_ += bytes;
+    return true;
+  }
+  // .bt: two bytes per inner node, two bits per child (11: it has children).
+  bool binaryNode(unsigned depth) {
+    ++nodes_;
+    const size_t at = at_;
+    if (!take(2)) return false;
+    const unsigned bits = static_cast<uint8_t>(file_.data[at]) |
+                          static_cast<unsigned>(static_cast<uint8_t>(file_.data[at + 1])) << 8;
+    for (unsigned i = 0; i < 8; ++i) {
+      const unsigned child = (bits >> (2 * i)) & 3;
+      if (child == 0) continue;
+      if (child != 3) {
+        ++nodes_;
+        continue;
+      }
+      if (depth + 1 >= kTreeDepth) {
+        problem_ = "the map data goes deeper than 16 levels";
+        return false;
+      }
+      if (!binaryNode(depth + 1)) return false;
+    }
+    return true;
+  }
+  // .ot: a float log-odds and a child bit mask per node.
+  bool fullNode(unsigned depth) {
+    ++nodes_;
+    const size_t at = at_;
+    if (!take(5)) return false;
+    float log_odds;
+    std::memcpy(&log_odds, file_.data.data() + at, 4);
+    if (!std::isfinite(log_odds)) {
+      problem_ = "the map data holds a value that is not a number";
+      return false;
+    }
+    const auto children = static_cast<uint8_t>(file_.data[at + 4]);
+    if (children != 0 && depth >= kTreeDepth) {
+      problem_ = "the map data goes deeper than 16 levels";
+      return false;
+    }
+    for (unsigned i = 0; i < 8; ++i) {
+      if ((children >> i & 1) && !fullNode(depth + 1)) return false;
+    }
+    return true;
+  }
+
+  const TreeFile& file_;
+  size_t at_ = 0;
+  uint64_t nodes_ = 0;
+  std::string problem_;
+};
+
+}  // namespace
+
+common::Status OccupancyMap::readFull(std::istream& in) {
+  auto& tree = impl_->tree;
+  tree.clear();
+  auto file = readTreeFile(in);
+  if (!file) return file.error();
+  if (file->format != TreeFormat::kFull) {
+    return makeError(ErrorCode::kCorrupt, "a .bt file, not a .ot snapshot");
+  }
+  if (std::abs(file->resolution - tree.getResolution()) > 1e-9) {
+    return makeError(ErrorCode::kInvalidArgument, "resolution " + std::to_string(file->resolution) +
                                                       " differs from the map's " +
                                                       std::to_string(tree.getResolution()));
   }
-  tree.readData(in);
-  if (!in) {
-    tree.clear();
-    return makeError(ErrorCode::kCorrupt, "the .ot data is truncated or damaged");
+  if (auto checked = TreeDataCheck(*file).run(); !checked) return checked;
+  if (file->nodes > 0) {
+    std::istringstream data(std::move(file->data));
+    tree.readData(data);
   }
   return common::Ok{};
+}
+
+common::Result<std::unique_ptr<OccupancyMap>> OccupancyMap::load(std::istream& in) {
+  return load(in, Options{});
+}
+
+common::Result<std::unique_ptr<OccupancyMap>> OccupancyMap::load(std::istream& in,
+                                                                 Options options) {
+  auto file = readTreeFile(in);
+  if (!file) return file.error();
+  if (auto checked = TreeDataCheck(*file).run(); !checked) return checked.error();
+  options.resolution = file->resolution;
+  auto map = std::make_unique<OccupancyMap>(options);
+  if (file->nodes > 0) {
+    std::istringstream data(std::move(file->data));
+    if (file->format == TreeFormat::kBinary) {
+      map->impl_->tree.readBinaryData(data);
+    } else {
+      map->impl_->tree.readData(data);
+    }
+  }
+  return map;
 }
 
 bool OccupancyMap::writeBinary(std::ostream& out) const {

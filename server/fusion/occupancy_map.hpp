@@ -108,6 +108,11 @@ class OccupancyMap {
   // Replaces the map with a .ot written by writeFull (same resolution); the map is left
   // empty on failure, and the error says why.
   common::Status readFull(std::istream& in);
+  // A map from an OctoMap file, .bt (binary: occupied/free only) or .ot (full), at the file's
+  // own resolution (options' sensor model otherwise). The whole file is checked before the
+  // tree is built: a truncated, damaged or hostile file is an error naming the problem.
+  static common::Result<std::unique_ptr<OccupancyMap>> load(std::istream& in, Options options);
+  static common::Result<std::unique_ptr<OccupancyMap>> load(std::istream& in);
   // Number of bytes the tree occupies in memory (OctoMap's estimate).
   size_t memoryBytes() const;
 

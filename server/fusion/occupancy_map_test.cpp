@@ -218,3 +218,74 @@ TEST(OccupancyMap, FullExportKeepsLogOdds) {
 
 }  // namespace
 }  // namespace stereomap::fusion
+
+namespace stereomap::fusion {
+namespace {
+
+std::string bytesOf(const OccupancyMap& map, bool full) {
+  std::ostringstream out;
+  full ? map.writeFull(out) : map.writeBinary(out);
+  return out.str();
+}
+
+TEST(OccupancyMapLoad, ReadsOctoMapSampleMapsAsOctoMapDoes) {
+  const auto geb079 = testing::kDataDir / "octomap_samples" / "geb079.bt";
+  STEREOMAP_SKIP_WITHOUT(geb079);
+  std::ifstream in(geb079, std::ios::binary);
+  auto map = OccupancyMap::load(in);
+  ASSERT_TRUE(map) << map.error().message;
+  EXPECT_DOUBLE_EQ((*map)->resolution(), 0.08);
+  EXPECT_EQ((*map)->occupiedCount(), 185673u);  // the data set's README (expanded leaves)
+  octomap::OcTree reference(geb079.string());
+  size_t occupied = 0;
+  for (auto it = reference.begin_leafs(), end = reference.end_leafs(); it != end; ++it) {
+    if (reference.isNodeOccupied(*it)) occupied += size_t{1} << 3 * (16 - it.getDepth());
+  }
+  EXPECT_EQ(occupied, 185673u);
+}
+
+TEST(OccupancyMapLoad, RoundTripsItsOwnBinaryAndFullFiles) {
+  OccupancyMap map({.resolution = 0.05});
+  map.insertCloud(testing::planeCloud(2.0, 1.0, 0.02), common::Rigid3::identity(), 10.0);
+  for (const bool full : {false, true}) {
+    std::istringstream in(bytesOf(map, full));
+    auto loaded = OccupancyMap::load(in);
+    ASSERT_TRUE(loaded) << loaded.error().message;
+    EXPECT_EQ((*loaded)->occupiedVoxels(), map.occupiedVoxels());
+    EXPECT_DOUBLE_EQ((*loaded)->resolution(), 0.05);
+  }
+  OccupancyMap empty({.resolution = 0.1});
+  std::istringstream in(bytesOf(empty, true));
+  auto loaded = OccupancyMap::load(in);
+  ASSERT_TRUE(loaded) << loaded.error().message;
+  EXPECT_EQ((*loaded)->occupiedCount(), 0u);
+}
+
+TEST(OccupancyMapLoad, RefusesTruncatedDamagedAndHostileFiles) {
+  OccupancyMap map({.resolution = 0.1});
+  map.insertCloud(testing::planeCloud(2.0, 1.0, 0.05), common::Rigid3::identity(), 10.0);
+  for (const bool full : {false, true}) {
+    const std::string good = bytesOf(map, full);
+    const size_t data = good.find("data\n") + 5;
+    for (size_t size = 0; size < good.size(); size += (size < data + 64 ? 1 : 97)) {
+      std::istringstream in(good.substr(0, size));
+      EXPECT_FALSE(OccupancyMap::load(in)) << "truncated to " << size;
+    }
+    std::istringstream longer(good + "x");
+    EXPECT_FALSE(OccupancyMap::load(longer));
+  }
+  // Every node claiming children, far deeper than 16 levels (OctoMap itself would recurse on).
+  const std::string header = "# Octomap OcTree binary file\nid OcTree\nsize 99\nres 0.1\ndata\n";
+  std::istringstream deep(header + std::string(4096, '\xff'));
+  auto refused = OccupancyMap::load(deep);
+  ASSERT_FALSE(refused);
+  EXPECT_NE(refused.error().message.find("16 levels"), std::string::npos);
+  for (const char* bad : {"", "hello\n", "# Octomap OcTree binary file\nid ColorOcTree\nsize 1\n",
+                          "# Octomap OcTree file\nid OcTree\nsize 1\nres -1\ndata\n"}) {
+    std::istringstream in(bad);
+    EXPECT_FALSE(OccupancyMap::load(in)) << bad;
+  }
+}
+
+}  // namespace
+}  // namespace stereomap::fusion

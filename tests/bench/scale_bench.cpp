@@ -1,0 +1,212 @@
+// stereomap-bench-scale: whether the server keeps its pace as maps grow (issue 21), in
+// process, through the real ingest path: Draco-encoded sim frames into a MapServer with a
+// journal (validation, journal, fusion queue, fusion, tile update) up to the published change
+// that viewers and tiles read.
+//   A: mean cost per frame, frames fused at 0.2 m into an empty session;
+//   B: the same frames into a session that starts as fr_campus.bt (1.2 M occupied voxels);
+//   D: four sessions fed at 10 Hz each (one starting as the campus), snapshots every 100
+//      frames: the share of frames dropped; S: the longest fusion stall for a snapshot;
+//   M: the process's resident memory with the campus session, O: OctoMap's memoryUsage().
+//   stereomap-bench-scale [--frames N] [--seconds S] [--runs R] [--campus FILE]
+#include <malloc.h>
+#include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
+
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "onboard/pipeline/pipeline.hpp"
+#include "onboard/sim/sim_source.hpp"
+#include "onboard/stereo/depth.hpp"
+#include "server/core/map_server.hpp"
+#include "server/store/session_journals.hpp"
+
+namespace {
+
+using namespace stereomap;
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+double msSince(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+double residentMegabytes() {
+  std::ifstream status("/proc/self/status");
+  for (std::string line; std::getline(status, line);) {
+    if (line.rfind("VmRSS:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  }
+  return 0;
+}
+
+// The sim vehicle's frames, as it would send them (ground-truth poses, fast matcher).
+std::vector<proto::CloudFrameMsg> simFrames(size_t count) {
+  sim::SimSource source({.seed = 1, .rate_hz = 10.0, .max_frames = count, .start_stamp_ns = 1});
+  pipeline::PipelineOptions options;
+  const stereo::StereoMatcher matcher(options.matcher);
+  std::vector<proto::CloudFrameMsg> frames;
+  while (auto frame = source.next()) {
+    const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
+                                                  frame->left, source.camera(), options.cloud);
+    const common::Rigid3 T_map_camera =
+        frame->T_map_body.value() * frame->T_body_camera.value_or(common::Rigid3{});
+    frames.push_back(
+        pipeline::makeCloudFrameMsg(options, frames.size(), frame->stamp_ns, T_map_camera, cloud)
+            .value());
+  }
+  return frames;
+}
+
+std::string campusSnapshot(const fs::path& path, size_t& octomap_bytes) {
+  std::ifstream in(path, std::ios::binary);
+  auto map = fusion::OccupancyMap::load(in);
+  if (!map) throw std::runtime_error(path.string() + ": " + map.error().message);
+  octomap_bytes = (*map)->memoryBytes();
+  std::ostringstream ot;
+  (*map)->writeFull(ot);
+  return ot.str();
+}
+
+struct Store {
+  explicit Store(const fs::path& dir)
+      : journals(dir, 0.2),
+        server({.resolution = 0.2,
+                .queue_capacity = 200,
+                .log = &journals,
+                .snapshots = &journals,
+                .snapshot_every = 100}) {}
+  store::SessionJournals journals;
+  core::MapServer server;
+};
+
+std::shared_ptr<core::Session> campusSession(core::MapServer& server, const std::string& id,
+                                             const std::string& ot) {
+  auto session = server.createSession(id, 0.2, false).value();
+  std::istringstream in(ot);
+  if (auto restored = session->restore(in, 0); !restored) {
+    throw std::runtime_error("campus: " + restored.error().message);
+  }
+  return session;
+}
+
+// Mean ms per frame from ingest until the frame's tile changes are published.
+double feedOneByOne(core::MapServer& server, const std::string& session,
+                    const std::vector<proto::CloudFrameMsg>& frames) {
+  const auto start = Clock::now();
+  for (auto frame : frames) {
+    frame.session_id = session;
+    if (!server.ingest(frame)) throw std::runtime_error("a frame was refused");
+    server.find(session)->waitUntilIdle();
+  }
+  return msSince(start) / static_cast<double>(frames.size());
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"stereomap-bench-scale: per-frame cost against map size, 4 sessions at 10 Hz"};
+  size_t frame_count = 60;
+  double seconds = 60;
+  int runs = 3;
+  std::string campus = std::string(STEREOMAP_DATA_DIR) + "/octomap_samples/fr_campus.bt";
+  app.add_option("--frames", frame_count, "sim frames rendered and fed (cycled in D)")
+      ->check(CLI::Range(10, 1000));
+  app.add_option("--seconds", seconds, "length of the four-session run")->check(CLI::Range(5, 600));
+  app.add_option("--runs", runs, "repetitions of A and B (side by side)")->check(CLI::Range(1, 20));
+  app.add_option("--campus", campus, "the large map sessions start from")->check(CLI::ExistingFile);
+  CLI11_PARSE(app, argc, argv);
+  spdlog::set_level(spdlog::level::warn);
+
+  const fs::path root =
+      fs::temp_directory_path() / ("stereomap-bench-scale-" + std::to_string(::getpid()));
+  std::printf("rendering %zu sim frames...\n", frame_count);
+  std::fflush(stdout);
+  const auto frames = simFrames(frame_count);
+  size_t octomap_bytes = 0;
+  const std::string campus_ot = campusSnapshot(campus, octomap_bytes);
+
+  // A and B side by side, repeated: the machine's noise hits both alike.
+  std::vector<double> empty_ms, campus_ms;
+  double rss_mb = 0, stall_max_s = 0;
+  for (int run = 0; run < runs; ++run) {
+    Store store(root / ("ab-" + std::to_string(run)));
+    empty_ms.push_back(feedOneByOne(store.server, "empty", frames));
+    campusSession(store.server, "campus", campus_ot);
+    campus_ms.push_back(feedOneByOne(store.server, "campus", frames));
+    // Memory freed by the set-up (the campus map loaded to make its snapshot) goes back first.
+    ::malloc_trim(0);
+    rss_mb = std::max(rss_mb, residentMegabytes());
+    for (const auto& s : store.server.sessions()) {
+      stall_max_s = std::max(stall_max_s, s->status().snapshot_stall_max_seconds);
+    }
+    const auto fused_ms = [&](const char* id) {
+      const auto status = store.server.find(id)->status();
+      return 1000 * status.fusion_seconds / static_cast<double>(status.frames_fused);
+    };
+    std::printf("run %d: empty %.2f ms/frame (fusion %.2f), campus %.2f ms/frame (fusion %.2f)\n",
+                run + 1, empty_ms.back(), fused_ms("empty"), campus_ms.back(), fused_ms("campus"));
+    std::fflush(stdout);
+  }
+
+  // D: four sessions at 10 Hz, one of them the campus.
+  uint64_t received = 0, dropped = 0, snapshots = 0;
+  {
+    Store store(root / "four");
+    campusSession(store.server, "d0", campus_ot);
+    std::atomic<bool> stop{false};
+    std::vector<std::thread> vehicles;
+    for (int v = 0; v < 4; ++v) {
+      vehicles.emplace_back([&, v] {
+        const auto period = std::chrono::milliseconds(100);
+        auto next = Clock::now();
+        for (uint64_t seq = 0; !stop; ++seq) {
+          auto frame = frames[seq % frames.size()];
+          frame.session_id = "d" + std::to_string(v);
+          frame.seq = seq;
+          frame.stamp_ns = 1 + static_cast<int64_t>(seq) * 100'000'000;
+          store.server.ingest(frame);
+          next += period;
+          std::this_thread::sleep_until(next);
+        }
+      });
+    }
+    std::this_thread::sleep_for(std::chrono::duration<double>(seconds));
+    stop = true;
+    for (auto& vehicle : vehicles) vehicle.join();
+    for (const auto& s : store.server.sessions()) {
+      s->waitUntilIdle();
+      const auto status = s->status();
+      received += status.frames_received;
+      dropped += status.frames_dropped;
+      snapshots += status.snapshots;
+      stall_max_s = std::max(stall_max_s, status.snapshot_stall_max_seconds);
+    }
+    std::printf("4 sessions, %.0f s at 10 Hz: %llu frames, %llu dropped, %llu snapshots\n", seconds,
+                static_cast<unsigned long long>(received), static_cast<unsigned long long>(dropped),
+                static_cast<unsigned long long>(snapshots));
+  }
+  std::error_code ec;
+  fs::remove_all(root, ec);
+
+  auto range = [](const std::vector<double>& v) {
+    const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
+    char text[64];
+    std::snprintf(text, sizeof(text), "%.2f-%.2f", *lo, *hi);
+    return std::string(text);
+  };
+  std::vector<double> ratio;
+  for (size_t i = 0; i < empty_ms.size(); ++i) ratio.push_back(campus_ms[i] / empty_ms[i]);
+  std::printf("campus / empty per frame: %s (runs side by side)\n", range(ratio).c_str());
+  std::printf(
+      "scale: empty %s ms/frame, campus %s ms/frame; 4 sessions at 10 Hz: %.1f%% dropped; "
+      "snapshot stall %.1f ms; RSS %.0f MB vs OctoMap %.0f MB\n",
+      range(empty_ms).c_str(), range(campus_ms).c_str(),
+      received ? 100.0 * static_cast<double>(dropped) / static_cast<double>(received) : 0.0,
+      stall_max_s * 1000, rss_mb, static_cast<double>(octomap_bytes) / (1 << 20));
+  return 0;
+}
