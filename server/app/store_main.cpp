@@ -245,6 +245,14 @@ int main(int argc, char** argv) {
   delete_cmd->add_option("session", id, "Session id")->required();
   delete_cmd->add_flag("--yes", yes, "Confirm: the session's journal and maps are removed");
 
+  std::string map_file;
+  auto* import_cmd = app.add_subcommand(
+      "import",
+      "Make an OctoMap file (.bt or .ot) a closed session of the store, at the file's own "
+      "resolution and without a trajectory (nothing is written if the file is damaged)");
+  import_cmd->add_option("file", map_file, "The .bt or .ot file")->required();
+  import_cmd->add_option("--session", id, "The new session's id")->required();
+
   std::string first, second, into;
   std::vector<double> transform;
   auto* merge_cmd = app.add_subcommand(
@@ -267,13 +275,24 @@ int main(int argc, char** argv) {
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);
 
-  const bool writes = *close_cmd || *delete_cmd || *merge_cmd || *repair_cmd;
+  const bool writes = *close_cmd || *delete_cmd || *merge_cmd || *repair_cmd || *import_cmd;
   if (*delete_cmd && !yes) return fail("delete is permanent: add --yes to delete '" + id + "'");
   auto store = openStore(root, resolution, writes);
   if (!store) return fail(store.error().message);
   auto& admin = *store->admin;
   if (*list_cmd) return list(*store, as_json);
   if (app.got_subcommand("check")) return check(*store);
+  if (*import_cmd) {
+    std::printf("reading and checking %s...\n", map_file.c_str());
+    std::fflush(stdout);
+    auto imported = admin.importMap(map_file, id);
+    if (!imported) return fail(imported.error().message);
+    const auto status = store->server->find(id)->status();
+    std::printf("imported %s as session '%s': %zu occupied voxels at %g m, %zu tiles\n",
+                map_file.c_str(), id.c_str(), status.occupied_voxels, status.resolution,
+                store->server->find(id)->tiles().summary().tiles);
+    return 0;
+  }
   if (*repair_cmd) {
     if (repair_ids.empty()) {
       for (const auto& stored : admin.storedIds()) {

@@ -82,6 +82,56 @@ std::string queryValue(std::string_view target, std::string_view key) {
   return "";
 }
 
+// GET /api/sessions/{id}/tiles and /api/sessions/{id}/tiles/{level}/{key} (FORMAT.md).
+HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& parts,
+                       std::string_view if_none_match) {
+  using proto::tiles::kLevels;
+  const auto& tiles = session.tiles();
+  if (parts.size() == 4) {
+    json list = json::array();
+    for (const auto& info : tiles.list()) {
+      const auto tile = tiles.find(info.key);
+      for (unsigned level = 0; level < kLevels; ++level) {
+        if (info.cells[level] == 0) continue;
+        // The bytes as served (encoded once per tile version, then kept).
+        const size_t bytes =
+            tile && tile->version() == info.version ? tile->encoded(level)->size() : 0;
+        list.push_back({{"level", level},
+                        {"key", info.key.text()},
+                        {"version", info.version},
+                        {"voxels", info.cells[level]},
+                        {"bytes", bytes}});
+      }
+    }
+    const json index = {{"session", session.id()},
+                        {"levels", kLevels},
+                        {"tile_voxels", 1 << proto::tiles::kTileBits},
+                        {"resolution", tiles.resolution()},
+                        {"version", tiles.summary().version},
+                        {"tiles", std::move(list)}};
+    return HttpAnswer{200, "application/json", index.dump() + "\n", "", ""};
+  }
+  if (parts.size() != 6) return error(404, "a tile is /api/sessions/{id}/tiles/{level}/{key}");
+  const std::string& level_text = parts[4];
+  if (level_text.size() != 1 || level_text[0] < '0' || level_text[0] >= '0' + int{kLevels}) {
+    return error(400, "tile level must be 0.." + std::to_string(kLevels - 1));
+  }
+  const unsigned level = static_cast<unsigned>(level_text[0] - '0');
+  const auto key = proto::tiles::TileKey::parse(parts[5]);
+  if (!key) return error(400, "a tile key is x_y_z (integers), e.g. 3_-2_0");
+  const auto tile = tiles.find(*key);
+  if (!tile) return error(404, "no occupied tile " + key->text() + " in this map");
+  // The version alone would repeat after a restart (versions start again): the map's epoch
+  // makes the tag unique.
+  char etag[64];
+  std::snprintf(etag, sizeof(etag), "\"%llx-%llu\"", static_cast<unsigned long long>(tiles.epoch()),
+                static_cast<unsigned long long>(tile->version()));
+  if (if_none_match == "*" || if_none_match.find(etag) != std::string_view::npos) {
+    return HttpAnswer{304, "", "", "", etag};
+  }
+  return HttpAnswer{200, "application/octet-stream", *tile->encoded(level), "", etag};
+}
+
 }  // namespace
 
 std::string sessionJson(const SessionStatus& status, const char* message_type) {
@@ -104,7 +154,8 @@ bool needsToken(std::string_view target) {
 }
 
 std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin* admin,
-                                    std::string_view method, std::string_view target) {
+                                    std::string_view method, std::string_view target,
+                                    std::string_view if_none_match) {
   if (!isApiPath(target)) return std::nullopt;
   const auto parts = segments(target);
   if (method != "GET" && method != "HEAD") {
@@ -157,6 +208,7 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts.size() == 3) {
     return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
   }
+  if (parts[3] == "tiles") return answerTiles(*session, parts, if_none_match);
   // Resource -> export format; the height band and scale come from the query.
   static const std::map<std::string, std::string, std::less<>> kFormats = {
       {"trajectory.tum", "tum"},

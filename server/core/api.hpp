@@ -17,6 +17,7 @@ struct HttpAnswer {
   std::string content_type = "application/json";
   std::string body;
   std::string filename;  // when set: offered as a download with this name
+  std::string etag;      // when set: sent as ETag, with Cache-Control no-cache (revalidate)
 };
 
 // True for the paths answerApi() serves (/healthz, /metrics, /api/...).
@@ -27,8 +28,10 @@ bool needsToken(std::string_view target);
 
 // The answer for a GET/HEAD of an API path, or nullopt when `target` is not an API path
 // (static files). `admin` (may be null) adds the store's closed sessions to listings.
+// `if_none_match`: the request's If-None-Match (a tile whose ETag matches answers 304).
 std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin* admin,
-                                    std::string_view method, std::string_view target);
+                                    std::string_view method, std::string_view target,
+                                    std::string_view if_none_match = {});
 
 // True for the requests answerAdmin() serves: POST /api/sessions/{id}/open|close,
 // DELETE /api/sessions/{id}, POST /api/sessions/merge. They may take seconds (a replay), so

@@ -267,7 +267,9 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       });
       return;
     }
-    if (auto answer = core::answerApi(hub_.server, hub_.admin, method, target)) {
+    const auto header = request[http::field::if_none_match];
+    const std::string_view if_none_match(header.data(), header.size());
+    if (auto answer = core::answerApi(hub_.server, hub_.admin, method, target, if_none_match)) {
       return sendAnswer(std::move(*answer), request.version(), request.method() == http::verb::head,
                         request.keep_alive());
     }
@@ -297,8 +299,13 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
   void sendAnswer(core::HttpAnswer answer, unsigned version, bool head, bool keep_alive) {
     auto response = std::make_shared<http::response<http::string_body>>(
         static_cast<http::status>(answer.status), version);
-    response->set(http::field::content_type, answer.content_type);
-    response->set(http::field::cache_control, "no-store");
+    if (!answer.content_type.empty()) response->set(http::field::content_type, answer.content_type);
+    if (answer.etag.empty()) {
+      response->set(http::field::cache_control, "no-store");
+    } else {  // tiles: any cache may keep them, asking whether they are still current
+      response->set(http::field::etag, answer.etag);
+      response->set(http::field::cache_control, "no-cache");
+    }
     if (!answer.filename.empty()) {
       response->set(http::field::content_disposition,
                     "inline; filename=\"" + answer.filename + "\"");

@@ -14,15 +14,11 @@ namespace fs = std::filesystem;
 using common::ErrorCode;
 using common::makeError;
 
-namespace {
-
 fs::path snapshotPath(const fs::path& dir, uint64_t label) {
   char name[40];
   std::snprintf(name, sizeof(name), "snapshot-%010llu.ot", static_cast<unsigned long long>(label));
   return dir / name;
 }
-
-}  // namespace
 
 uint64_t journalBytes(const fs::path& session_dir) {
   std::error_code ec;

@@ -39,6 +39,9 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
   std::map<std::string, std::unique_ptr<Journal>> journals_;
 };
 
+// <dir>/snapshot-<label>.ot. Label 0: an imported map (it covers no journal record).
+std::filesystem::path snapshotPath(const std::filesystem::path& dir, uint64_t label);
+
 // <dir>/snapshot-*.ot, newest first: (label, path). The label is the journal record number
 // the snapshot covers up to (format 1 journals: the number of cloud frames).
 std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(

@@ -9,10 +9,12 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <set>
+#include <sstream>
 
 #include "common/files.hpp"
 #include "common/time.hpp"
 #include "server/core/validate.hpp"
+#include "server/fusion/occupancy_map.hpp"
 
 namespace stereomap::store {
 
@@ -203,7 +205,8 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
     for (const auto& path : entries ? *entries : std::vector<fs::path>{}) {
       const std::string name = path.filename().string();
       std::error_code ec;
-      if (name.rfind(".trash-", 0) == 0 || name.rfind(".merge-", 0) == 0) {
+      if (name.rfind(".trash-", 0) == 0 || name.rfind(".merge-", 0) == 0 ||
+          name.rfind(".import-", 0) == 0) {
         fs::remove_all(path, ec);
       }
     }
@@ -280,7 +283,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   uint64_t covered_up_to = 0;
   for (const auto& [label, path] : snapshotsIn(dir)) {
     const uint64_t number = replay->version == 1 ? legacySnapshotNumber(*replay, label) : label;
-    if (number == 0) continue;  // a format 1 label that damage makes ambiguous
+    if (replay->version == 1 && number == 0) continue;  // damage makes the label ambiguous
     std::ifstream ot(path, std::ios::binary);
     if (auto restored = session->restore(ot, number); restored) {
       covered_up_to = number;
@@ -354,9 +357,8 @@ common::Status StoreAdmin::closeLocked(const std::string& id) {
   // The final snapshot makes the next open quick; then the map and trajectory files, then
   // the marker: a crash before it leaves an ordinary session that recovery loads again.
   auto snapshot = session->snapshotNow();
-  common::Status saved =
-      snapshot ? journals_->saveSnapshot(id, snapshot->first, snapshot->second)
-               : common::Status(snapshot.error());
+  common::Status saved = snapshot ? journals_->saveSnapshot(id, snapshot->first, snapshot->second)
+                                  : common::Status(snapshot.error());
   if (!saved) {
     spdlog::warn("session '{}': final snapshot not kept ({}); its next open replays the journal",
                  id, saved.error().message);
@@ -428,6 +430,11 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
     if (!fs::exists(root_ / *id / kJournalName, ec)) {
       return makeError(ErrorCode::kNotFound, "no session '" + *id + "' in the store");
     }
+    // Merging re-fuses journaled frames; an imported map has none.
+    if (fs::exists(snapshotPath(root_ / *id, 0), ec)) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "session '" + *id + "' is an imported map: it has no frames to merge");
+    }
     auto replay = readJournal(root_ / *id / kJournalName);
     if (!replay) return replay.error();
     if (!replay->problem.empty()) spdlog::warn("merging session '{}': {}", *id, replay->problem);
@@ -496,6 +503,75 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
                request.second, request.into, loaded->frames, loaded->poses);
   if (auto session = server_.find(request.into)) record(session->status());
   return common::Ok{};
+}
+
+}  // namespace stereomap::store
+
+namespace stereomap::store {
+
+common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
+                                                       const std::string& id) {
+  std::lock_guard lock(mutex_);
+  if (auto writable = requireWritable("import a map"); !writable) return writable.error();
+  if (!core::isValidId(id)) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
+  }
+  std::error_code ec;
+  if (server_.find(id) || fs::exists(root_ / id, ec)) {
+    return makeError(ErrorCode::kConflict, "session '" + id + "' already exists");
+  }
+  // The whole file is read and checked before anything is written.
+  std::ifstream in(file, std::ios::binary);
+  if (!in) return makeError(ErrorCode::kNotFound, "cannot read " + file.string());
+  auto map = fusion::OccupancyMap::load(in);
+  if (!map) return makeError(map.error().code, file.string() + ": " + map.error().message);
+  const double resolution = (*map)->resolution();
+  if (resolution < 0.01 || resolution > 2.0) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     file.string() + ": resolution " + std::to_string(resolution) +
+                         " m is outside what the server fuses (0.01 .. 2 m)");
+  }
+  std::ostringstream ot;
+  if (!(*map)->writeFull(ot)) return makeError(ErrorCode::kIo, "cannot convert the map");
+  map->reset();
+
+  const fs::path staging = root_ / (".import-" + id + "-" + std::to_string(common::nowNs()));
+  fs::create_directories(staging, ec);
+  json meta = {{"resolution", resolution}, {"imported_from", file.filename().string()}};
+  common::Status written =
+      ec ? common::Status(
+               makeError(ErrorCode::kIo, "cannot create " + staging.string() + ": " + ec.message()))
+         : common::writeFileAtomically(staging / kMetaName, meta.dump() + "\n");
+  if (written) written = common::writeFileAtomically(staging / kClosedMarker, "");
+  if (written) written = common::writeFileAtomically(snapshotPath(staging, 0), ot.str());
+  if (written) {
+    auto journal = Journal::open(staging / kJournalName);  // empty: no frames, no poses
+    if (!journal) written = journal.error();
+  }
+  if (written) {
+    fs::rename(staging, root_ / id, ec);
+    if (ec)
+      written = makeError(ErrorCode::kIo, "cannot create session '" + id + "': " + ec.message());
+  }
+  if (!written) {
+    fs::remove_all(staging, ec);
+    return written.error();
+  }
+  auto loaded = load(id, /*read_only=*/true);
+  if (!loaded) return loaded.error();
+  if (auto session = server_.find(id)) {
+    if (auto saved = files_->save(*session, /*closed=*/true); !saved) {
+      spdlog::warn("session '{}': map.bt and session.json not written: {}", id,
+                   saved.error().message);
+    }
+    auto status = session->status();
+    status.closed = true;
+    status.read_only = false;
+    record(status);
+  }
+  spdlog::info("{} imported as session '{}'", file.string(), id);
+  return loaded;
 }
 
 }  // namespace stereomap::store

@@ -68,6 +68,11 @@ class StoreAdmin : public core::SessionAdmin {
   common::Status close(const std::string& id) override;
   common::Status remove(const std::string& id) override;
   common::Status merge(const core::MergeRequest& request) override;
+  // Makes an OctoMap file (.bt or .ot, checked whole before anything is written) a closed
+  // session `id` of the store at the file's resolution, with no trajectory; it is left
+  // opened read-only. Writable only.
+  common::Result<RecoveredSession> importMap(const std::filesystem::path& file,
+                                             const std::string& id);
 
  private:
   StoreAdmin(std::filesystem::path root, core::MapServer& server, SessionJournals* journals,

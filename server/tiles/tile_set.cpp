@@ -1,6 +1,7 @@
 #include "server/tiles/tile_set.hpp"
 
 #include <algorithm>
+#include <random>
 
 namespace stereomap::tiles {
 
@@ -78,7 +79,9 @@ std::pair<fusion::VoxelIndex, fusion::VoxelIndex> Tile::extent() const {
 }
 
 TileSet::TileSet(std::string session, double resolution)
-    : session_(std::move(session)), resolution_(resolution) {}
+    : session_(std::move(session)),
+      resolution_(resolution),
+      epoch_((uint64_t{std::random_device{}()} << 32) ^ std::random_device{}()) {}
 
 std::shared_ptr<const Tile> TileSet::makeTile(uint64_t code, TileCells voxels) {
   std::array<TileCells, kLevels> levels;

@@ -98,6 +98,9 @@ class TileSet {
 
   const std::string& session() const { return session_; }
   double resolution() const { return resolution_; }
+  // Random per TileSet: tells this map's versions from those of an earlier incarnation of
+  // the session (versions start again after a restart), e.g. in ETags.
+  uint64_t epoch() const { return epoch_; }
 
  private:
   using TileMap = std::map<uint64_t, std::shared_ptr<const Tile>>;  // by tile code
@@ -107,6 +110,7 @@ class TileSet {
 
   const std::string session_;
   const double resolution_;
+  const uint64_t epoch_;
 
   mutable std::mutex mutex_;
   TileMap tiles_;

@@ -110,8 +110,28 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
   const size_t header_end = response.find("\r\n\r\n");
   if (response.rfind("HTTP/1.1 ", 0) != 0 || header_end == std::string::npos) return reply;
   reply.status = std::atoi(response.c_str() + 9);
+  reply.headers = response.substr(0, header_end + 2);
   reply.body = response.substr(header_end + 4);
   return reply;
+}
+
+std::string HttpReply::header(const std::string& name) const {
+  auto lower = [](std::string text) {
+    for (auto& c : text) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    return text;
+  };
+  const std::string wanted = lower(name) + ":";
+  for (size_t at = 0; at < headers.size();) {
+    const size_t end = headers.find("\r\n", at);
+    const std::string line = headers.substr(at, end - at);
+    if (lower(line.substr(0, wanted.size())) == wanted) {
+      const size_t value = line.find_first_not_of(' ', wanted.size());
+      return value == std::string::npos ? "" : line.substr(value);
+    }
+    if (end == std::string::npos) break;
+    at = end + 2;
+  }
+  return "";
 }
 
 ToolRun runTool(const std::vector<std::string>& argv, std::chrono::milliseconds timeout) {

@@ -45,6 +45,9 @@ ToolRun runTool(const std::vector<std::string>& argv,
 struct HttpReply {
   int status = 0;  // 0: no answer
   std::string body;
+  std::string headers;  // the response's header lines, as received
+  // A header's value ("" when absent); `name` is matched without regard to case.
+  std::string header(const std::string& name) const;
 };
 
 // GET (or `method`, with a JSON body) http://127.0.0.1:port/path with a 60 s timeout;
