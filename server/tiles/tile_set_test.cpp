@@ -141,18 +141,28 @@ TEST(TileSet, AFramesWorkDependsOnWhatItChangesNotOnTheMapsSize) {
   EXPECT_GT(small_changes, 0u);
 }
 
-TEST(TileSet, ReportsChangedTilesOnceWithTheirNewestVersion) {
-  fusion::OccupancyMap map({.resolution = 0.1});
-  TileSet tiles("t", 0.1);
+// A map and its tiles, fed walls seen from the origin.
+struct MappedWalls {
+  explicit MappedWalls(double resolution)
+      : map({.resolution = resolution}), tiles("t", resolution) {}
+  void see(double x, double half, double spacing, unsigned seed) {
+    map.insertCloud(wall(x, half, spacing, seed), common::Rigid3::identity(), 10.0, &changes);
+    ASSERT_TRUE(tiles.apply(changes));
+  }
+  fusion::OccupancyMap map;
+  TileSet tiles;
   fusion::MapChanges changes;
-  map.insertCloud(wall(3.0, 2.0, 0.05, 1), common::Rigid3::identity(), 10.0, &changes);
-  ASSERT_TRUE(tiles.apply(changes));
+};
+
+TEST(TileSet, ReportsChangedTilesOnceWithTheirNewestVersion) {
+  MappedWalls mapped(0.1);
+  const auto& tiles = mapped.tiles;
+  mapped.see(3.0, 2.0, 0.05, 1);
   const uint64_t first = tiles.summary().version;
   auto all = tiles.changedSince(0);
   ASSERT_TRUE(all);
   EXPECT_EQ(all->size(), tiles.list().size());
-  map.insertCloud(wall(3.0, 2.0, 0.05, 2), common::Rigid3::identity(), 10.0, &changes);
-  ASSERT_TRUE(tiles.apply(changes));
+  mapped.see(3.0, 2.0, 0.05, 2);
   auto later = tiles.changedSince(first);
   ASSERT_TRUE(later);
   for (const auto& [key, version] : *later) {
@@ -164,19 +174,16 @@ TEST(TileSet, ReportsChangedTilesOnceWithTheirNewestVersion) {
 }
 
 TEST(TileSet, EncodedTilesDecodeToTheirCells) {
-  fusion::OccupancyMap map({.resolution = 0.05});
-  TileSet tiles("enc", 0.05);
-  fusion::MapChanges changes;
-  map.insertCloud(wall(2.0, 1.5, 0.02, 4), common::Rigid3::identity(), 10.0, &changes);
-  ASSERT_TRUE(tiles.apply(changes));
-  for (const auto& tile : tiles.all()) {
+  MappedWalls mapped(0.05);
+  mapped.see(2.0, 1.5, 0.02, 4);
+  for (const auto& tile : mapped.tiles.all()) {
     for (unsigned level = 0; level < kLevels; ++level) {
       auto decoded = proto::tiles::decodeTile(*tile->encoded(level));
       ASSERT_TRUE(decoded) << decoded.error().message;
       EXPECT_EQ(decoded->cells, tile->cells(level));
       EXPECT_EQ(decoded->header.version, tile->version());
       EXPECT_EQ(decoded->header.key, tile->key());
-      EXPECT_EQ(decoded->header.session, "enc");
+      EXPECT_EQ(decoded->header.session, "t");
     }
   }
 }
