@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cerrno>
 #include <cstring>
 
@@ -28,20 +29,56 @@ bool writeAllAt(int fd, const void* data, size_t size, uint64_t offset) {
   return true;
 }
 
+Status syncDirectory(const fs::path& dir) {
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) return makeError(ErrorCode::kIo, "cannot open " + dir.string() + ": " + systemError(errno));
+  const bool synced = ::fsync(fd) == 0;
+  const int error = errno;
+  ::close(fd);
+  if (!synced) return makeError(ErrorCode::kIo, "cannot flush " + dir.string() + ": " + systemError(error));
+  return Ok{};
+}
+
+Result<std::vector<uint8_t>> readWholeFile(const fs::path& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    const int error = errno;
+    return makeError(error == ENOENT ? ErrorCode::kNotFound : ErrorCode::kIo,
+                     "cannot open " + path.string() + ": " + systemError(error));
+  }
+  std::vector<uint8_t> bytes;
+  uint8_t buffer[1 << 16];
+  for (;;) {
+    const ssize_t n = ::read(fd, buffer, sizeof(buffer));
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) {
+      const int error = errno;
+      ::close(fd);
+      return makeError(ErrorCode::kIo, "cannot read " + path.string() + ": " + systemError(error));
+    }
+    if (n == 0) break;
+    bytes.insert(bytes.end(), buffer, buffer + n);
+  }
+  ::close(fd);
+  return bytes;
+}
+
 Status writeFileAtomically(const fs::path& path, const std::string& content) {
-  const fs::path temporary = path.string() + ".tmp";
+  static std::atomic<uint64_t> counter{0};
+  const fs::path temporary = path.string() + ".tmp-" + std::to_string(::getpid()) + "-" +
+                             std::to_string(counter.fetch_add(1));
   const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) {
     return makeError(ErrorCode::kIo,
                      "cannot create " + temporary.string() + ": " + systemError(errno));
   }
   const bool written = writeAllAt(fd, content.data(), content.size(), 0) && ::fsync(fd) == 0;
-  const int write_error = errno;
+  int error = errno;
   const bool closed = ::close(fd) == 0;
+  if (written && !closed) error = errno;
   if (!written || !closed) {
     ::unlink(temporary.c_str());
-    return makeError(ErrorCode::kIo, "cannot write " + path.string() + ": " +
-                                         systemError(written ? EIO : write_error));
+    return makeError(ErrorCode::kIo, "cannot write " + path.string() + ": " + systemError(error));
   }
   if (::rename(temporary.c_str(), path.c_str()) != 0) {
     const int rename_error = errno;
@@ -50,12 +87,7 @@ Status writeFileAtomically(const fs::path& path, const std::string& content) {
                                          path.string() + ": " + systemError(rename_error));
   }
   // The rename itself is durable only once the folder is.
-  const fs::path folder = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  if (const int dir = ::open(folder.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC); dir >= 0) {
-    ::fsync(dir);
-    ::close(dir);
-  }
-  return Ok{};
+  return syncDirectory(path.has_parent_path() ? path.parent_path() : fs::path("."));
 }
 
 Result<std::vector<fs::path>> directoryEntries(const fs::path& dir) {

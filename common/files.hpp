@@ -13,10 +13,19 @@
 namespace stereomap::common {
 
 // Writes `content` to `path` so that a crash or a full disk leaves either the old file or the
-// new one, never a mix: written to `path`.tmp, flushed to disk, renamed over `path`. On
+// new one, never a mix: written to a temporary file beside it (`path`.tmp-<pid>-<n>, so two
+// writers never share one), flushed to disk, renamed over `path`, then the folder flushed. On
 // failure the temporary file is removed and the message names the file and the cause
 // ("No space left on device").
 Status writeFileAtomically(const std::filesystem::path& path, const std::string& content);
+
+// Flushes a folder, making the names created, renamed or removed in it durable.
+Status syncDirectory(const std::filesystem::path& dir);
+
+// The whole content of `path`. kNotFound only when the file does not exist (ENOENT); any
+// other failure (permissions, EIO while reading) is kIo, so callers never take an unreadable
+// file for a missing one.
+Result<std::vector<uint8_t>> readWholeFile(const std::filesystem::path& path);
 
 // The entries of `dir` (files, folders, links; unsorted). kNotFound or kIo naming the folder.
 Result<std::vector<std::filesystem::path>> directoryEntries(const std::filesystem::path& dir);

@@ -33,6 +33,10 @@ fs::path makeWebRoot() {
   fs::create_symlink("/etc/passwd", root / "leak.txt");
   fs::create_directory_symlink("/etc", root / "etc");
   fs::create_symlink("assets/app.js", root / "alias.js");  // a link that stays inside
+  // Dangling links (one used to end the scan, leaving the viewer without its files).
+  for (const char* name : {"a-broken.js", "m-broken.js", "z-broken.js", "assets/broken.css"}) {
+    fs::create_symlink("/nonexistent/file", root / name);
+  }
   return root;
 }
 
@@ -77,6 +81,10 @@ TEST(Security, OnlyTheViewersOwnFilesAreServedWhateverThePath) {
   EXPECT_EQ(
       server.request("GET", "/api/sessions", "", "Authorization: Bearer " + kToken + "\r\n").status,
       200);
+  // ?token= is read as a query parameter: whole names only, percent escapes decoded.
+  EXPECT_EQ(server.get("/api/sessions?xtoken=" + kToken).status, 401);
+  EXPECT_EQ(server.get("/api/sessions?xtoken=no&token=" + kToken).status, 200);
+  EXPECT_EQ(server.get("/api/sessions?token=s3cret%2DToken%2D4711").status, 200);
 
   const std::string store_file = "//" + server.store().substr(1) + "/catalog.sqlite";
   std::vector<std::string> paths = kOutsidePaths;

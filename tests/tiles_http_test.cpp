@@ -92,6 +92,11 @@ TEST(TilesHttp, AnImportedMapIsServedExactlyAtEveryLevel) {
   EXPECT_TRUE(cached.body.empty());
   EXPECT_EQ(server.request("GET", first_tile, "", "If-None-Match: \"other\"\r\n").status, 200);
   EXPECT_EQ(server.get(first_tile).header("Cache-Control"), "no-cache");
+  // HEAD states the length GET would send, with no body.
+  const auto head = server.request("HEAD", first_tile);
+  EXPECT_EQ(head.status, 200);
+  EXPECT_TRUE(head.body.empty());
+  EXPECT_EQ(head.header("Content-Length"), std::to_string(server.get(first_tile).body.size()));
 
   // Bad requests: clear errors, the server stays up.
   for (const char* bad :

@@ -17,6 +17,7 @@
 
 #include "server/core/api.hpp"
 #include "server/core/viewer_feed.hpp"
+#include "server/net/url.hpp"
 #include "server/net/viewer_files.hpp"
 
 namespace stereomap::net {
@@ -36,12 +37,7 @@ std::string tokenFrom(const http::request<http::string_body>& request) {
   const std::string auth(request[http::field::authorization]);
   if (auth.starts_with("Bearer ")) return auth.substr(7);
   const std::string_view target(request.target().data(), request.target().size());
-  const size_t at = target.find("token=");
-  if (at == std::string_view::npos || (at > 0 && target[at - 1] != '?' && target[at - 1] != '&')) {
-    return "";
-  }
-  const std::string_view rest = target.substr(at + 6);
-  return std::string(rest.substr(0, rest.find('&')));
+  return queryParameter(target, "token").value_or("");
 }
 
 // Compares in time that depends only on the lengths, so the token cannot be guessed byte by
@@ -292,8 +288,9 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     auto response =
         std::make_shared<http::response<http::string_body>>(http::status::ok, request.version());
     response->set(http::field::content_type, file->content_type);
-    if (request.method() != http::verb::head) response->body() = file->content;
-    write(response, request.keep_alive());
+    const bool head = request.method() == http::verb::head;
+    if (!head) response->body() = file->content;
+    write(response, request.keep_alive(), head ? std::optional(file->content.size()) : std::nullopt);
   }
 
   void sendAnswer(core::HttpAnswer answer, unsigned version, bool head, bool keep_alive) {
@@ -310,8 +307,9 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       response->set(http::field::content_disposition,
                     "inline; filename=\"" + answer.filename + "\"");
     }
-    response->body() = head ? "" : std::move(answer.body);
-    write(response, keep_alive);
+    const size_t length = answer.body.size();
+    if (!head) response->body() = std::move(answer.body);
+    write(response, keep_alive, head ? std::optional(length) : std::nullopt);
   }
 
   void sendError(http::status status, const std::string& message, bool keep_alive,
@@ -322,10 +320,13 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     write(response, keep_alive);
   }
 
-  void write(std::shared_ptr<http::response<http::string_body>> response, bool keep_alive) {
+  // `head_length`: the answer to HEAD states the length GET would have, with no body.
+  void write(std::shared_ptr<http::response<http::string_body>> response, bool keep_alive,
+             std::optional<size_t> head_length = std::nullopt) {
     response->set(http::field::server, "stereomap");
     response->keep_alive(keep_alive);
     response->prepare_payload();
+    if (head_length) response->content_length(*head_length);
     http::async_write(
         stream_, *response,
         [self = shared_from_this(), response, keep_alive](beast::error_code ec, size_t) {

@@ -1,9 +1,10 @@
 #include "server/net/viewer_files.hpp"
 
+#include "server/net/url.hpp"
+
 #include <algorithm>
 #include <fstream>
 #include <iterator>
-#include <optional>
 
 namespace stereomap::net {
 
@@ -22,31 +23,6 @@ std::string_view mimeType(const fs::path& path) {
   if (ext == ".ico") return "image/x-icon";
   if (ext == ".wasm") return "application/wasm";
   return "application/octet-stream";
-}
-
-int hexValue(char c) {
-  if (c >= '0' && c <= '9') return c - '0';
-  if (c >= 'a' && c <= 'f') return c - 'a' + 10;
-  if (c >= 'A' && c <= 'F') return c - 'A' + 10;
-  return -1;
-}
-
-// "%41" -> "A"; nullopt for a broken escape or an encoded NUL.
-std::optional<std::string> percentDecoded(std::string_view text) {
-  std::string out;
-  out.reserve(text.size());
-  for (size_t i = 0; i < text.size(); ++i) {
-    if (text[i] != '%') {
-      out += text[i];
-      continue;
-    }
-    if (i + 2 >= text.size()) return std::nullopt;
-    const int high = hexValue(text[i + 1]), low = hexValue(text[i + 2]);
-    if (high < 0 || low < 0 || (high == 0 && low == 0)) return std::nullopt;
-    out += static_cast<char>(high * 16 + low);
-    i += 2;
-  }
-  return out;
 }
 
 bool isInside(const fs::path& path, const fs::path& root) {
@@ -72,9 +48,14 @@ ViewerFiles ViewerFiles::load(const fs::path& root, uint64_t max_file_bytes) {
     const std::string name = relative.generic_string();
     if (name.empty() || name[0] == '.' || name.find("/.") != std::string::npos) {
       if (it->is_directory(ec)) it.disable_recursion_pending();
+      ec.clear();
       continue;
     }
-    if (!it->is_regular_file(ec)) continue;  // follows a link to see what it names
+    // Follows a link to see what it names; a dangling one (ENOENT) must not end the scan.
+    if (!it->is_regular_file(ec)) {
+      ec.clear();
+      continue;
+    }
     const fs::path target = fs::canonical(it->path(), ec);
     uint64_t size = ec ? 0 : fs::file_size(target, ec);
     if (ec || !isInside(target, index.root_) || size > max_file_bytes) {

@@ -1,13 +1,13 @@
 #include "server/store/journal.hpp"
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <array>
 #include <cerrno>
 #include <cstring>
-#include <fstream>
 #include <optional>
 
 #include "common/files.hpp"
@@ -251,7 +251,17 @@ void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& repl
     const auto header = headerAt(bytes, at);
     if (!header) {
       const size_t next = nextHeader(bytes, at + 1);
-      if (next == std::string::npos) break;  // nothing whole after it: a torn tail
+      if (next == std::string::npos) {
+        // Less than a header: a write cut short, never acknowledged. A whole header's worth
+        // of bytes that do not read is damage (a flipped byte in the last record): it may be
+        // an acknowledged record, so it is set aside, never silently cut.
+        if (bytes.size() - at >= kHeaderBytes) {
+          replay.damage.push_back({at, bytes.size(), replay.last_number + 1,
+                                   replay.last_number + 1, "unreadable bytes at the end"});
+          replay.damaged_tail = true;
+        }
+        break;
+      }
       const uint64_t number = getU64(&bytes[next + 8]);
       JournalDamage damage{at, next, replay.last_number + 1, number - 1, "unreadable bytes"};
       if (damage.last_lost < damage.first_lost) damage.first_lost = damage.last_lost = 0;
@@ -320,7 +330,7 @@ std::string summary(const JournalReplay& replay) {
   auto add = [&](const std::string& part) { text += (text.empty() ? "" : "; ") + part; };
   if (replay.header_damaged) add("file header damaged");
   for (const auto& damage : replay.damage) add(damage.describe());
-  if (replay.good_bytes < replay.file_bytes) {
+  if (replay.good_bytes < replay.file_bytes && !replay.damaged_tail) {
     add("torn tail at byte " + std::to_string(replay.good_bytes) + " (" +
         std::to_string(replay.file_bytes - replay.good_bytes) + " bytes cut)");
   }
@@ -368,11 +378,9 @@ uint32_t crc32(const uint8_t* data, size_t size) {
 }
 
 common::Result<JournalReplay> readJournal(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return makeError(ErrorCode::kNotFound, path.string() + ": cannot open the journal");
-  std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)),
-                             std::istreambuf_iterator<char>());
-  if (in.bad()) return makeError(ErrorCode::kIo, path.string() + ": cannot read the journal");
+  auto read = common::readWholeFile(path);
+  if (!read) return read.error();
+  const std::vector<uint8_t>& bytes = *read;
   JournalReplay replay;
   replay.file_bytes = bytes.size();
   // A header cut short by a failed first write (a prefix of either magic) is an empty journal.
@@ -408,10 +416,11 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
   auto journal = std::unique_ptr<Journal>(new Journal());
   journal->path_ = path;
   auto replay = readJournal(path);
+  const bool exists = replay || replay.error().code != ErrorCode::kNotFound;
   if (replay) {
     journal->recovered_ = std::move(replay).value();
-  } else if (replay.error().code != ErrorCode::kNotFound) {
-    return replay.error();
+  } else if (exists) {
+    return replay.error();  // unreadable is not missing: never start over on top of it
   }
   auto& recovered = journal->recovered_;
   if (recovered.version == 1 && recovered.good_bytes > 0) {
@@ -422,10 +431,21 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
     // Not ours: refuse rather than overwrite whatever this file is.
     return makeError(ErrorCode::kCorrupt, path.string() + ": " + recovered.problem);
   }
-  journal->fd_ = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  // O_EXCL: a file that appeared since it was found missing is not overwritten.
+  journal->fd_ = ::open(path.c_str(), exists ? O_RDWR | O_CLOEXEC : O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC,
+                        0644);
   if (journal->fd_ < 0) {
     return makeError(ErrorCode::kIo, path.string() + ": cannot open the journal for writing: " +
                                          common::systemError(errno));
+  }
+  struct stat opened {};
+  if (::fstat(journal->fd_, &opened) != 0 ||
+      static_cast<uint64_t>(opened.st_size) != recovered.file_bytes) {
+    return makeError(ErrorCode::kConflict,
+                     path.string() + ": the journal changed while it was being opened");
+  }
+  if (recovered.damaged_tail) {
+    if (auto kept = journal->setAsideTail(); !kept) return kept.error();
   }
   const bool fresh = recovered.good_bytes < kMagicBytes;
   journal->bytes_ = fresh ? 0 : recovered.good_bytes;
@@ -445,8 +465,38 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
     }
     if (fresh) journal->bytes_ = kMagicBytes;
   }
-  journal->next_number_ = std::max(recovered.last_number + 1, first_number);
+  if (!exists) {  // the new file's name, too, must survive a crash
+    const fs::path folder = path.has_parent_path() ? path.parent_path() : fs::path(".");
+    if (auto synced = common::syncDirectory(folder); !synced) return synced.error();
+  }
+  // The damaged tail's record keeps its number: new records never reuse it.
+  journal->next_number_ =
+      std::max(recovered.last_number + (recovered.damaged_tail ? 2 : 1), first_number);
   return journal;
+}
+
+common::Status Journal::setAsideTail() {
+  const auto& recovered = recovered_;
+  std::string tail(recovered.file_bytes - recovered.good_bytes, '\0');
+  size_t done = 0;
+  while (done < tail.size()) {
+    const ssize_t n = ::pread(fd_, tail.data() + done, tail.size() - done,
+                              static_cast<off_t>(recovered.good_bytes + done));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) {
+      return makeError(ErrorCode::kIo, path_.string() + ": cannot read the damaged tail: " +
+                                           common::systemError(n == 0 ? EIO : errno));
+    }
+    done += static_cast<size_t>(n);
+  }
+  const fs::path tail_path = path_.string() + ".tail-" + std::to_string(recovered.good_bytes);
+  if (auto kept = common::writeFileAtomically(tail_path, tail); !kept) {
+    return makeError(ErrorCode::kIo, path_.string() +
+                                         ": the damaged tail could not be set aside, so it is "
+                                         "not cut: " + kept.error().message);
+  }
+  recovered_.problem += "; the damaged tail was set aside as " + tail_path.string();
+  return common::Ok{};
 }
 
 Journal::~Journal() {

@@ -47,6 +47,9 @@ struct JournalReplay {
   uint64_t file_bytes = 0;            // a torn tail is what lies between the two
   uint64_t last_number = 0;           // highest number in any whole record, damaged ones included
   bool header_damaged = false;
+  // The file ends in bytes that are neither records nor a write cut short (a damaged last
+  // header): its last `damage` entry. Journal::open sets them aside before appending.
+  bool damaged_tail = false;
   // Empty when the file was intact; else every damage and what was cut, for people.
   std::string problem;
   uint64_t lostRecords() const;  // counted from the numbers around each damage
@@ -59,8 +62,11 @@ common::Result<JournalReplay> readJournal(const std::filesystem::path& path);
 class Journal {
  public:
   // Opens for appending, creating the file (format 2) if needed. An existing file is read
-  // first: a torn tail is cut, damage inside is left for readers to skip (and for
-  // `stereomap-store repair`). New records are numbered above every number the file holds
+  // first: a torn tail (less than a record header, or a header whose record runs past the
+  // end) is cut; a damaged tail is first copied to `journal.smj.tail-<offset>` (when that
+  // fails, nothing is cut and open fails); damage inside is left for readers to skip (and for
+  // `stereomap-store repair`). A file that exists but cannot be read is an error, never a
+  // new journal. New records are numbered above every number the file holds
   // and at least `first_number` (callers pass one past their newest snapshot's).
   // A format 1 file is refused (kConflict): rewriteJournal() upgrades it.
   static common::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& path,
@@ -81,6 +87,8 @@ class Journal {
   Journal() = default;
   // Cuts the file back to bytes_ after a failed write; false when even that failed.
   bool cutBack();
+  // Copies the damaged tail (recovered_.damaged_tail) beside the journal.
+  common::Status setAsideTail();
   int fd_ = -1;
   std::filesystem::path path_;
   JournalReplay recovered_;

@@ -1,4 +1,5 @@
 #include "server/store/journal.hpp"
+#include "server/store/session_journals.hpp"
 
 #include <gtest/gtest.h>
 
@@ -63,6 +64,24 @@ class JournalTest : public ::testing::Test {
       }
     }
     return sizes;
+  }
+  // The format 1 journal holding the same records as the format 2 one at `path`.
+  static std::string formatOneOf(const fs::path& path, std::vector<size_t>* starts) {
+    std::ifstream in(path, std::ios::binary);
+    const std::string v2((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    std::string v1 = "SMJOURN1";
+    for (size_t at = 8; at < v2.size();) {
+      uint32_t length;
+      std::memcpy(&length, &v2[at + 4], 4);
+      const std::string payload = v2.substr(at + 24, length);
+      const uint32_t crc = crc32(reinterpret_cast<const uint8_t*>(payload.data()), payload.size());
+      if (starts) starts->push_back(v1.size());
+      v1.append(reinterpret_cast<const char*>(&length), 4);
+      v1.append(reinterpret_cast<const char*>(&crc), 4);
+      v1 += payload;
+      at += 24 + length;
+    }
+    return v1;
   }
   fs::path dir_, path_;
 };
@@ -152,16 +171,65 @@ TEST_F(JournalTest, AFlippedByteAnywhereCostsAtMostItsRecord) {
     std::vector<uint64_t> expected = {1, 2, 3, 4, 5};
     expected.erase(expected.begin() + static_cast<long>(record));
     EXPECT_EQ(replay->numbers, expected) << "byte " << at;
-    // Which record was lost is told by number, unless the last record's own header is hit
-    // (then it reads as a torn tail, as a write cut short would).
-    const bool last_header = record == 4 && at < sizes[3] + 24;
-    if (!last_header) {
-      ASSERT_EQ(replay->damage.size(), 1u) << "byte " << at << ": " << replay->problem;
-      EXPECT_EQ(replay->damage[0].first_lost, record + 1) << "byte " << at;
-      EXPECT_EQ(replay->damage[0].last_lost, record + 1) << "byte " << at;
-      EXPECT_EQ(replay->lostRecords(), 1u);
-    }
+    // Which record was lost is told by number, the last record's own header included (it
+    // is not taken for a write cut short).
+    ASSERT_EQ(replay->damage.size(), 1u) << "byte " << at << ": " << replay->problem;
+    EXPECT_EQ(replay->damage[0].first_lost, record + 1) << "byte " << at;
+    EXPECT_EQ(replay->damage[0].last_lost, record + 1) << "byte " << at;
+    EXPECT_EQ(replay->lostRecords(), 1u);
   }
+}
+
+// Review of issue 13: a flipped byte in the last record's header must not make open() cut an
+// acknowledged record as if it were a torn write. Its bytes are set aside, its number is
+// never reused, and appending goes on after the record before it.
+TEST_F(JournalTest, ADamagedLastHeaderIsSetAsideNotCut) {
+  const auto sizes = writeFive();
+  {
+    std::fstream file(path_, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(static_cast<std::streamoff>(sizes[3] + 10));  // the fifth record's number
+    file.put('\x7F');
+  }
+  auto journal = Journal::open(path_);
+  ASSERT_TRUE(journal.ok()) << journal.error().message;
+  const auto& recovered = (*journal)->recovered();
+  EXPECT_TRUE(recovered.damaged_tail);
+  EXPECT_EQ(recovered.lostRecords(), 1u);
+  EXPECT_NE(recovered.problem.find("record 5 lost"), std::string::npos) << recovered.problem;
+  const fs::path tail = path_.string() + ".tail-" + std::to_string(sizes[3]);
+  EXPECT_NE(recovered.problem.find(tail.string()), std::string::npos) << recovered.problem;
+  ASSERT_TRUE(fs::exists(tail));
+  EXPECT_EQ(fs::file_size(tail), sizes[4] - sizes[3]);
+  EXPECT_EQ(fs::file_size(path_), sizes[3]);
+  EXPECT_EQ(*(*journal)->append(pose(4)), 6u);
+  journal->reset();
+  auto replay = readJournal(path_);
+  ASSERT_TRUE(replay.ok());
+  EXPECT_TRUE(replay->problem.empty()) << replay->problem;
+  EXPECT_EQ(replay->numbers, (std::vector<uint64_t>{1, 2, 3, 4, 6}));
+
+  // Less than a header at the end is a write cut short: cut, nothing set aside.
+  fs::remove(tail);
+  fs::resize_file(path_, fs::file_size(path_) + 23);
+  journal = Journal::open(path_);
+  ASSERT_TRUE(journal.ok());
+  EXPECT_FALSE((*journal)->recovered().damaged_tail);
+  EXPECT_EQ((*journal)->recovered().lostRecords(), 0u);
+  EXPECT_FALSE(fs::exists(path_.string() + ".tail-" + std::to_string(fs::file_size(path_))));
+}
+
+// Review of issue 13: a journal that exists but cannot be read is an error, never a missing
+// journal to be started afresh over the old one.
+TEST_F(JournalTest, AnUnreadableJournalIsNotTakenForAMissingOne) {
+  fs::create_directories(path_);  // reads fail with EISDIR, as they would with EIO
+  auto replay = readJournal(path_);
+  ASSERT_FALSE(replay.ok());
+  EXPECT_EQ(replay.error().code, common::ErrorCode::kIo) << replay.error().message;
+  auto journal = Journal::open(path_);
+  ASSERT_FALSE(journal.ok());
+  EXPECT_EQ(journal.error().code, common::ErrorCode::kIo) << journal.error().message;
+  EXPECT_TRUE(fs::is_directory(path_));
+  EXPECT_EQ(readJournal(dir_ / "missing.smj").error().code, common::ErrorCode::kNotFound);
 }
 
 TEST_F(JournalTest, AppendingGoesOnAfterDamageWithNewNumbers) {
@@ -248,22 +316,9 @@ TEST_F(JournalTest, AHeaderCutShortByAFailedFirstWriteIsAnEmptyJournal) {
 
 // Format 1 (before issue 13): the same payloads behind an 8-byte header (length, CRC).
 TEST_F(JournalTest, FormatOneIsReadWithResynchronisation) {
-  const auto sizes = writeFive();
-  std::ifstream in(path_, std::ios::binary);
-  const std::string v2((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  std::string v1 = "SMJOURN1";
+  writeFive();
   std::vector<size_t> starts;
-  for (size_t at = 8; at < v2.size();) {
-    uint32_t length;
-    std::memcpy(&length, &v2[at + 4], 4);
-    const std::string payload = v2.substr(at + 24, length);
-    const uint32_t crc = crc32(reinterpret_cast<const uint8_t*>(payload.data()), payload.size());
-    starts.push_back(v1.size());
-    v1.append(reinterpret_cast<const char*>(&length), 4);
-    v1.append(reinterpret_cast<const char*>(&crc), 4);
-    v1 += payload;
-    at += 24 + length;
-  }
+  std::string v1 = formatOneOf(path_, &starts);
   const fs::path old = dir_ / "old.smj";
   std::ofstream(old, std::ios::binary) << v1;
   auto replay = readJournal(old);
@@ -292,6 +347,55 @@ TEST_F(JournalTest, ForeignFilesAreRefusedNotOverwritten) {
   EXPECT_NE(journal.error().message.find("not a stereomap journal"), std::string::npos);
   EXPECT_GT(fs::file_size(path_), 10u);  // untouched
   EXPECT_FALSE(readJournal(dir_ / "missing.smj").ok());
+}
+
+// Review of issue 13: upgrading a format 1 journal relabels its snapshots (frame counts
+// become record numbers). When the rewrite fails, no snapshot may be left carrying a record
+// number the format 1 journal does not mean; the next upgrade finishes the job.
+TEST_F(JournalTest, UpgradingFormatOneNeverLeavesASnapshotMislabelled) {
+  writeFive();  // cloud frames are records 1, 3 and 5
+  const std::string v1 = formatOneOf(path_, nullptr);
+  std::ofstream(path_, std::ios::binary | std::ios::trunc) << v1;
+  std::ofstream(snapshotPath(dir_, 2)) << "the map after two frames";
+
+  std::signal(SIGXFSZ, SIG_IGN);
+  rlimit saved{};
+  ASSERT_EQ(::getrlimit(RLIMIT_FSIZE, &saved), 0);
+  rlimit limited = saved;
+  limited.rlim_cur = 100;  // the rewritten journal cannot be written
+  ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &limited), 0);
+  auto failed = repairJournal(dir_);
+  ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &saved), 0);
+  std::signal(SIGXFSZ, SIG_DFL);
+  ASSERT_FALSE(failed.ok());
+  EXPECT_EQ(readJournal(path_)->version, 1);
+  EXPECT_TRUE(snapshotsIn(dir_).empty());  // out of sight, not "snapshot-2" of record 2
+
+  auto repaired = repairJournal(dir_);
+  ASSERT_TRUE(repaired.ok()) << repaired.error().message;
+  const auto snapshots = snapshotsIn(dir_);
+  ASSERT_EQ(snapshots.size(), 1u);
+  EXPECT_EQ(snapshots[0].first, 3u);  // two frames: up to record 3
+  auto replay = readJournal(path_);
+  ASSERT_TRUE(replay.ok());
+  EXPECT_EQ(replay->version, 2);
+  EXPECT_EQ(replay->numbers, (std::vector<uint64_t>{1, 2, 3, 4, 5}));
+}
+
+// Review of issue 13: while a session is being deleted, a sample let in just before must not
+// reopen its journal (it would write into a deleted file, or recreate the folder).
+TEST_F(JournalTest, ARetiredSessionRecordsNothingUntilReadmitted) {
+  SessionJournals journals(dir_, 0.1);
+  auto f = frame(0);
+  ASSERT_TRUE(journals.append(f).ok());
+  journals.retire("s");
+  fs::remove_all(dir_ / "s");
+  auto refused = journals.append(f);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.error().code, common::ErrorCode::kConflict);
+  EXPECT_FALSE(fs::exists(dir_ / "s"));
+  journals.readmit("s");
+  EXPECT_EQ(*journals.append(f), 1u);  // a new flight under the same id
 }
 
 }  // namespace

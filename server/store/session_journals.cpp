@@ -26,20 +26,31 @@ uint64_t journalBytes(const fs::path& session_dir) {
   return ec ? 0 : bytes;
 }
 
-std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
+namespace {
+
+// <dir>/<prefix><digits>.ot: (number, path), unsorted.
+std::vector<std::pair<uint64_t, fs::path>> numberedFiles(const fs::path& dir,
+                                                         const std::string& prefix) {
   std::vector<std::pair<uint64_t, fs::path>> found;
   const auto entries = common::directoryEntries(dir);
   if (!entries) return found;
   for (const auto& path : *entries) {
     const std::string name = path.filename().string();
-    if (name.rfind("snapshot-", 0) != 0 || path.extension() != ".ot") continue;
-    const std::string digits = name.substr(9, name.size() - 9 - 3);
+    if (name.rfind(prefix, 0) != 0 || path.extension() != ".ot") continue;
+    const std::string digits = name.substr(prefix.size(), name.size() - prefix.size() - 3);
     if (digits.empty() || digits.size() > 19 ||
         !std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; })) {
       continue;
     }
     found.emplace_back(std::stoull(digits), path);
   }
+  return found;
+}
+
+}  // namespace
+
+std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
+  auto found = numberedFiles(dir, "snapshot-");
   std::sort(found.rbegin(), found.rend());
   return found;
 }
@@ -73,22 +84,37 @@ common::Result<RepairReport> repairJournal(const fs::path& dir) {
                                            report.original.string() + ": " + ec.message());
     }
   }
-  if (replay->version == 1) {  // snapshots were labelled by frame counts
+  // Format 1 snapshots are labelled by frame counts. They are moved out of sight (named by
+  // the record number they will carry, relabel-<number>.ot) before the journal is rewritten,
+  // and take their new label only after it: a failure at any step leaves each snapshot
+  // either unseen (the journal is replayed further back: slower, never wrong) or correctly
+  // labelled. Ones left out of sight by an upgrade that failed before are finished too (a
+  // format 1 journal is never appended to, so their numbers still hold).
+  if (replay->version == 1) {
     for (const auto& [frames, snapshot] : snapshotsIn(dir)) {
       const uint64_t number = legacySnapshotNumber(*replay, frames);
       std::error_code ec;
       if (number == 0) {
         fs::remove(snapshot, ec);
-      } else if (snapshotPath(dir, number) != snapshot) {
-        fs::rename(snapshot, snapshotPath(dir, number), ec);
+      } else {
+        fs::rename(snapshot, dir / ("relabel-" + std::to_string(number) + ".ot"), ec);
       }
-      if (ec)
+      if (ec) {
         return makeError(ErrorCode::kIo,
                          "cannot relabel " + snapshot.string() + ": " + ec.message());
+      }
     }
   }
   if (auto written = rewriteJournal(path, replay->records, replay->numbers); !written) {
     return written.error();
+  }
+  for (const auto& [number, hidden] : numberedFiles(dir, "relabel-")) {
+    std::error_code ec;
+    fs::rename(hidden, snapshotPath(dir, number), ec);
+    if (ec) {
+      spdlog::warn("{}: not relabelled ({}); the journal is replayed without it",
+                   hidden.string(), ec.message());
+    }
   }
   return report;
 }
@@ -111,6 +137,17 @@ void SessionJournals::release(const std::string& session) {
   journals_.erase(session);
 }
 
+void SessionJournals::retire(const std::string& session) {
+  std::lock_guard lock(mutex_);
+  journals_.erase(session);
+  retired_.insert(session);
+}
+
+void SessionJournals::readmit(const std::string& session) {
+  std::lock_guard lock(mutex_);
+  retired_.erase(session);
+}
+
 common::Result<uint64_t> SessionJournals::append(const proto::CloudFrameMsg& frame) {
   return appendTo(frame.session_id, frame);
 }
@@ -126,6 +163,10 @@ common::Result<uint64_t> SessionJournals::append(const proto::SessionEventMsg& e
 common::Result<uint64_t> SessionJournals::appendTo(const std::string& session,
                                                    const JournalRecord& record) {
   std::lock_guard lock(mutex_);
+  if (retired_.count(session) != 0) {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + session + "' is being deleted: nothing is recorded for it");
+  }
   auto found = journals_.find(session);
   if (found == journals_.end()) {
     auto opened = openJournal(session);
@@ -138,8 +179,12 @@ common::Result<uint64_t> SessionJournals::appendTo(const std::string& session,
 common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(const std::string& session) {
   const fs::path dir = root_ / session;  // ids are validated: no separators, no ".."
   std::error_code ec;
-  fs::create_directories(dir, ec);
-  if (ec) return makeError(ErrorCode::kIo, "cannot create " + dir.string() + ": " + ec.message());
+  if (fs::create_directories(dir, ec); ec) {
+    return makeError(ErrorCode::kIo, "cannot create " + dir.string() + ": " + ec.message());
+  }
+  // The folder's own name is durable only once the store root is flushed (repeated for every
+  // open: cheap, and it also covers a folder made by a run that crashed right after).
+  if (auto synced = common::syncDirectory(root_); !synced) return synced.error();
   if (!fs::exists(dir / kMetaName, ec)) {
     const std::string meta = "{\"resolution\": " + std::to_string(resolution_) + "}\n";
     if (auto written = common::writeFileAtomically(dir / kMetaName, meta); !written) {

@@ -9,6 +9,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <string>
 
 #include "server/core/map_server.hpp"
@@ -29,6 +30,11 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
                               const std::string& ot) override;
   // Closes a session's journal file (the session was closed or deleted).
   void release(const std::string& session);
+  // While a session is deleted: its journal is closed and every append fails (a sample let
+  // in just before must not reopen the file being removed, nor write into a deleted one).
+  // readmit() ends it (the id may start afresh).
+  void retire(const std::string& session);
+  void readmit(const std::string& session);
 
  private:
   common::Result<uint64_t> appendTo(const std::string& session, const JournalRecord& record);
@@ -37,6 +43,7 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
   double resolution_;
   std::mutex mutex_;
   std::map<std::string, std::unique_ptr<Journal>> journals_;
+  std::set<std::string> retired_;
 };
 
 // <dir>/snapshot-<label>.ot. Label 0: an imported map (it covers no journal record).

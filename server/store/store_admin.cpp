@@ -391,13 +391,17 @@ common::Status StoreAdmin::remove(const std::string& id) {
                                                  "' is live (its vehicle has not ended it): "
                                                  "close it first");
     }
-    session->waitUntilIdle();
-    server_.unload(id);
   } else if (!fs::is_directory(dir, ec)) {
     return makeError(ErrorCode::kNotFound, "no session '" + id + "'");
   }
-  journals_->release(id);
-  if (auto removed = removeTree(root_, dir); !removed) {
+  journals_->retire(id);  // before the unload: a sample let in now is refused, not reopened
+  if (session) {
+    session->waitUntilIdle();
+    server_.unload(id);
+  }
+  auto removed = removeTree(root_, dir);
+  journals_->readmit(id);
+  if (!removed) {
     server_.markClosed(id);  // unloaded, still on disk: it stays closed
     return removed;
   }
