@@ -6,6 +6,7 @@
 #include <map>
 
 #include "common/transform_args.hpp"
+#include "common/url.hpp"
 #include "server/core/validate.hpp"
 
 namespace stereomap::core {
@@ -67,19 +68,7 @@ std::vector<std::string> segments(std::string_view target) {
 }
 
 std::string queryValue(std::string_view target, std::string_view key) {
-  const size_t question = target.find('?');
-  if (question == std::string_view::npos) return "";
-  std::string_view query = target.substr(question + 1);
-  while (!query.empty()) {
-    const size_t amp = query.find('&');
-    const std::string_view pair = query.substr(0, amp);
-    if (pair.substr(0, key.size()) == key && pair.size() > key.size() && pair[key.size()] == '=') {
-      return std::string(pair.substr(key.size() + 1));
-    }
-    if (amp == std::string_view::npos) break;
-    query = query.substr(amp + 1);
-  }
-  return "";
+  return common::queryParameter(target, key).value_or("");
 }
 
 // GET /api/sessions/{id}/tiles and /api/sessions/{id}/tiles/{level}/{key} (FORMAT.md).
@@ -140,6 +129,15 @@ std::string sessionJson(const SessionStatus& status, const char* message_type) {
   return object.dump();
 }
 
+std::string sessionListJson(const MapServer& server, const SessionAdmin* admin) {
+  json list = json::array();
+  for (const auto& session : server.sessions()) list.push_back(statusJson(session->status()));
+  if (admin != nullptr) {
+    for (const auto& closed : admin->closedSessions()) list.push_back(statusJson(closed));
+  }
+  return list.dump();
+}
+
 bool isApiPath(std::string_view target) {
   const auto parts = segments(target);
   if (parts.empty()) return false;
@@ -180,14 +178,7 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts.size() < 2 || parts[1] != "sessions") {
     return error(404, "unknown API path '" + std::string(target) + "'");
   }
-  if (parts.size() == 2) {
-    json list = json::array();
-    for (const auto& session : server.sessions()) list.push_back(statusJson(session->status()));
-    if (admin != nullptr) {
-      for (const auto& closed : admin->closedSessions()) list.push_back(statusJson(closed));
-    }
-    return HttpAnswer{200, "application/json", list.dump() + "\n", ""};
-  }
+  if (parts.size() == 2) return HttpAnswer{200, "application/json", sessionListJson(server, admin) + "\n", ""};
   if (auto bad = badId("session id", parts[2])) return bad;
   const std::string vehicle = queryValue(target, "vehicle");
   if (!vehicle.empty()) {

@@ -61,5 +61,8 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
 // The JSON object describing a session (GET /api/sessions and, with message_type
 // "session", the viewer's message).
 std::string sessionJson(const SessionStatus& status, const char* message_type = nullptr);
+// Every session as a JSON array (GET /api/sessions, the viewer's "sessions" message): the
+// loaded ones, then (with `admin`) the store's closed ones.
+std::string sessionListJson(const MapServer& server, const SessionAdmin* admin);
 
 }  // namespace stereomap::core

@@ -6,7 +6,6 @@
 #include "proto/cloud_codec.hpp"
 #include "server/core/api.hpp"
 #include "server/core/map_server.hpp"
-#include "server/core/viewer_feed.hpp"
 #include "tests/support/synthetic.hpp"
 
 namespace stereomap::core {
@@ -131,46 +130,6 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/other")->status, 404);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/healthz")->body, "ok\n");
   EXPECT_FALSE(answerApi(server, nullptr, "GET", "/index.html").has_value());
-}
-
-// Applying the feed's messages in order must reproduce the server's voxel set exactly.
-TEST(ViewerFeed, DiffsReproduceTheOccupiedSetForOldAndNewViewers) {
-  MapServer server({.resolution = 0.1});
-  ViewerFeed feed(server);
-  std::set<std::tuple<int, int, int>> early_viewer;
-  auto apply = [](std::set<std::tuple<int, int, int>>& viewer, const std::string& text) {
-    const auto message = json::parse(text);
-    if (message["type"] != "voxels") return;
-    if (message["reset"].get<bool>()) viewer.clear();
-    const auto add = message["add"].get<std::vector<int>>();
-    for (size_t i = 0; i < add.size(); i += 3) viewer.insert({add[i], add[i + 1], add[i + 2]});
-    const auto remove = message["remove"].get<std::vector<int>>();
-    for (size_t i = 0; i < remove.size(); i += 3) {
-      viewer.erase({remove[i], remove[i + 1], remove[i + 2]});
-    }
-  };
-  for (const auto& m : feed.welcome()) apply(early_viewer, m);
-  for (int frame = 0; frame < 4; ++frame) {
-    ASSERT_TRUE(server.ingest(cloudFrame("s", 2.05 + 0.3 * frame, frame)));
-    ASSERT_TRUE(server.ingest(pose("s", 0.1 * frame, 1000 + frame)));
-    server.find("s")->waitUntilIdle();
-    for (const auto& m : feed.poll()) apply(early_viewer, m);
-  }
-  std::set<std::tuple<int, int, int>> late_viewer;
-  for (const auto& m : feed.welcome()) apply(late_viewer, m);
-
-  std::set<std::tuple<int, int, int>> truth;
-  for (const auto& v : server.find("s")->occupiedVoxels()) truth.insert({v.x, v.y, v.z});
-  EXPECT_GT(truth.size(), 200u);
-  EXPECT_EQ(early_viewer, truth);
-  EXPECT_EQ(late_viewer, truth);
-
-  size_t poses = 0;
-  for (const auto& m : feed.welcome()) {
-    const auto message = json::parse(m);
-    if (message["type"] == "poses") poses += message["poses"].size();
-  }
-  EXPECT_EQ(poses, 4u);
 }
 
 TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {

@@ -15,10 +15,11 @@
 #include <set>
 #include <thread>
 
+#include "common/time.hpp"
+#include "common/url.hpp"
 #include "server/core/api.hpp"
-#include "server/core/viewer_feed.hpp"
-#include "server/net/url.hpp"
 #include "server/net/viewer_files.hpp"
+#include "server/viewers/viewer_hub.hpp"
 
 namespace stereomap::net {
 
@@ -37,17 +38,7 @@ std::string tokenFrom(const http::request<http::string_body>& request) {
   const std::string auth(request[http::field::authorization]);
   if (auth.starts_with("Bearer ")) return auth.substr(7);
   const std::string_view target(request.target().data(), request.target().size());
-  return queryParameter(target, "token").value_or("");
-}
-
-// Compares in time that depends only on the lengths, so the token cannot be guessed byte by
-// byte from response times.
-bool sameToken(const std::string& given, const std::string& expected) {
-  unsigned char difference = given.size() == expected.size() ? 0 : 1;
-  for (size_t i = 0; i < given.size(); ++i) {
-    difference |= static_cast<unsigned char>(given[i] ^ expected[i % expected.size()]);
-  }
-  return difference == 0;
+  return common::queryParameter(target, "token").value_or("");
 }
 
 // JSON text of an error message that may carry bytes from a request (invalid UTF-8 is
@@ -111,81 +102,103 @@ struct Hub {
   const core::MapServer& server;
   core::SessionAdmin* admin;  // may be null
   HttpServerOptions options;
-  core::ViewerFeed feed;
-  ViewerFiles viewer;
-  std::set<std::shared_ptr<WebSocketSession>> viewers;
+  viewers::ViewerHub viewers;
+  ViewerFiles files;
+  std::map<viewers::ViewerHub::Id, std::shared_ptr<WebSocketSession>> connections;
   std::atomic<size_t> viewer_count{0};
   AdminWorker admin_worker;
 };
 
+// One viewer's WebSocket: moves the ViewerHub's messages (server/viewers, protocol 2) to the
+// socket, one write at a time, and the viewer's messages to the hub.
 class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
  public:
   WebSocketSession(tcp::socket socket, Hub& hub) : ws_(std::move(socket)), hub_(hub) {}
 
-  void start(http::request<http::string_body> request) {
+  void start(http::request<http::string_body> request, bool authorised) {
     ws_.set_option(websocket::stream_base::timeout::suggested(beast::role_type::server));
     ws_.read_message_max(kMaxRequestBodyBytes);
-    ws_.async_accept(request, [self = shared_from_this()](beast::error_code ec) {
+    ws_.async_accept(request, [self = shared_from_this(), authorised](beast::error_code ec) {
       if (ec) return;
-      self->hub_.viewers.insert(self);
-      self->hub_.viewer_count = self->hub_.viewers.size();
-      for (auto& message : self->hub_.feed.welcome())
-        self->send(std::make_shared<std::string>(message));
+      self->id_ = self->hub_.viewers.connect(authorised, common::nowNs());
+      self->hub_.connections[self->id_] = self;
+      self->hub_.viewer_count = self->hub_.connections.size();
       self->read();
     });
   }
 
-  void send(std::shared_ptr<const std::string> message) {
-    if (closed_) return;
-    if (queue_.size() >= hub_.options.max_queued_messages) {
-      spdlog::warn("viewer too slow ({} messages queued); disconnecting it", queue_.size());
-      close();
-      return;
-    }
-    queue_.push_back(std::move(message));
-    if (queue_.size() == 1) writeNext();
+  // Writes the hub's next message when none is in flight; closes when the hub says so.
+  void pump() {
+    if (finished_) return;
+    if (auto order = hub_.viewers.closing(id_)) return closeWith(*order);
+    if (writing_) return;
+    auto message = hub_.viewers.next(id_, common::nowNs());
+    if (!message) return;
+    writing_ = true;
+    ws_.binary(message->binary);
+    ws_.async_write(asio::buffer(*message->bytes),
+                    [self = shared_from_this(), bytes = message->bytes](beast::error_code ec,
+                                                                        size_t) {
+                      self->writing_ = false;
+                      if (ec) return self->finish();
+                      self->hub_.viewers.written(self->id_);
+                      self->pump();
+                    });
   }
 
-  void close() {
-    if (closed_) return;
-    closed_ = true;
-    hub_.viewers.erase(shared_from_this());
-    hub_.viewer_count = hub_.viewers.size();
+  // Drops the connection at once (server shutdown, a failed read or write).
+  void finish() {
+    if (finished_) return;
+    finished_ = true;
+    hub_.viewers.disconnect(id_);
+    hub_.connections.erase(id_);
+    hub_.viewer_count = hub_.connections.size();
     beast::error_code ignored;
     beast::get_lowest_layer(ws_).socket().shutdown(tcp::socket::shutdown_both, ignored);
     beast::get_lowest_layer(ws_).socket().close(ignored);
   }
 
  private:
-  void writeNext() {
-    ws_.text(true);
-    ws_.async_write(asio::buffer(*queue_.front()),
-                    [self = shared_from_this()](beast::error_code ec, size_t) {
-                      if (ec) return self->close();
-                      self->queue_.pop_front();
-                      if (!self->queue_.empty()) self->writeNext();
-                    });
+  // A close frame with the reason when the line is free; a viewer that does not read gets
+  // the socket closed (its close frame could never be written).
+  void closeWith(const viewers::CloseOrder& order) {
+    if (closing_) return;
+    closing_ = true;
+    spdlog::warn("viewer {}: closing ({})", id_, order.reason);
+    if (writing_) return finish();
+    beast::get_lowest_layer(ws_).expires_after(std::chrono::seconds(2));
+    ws_.async_close(websocket::close_reason(static_cast<websocket::close_code>(order.code),
+                                            order.reason),
+                    [self = shared_from_this()](beast::error_code) { self->finish(); });
   }
 
   void read() {
     ws_.async_read(buffer_, [self = shared_from_this()](beast::error_code ec, size_t) {
-      if (ec) return self->close();
-      // Viewers need not send anything; answer what we do not understand, keep the line.
-      const std::string text = beast::buffers_to_string(self->buffer_.data());
+      if (ec) {
+        // A frame over the limit: say why before the line goes (1009, RFC 6455).
+        if (ec == websocket::error::message_too_big) {
+          spdlog::warn("viewer {}: message over {} bytes; closing", self->id_,
+                       kMaxRequestBodyBytes);
+        }
+        return self->finish();
+      }
+      if (self->ws_.got_text()) {
+        const std::string text = beast::buffers_to_string(self->buffer_.data());
+        self->hub_.viewers.receive(self->id_, text, common::nowNs());
+      } else {
+        self->hub_.viewers.receiveBinary(self->id_, self->buffer_.size());
+      }
       self->buffer_.consume(self->buffer_.size());
-      nlohmann::json reply = {{"type", "error"},
-                              {"message", "the server accepts no messages on /ws (got " +
-                                              std::to_string(text.size()) + " bytes)"}};
-      self->send(std::make_shared<std::string>(reply.dump()));
-      self->read();
+      self->pump();
+      if (!self->finished_ && !self->closing_) self->read();
     });
   }
 
   websocket::stream<beast::tcp_stream> ws_;
   Hub& hub_;
+  viewers::ViewerHub::Id id_ = 0;
   beast::flat_buffer buffer_;
-  std::deque<std::shared_ptr<const std::string>> queue_;
-  bool closed_ = false;
+  bool writing_ = false, closing_ = false, finished_ = false;
 };
 
 class HttpSession : public std::enable_shared_from_this<HttpSession> {
@@ -229,9 +242,10 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     const std::string_view target(request.target().data(), request.target().size());
     const std::string method(request.method_string());
     // The viewer's files and /healthz are public; maps, poses and metrics need the token.
-    const bool is_data = websocket::is_upgrade(request) || core::needsToken(target);
-    if (is_data && !hub_.options.token.empty() &&
-        !sameToken(tokenFrom(request), hub_.options.token)) {
+    // A WebSocket may also bring its token in its hello message (browsers cannot set headers).
+    const bool token_given = hub_.options.token.empty() ||
+                             common::sameSecret(tokenFrom(request), hub_.options.token);
+    if (core::needsToken(target) && !token_given) {
       return sendError(http::status::unauthorized,
                        "a valid token is required (Authorization: Bearer T or ?token=T)",
                        request.keep_alive());
@@ -241,7 +255,8 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
         return sendError(http::status::not_found, "the WebSocket endpoint is /ws", false);
       }
       stream_.expires_never();
-      std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)->start(std::move(request));
+      std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)
+          ->start(std::move(request), token_given);
       return;
     }
     if (core::isAdminRequest(method, target)) {
@@ -273,11 +288,11 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       return sendError(http::status::method_not_allowed, "only GET is supported",
                        request.keep_alive());
     }
-    const ViewerFiles::File* file = hub_.viewer.find(target);
+    const ViewerFiles::File* file = hub_.files.find(target);
     if (file == nullptr) {
-      if (hub_.viewer.size() == 0) {
+      if (hub_.files.size() == 0) {
         return sendError(http::status::not_found,
-                         "the viewer is not built (nothing in " + hub_.viewer.root().string() +
+                         "the viewer is not built (nothing in " + hub_.files.root().string() +
                              "): run ./scripts/build or pass --web-root",
                          request.keep_alive());
       }
@@ -349,7 +364,18 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
 
 struct HttpServer::Impl {
   Impl(const HttpServerOptions& options, const core::MapServer& server, core::SessionAdmin* admin)
-      : hub{server, admin, options, core::ViewerFeed(server), {}, {}, {}, {}},
+      : hub{server,
+            admin,
+            options,
+            viewers::ViewerHub(server, admin,
+                               {.token = options.token,
+                                .stuck_after = options.stuck_after,
+                                .max_queued_bytes = options.max_queued_bytes,
+                                .server_name = "stereomap 0.2.0"}),
+            {},
+            {},
+            {},
+            {}},
         acceptor(io),
         timer(io) {}
 
@@ -365,14 +391,9 @@ struct HttpServer::Impl {
     timer.expires_after(hub.options.push_interval);
     timer.async_wait([this](beast::error_code ec) {
       if (ec) return;
-      const auto messages = hub.feed.poll();
-      if (!messages.empty() && !hub.viewers.empty()) {
-        const auto viewers = hub.viewers;  // send() may disconnect a viewer
-        for (const auto& text : messages) {
-          auto shared = std::make_shared<const std::string>(text);
-          for (const auto& viewer : viewers) viewer->send(shared);
-        }
-      }
+      hub.viewers.poll(common::nowNs());
+      const auto connections = hub.connections;  // pump() may end a connection
+      for (const auto& [id, connection] : connections) connection->pump();
       schedulePush();
     });
   }
@@ -392,12 +413,12 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
                                                                const core::MapServer& server,
                                                                core::SessionAdmin* admin) {
   auto impl = std::make_unique<Impl>(options, server, admin);
-  impl->hub.viewer = ViewerFiles::load(options.web_root);
-  if (impl->hub.viewer.size() > 0) {
-    spdlog::info("viewer files: {} ({} kB) from {}{}", impl->hub.viewer.size(),
-                 impl->hub.viewer.bytes() / 1024, impl->hub.viewer.root().string(),
-                 impl->hub.viewer.skipped() > 0
-                     ? " (" + std::to_string(impl->hub.viewer.skipped()) +
+  impl->hub.files = ViewerFiles::load(options.web_root);
+  if (impl->hub.files.size() > 0) {
+    spdlog::info("viewer files: {} ({} kB) from {}{}", impl->hub.files.size(),
+                 impl->hub.files.bytes() / 1024, impl->hub.files.root().string(),
+                 impl->hub.files.skipped() > 0
+                     ? " (" + std::to_string(impl->hub.files.skipped()) +
                            " left out: links leaving the folder, unreadable or too large)"
                      : "");
   }
@@ -444,8 +465,8 @@ void HttpServer::stop() {
     beast::error_code ignored;
     impl_->acceptor.close(ignored);
     impl_->timer.cancel();
-    const auto viewers = impl_->hub.viewers;
-    for (const auto& viewer : viewers) viewer->close();
+    const auto connections = impl_->hub.connections;
+    for (const auto& [id, connection] : connections) connection->finish();
     impl_->io.stop();
   });
   if (impl_->thread.joinable()) impl_->thread.join();

@@ -1,6 +1,6 @@
 // The server's one network port (Boost.Beast): the REST API (server/core/api.hpp), the
-// viewer's static files, and the viewer WebSocket at /ws that pushes the ViewerFeed's
-// messages. Runs on its own thread; owns everything network-side. See docs/PROTOCOL.md.
+// viewer's static files, and the viewer WebSocket at /ws (protocol 2, whose logic is
+// server/viewers' ViewerHub). Runs on its own thread; owns everything network-side. See docs/PROTOCOL.md.
 //
 //   auto http = HttpServer::create({.address = "127.0.0.1", .port = 8080}, map_server);
 //   (*http)->start();  ...  (*http)->stop();
@@ -25,8 +25,12 @@ struct HttpServerOptions {
   // Required (as "Authorization: Bearer T" or "?token=T") when set; the app insists on one
   // whenever the address is not loopback.
   std::string token;
-  std::chrono::milliseconds push_interval{200};
-  size_t max_queued_messages = 512;  // per viewer; a slower viewer is disconnected
+  // How often viewers get what changed (tiles, poses, statuses): the floor of their latency.
+  std::chrono::milliseconds push_interval{25};
+  // A viewer whose write has not finished this long, or with this much JSON unsent, is
+  // closed with the reason (the others never wait for it).
+  std::chrono::milliseconds stuck_after{10'000};
+  size_t max_queued_bytes = 4u << 20;
 };
 
 class HttpServer {

@@ -1,6 +1,6 @@
 #include "server/net/viewer_files.hpp"
 
-#include "server/net/url.hpp"
+#include "common/url.hpp"
 
 #include <algorithm>
 #include <fstream>
@@ -78,7 +78,7 @@ ViewerFiles ViewerFiles::load(const fs::path& root, uint64_t max_file_bytes) {
 }
 
 const ViewerFiles::File* ViewerFiles::find(std::string_view target) const {
-  auto path = percentDecoded(target.substr(0, target.find_first_of("?#")));
+  auto path = common::percentDecoded(target.substr(0, target.find_first_of("?#")));
   if (!path || path->empty() || path->front() != '/') return nullptr;
   if (path->back() == '/') *path += "index.html";
   const auto found = files_.find(*path);

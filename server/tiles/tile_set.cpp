@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <random>
 
+#include "common/time.hpp"
+
 namespace stereomap::tiles {
 
 namespace {
@@ -103,6 +105,7 @@ void TileSet::publish(uint64_t code, std::shared_ptr<const Tile> tile) {
 
   std::lock_guard lock(mutex_);
   ++version_;
+  changed_ns_ = common::nowNs();
   if (old) {
     occupied_voxels_ -= old->cells(0).size();
     const auto& [low, high] = *old_extent;
@@ -211,6 +214,7 @@ TileSummary TileSet::summary() const {
   std::lock_guard lock(mutex_);
   TileSummary summary;
   summary.version = version_;
+  summary.changed_ns = changed_ns_;
   summary.occupied_voxels = occupied_voxels_;
   summary.tiles = tiles_.size();
   if (!tiles_.empty()) {

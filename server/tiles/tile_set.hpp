@@ -73,6 +73,7 @@ struct TileSummary {
   size_t occupied_voxels = 0;  // at the finest resolution
   common::Box3 bounds;         // of the occupied voxels' cells; empty when none
   size_t tiles = 0;
+  int64_t changed_ns = 0;      // wall-clock time of the newest change (0: none yet)
 };
 
 class TileSet {
@@ -115,6 +116,7 @@ class TileSet {
   mutable std::mutex mutex_;
   TileMap tiles_;
   uint64_t version_ = 0;
+  int64_t changed_ns_ = 0;
   size_t occupied_voxels_ = 0;
   // Voxel extents of the tiles, per axis, so that bounds follow removals too.
   std::array<std::multiset<int32_t>, 3> lows_, highs_;

@@ -171,7 +171,8 @@ async function run(options, resources, progress) {
     serverAlive();
     if (pageErrors.length) throw new TestFailure(`expected no page errors, seen ${pageErrors.length}:\n  ${pageErrors.join('\n  ')}`);
   };
-  const response = await page.goto(`${base}/`);
+  // Every tile at the finest level, so that the page's count is the server's exactly.
+  const response = await page.goto(`${base}/?error=0.25&budget=20000000`);
   if (response?.status() !== 200) throw new TestFailure(`expected GET / to answer 200, seen ${response?.status()}`);
   const hook = () => page.evaluate(() => {
     const s = window.__stereomap;

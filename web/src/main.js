@@ -1,41 +1,73 @@
-// The stereomap viewer page: connects to the server's /ws, keeps every session's state, and
-// draws the chosen one (by default the session heard from most recently) at most once per
-// animation frame. Exposes window.__stereomap for the end-to-end test.
+// The stereomap viewer page: speaks protocol 2 on the server's /ws (docs/PROTOCOL.md). It
+// lists the sessions, subscribes to the chosen one (by default the live session heard from
+// most recently), tells the server where the camera is (the server then sends the tiles that
+// matter most, coarse first) and draws at most once per animation frame. Exposes
+// window.__stereomap for the end-to-end test.
 
 import { rampCssGradient } from './core/colour_ramp.js';
 import { statusText } from './core/format.js';
 import { MapStore } from './core/map_state.js';
-import { ProtocolError, parseMessage } from './core/protocol.js';
+import { ProtocolError, helloMessage, parseMessage, subscribeMessage, viewMessage } from './core/protocol.js';
+import { TileFormatError, decodeTile } from './core/tile_codec.js';
 import { MapView } from './three/map_view.js';
 
 const kRetryFirstMs = 500; // reconnect backoff doubles from here ...
 const kRetryMaxMs = 10_000; // ... up to this
 const kStatusRefreshMs = 500;
+const kViewEveryMs = 250; // camera moves are reported at most this often
 
-const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'legend', 'legend-bar',
-  'legend-max', 'legend-min'].map((id) => [id, document.getElementById(id)]));
+const params = new URLSearchParams(location.search);
+const kBudget = Number(params.get('budget')) || 1_000_000; // cells drawn at most
+const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look before a finer level is due
+
+const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'colour-select', 'legend',
+  'legend-bar', 'legend-max', 'legend-min', 'legend-title'].map((id) => [id, document.getElementById(id)]));
 
 const store = new MapStore();
-const link = { connected: false, failures: 0, retryAtMs: null };
-let pinnedSessionId = new URLSearchParams(location.search).get('session'); // null: follow the latest
+const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0 };
+let pinnedSessionId = params.get('session'); // null: follow the latest
 let dataChanged = false; // messages arrived since the view was last synchronised
+let viewId = 0;
+let viewTimer = null;
+let subscribeError = '';
 
-const view = new MapView(elements.view, syncView);
+const view = new MapView(elements.view, syncView, scheduleView);
 
 function displayedSessionId() {
   return pinnedSessionId ?? store.latestSessionId;
 }
 
-function displayedSession() {
-  return store.sessions.get(displayedSessionId()) ?? null;
+function send(text) {
+  if (link.connected) link.socket.send(text);
+}
+
+// Subscribes to the session to show when it is not the one subscribed to.
+function followChoice() {
+  const id = displayedSessionId();
+  if (!link.connected || id === null || store.subscribed?.id === id) return;
+  subscribeError = '';
+  store.subscribe(id);
+  send(subscribeMessage(id));
+  dataChanged = true;
+  view.requestRender();
+}
+
+function sendView() {
+  viewTimer = null;
+  if (!link.connected || !store.subscribed) return;
+  viewId += 1;
+  send(viewMessage({ id: viewId, ...view.cameraState(), budget: kBudget, error: kErrorPx }));
+}
+
+function scheduleView() {
+  if (viewTimer === null) viewTimer = setTimeout(sendView, kViewEveryMs);
 }
 
 // Runs right before a frame is drawn, so a burst of messages costs one update.
 function syncView() {
   if (!dataChanged) return;
   dataChanged = false;
-  const session = displayedSession();
-  view.show(session);
+  view.show(store.subscribed);
   updateLegend();
   updateSessionList();
   updateStatus();
@@ -43,23 +75,33 @@ function syncView() {
 
 function updateStatus() {
   const id = displayedSessionId();
-  const session = displayedSession();
+  const session = store.subscribed?.id === id ? store.subscribed : null;
   const retryInSeconds = link.retryAtMs === null ? 0 : (link.retryAtMs - Date.now()) / 1000;
-  elements.status.textContent = statusText({ connected: link.connected, retryInSeconds }, id === null ? null : {
+  let text = statusText({ connected: link.connected, retryInSeconds }, id === null ? null : {
     id,
-    known: session !== null,
+    known: store.statuses.has(id),
     vehicle: session?.vehicle ?? '',
     renderedVoxels: view.renderedVoxels,
+    serverVoxels: session?.serverVoxels ?? 0,
     frames: session?.frames ?? 0,
     ageSeconds: session?.lastMessageMs ? (Date.now() - session.lastMessageMs) / 1000 : null,
   });
+  if (link.connected) text += ` · ${(link.bytesPerSecond / 1024).toFixed(0)} kB/s`;
+  if (store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
+  if (subscribeError) text += ` · ${subscribeError}`;
+  elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
 }
 
 function updateLegend() {
   const range = view.heightRange;
-  elements.legend.hidden = range === null;
-  if (range) {
+  const byProbability = view.tiles.colourBy === 'probability';
+  elements.legend.hidden = range === null && !byProbability;
+  elements['legend-title'].textContent = byProbability ? 'occupancy P' : 'height z';
+  if (byProbability) {
+    elements['legend-min'].textContent = '0.5';
+    elements['legend-max'].textContent = '1.0';
+  } else if (range) {
     elements['legend-min'].textContent = `${range[0].toFixed(1)} m`;
     elements['legend-max'].textContent = `${range[1].toFixed(1)} m`;
   }
@@ -67,30 +109,49 @@ function updateLegend() {
 
 let shownSessionList = '';
 function updateSessionList() {
-  const ids = [...store.sessions.keys()];
+  const statuses = [...store.statuses.values()];
+  const ids = statuses.map((s) => s.id);
   if (pinnedSessionId !== null && !ids.includes(pinnedSessionId)) ids.push(pinnedSessionId);
   const latest = store.latestSessionId;
-  const listed = JSON.stringify([ids, latest, pinnedSessionId, ids.map((id) => store.sessions.get(id)?.vehicle)]);
+  const label = (id) => {
+    const s = store.statuses.get(id);
+    return s ? `${id}${s.vehicle ? ` (${s.vehicle})` : ''} · ${s.state || '?'}` : id;
+  };
+  const listed = JSON.stringify([ids.map(label), latest, pinnedSessionId]);
   if (listed === shownSessionList) return;
   shownSessionList = listed;
   const option = (value, text) => Object.assign(document.createElement('option'), { value, textContent: text });
   elements['session-select'].replaceChildren(
     option('', latest === null ? 'follow latest' : `follow latest (${latest})`),
-    ...ids.map((id) => {
-      const vehicle = store.sessions.get(id)?.vehicle;
-      return option(id, vehicle ? `${id} (${vehicle})` : id);
-    }),
+    ...ids.map((id) => option(id, label(id))),
   );
   elements['session-select'].value = pinnedSessionId ?? '';
 }
 
-function receive(text) {
+function receiveText(text) {
+  const message = parseMessage(text);
+  if (message.type === 'error') {
+    console.warn(`stereomap server: ${message.message}`);
+    if (message.session && message.session === store.subscribed?.id) subscribeError = message.message;
+  }
+  store.apply(message);
+  if (message.type === 'subscribed' && message.session === store.subscribed?.id) {
+    view.fitBounds(message.bounds);
+    sendView();
+  }
+  followChoice();
+}
+
+async function receive(data) {
   try {
-    const message = parseMessage(text);
-    if (message.type === 'error') console.warn(`stereomap server: ${message.message}`);
-    store.apply(message);
+    if (typeof data === 'string') {
+      receiveText(data);
+    } else {
+      link.bytes += data.byteLength;
+      store.applyTile(await decodeTile(new Uint8Array(data)));
+    }
   } catch (error) {
-    if (!(error instanceof ProtocolError)) throw error;
+    if (!(error instanceof ProtocolError) && !(error instanceof TileFormatError)) throw error;
     console.error(`stereomap: ignored a server message: ${error.message}`);
   }
   dataChanged = true;
@@ -99,17 +160,25 @@ function receive(text) {
 
 function connect() {
   const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
-  // A server bound beyond loopback wants its token: pass on the page's ?token=.
-  const token = new URLSearchParams(location.search).get('token');
-  const query = token ? `?token=${encodeURIComponent(token)}` : '';
-  const socket = new WebSocket(`${scheme}://${location.host}/ws${query}`);
+  const token = params.get('token');
+  const socket = new WebSocket(`${scheme}://${location.host}/ws`);
+  socket.binaryType = 'arraybuffer';
+  link.socket = socket;
+  // Tiles decode asynchronously; one chain keeps every message in the order it came.
+  let inbox = Promise.resolve();
   socket.onopen = () => {
     Object.assign(link, { connected: true, failures: 0, retryAtMs: null });
+    socket.send(helloMessage(token));
+    store.subscribed = null; // a new connection subscribes afresh (the server may have restarted)
     updateStatus();
   };
-  socket.onmessage = (event) => receive(event.data);
+  socket.onmessage = (event) => {
+    if (typeof event.data === 'string') link.bytes += event.data.length;
+    inbox = inbox.then(() => receive(event.data));
+  };
   // Also called when connecting failed; the error event carries nothing more useful.
-  socket.onclose = () => {
+  socket.onclose = (event) => {
+    if (event.reason) console.warn(`stereomap: the server closed the connection: ${event.reason}`);
     const delayMs = Math.min(kRetryMaxMs, kRetryFirstMs * 2 ** link.failures);
     Object.assign(link, { connected: false, failures: link.failures + 1, retryAtMs: Date.now() + delayMs });
     setTimeout(connect, delayMs);
@@ -123,6 +192,12 @@ elements['session-select'].addEventListener('change', (event) => {
   if (pinnedSessionId === null) url.searchParams.delete('session');
   else url.searchParams.set('session', pinnedSessionId);
   history.replaceState(null, '', url);
+  followChoice();
+  dataChanged = true;
+  view.requestRender();
+});
+elements['colour-select'].addEventListener('change', (event) => {
+  view.tiles.setColourBy(event.target.value);
   dataChanged = true;
   view.requestRender();
 });
@@ -141,10 +216,20 @@ window.__stereomap = {
     return displayedSessionId();
   },
   renderedVoxels: () => view.renderedVoxels,
+  // Cells held per level of detail: {level: cells}.
+  levels: () => {
+    const counts = {};
+    for (const tile of store.subscribed?.tiles.values() ?? []) counts[tile.level] = (counts[tile.level] ?? 0) + tile.codes.length;
+    return counts;
+  },
   trajectoryLength: () => view.trajectoryLength,
-  frames: () => displayedSession()?.frames ?? 0,
+  frames: () => (store.subscribed?.id === displayedSessionId() ? store.subscribed.frames : 0),
 };
+setInterval(() => {
+  link.bytesPerSecond = (link.bytes * 1000) / kStatusRefreshMs;
+  link.bytes = 0;
+  updateStatus();
+}, kStatusRefreshMs);
 updateSessionList();
 updateStatus();
-setInterval(updateStatus, kStatusRefreshMs);
 connect();

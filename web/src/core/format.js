@@ -20,7 +20,7 @@ function plural(n, word) {
 
 /**
  * The status line. `link` is {connected, retryInSeconds}; `session` is null (none chosen) or
- * {id, known, vehicle, renderedVoxels, frames, ageSeconds}; `known` is false for a session
+ * {id, known, vehicle, renderedVoxels, serverVoxels, frames, ageSeconds}; `known` is false for a session
  * asked for (?session=ID) that the server has not reported.
  */
 export function statusText(link, session) {
@@ -33,7 +33,9 @@ export function statusText(link, session) {
     parts.push(`session ${session.id} not on the server (yet)`);
   } else {
     parts.push(`session ${session.id}${session.vehicle ? ` (${session.vehicle})` : ''}`);
-    parts.push(plural(session.renderedVoxels, 'voxel'));
+    // Cells drawn (coarser levels far away) against the map's voxels at the finest level.
+    const { renderedVoxels: shown, serverVoxels: total } = session;
+    parts.push(total > 0 && total !== shown ? `${formatCount(shown)} cells of ${plural(total, 'voxel')}` : plural(shown, 'voxel'));
     parts.push(plural(session.frames, 'frame'));
     parts.push(`updated ${formatAge(session.ageSeconds)}`);
   }

@@ -17,6 +17,7 @@ describe('statusText', () => {
   it('names the link, session, voxels, frames and age', () => {
     const session = { id: 'e2e', known: true, vehicle: 'sim-1', renderedVoxels: 12345, frames: 1, ageSeconds: 2.1 };
     expect(statusText({ connected: true }, session)).toBe('connected · session e2e (sim-1) · 12,345 voxels · 1 frame · updated 2.1 s ago');
+    expect(statusText({ connected: true }, { ...session, serverVoxels: 99999 })).toBe('connected · session e2e (sim-1) · 12,345 cells of 99,999 voxels · 1 frame · updated 2.1 s ago');
     expect(statusText({ connected: false, retryInSeconds: 1.2 }, null)).toBe('disconnected, retrying in 2 s · no session yet');
     expect(statusText({ connected: true }, { id: 'x', known: false })).toBe('connected · session x not on the server (yet)');
   });

@@ -1,104 +1,137 @@
-// The viewer's copy of every session the server reports: occupied voxels, trajectory and
-// status, built from parsed protocol messages. Entry point: MapStore.apply(message).
-// Renderers read a SessionState and use its revisions to redraw only what changed.
+// The viewer's picture of the server: every session's status (for the picker) and, for the
+// one subscribed to, its tiles and trajectory, built from parsed protocol 2 messages and
+// decoded tiles. Entry points: MapStore.apply(message) and MapStore.applyTile(tile).
+// Renderers compare revisions to redraw only what changed.
 
-import { ProtocolError } from './protocol.js';
-
-// Revisions are unique across all SessionStates, so a renderer never mistakes a session that
-// was re-created (after a reconnect) for the one it drew before.
+// Revisions are unique across the page's life, so a renderer never mistakes a tile or a
+// session that was re-created (after a reconnect) for the one it drew before.
 let lastRevision = 0;
 const newRevision = () => ++lastRevision;
 
-/** Map key of the voxel with integer indices (ix, iy, iz). */
-export function voxelKey(ix, iy, iz) {
-  return `${ix},${iy},${iz}`;
+/** "x_y_z", as in tile URLs. */
+export function tileKeyText([x, y, z]) {
+  return `${x}_${y}_${z}`;
 }
 
 export class SessionState {
   constructor(id) {
     this.id = id;
-    this.vehicle = '';
+    this.status = null; // the server's latest status (protocol.js status fields)
     this.resolution = null; // metres per voxel edge
-    this.frames = 0; // as reported by the server's session messages
-    this.serverVoxels = 0; // occupied_voxels reported by the server
-    this.bounds = null; // {min, max} in metres, as reported by the server
-    this.voxels = new Map(); // voxelKey → [ix, iy, iz]
-    this.voxelVersion = null; // version of the last applied voxels message
-    this.voxelRevision = newRevision(); // renewed on every change of `voxels`
+    this.bounds = null; // {min, max} of the occupied voxels, metres (server's)
+    this.serverVoxels = 0; // occupied voxels at the finest level, as the server counts them
+    this.tiles = new Map(); // tileKeyText → {key, level, version, codes, values, revision}
     this.poses = []; // [t, x, y, z, qx, qy, qz, qw], T_map_body
     this.poseEpoch = newRevision(); // renewed when `poses` is replaced rather than appended to
     this.lastMessageMs = null; // wall-clock time of the last message about this session
+    this.lastChangeMs = 0; // when the server last changed the map (its clock, Unix ms)
   }
 
-  applyVoxels({ resolution, version, reset, add, remove }) {
-    // A delta is relative to the previous version: an older or repeated one would corrupt the set.
-    if (!reset && this.voxelVersion !== null && version <= this.voxelVersion) {
-      throw new ProtocolError(`voxels message for session "${this.id}": version ${version} is not newer than version ${this.voxelVersion} already applied; ignored`);
-    }
-    if (reset) this.voxels.clear();
-    for (let i = 0; i < remove.length; i += 3) this.voxels.delete(voxelKey(remove[i], remove[i + 1], remove[i + 2]));
-    for (let i = 0; i < add.length; i += 3) {
-      this.voxels.set(voxelKey(add[i], add[i + 1], add[i + 2]), [add[i], add[i + 1], add[i + 2]]);
-    }
-    this.resolution = resolution;
-    this.voxelVersion = version;
-    this.voxelRevision = newRevision();
+  get frames() {
+    return this.status?.frames ?? 0;
   }
 
-  applyPoses({ vehicle, reset, poses }) {
+  get vehicle() {
+    return this.status?.vehicle ?? '';
+  }
+
+  /** Occupied cells held, at whatever level each tile is. */
+  get cells() {
+    let n = 0;
+    for (const tile of this.tiles.values()) n += tile.codes.length;
+    return n;
+  }
+
+  applyTile({ header, codes, values }) {
+    const text = tileKeyText(header.key);
+    const held = this.tiles.get(text);
+    // A tile older than the one held arrived late: keep the newer one.
+    if (held && header.version < held.version) return false;
+    if (codes.length === 0) this.tiles.delete(text);
+    else this.tiles.set(text, { key: header.key, level: header.level, version: header.version, codes, values, revision: newRevision() });
+    return true;
+  }
+
+  applyPoses({ reset, poses }) {
     if (reset) {
       this.poses = [];
       this.poseEpoch = newRevision();
     }
     for (const pose of poses) this.poses.push(pose); // not push(...poses): long lists overflow the stack
-    if (vehicle) this.vehicle = vehicle;
-  }
-
-  applyStatus({ vehicle, resolution, frames, occupiedVoxels, bounds }) {
-    Object.assign(this, { vehicle, resolution, frames, serverVoxels: occupiedVoxels, bounds });
   }
 }
 
 export class MapStore {
   constructor() {
-    this.sessions = new Map(); // id → SessionState, in order of first appearance
-    this.latestSessionId = null; // the session whose latest message arrived most recently
+    this.statuses = new Map(); // id → status, every session the server reported, in order
+    this.subscribed = null; // the SessionState subscribed to, or null
+    this.lastLatency = null; // ms from the server's map change to its tiles here (same clock only)
   }
 
-  session(id) {
-    let state = this.sessions.get(id);
-    if (!state) {
-      state = new SessionState(id);
-      this.sessions.set(id, state);
-    }
-    return state;
+  /** The live session that changed most recently, else the last one listed; null when none. */
+  get latestSessionId() {
+    const all = [...this.statuses.values()];
+    const live = all.filter((s) => s.state === 'live');
+    return (live.at(-1) ?? all.at(-1))?.id ?? null;
   }
 
-  /**
-   * Applies one message from parseMessage(); returns the SessionState it changed, or null.
-   * Throws ProtocolError, leaving the state untouched, for a message that contradicts it.
-   */
+  /** Starts over for `id` (a new subscription); its data arrives from now on. */
+  subscribe(id) {
+    this.subscribed = new SessionState(id);
+    const status = this.statuses.get(id);
+    if (status) this.subscribed.status = status;
+    return this.subscribed;
+  }
+
+  /** Applies one message from parseMessage(); returns true when something shown changed. */
   apply(message, nowMs = Date.now()) {
-    if (message.type === 'hello') {
-      // A (re)connected server sends every session afresh; drop sessions it may no longer have.
-      this.sessions.clear();
-      this.latestSessionId = null;
-      return null;
+    const mine = this.subscribed;
+    switch (message.type) {
+      case 'hello':
+        this.statuses.clear();
+        return true;
+      case 'sessions':
+        this.statuses.clear();
+        for (const status of message.sessions) this.statuses.set(status.id, status);
+        if (mine && this.statuses.has(mine.id)) mine.status = this.statuses.get(mine.id);
+        return true;
+      case 'session': {
+        const { type, ...status } = message;
+        this.statuses.delete(status.id); // re-inserted last: the most recently changed
+        this.statuses.set(status.id, status);
+        if (mine?.id === status.id) {
+          mine.status = status;
+          mine.lastMessageMs = nowMs;
+        }
+        return true;
+      }
+      case 'session_removed':
+        this.statuses.delete(message.id);
+        return true;
+      case 'subscribed':
+        if (mine?.id !== message.session) return false;
+        Object.assign(mine, { resolution: message.resolution, bounds: message.bounds, serverVoxels: message.voxels, status: message.status, lastMessageMs: nowMs });
+        return true;
+      case 'map':
+        if (mine?.id !== message.session) return false;
+        Object.assign(mine, { bounds: message.bounds, serverVoxels: message.voxels, lastChangeMs: message.changedMs, lastMessageMs: nowMs });
+        this.lastLatency = nowMs - message.changedMs;
+        return true;
+      case 'poses':
+        if (mine?.id !== message.session) return false;
+        mine.applyPoses(message);
+        mine.lastMessageMs = nowMs;
+        return true;
+      default:
+        return false;
     }
-    if (message.type === 'error') return null;
-    if (message.type === 'session_removed') {
-      // Closed into the store or deleted: the server no longer holds it.
-      this.sessions.delete(message.id);
-      if (this.latestSessionId === message.id) this.latestSessionId = [...this.sessions.keys()].at(-1) ?? null;
-      return null;
-    }
-    const id = message.type === 'session' ? message.id : message.session;
-    const state = this.session(id);
-    if (message.type === 'voxels') state.applyVoxels(message);
-    else if (message.type === 'poses') state.applyPoses(message);
-    else state.applyStatus(message);
-    state.lastMessageMs = nowMs;
-    this.latestSessionId = id;
-    return state;
+  }
+
+  /** A decoded tile (tile_codec.js) for the subscribed session; false when not for it. */
+  applyTile(tile) {
+    const mine = this.subscribed;
+    if (!mine || tile.header.session !== mine.id) return false;
+    if (mine.resolution === null) mine.resolution = tile.header.resolution;
+    return mine.applyTile(tile);
   }
 }

@@ -1,8 +1,10 @@
-// Parsing and validation of the server → viewer WebSocket messages (docs/PROTOCOL.md, v1).
-// Entry point: parseMessage(text). A message is checked completely before anything uses it,
-// so a malformed one is rejected (ProtocolError naming the field) without touching any state.
+// The viewer WebSocket, protocol 2 (docs/PROTOCOL.md): parsing and validation of the server's
+// text messages, and the viewer's own messages. Entry points: parseMessage(text) and the
+// *Message() builders. Tiles arrive as binary messages (tile_codec.js). A message is checked
+// completely before anything uses it, so a malformed one is rejected (ProtocolError naming
+// the field) without touching any state.
 
-export const kProtocolVersion = 1;
+export const kProtocolVersion = 2;
 
 export class ProtocolError extends Error {
   constructor(message) {
@@ -19,20 +21,21 @@ function shown(value) {
 
 const isFiniteNumber = (v) => typeof v === 'number' && Number.isFinite(v);
 const isCount = (v) => Number.isSafeInteger(v) && v >= 0;
+const isString = (v) => typeof v === 'string';
 
 // Reads field `name` of `message`, or throws naming the message type, field and value.
 function field(message, name, isValid, expected, { optional = false, fallback } = {}) {
   const value = message[name];
-  if (value === undefined && optional) return fallback;
+  if ((value === undefined || value === null) && optional) return fallback;
   if (!isValid(value)) {
     throw new ProtocolError(`${message.type} message: "${name}" must be ${expected}, got ${shown(value)}`);
   }
   return value;
 }
 
-const requireId = (m, name) => field(m, name, (v) => typeof v === 'string' && v.length > 0, 'a non-empty string');
-const requireResolution = (m) => field(m, 'resolution', (v) => isFiniteNumber(v) && v > 0, 'a positive number (metres)');
-const optionalReset = (m) => field(m, 'reset', (v) => typeof v === 'boolean', 'true or false', { optional: true, fallback: false });
+const requireId = (m, name) => field(m, name, (v) => isString(v) && v.length > 0, 'a non-empty string');
+const count = (m, name) => field(m, name, isCount, 'a count');
+const optionalCount = (m, name) => field(m, name, isCount, 'a count', { optional: true, fallback: 0 });
 
 function isPoint(v) {
   return Array.isArray(v) && v.length === 3 && v.every(isFiniteNumber);
@@ -42,22 +45,7 @@ function isBounds(v) {
   return v === null || (typeof v === 'object' && !Array.isArray(v) && isPoint(v.min) && isPoint(v.max));
 }
 
-// A flat [ix, iy, iz, ...] array of integer voxel indices; absent means no change.
-function voxelIndices(message, name) {
-  const value = message[name];
-  if (value === undefined) return [];
-  if (!Array.isArray(value)) {
-    throw new ProtocolError(`voxels message: "${name}" must be an array of integer triples, got ${shown(value)}`);
-  }
-  if (value.length % 3 !== 0) {
-    throw new ProtocolError(`voxels message: "${name}" must hold whole [ix, iy, iz] triples, got ${value.length} numbers`);
-  }
-  const bad = value.findIndex((v) => !Number.isSafeInteger(v));
-  if (bad >= 0) {
-    throw new ProtocolError(`voxels message: "${name}"[${bad}] must be an integer index, got ${shown(value[bad])}`);
-  }
-  return value;
-}
+const bounds = (m) => field(m, 'bounds', isBounds, 'null or {"min": [x, y, z], "max": [x, y, z]}', { optional: true, fallback: null });
 
 // [[t, x, y, z, qx, qy, qz, qw], ...]: T_map_body with a non-zero quaternion.
 function poseList(message) {
@@ -75,50 +63,91 @@ function poseList(message) {
   return value;
 }
 
+// A session's status (GET /api/sessions entries, "session" messages).
+function status(m) {
+  return {
+    id: requireId(m, 'id'),
+    vehicle: field(m, 'vehicle', isString, 'a string', { optional: true, fallback: '' }),
+    state: field(m, 'state', isString, 'a string', { optional: true, fallback: '' }),
+    resolution: field(m, 'resolution', (v) => isFiniteNumber(v) && v > 0, 'a positive number (metres)'),
+    frames: count(m, 'frames'),
+    occupiedVoxels: count(m, 'occupied_voxels'),
+    poses: optionalCount(m, 'poses'),
+    droppedFrames: optionalCount(m, 'dropped_frames'),
+    backlog: optionalCount(m, 'fusion_backlog'),
+    bounds: bounds(m),
+  };
+}
+
 const kParsers = {
   hello(m) {
     const protocol = field(m, 'protocol', Number.isSafeInteger, 'an integer');
     if (protocol !== kProtocolVersion) {
       throw new ProtocolError(`hello message: protocol ${protocol} is not supported (this viewer speaks ${kProtocolVersion})`);
     }
-    return { type: 'hello', protocol, server: field(m, 'server', (v) => typeof v === 'string', 'a string', { optional: true, fallback: '' }) };
+    return { type: 'hello', protocol, server: field(m, 'server', isString, 'a string', { optional: true, fallback: '' }) };
+  },
+  sessions(m) {
+    const list = field(m, 'sessions', Array.isArray, 'an array of sessions');
+    return { type: 'sessions', sessions: list.map((s) => status({ ...s, type: 'sessions' })) };
   },
   session(m) {
+    return { type: 'session', ...status(m) };
+  },
+  session_removed(m) {
+    return { type: 'session_removed', id: requireId(m, 'id') };
+  },
+  subscribed(m) {
     return {
-      type: 'session',
-      id: requireId(m, 'id'),
-      vehicle: field(m, 'vehicle', (v) => typeof v === 'string', 'a string'),
-      resolution: requireResolution(m),
-      frames: field(m, 'frames', isCount, 'a count'),
-      occupiedVoxels: field(m, 'occupied_voxels', isCount, 'a count'),
-      bounds: field(m, 'bounds', isBounds, 'null or {"min": [x, y, z], "max": [x, y, z]}'),
+      type: 'subscribed',
+      session: requireId(m, 'session'),
+      resolution: field(m, 'resolution', (v) => isFiniteNumber(v) && v > 0, 'a positive number (metres)'),
+      version: count(m, 'version'),
+      voxels: count(m, 'voxels'),
+      tiles: count(m, 'tiles'),
+      bounds: bounds(m),
+      status: status({ ...field(m, 'status', (v) => v !== null && typeof v === 'object', 'a session status'), type: 'subscribed' }),
     };
   },
-  voxels(m) {
+  plan(m) {
+    return { type: 'plan', id: count(m, 'id'), session: requireId(m, 'session'), tiles: count(m, 'tiles'), cells: count(m, 'cells') };
+  },
+  view_done(m) {
+    return { type: 'view_done', id: count(m, 'id'), session: requireId(m, 'session') };
+  },
+  map(m) {
     return {
-      type: 'voxels',
+      type: 'map',
       session: requireId(m, 'session'),
-      resolution: requireResolution(m),
-      version: field(m, 'version', isCount, 'a non-negative integer'),
-      reset: optionalReset(m),
-      add: voxelIndices(m, 'add'),
-      remove: voxelIndices(m, 'remove'),
+      version: count(m, 'version'),
+      changedMs: field(m, 'changed_ms', (v) => isFiniteNumber(v) && v >= 0, 'a time (Unix ms)'),
+      voxels: count(m, 'voxels'),
+      tiles: count(m, 'tiles'),
+      bounds: bounds(m),
     };
   },
   poses(m) {
     return {
       type: 'poses',
       session: requireId(m, 'session'),
-      vehicle: field(m, 'vehicle', (v) => typeof v === 'string', 'a string', { optional: true, fallback: '' }),
-      reset: optionalReset(m),
+      vehicle: field(m, 'vehicle', isString, 'a string', { optional: true, fallback: '' }),
+      reset: field(m, 'reset', (v) => typeof v === 'boolean', 'true or false', { optional: true, fallback: false }),
       poses: poseList(m),
     };
   },
-  session_removed(m) {
-    return { type: 'session_removed', id: requireId(m, 'id') };
+  trajectory_done(m) {
+    return { type: 'trajectory_done', session: requireId(m, 'session'), poses: count(m, 'poses') };
+  },
+  pong(m) {
+    return { type: 'pong', t: field(m, 't', isFiniteNumber, 'a number', { optional: true, fallback: null }) };
   },
   error(m) {
-    return { type: 'error', message: field(m, 'message', (v) => typeof v === 'string', 'a string') };
+    return {
+      type: 'error',
+      message: field(m, 'message', isString, 'a string'),
+      code: field(m, 'code', isString, 'a string', { optional: true, fallback: '' }),
+      session: field(m, 'session', isString, 'a string', { optional: true, fallback: '' }),
+    };
   },
 };
 
@@ -135,7 +164,25 @@ export function parseMessage(text) {
   }
   const parse = Object.hasOwn(kParsers, message.type) ? kParsers[message.type] : null;
   if (!parse) {
-    throw new ProtocolError(`unknown message type ${shown(message.type)} (expected hello, session, session_removed, voxels, poses or error)`);
+    throw new ProtocolError(`unknown message type ${shown(message.type)} (expected one of ${Object.keys(kParsers).join(', ')})`);
   }
   return parse(message);
+}
+
+/** The first message on a connection; `token` may be null (none needed, or given in the URL). */
+export function helloMessage(token) {
+  return JSON.stringify(token ? { type: 'hello', protocol: kProtocolVersion, token } : { type: 'hello', protocol: kProtocolVersion });
+}
+
+export function subscribeMessage(session) {
+  return JSON.stringify({ type: 'subscribe', session });
+}
+
+/**
+ * Where the camera is: eye [x, y, z], frustum planes [[a, b, c, d], ...] (inside where
+ * a x + b y + c z + d >= 0), vertical fov in degrees, viewport height in pixels, the cell
+ * budget and the screen-space error in pixels; `id` comes back in plan and view_done.
+ */
+export function viewMessage({ id, eye, planes, fov, height, budget, error }) {
+  return JSON.stringify({ type: 'view', id, eye, planes, fov, height: Math.max(1, Math.round(height)), budget, error });
 }

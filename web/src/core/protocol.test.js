@@ -1,37 +1,36 @@
 import { describe, expect, it } from 'vitest';
-import { ProtocolError, parseMessage } from './protocol.js';
+import { ProtocolError, helloMessage, parseMessage, viewMessage } from './protocol.js';
 
-const voxels = (fields) => JSON.stringify({ type: 'voxels', session: 'demo', resolution: 0.1, version: 1, ...fields });
+const status = { id: 's1', vehicle: 'uav', state: 'live', resolution: 0.1, frames: 3, occupied_voxels: 40, poses: 2, bounds: null };
 
 describe('parseMessage', () => {
-  it('normalises a session message', () => {
-    const text = JSON.stringify({ type: 'session', id: 'demo', vehicle: 'sim-1', resolution: 0.1, frames: 12,
-      occupied_voxels: 1234, bounds: { min: [0, -1, 0], max: [2, 3, 1.5] } });
-    expect(parseMessage(text)).toEqual({ type: 'session', id: 'demo', vehicle: 'sim-1', resolution: 0.1,
-      frames: 12, occupiedVoxels: 1234, bounds: { min: [0, -1, 0], max: [2, 3, 1.5] } });
+  it('reads the messages of protocol 2', () => {
+    expect(parseMessage('{"type":"hello","protocol":2,"server":"stereomap"}').protocol).toBe(2);
+    const list = parseMessage(JSON.stringify({ type: 'sessions', sessions: [status] }));
+    expect(list.sessions[0]).toMatchObject({ id: 's1', occupiedVoxels: 40, state: 'live' });
+    const subscribed = parseMessage(JSON.stringify({ type: 'subscribed', session: 's1', resolution: 0.1, version: 4, voxels: 40, tiles: 2,
+      bounds: { min: [0, 0, 0], max: [1, 1, 1] }, status }));
+    expect(subscribed.status.frames).toBe(3);
+    expect(parseMessage('{"type":"map","session":"s1","version":9,"changed_ms":5,"voxels":41,"tiles":2,"bounds":null}').changedMs).toBe(5);
+    expect(parseMessage('{"type":"poses","session":"s1","vehicle":"uav","poses":[[1,0,0,0,0,0,0,1]]}').poses).toHaveLength(1);
+    expect(parseMessage('{"type":"view_done","id":3,"session":"s1"}').id).toBe(3);
   });
 
-  it('treats absent reset/add/remove in a voxels message as no change', () => {
-    expect(parseMessage(voxels({}))).toMatchObject({ reset: false, add: [], remove: [] });
+  it('rejects what it cannot trust, naming the field', () => {
+    expect(() => parseMessage('{"type":"hello","protocol":1}')).toThrow(/protocol 1 is not supported/);
+    expect(() => parseMessage('{"type":"voxels"}')).toThrow(/unknown message type/);
+    expect(() => parseMessage('nope')).toThrow(ProtocolError);
+    expect(() => parseMessage('{"type":"poses","session":"s","poses":[[1,0,0,0,0,0,0,0]]}')).toThrow(/non-zero quaternion/);
+    expect(() => parseMessage('{"type":"map","session":"s","version":-1,"changed_ms":0,"voxels":0,"tiles":0}')).toThrow(/"version"/);
   });
+});
 
-  it.each([
-    ['bad JSON', '{"type": "voxels",', /not JSON/],
-    ['a non-object', '[1, 2, 3]', /must be a JSON object/],
-    ['an unknown type', '{"type": "teleport"}', /unknown message type "teleport"/],
-    ['a missing type', '{"id": "demo"}', /unknown message type nothing/],
-    ['a non-array add', voxels({ add: '1,2,3' }), /"add" must be an array/],
-    ['add not a multiple of 3', voxels({ add: [1, 2, 3, 4] }), /"add" must hold whole .* got 4 numbers/],
-    ['a fractional index', voxels({ remove: [1, 2.5, 3] }), /"remove"\[1\] must be an integer/],
-    ['a negative version', voxels({ version: -1 }), /"version" must be a non-negative integer, got -1/],
-    ['a zero resolution', voxels({ resolution: 0 }), /"resolution" must be a positive number/],
-    ['a non-boolean reset', voxels({ reset: 'yes' }), /"reset" must be true or false, got "yes"/],
-    ['a short pose', JSON.stringify({ type: 'poses', session: 'a', poses: [[0, 1, 2, 3, 0, 0, 0]] }), /"poses"\[0\] must be 8 finite numbers/],
-    ['a zero quaternion', JSON.stringify({ type: 'poses', session: 'a', poses: [[0, 1, 2, 3, 0, 0, 0, 0]] }), /non-zero quaternion/],
-    ['bad bounds', JSON.stringify({ type: 'session', id: 'a', vehicle: 'v', resolution: 0.1, frames: 0, occupied_voxels: 0, bounds: { min: [0, 0] } }), /"bounds" must be null or/],
-    ['another protocol version', '{"type": "hello", "protocol": 2}', /protocol 2 is not supported/],
-  ])('rejects %s', (_, text, reason) => {
-    expect(() => parseMessage(text)).toThrow(ProtocolError);
-    expect(() => parseMessage(text)).toThrow(reason);
+describe('viewer messages', () => {
+  it('say hello with the protocol and, when given, the token', () => {
+    expect(JSON.parse(helloMessage(null))).toEqual({ type: 'hello', protocol: 2 });
+    expect(JSON.parse(helloMessage('t'))).toEqual({ type: 'hello', protocol: 2, token: 't' });
+  });
+  it('round the viewport height', () => {
+    expect(JSON.parse(viewMessage({ id: 1, eye: [0, 0, 1], planes: [], fov: 50, height: 799.6, budget: 10, error: 2 })).height).toBe(800);
   });
 });

@@ -1,18 +1,19 @@
 // The 3D view of one session: renderer, z-up camera with orbit controls, lights, a grid on the
-// z = 0 plane, the voxel and trajectory layers. Entry point: MapView.requestRender() when
-// data changed, MapView.show(session) from the beforeRender callback. Frames are drawn on demand.
+// z = 0 plane, the tile and trajectory layers. Entry point: MapView.requestRender() when
+// data changed, MapView.show(session) from the beforeRender callback. Frames are drawn on
+// demand; cameraState() is what the server needs to choose tiles (the "view" message).
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import { TrajectoryLayer } from './trajectory_layer.js';
-import { VoxelLayer } from './voxel_layer.js';
+import { TileLayer } from './tile_layer.js';
 
 const kBackground = 0x0d1117;
 const kViewDirection = new THREE.Vector3(-0.55, -1, 0.75).normalize(); // from the south-west, above
 
 export class MapView {
   /** `container` receives the canvas; `beforeRender` is called once per drawn frame. */
-  constructor(container, beforeRender = () => {}) {
+  constructor(container, beforeRender = () => {}, onCameraMoved = () => {}) {
     this.container = container;
     this.beforeRender = beforeRender;
     this.renderer = new THREE.WebGLRenderer({ antialias: true });
@@ -33,12 +34,15 @@ export class MapView {
 
     this.grid = null;
     this.setGrid(new THREE.Vector3(), 20);
-    this.voxels = new VoxelLayer(this.scene);
+    this.tiles = new TileLayer(this.scene);
     this.trajectory = new TrajectoryLayer(this.scene);
 
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.enableDamping = true;
-    this.controls.addEventListener('change', () => this.requestRender());
+    this.controls.addEventListener('change', () => {
+      this.requestRender();
+      onCameraMoved();
+    });
     // Keep the map framed while it grows, until the user moves the camera ('fit' resumes it).
     this.autoFrame = true;
     this.framedBounds = new THREE.Box3();
@@ -46,15 +50,14 @@ export class MapView {
       this.autoFrame = false;
     });
 
-    this.shownId = null; // session and voxel revision the layers hold
-    this.shownVoxelRevision = null;
+    this.shownId = null; // the session the layers hold
     this.frameRequested = false;
     new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
   }
 
   get renderedVoxels() {
-    return this.voxels.count;
+    return this.tiles.count;
   }
 
   get trajectoryLength() {
@@ -62,7 +65,7 @@ export class MapView {
   }
 
   get heightRange() {
-    return this.voxels.heightRange;
+    return this.tiles.heightRange;
   }
 
   /**
@@ -76,17 +79,33 @@ export class MapView {
       this.autoFrame = true;
       this.framedBounds.makeEmpty();
     }
-    const voxelRevision = session ? session.voxelRevision : null;
-    if (voxelRevision !== this.shownVoxelRevision) {
-      this.voxels.setVoxels(session?.voxels ?? new Map(), session?.resolution ?? 1);
-      this.shownVoxelRevision = voxelRevision;
-    }
+    this.tiles.sync(session);
     this.trajectory.setPoses(session?.poses ?? [], session?.poseEpoch ?? null);
-    if (this.autoFrame && this.voxels.count > 0 && !this.framedBounds.containsBox(this.drawnBounds())) this.fit();
+    if (this.autoFrame && this.tiles.count > 0 && !this.framedBounds.containsBox(this.drawnBounds())) this.fit();
   }
 
   drawnBounds() {
-    return this.voxels.bounds.clone().union(this.trajectory.bounds);
+    return this.tiles.bounds.clone().union(this.trajectory.bounds);
+  }
+
+  /** Fits the camera to `bounds` ({min, max} in metres, the server's) before tiles arrive. */
+  fitBounds(bounds) {
+    if (!bounds) return;
+    this.tiles.bounds.union(new THREE.Box3(new THREE.Vector3(...bounds.min), new THREE.Vector3(...bounds.max)));
+    this.fit();
+  }
+
+  /** Eye, frustum planes, vertical fov (degrees) and viewport height (pixels): the "view". */
+  cameraState() {
+    this.camera.updateMatrixWorld();
+    const frustum = new THREE.Frustum().setFromProjectionMatrix(
+      new THREE.Matrix4().multiplyMatrices(this.camera.projectionMatrix, this.camera.matrixWorldInverse));
+    return {
+      eye: this.camera.position.toArray(),
+      planes: frustum.planes.map((p) => [p.normal.x, p.normal.y, p.normal.z, p.constant]),
+      fov: this.camera.fov,
+      height: this.renderer.domElement.height || 800,
+    };
   }
 
   /** Points the camera at everything drawn and keeps it framed from now on. */

@@ -1,6 +1,6 @@
-#include "server/net/url.hpp"
+#include "common/url.hpp"
 
-namespace stereomap::net {
+namespace stereomap::common {
 
 namespace {
 
@@ -48,4 +48,13 @@ std::optional<std::string> queryParameter(std::string_view target, std::string_v
   return std::nullopt;
 }
 
-}  // namespace stereomap::net
+bool sameSecret(std::string_view given, std::string_view expected) {
+  if (expected.empty()) return given.empty();
+  unsigned char difference = given.size() == expected.size() ? 0 : 1;
+  for (size_t i = 0; i < given.size(); ++i) {
+    difference |= static_cast<unsigned char>(given[i] ^ expected[i % expected.size()]);
+  }
+  return difference == 0;
+}
+
+}  // namespace stereomap::common

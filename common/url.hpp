@@ -1,4 +1,4 @@
-// The parts of a request target the server reads itself: percent escapes and query
+// The parts of an HTTP request target the server reads itself: percent escapes and query
 // parameters. Both refuse what they cannot read rather than guess.
 #pragma once
 
@@ -6,7 +6,7 @@
 #include <string>
 #include <string_view>
 
-namespace stereomap::net {
+namespace stereomap::common {
 
 // "%41" -> "A"; nullopt for a broken escape or an encoded NUL.
 std::optional<std::string> percentDecoded(std::string_view text);
@@ -16,4 +16,8 @@ std::optional<std::string> percentDecoded(std::string_view text);
 // "token"); the first of repeated names wins.
 std::optional<std::string> queryParameter(std::string_view target, std::string_view name);
 
-}  // namespace stereomap::net
+// Compares in time that depends only on the lengths, so that a secret (a token) cannot be
+// guessed byte by byte from response times.
+bool sameSecret(std::string_view given, std::string_view expected);
+
+}  // namespace stereomap::common

@@ -1,0 +1,264 @@
+// Protocol 2 without the network: handshake, subscriptions, views, pushes, coalescing and
+// the closing of stuck or hostile viewers, over a real MapServer fusing real clouds.
+#include "server/viewers/viewer_hub.hpp"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <map>
+
+#include "common/time.hpp"
+#include "tests/support/synthetic.hpp"
+
+namespace stereomap::viewers {
+namespace {
+
+using nlohmann::json;
+using proto::tiles::TileCells;
+using tiles::TileKey;
+
+// A wall 2 m (+ 0.3 m per `wall`) in front of the camera.
+proto::CloudFrameMsg wallFrame(const std::string& session, int seq, int wall = -1) {
+  return testing::planeFrame("v1", session, static_cast<uint64_t>(seq),
+                             testing::planeCloud(2.05 + 0.3 * (wall < 0 ? seq : wall), 0.5, 0.03));
+}
+
+proto::PoseMsg pose(const std::string& session, int seq) {
+  proto::PoseMsg msg;
+  msg.vehicle_id = "v1";
+  msg.session_id = session;
+  msg.seq = static_cast<uint64_t>(seq);
+  msg.stamp_ns = 1000 + seq;
+  msg.position = {0.1 * seq, 0, 0};
+  return msg;
+}
+
+// What a viewer holds after applying what it was sent: level-0 cells by tile, and texts.
+struct Received {
+  std::map<TileKey, TileCells> tiles;
+  std::vector<json> texts;
+  size_t binary = 0;
+  std::vector<json> ofType(const std::string& type) const {
+    std::vector<json> out;
+    for (const auto& t : texts)
+      if (t["type"] == type) out.push_back(t);
+    return out;
+  }
+};
+
+void drain(ViewerHub& hub, ViewerHub::Id id, Received& into) {
+  while (auto message = hub.next(id, common::nowNs())) {
+    if (message->binary) {
+      auto tile = proto::tiles::decodeTile(*message->bytes);
+      ASSERT_TRUE(tile.ok()) << tile.error().message;
+      ++into.binary;
+      if (tile->cells.size() == 0) {
+        into.tiles.erase(tile->header.key);
+      } else {
+        into.tiles[tile->header.key] = tile->cells;
+      }
+    } else {
+      into.texts.push_back(json::parse(*message->bytes));
+    }
+    hub.written(id);
+  }
+}
+
+std::map<TileKey, TileCells> truth(const core::Session& session) {
+  std::map<TileKey, TileCells> out;
+  for (const auto& info : session.tiles().list()) out[info.key] = session.tiles().find(info.key)->cells(0);
+  return out;
+}
+
+const std::string kHello = R"({"type": "hello", "protocol": 2})";
+// Every tile at level 0: a huge budget and a tiny screen-space error.
+const std::string kFineView =
+    R"({"type": "view", "id": 7, "eye": [0, 0, 1], "budget": 10000000, "error": 0.25})";
+
+TEST(ViewerHub, EarlyAndLateViewersHoldExactlyTheServersMap) {
+  core::MapServer server({.resolution = 0.1});
+  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+  server.find("s")->waitUntilIdle();
+  ViewerHub hub(server, nullptr, {});
+  const auto early = hub.connect(true, common::nowNs());
+  Received early_got;
+  hub.receive(early, kHello, 0);
+  hub.receive(early, R"({"type": "subscribe", "session": "s"})", 0);
+  hub.receive(early, kFineView, 0);
+  drain(hub, early, early_got);
+  ASSERT_EQ(early_got.ofType("hello").size(), 1u);
+  EXPECT_EQ(early_got.ofType("hello")[0]["protocol"], 2);
+  ASSERT_EQ(early_got.ofType("sessions").size(), 1u);
+  ASSERT_EQ(early_got.ofType("subscribed").size(), 1u);
+  ASSERT_EQ(early_got.ofType("view_done").size(), 1u);
+  EXPECT_EQ(early_got.ofType("view_done")[0]["id"], 7);
+  EXPECT_EQ(early_got.tiles, truth(*server.find("s")));
+
+  for (int frame = 1; frame < 5; ++frame) {
+    ASSERT_TRUE(server.ingest(wallFrame("s", frame)));
+    ASSERT_TRUE(server.ingest(pose("s", frame)));
+    server.find("s")->waitUntilIdle();
+    hub.poll(common::nowNs());
+    drain(hub, early, early_got);
+  }
+  const auto expected = truth(*server.find("s"));
+  size_t voxels = 0;
+  for (const auto& [key, cells] : expected) voxels += cells.size();
+  EXPECT_GT(voxels, 200u);
+  EXPECT_EQ(early_got.tiles, expected);
+  const auto markers = early_got.ofType("map");
+  ASSERT_FALSE(markers.empty());
+  EXPECT_EQ(markers.back()["voxels"], voxels);
+  EXPECT_GT(markers.back()["changed_ms"].get<double>(), 1.7e12);  // Unix time, in ms
+  size_t poses = 0;
+  for (const auto& m : early_got.ofType("poses")) poses += m["poses"].size();
+  EXPECT_EQ(poses, 4u);
+
+  const auto late = hub.connect(true, common::nowNs());
+  Received late_got;
+  hub.receive(late, kHello, 0);
+  hub.receive(late, R"({"type": "subscribe", "session": "s"})", 0);
+  hub.receive(late, kFineView, 0);
+  drain(hub, late, late_got);
+  EXPECT_EQ(late_got.tiles, expected);
+  poses = 0;
+  for (const auto& m : late_got.ofType("poses")) poses += m["poses"].size();
+  EXPECT_EQ(poses, 4u);
+  // The trajectory on request, from an index.
+  hub.receive(late, R"({"type": "trajectory", "from": 2})", 0);
+  Received asked;
+  drain(hub, late, asked);
+  ASSERT_EQ(asked.ofType("poses").size(), 1u);
+  EXPECT_EQ(asked.ofType("poses")[0]["poses"].size(), 2u);
+  EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2);
+}
+
+TEST(ViewerHub, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
+  core::MapServer server({.resolution = 0.1});
+  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+  server.find("s")->waitUntilIdle();
+  ViewerHub hub(server, nullptr, {});
+  const auto id = hub.connect(true, 0);
+  Received got;
+  hub.receive(id, kHello, 0);
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  hub.receive(id, kFineView, 0);
+  drain(hub, id, got);
+  const size_t before = got.binary;
+  std::set<TileKey> changed;
+  uint64_t version = server.find("s")->tiles().summary().version;
+  for (int frame = 1; frame < 6; ++frame) {  // the viewer reads nothing meanwhile
+    ASSERT_TRUE(server.ingest(wallFrame("s", frame, frame % 2)));
+    server.find("s")->waitUntilIdle();
+    const auto since = server.find("s")->tiles().changedSince(version);
+    ASSERT_TRUE(since);
+    for (const auto& [key, v] : *since) changed.insert(key);
+    version = server.find("s")->tiles().summary().version;
+    hub.poll(common::nowNs());
+  }
+  drain(hub, id, got);
+  EXPECT_EQ(got.binary - before, changed.size());  // once per tile, not once per change
+  EXPECT_EQ(got.tiles, truth(*server.find("s")));
+}
+
+TEST(ViewerHub, HandshakeAndTokens) {
+  core::MapServer server({.resolution = 0.1});
+  ViewerHub hub(server, nullptr, {.token = "t0ken"});
+  auto before_hello = hub.connect(false, 0);
+  hub.receive(before_hello, R"({"type": "list"})", 0);
+  ASSERT_TRUE(hub.closing(before_hello));
+  EXPECT_EQ(hub.closing(before_hello)->code, 1008);
+
+  auto old_protocol = hub.connect(false, 0);
+  hub.receive(old_protocol, R"({"type": "hello", "protocol": 1, "token": "t0ken"})", 0);
+  ASSERT_TRUE(hub.closing(old_protocol));
+  EXPECT_EQ(hub.closing(old_protocol)->code, 1002);
+
+  auto bad_token = hub.connect(false, 0);
+  hub.receive(bad_token, R"({"type": "hello", "protocol": 2, "token": "guess"})", 0);
+  ASSERT_TRUE(hub.closing(bad_token));
+  EXPECT_NE(hub.closing(bad_token)->reason.find("token"), std::string::npos);
+
+  auto good = hub.connect(false, 0);
+  hub.receive(good, R"({"type": "hello", "protocol": 2, "token": "t0ken"})", 0);
+  EXPECT_FALSE(hub.closing(good));
+  auto by_upgrade = hub.connect(true, 0);  // the token came with the upgrade request
+  hub.receive(by_upgrade, kHello, 0);
+  EXPECT_FALSE(hub.closing(by_upgrade));
+
+  auto silent = hub.connect(false, 0);
+  hub.poll(11'000'000'000);
+  ASSERT_TRUE(hub.closing(silent));
+  EXPECT_NE(hub.closing(silent)->reason.find("no hello"), std::string::npos);
+  EXPECT_FALSE(hub.closing(good));
+}
+
+TEST(ViewerHub, BadMessagesAreAnsweredAndTooManyClose) {
+  core::MapServer server({.resolution = 0.1});
+  ViewerHub hub(server, nullptr, {});
+  const auto id = hub.connect(true, 0);
+  hub.receive(id, kHello, 0);
+  Received got;
+  drain(hub, id, got);
+  const std::vector<std::string> bad = {
+      "{not json",
+      "[1, 2, 3]",
+      R"({"no_type": 1})",
+      R"({"type": "teleport"})",
+      R"({"type": "subscribe", "session": "../etc"})",
+      R"({"type": "view", "eye": [0, 0, 1]})",  // not subscribed
+      std::string(20, '[') + std::string(20, ']'),
+      R"({"type": "hello", "protocol": 2})",
+  };
+  for (const auto& text : bad) {
+    got.texts.clear();
+    hub.receive(id, text, 0);
+    drain(hub, id, got);
+    ASSERT_EQ(got.ofType("error").size(), 1u) << text;
+    EXPECT_FALSE(hub.closing(id)) << text;
+  }
+  got.texts.clear();
+  hub.receive(id, R"({"type": "subscribe", "session": "missing"})", 0);
+  drain(hub, id, got);
+  ASSERT_EQ(got.ofType("error").size(), 1u);
+  EXPECT_EQ(got.ofType("error")[0]["code"], "not_found");
+
+  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+  server.find("s")->waitUntilIdle();
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  for (const char* view : {R"({"type": "view", "eye": [0, 0]})",
+                           R"({"type": "view", "eye": [0, 0, 1], "budget": -5})",
+                           R"({"type": "view", "eye": [0, 0, 1], "fov": 1e300})",
+                           R"({"type": "view", "eye": [0, 0, 1], "planes": [[1, 2, 3]]})"}) {
+    got.texts.clear();
+    hub.receive(id, view, 0);
+    drain(hub, id, got);
+    EXPECT_EQ(got.ofType("error").size(), 1u) << view;
+  }
+  for (int i = 0; i < 20 && !hub.closing(id); ++i) hub.receive(id, "nonsense", 0);
+  ASSERT_TRUE(hub.closing(id));
+  EXPECT_NE(hub.closing(id)->reason.find("too many bad messages"), std::string::npos);
+  hub.receiveBinary(id, 10);  // after closing: ignored, no crash
+}
+
+TEST(ViewerHub, AViewerThatStopsReadingIsClosedWithAReason) {
+  core::MapServer server({.resolution = 0.1});
+  ViewerHub hub(server, nullptr, {.stuck_after = std::chrono::milliseconds(500)});
+  const auto stuck = hub.connect(true, 0);
+  const auto fine = hub.connect(true, 0);
+  hub.receive(stuck, kHello, 0);
+  hub.receive(fine, kHello, 0);
+  ASSERT_TRUE(hub.next(stuck, 1'000'000'000));  // a write that never completes
+  Received got;
+  drain(hub, fine, got);
+  hub.poll(1'400'000'000);
+  EXPECT_FALSE(hub.closing(stuck));
+  hub.poll(1'600'000'000);
+  ASSERT_TRUE(hub.closing(stuck));
+  EXPECT_NE(hub.closing(stuck)->reason.find("stuck"), std::string::npos);
+  EXPECT_FALSE(hub.closing(fine));
+  EXPECT_EQ(hub.stats().closed_stuck, 1u);
+}
+
+}  // namespace
+}  // namespace stereomap::viewers
