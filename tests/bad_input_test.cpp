@@ -1,13 +1,20 @@
 // Cross-process: a real stereomap-server receives bad samples over real DDS (a truncated
 // Draco payload, a NaN pose, an oversize cloud, a non-unit quaternion) between good ones.
 // It must stay up, count each rejection with its reason, and keep fusing the good samples.
+// And hostile viewers on /ws (protocol 2): malformed JSON, unknown types, huge, unmasked and
+// binary frames, bad tokens, missing sessions: a clear error, the connection closed where it
+// must be, the server unaffected.
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+
+#include <filesystem>
+#include <fstream>
 
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/synthetic.hpp"
+#include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -105,6 +112,85 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   EXPECT_EQ(server.get("/healthz").status, 200);
   EXPECT_TRUE(server.process().running());
   EXPECT_EQ(server.process().stop(), 0) << "the server should stop cleanly on SIGTERM";
+}
+
+TEST(BadInput, HostileViewersGetClearErrorsAndTheServerLivesOn) {
+  constexpr int kViewerDomain = 84;
+  const std::string token = "viewer-t0ken";
+  const std::string token_file = makeTempDir("stereomap-ws-token") + "/token";
+  std::ofstream(token_file) << token << "\n";
+  ServerProcess server(kViewerDomain, {"--token-file", token_file});
+  using Kind = WsMessage::Kind;
+
+  {  // A bad token in hello: closed with the reason.
+    WebSocketClient ws(server.port());
+    ASSERT_EQ(ws.status(), 101);
+    ws.sendText(R"({"type": "hello", "protocol": 2, "token": "guess"})");
+    const auto closed = ws.read();
+    ASSERT_EQ(closed.kind, Kind::kClose);
+    EXPECT_EQ(closed.close_code, 1008);
+    EXPECT_NE(closed.payload.find("token"), std::string::npos) << closed.payload;
+  }
+  {  // Anything before hello: closed.
+    WebSocketClient ws(server.port());
+    ws.sendText(R"({"type": "subscribe", "session": "x"})");
+    EXPECT_EQ(ws.read().kind, Kind::kClose);
+  }
+  {  // An old viewer (protocol 1): told which protocol this server speaks.
+    WebSocketClient ws(server.port(), "/ws?token=" + token);
+    ws.sendText(R"({"type": "hello", "protocol": 1})");
+    const auto closed = ws.read();
+    ASSERT_EQ(closed.kind, Kind::kClose);
+    EXPECT_EQ(closed.close_code, 1002);
+    EXPECT_NE(closed.payload.find("protocol 2"), std::string::npos) << closed.payload;
+  }
+  {  // With the token: every bad message answered, the connection kept.
+    WebSocketClient ws(server.port());
+    ws.sendText(R"({"type": "hello", "protocol": 2, "token": ")" + token + R"("})");
+    ASSERT_EQ(ws.readUntil("\"hello\"").kind, Kind::kText);
+    ASSERT_EQ(ws.readUntil("\"sessions\"").kind, Kind::kText);
+    const std::vector<std::pair<std::string, std::string>> bad = {
+        {"{\"type\": ", "not a JSON object"},
+        {"[1, 2]", "not a JSON object"},
+        {R"({"type": "launch"})", "unknown message type"},
+        {R"({"type": 7})", "a message needs"},
+        {R"({"type": "subscribe", "session": "no-such-flight"})", "no session 'no-such-flight'"},
+        {R"({"type": "subscribe", "session": "../../etc/passwd"})", "subscribe wants"},
+        {R"({"type": "view", "eye": [1, 2, 3]})", "subscribe to a session first"},
+        {std::string(100, '[') + std::string(100, ']'), "nested too deeply"},
+    };
+    for (const auto& [text, expected] : bad) {
+      SCOPED_TRACE(text.substr(0, 40));
+      ASSERT_TRUE(ws.sendText(text));
+      const auto answer = ws.readUntil("\"error\"");
+      ASSERT_EQ(answer.kind, Kind::kText);
+      EXPECT_NE(answer.payload.find(expected), std::string::npos) << answer.payload;
+    }
+    ASSERT_TRUE(ws.sendBinary(std::string(100, '\x01')));
+    EXPECT_NE(ws.readUntil("\"error\"").payload.find("binary"), std::string::npos);
+    ws.sendText(R"({"type": "ping", "t": 5})");
+    EXPECT_EQ(ws.readUntil("pong").kind, Kind::kText);  // still talking
+  }
+  {  // A frame over the 64 kB limit: the connection goes.
+    WebSocketClient ws(server.port(), "/ws?token=" + token);
+    ws.sendText(R"({"type": "hello", "protocol": 2})");
+    ws.readUntil("\"sessions\"");
+    ws.sendText(R"({"type": "ping", "pad": ")" + std::string(200'000, 'x') + "\"}");
+    const auto after = ws.readUntil("pong", 5s);
+    EXPECT_NE(after.kind, Kind::kText);  // closed (1009) or dropped, never answered
+  }
+  {  // An unmasked client frame breaks RFC 6455: the connection goes.
+    WebSocketClient ws(server.port(), "/ws?token=" + token);
+    ws.sendFrame(0x1, R"({"type": "hello", "protocol": 2})", /*masked=*/false);
+    EXPECT_NE(ws.readUntil("\"hello\"", 5s).kind, Kind::kText);
+  }
+  // The server is up and serves the next viewer as if nothing happened.
+  EXPECT_EQ(server.get("/healthz").status, 200);
+  WebSocketClient ws(server.port(), "/ws?token=" + token);
+  ws.sendText(R"({"type": "hello", "protocol": 2})");
+  EXPECT_EQ(ws.readUntil("\"sessions\"").kind, Kind::kText);
+  EXPECT_TRUE(server.process().running());
+  std::filesystem::remove_all(std::filesystem::path(token_file).parent_path());
 }
 
 }  // namespace
