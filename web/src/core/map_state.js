@@ -68,11 +68,14 @@ export class MapStore {
     this.lastLatency = null; // ms from the server's map change to its tiles here (same clock only)
   }
 
-  /** The live session that changed most recently, else the last one listed; null when none. */
+  /**
+   * The session to follow: the live one that changed most recently, else the last loaded one
+   * (ended or opened), else the last stored one; null when there is none.
+   */
   get latestSessionId() {
     const all = [...this.statuses.values()];
-    const live = all.filter((s) => s.state === 'live');
-    return (live.at(-1) ?? all.at(-1))?.id ?? null;
+    const last = (states) => all.filter((s) => states.includes(s.state)).at(-1);
+    return (last(['live']) ?? last(['ended', 'opened']) ?? all.at(-1))?.id ?? null;
   }
 
   /** Starts over for `id` (a new subscription); its data arrives from now on. */

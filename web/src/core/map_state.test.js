@@ -18,6 +18,9 @@ describe('MapStore', () => {
     expect(store.latestSessionId).toBe('a');
     store.apply(parseMessage('{"type":"session_removed","id":"a"}'));
     expect(store.latestSessionId).toBe('c');
+    // No live session: a loaded one before a stored one, whatever the order.
+    store.apply(parseMessage(JSON.stringify({ type: 'sessions', sessions: [status('e', 'ended'), status('f', 'closed')] })));
+    expect(store.latestSessionId).toBe('e');
   });
 
   it('keeps the subscribed session\'s tiles, newest version wins, empty tiles go', () => {
