@@ -1,20 +1,26 @@
 #!/usr/bin/env node
 // End-to-end test of the browser viewer: a real stereomap-server and stereomap-onboard (sim
 // source) over DDS on loopback, the built viewer in headless Debian chromium. Checks that the
-// page ends up drawing exactly the server's occupied voxels, frame count and trajectory.
+// page ends up drawing exactly the server's occupied voxels, frame count and trajectory; then
+// (with ../shared/data) the imported Freiburg campus map at the levels the server chose, tile
+// by tile against GET /api/sessions/campus/tiles; switching sessions; and a page that
+// reconnects by itself after the server restarts. Screenshots sit beside --screenshot.
 //
 // Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P
 //                       --screenshot FILE [--frames 60]
 // Prints "1 passed, 0 failed" and exits 0, or "0 passed, 1 failed" and exits 1; 2 on bad usage.
 
 import { spawn } from 'node:child_process';
+import { existsSync } from 'node:fs';
 import { mkdtemp, mkdir, rm } from 'node:fs/promises';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
 import { pathToFileURL } from 'node:url';
 import { parseArgs } from 'node:util';
 
-const kOverallTimeoutMs = 240_000;
+const kOverallTimeoutMs = 300_000;
+const kCampusTimeoutMs = 90_000;
+const kCampusMap = new URL('../../../shared/data/octomap_samples/fr_campus.bt', import.meta.url).pathname;
 const kHealthTimeoutMs = 20_000;
 const kFirstVoxelsTimeoutMs = 60_000;
 const kServerSettleTimeoutMs = 60_000;
@@ -139,11 +145,26 @@ async function run(options, resources, progress) {
   const base = `http://127.0.0.1:${port}`;
   const ddsArgs = ['--dds-config', ddsConfig, '--domain', String(domain)];
 
-  progress.step = 'starting the server';
+  progress.step = 'importing the campus map';
   resources.store = await mkdtemp(path.join(tmpdir(), 'stereomap-e2e-store-'));
-  const server = start('stereomap-server', path.join(binDir, 'stereomap-server'),
-    ['--http', `127.0.0.1:${port}`, '--store', resources.store, ...ddsArgs, '--web-root', webRoot], ddsEnv);
-  resources.procs.push(server);
+  const withCampus = existsSync(kCampusMap);
+  if (withCampus) {
+    const importer = start('stereomap-store import', path.join(binDir, 'stereomap-store'),
+      ['--store', resources.store, 'import', kCampusMap, '--session', 'campus'], {});
+    const { code } = await importer.exited;
+    if (code !== 0) throw new TestFailure(`expected stereomap-store import to exit 0, seen ${code}: ${importer.output.join(' | ')}`);
+  } else {
+    console.log(`skipping the campus part: ${kCampusMap} is absent`);
+  }
+
+  progress.step = 'starting the server';
+  const startServer = () => {
+    const proc = start('stereomap-server', path.join(binDir, 'stereomap-server'),
+      ['--http', `127.0.0.1:${port}`, '--store', resources.store, ...ddsArgs, '--web-root', webRoot], ddsEnv);
+    resources.procs.push(proc);
+    return proc;
+  };
+  let server = startServer();
   const serverAlive = () => expectRunningOrSuccess(server);
   const get = async (urlPath) => {
     try {
@@ -153,23 +174,30 @@ async function run(options, resources, progress) {
       return { status: null, body: error.cause?.code ?? error.message };
     }
   };
-  await waitUntil(`GET /healthz to answer 200`, kHealthTimeoutMs, 200, async () => {
+  const healthy = () => waitUntil(`GET /healthz to answer 200`, kHealthTimeoutMs, 200, async () => {
     const { status, body } = await get('/healthz');
     return { ok: status === 200, seen: status === null ? `no answer (${body})` : `status ${status}` };
   }, serverAlive);
+  await healthy();
 
   progress.step = 'opening the viewer in chromium';
   const chromium = await loadChromium();
   resources.browser = await chromium.launch({ executablePath: '/usr/bin/chromium', args: kChromiumFlags });
   const page = await resources.browser.newPage({ viewport: { width: 1280, height: 800 } });
   const pageErrors = [];
+  let serverDown = false; // while the server restarts, the browser's own "connection failed" is expected
   page.on('pageerror', (error) => pageErrors.push(`uncaught: ${error.message}`));
   page.on('console', (message) => {
-    if (message.type() === 'error') pageErrors.push(`console.error: ${message.text()}`);
+    if (message.type() !== 'error') return;
+    if (serverDown && /WebSocket connection to .* failed/.test(message.text())) return;
+    pageErrors.push(`console.error: ${message.text()}`);
   });
+  const noPageErrors = () => {
+    if (pageErrors.length) throw new TestFailure(`expected no page errors, seen ${pageErrors.length}:\n  ${pageErrors.join('\n  ')}`);
+  };
   const pageHealthy = () => {
     serverAlive();
-    if (pageErrors.length) throw new TestFailure(`expected no page errors, seen ${pageErrors.length}:\n  ${pageErrors.join('\n  ')}`);
+    noPageErrors();
   };
   // Every tile at the finest level, so that the page's count is the server's exactly.
   const response = await page.goto(`${base}/?error=0.25&budget=20000000`);
@@ -245,6 +273,71 @@ async function run(options, resources, progress) {
   if (coloured < kMinColouredFraction) {
     throw new TestFailure(`expected at least ${100 * kMinColouredFraction} % of the view in the voxels' colours, seen ${(100 * coloured).toFixed(2)} %`);
   }
+  pageHealthy();
+
+  // Every tile the page holds has, at its level, exactly the cells the server's index lists,
+  // and every tile of the map is held at some level.
+  const tilesMatch = async (onPage, id) => {
+    const { status, body } = await get(`/api/sessions/${id}/tiles`);
+    if (status !== 200) return { ok: false, seen: `GET /api/sessions/${id}/tiles status ${status}` };
+    const index = JSON.parse(body);
+    const cells = new Map(index.tiles.map((t) => [`${t.level}/${t.key}`, t.voxels]));
+    const keys = new Set(index.tiles.filter((t) => t.level === 0).map((t) => t.key));
+    const held = await onPage.evaluate(() => ({ session: window.__stereomap.session, tiles: window.__stereomap.tiles() }));
+    if (held.session !== id) return { ok: false, seen: `session ${held.session}` };
+    const wrong = held.tiles.filter((t) => cells.get(`${t.level}/${t.key}`) !== t.cells);
+    const missing = [...keys].filter((k) => !held.tiles.some((t) => t.key === k));
+    const levels = {};
+    for (const t of held.tiles) levels[t.level] = (levels[t.level] ?? 0) + t.cells;
+    return {
+      ok: wrong.length === 0 && missing.length === 0 && held.tiles.length === keys.size,
+      seen: `${held.tiles.length} of ${keys.size} tiles held, cells per level ${JSON.stringify(levels)}, ` +
+        `${wrong.length} differ from the server, ${missing.length} missing`,
+      levels,
+    };
+  };
+
+  if (withCampus) {
+    progress.step = 'opening the imported campus map in a second page';
+    const opened = await fetch(`${base}/api/sessions/campus/open`, { method: 'POST' });
+    if (opened.status !== 200) throw new TestFailure(`expected POST /api/sessions/campus/open to answer 200, seen ${opened.status}`);
+    const campusPage = await resources.browser.newPage({ viewport: { width: 1280, height: 800 } });
+    campusPage.on('pageerror', (error) => pageErrors.push(`campus page uncaught: ${error.message}`));
+    await campusPage.goto(`${base}/?session=campus`);
+    const campus = await waitUntil('the campus page to hold every tile at the level the server chose, cells equal to the index',
+      kCampusTimeoutMs, 1000, () => tilesMatch(campusPage, 'campus'), pageHealthy);
+    console.log(`campus page: ${campus.seen}`);
+    if (Object.keys(campus.levels).length < 2) throw new TestFailure(`expected the campus at several levels of detail, seen ${JSON.stringify(campus.levels)}`);
+    await campusPage.waitForTimeout(500);
+    const campusShot = options.screenshot.replace(/\.png$/, '') + '_campus.png';
+    await campusPage.screenshot({ path: campusShot });
+    console.log(`screenshot: ${campusShot}`);
+
+    progress.step = 'switching the campus page to the live session and back';
+    await campusPage.selectOption('#session-select', 'e2e');
+    await waitUntil('the campus page to show session e2e', kPageCatchUpTimeoutMs, 250, () => tilesMatch(campusPage, 'e2e'), pageHealthy);
+    await campusPage.selectOption('#session-select', 'campus');
+    await waitUntil('the campus page to show the campus again', kCampusTimeoutMs, 1000, () => tilesMatch(campusPage, 'campus'), pageHealthy);
+    await campusPage.close();
+  }
+
+  progress.step = 'restarting the server under the open page';
+  serverDown = true;
+  await stop(server);
+  await waitUntil('the page to notice the server is gone', 10_000, 100, async () => {
+    const h = await hook();
+    return { ok: h !== null && !h.connected, seen: shown(h) };
+  }, noPageErrors);
+  server = startServer();
+  await healthy();
+  const back = await waitUntil('the page to reconnect by itself and hold the e2e map again', kPageCatchUpTimeoutMs, 250,
+    async () => {
+      const h = await hook();
+      if (!h?.connected) return { ok: false, seen: shown(h) };
+      return tilesMatch(page, 'e2e');
+    }, pageHealthy);
+  console.log(`after the restart: ${back.seen}`);
+  serverDown = false;
   pageHealthy();
 }
 

@@ -6,7 +6,7 @@
 
 import { rampCssGradient } from './core/colour_ramp.js';
 import { statusText } from './core/format.js';
-import { MapStore } from './core/map_state.js';
+import { MapStore, tileKeyText } from './core/map_state.js';
 import { ProtocolError, helloMessage, parseMessage, subscribeMessage, viewMessage } from './core/protocol.js';
 import { TileFormatError, decodeTile } from './core/tile_codec.js';
 import { MapView } from './three/map_view.js';
@@ -216,12 +216,9 @@ window.__stereomap = {
     return displayedSessionId();
   },
   renderedVoxels: () => view.renderedVoxels,
-  // Cells held per level of detail: {level: cells}.
-  levels: () => {
-    const counts = {};
-    for (const tile of store.subscribed?.tiles.values() ?? []) counts[tile.level] = (counts[tile.level] ?? 0) + tile.codes.length;
-    return counts;
-  },
+  // The tiles held for the session shown: [{key: "x_y_z", level, cells}].
+  tiles: () => (store.subscribed?.id === displayedSessionId() ? [...store.subscribed.tiles.values()] : [])
+    .map((t) => ({ key: tileKeyText(t.key), level: t.level, cells: t.codes.length })),
   trajectoryLength: () => view.trajectoryLength,
   frames: () => (store.subscribed?.id === displayedSessionId() ? store.subscribed.frames : 0),
 };
