@@ -55,6 +55,28 @@ std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
   return found;
 }
 
+std::vector<std::string> removeLeftoverTemporaries(const fs::path& dir) {
+  std::vector<std::string> removed;
+  const auto entries = common::directoryEntries(dir);
+  if (!entries) return removed;
+  for (const auto& path : *entries) {
+    const std::string name = path.filename().string();
+    const size_t at = name.rfind(".tmp-");
+    if (at == std::string::npos || at == 0) continue;
+    const std::string rest = name.substr(at + 5);  // <pid>-<n>
+    const size_t dash = rest.find('-');
+    auto digits = [](const std::string& text) {
+      return !text.empty() && std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
+    };
+    if (dash == std::string::npos || !digits(rest.substr(0, dash)) || !digits(rest.substr(dash + 1))) {
+      continue;
+    }
+    std::error_code ec;
+    if (fs::remove(path, ec)) removed.push_back(name);
+  }
+  return removed;
+}
+
 uint64_t legacySnapshotNumber(const JournalReplay& replay, uint64_t frames) {
   if (replay.version != 1 || !replay.damage.empty() || frames == 0) return 0;
   uint64_t clouds = 0;

@@ -71,6 +71,11 @@ struct RepairReport {
 // intact and already format 2.
 common::Result<RepairReport> repairJournal(const std::filesystem::path& dir);
 
+// Removes what a crash left in <dir>: temporaries of atomic writes (`NAME.tmp-<pid>-<n>`,
+// e.g. a snapshot killed mid-write); the files they were to replace are intact. Returns the
+// names removed.
+std::vector<std::string> removeLeftoverTemporaries(const std::filesystem::path& dir);
+
 inline constexpr const char* kJournalName = "journal.smj";
 // The size of a session directory's journal (0 when there is none).
 uint64_t journalBytes(const std::filesystem::path& session_dir);

@@ -271,6 +271,9 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   }
   auto replay = readJournal(dir / kJournalName);
   if (!replay) return replay.error();
+  for (const auto& name : removeLeftoverTemporaries(dir)) {
+    spdlog::info("session '{}': removed {}, left by a write that did not finish", id, name);
+  }
   auto created =
       server_.createSession(id, resolutionOf(dir, options_.default_resolution), read_only);
   if (!created) return created.error();

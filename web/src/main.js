@@ -21,10 +21,12 @@ const kBudget = Number(params.get('budget')) || 1_000_000; // cells drawn at mos
 const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look before a finer level is due
 
 const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'colour-select', 'legend',
-  'legend-bar', 'legend-max', 'legend-min', 'legend-title'].map((id) => [id, document.getElementById(id)]));
+  'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result']
+  .map((id) => [id, document.getElementById(id)]));
 
 const store = new MapStore();
 const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0 };
+const rate = { frames: null, atMs: 0, perSecond: 0 }; // the subscribed session's fused frames per second
 let pinnedSessionId = params.get('session'); // null: follow the latest
 let dataChanged = false; // messages arrived since the view was last synchronised
 let viewId = 0;
@@ -86,6 +88,7 @@ function updateStatus() {
     frames: session?.frames ?? 0,
     ageSeconds: session?.lastMessageMs ? (Date.now() - session.lastMessageMs) / 1000 : null,
   });
+  if (session?.status?.state === 'live') text += ` · ${rate.perSecond.toFixed(1)} frames/s`;
   if (link.connected) text += ` · ${(link.bytesPerSecond / 1024).toFixed(0)} kB/s`;
   if (store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
   if (subscribeError) text += ` · ${subscribeError}`;
@@ -201,10 +204,49 @@ elements['colour-select'].addEventListener('change', (event) => {
   dataChanged = true;
   view.requestRender();
 });
-elements['fit-button'].addEventListener('click', () => view.fit());
+elements['fit-button'].addEventListener('click', () => {
+  elements['follow-check'].checked = false;
+  view.following = false;
+  view.fit();
+});
+elements['follow-check'].addEventListener('change', (event) => {
+  view.following = event.target.checked;
+  dataChanged = true;
+  view.requestRender();
+});
+
+function setMeasuring(on) {
+  view.measure.on = on;
+  elements['measure-button'].classList.toggle('active', on);
+  elements['measure-result'].hidden = !on;
+  elements['measure-result'].textContent = on ? 'measure: click a first point on the map' : '';
+  if (!on) view.clearMeasure();
+}
+elements['measure-button'].addEventListener('click', () => setMeasuring(!view.measure.on));
+// A click (not a drag of the camera) picks a point while measuring.
+let pressedAt = null;
+elements.view.addEventListener('pointerdown', (event) => {
+  pressedAt = [event.clientX, event.clientY];
+});
+elements.view.addEventListener('pointerup', (event) => {
+  if (!view.measure.on || !pressedAt || Math.hypot(event.clientX - pressedAt[0], event.clientY - pressedAt[1]) > 4) return;
+  const point = view.pick(event);
+  const out = elements['measure-result'];
+  if (!point) {
+    out.textContent = 'measure: no map under the pointer; click on a voxel';
+    return;
+  }
+  const distance = view.addMeasurePoint(point);
+  const at = `(${point.x.toFixed(2)}, ${point.y.toFixed(2)}, ${point.z.toFixed(2)}) m`;
+  out.textContent = distance === null ? `measure: from ${at}; click a second point` : `distance ${distance.toFixed(2)} m (to ${at})`;
+});
+
 window.addEventListener('keydown', (event) => {
   const typing = event.target instanceof HTMLInputElement || event.target instanceof HTMLSelectElement;
-  if (event.key.toLowerCase() === 'f' && !typing && !event.ctrlKey && !event.metaKey && !event.altKey) view.fit();
+  if (typing || event.ctrlKey || event.metaKey || event.altKey) return;
+  if (event.key.toLowerCase() === 'f') view.fit();
+  if (event.key.toLowerCase() === 'm') setMeasuring(!view.measure.on);
+  if (event.key === 'Escape') setMeasuring(false);
 });
 
 elements['legend-bar'].style.background = rampCssGradient();
@@ -225,6 +267,13 @@ window.__stereomap = {
 setInterval(() => {
   link.bytesPerSecond = (link.bytes * 1000) / kStatusRefreshMs;
   link.bytes = 0;
+  const frames = store.subscribed?.frames ?? null;
+  const nowMs = Date.now();
+  if (frames !== null && rate.frames !== null && frames >= rate.frames) {
+    const current = ((frames - rate.frames) * 1000) / (nowMs - rate.atMs);
+    rate.perSecond = 0.7 * rate.perSecond + 0.3 * current; // smoothed over a few seconds
+  }
+  Object.assign(rate, { frames, atMs: nowMs });
   updateStatus();
 }, kStatusRefreshMs);
 updateSessionList();

@@ -21,8 +21,9 @@ export class SessionState {
     this.bounds = null; // {min, max} of the occupied voxels, metres (server's)
     this.serverVoxels = 0; // occupied voxels at the finest level, as the server counts them
     this.tiles = new Map(); // tileKeyText → {key, level, version, codes, values, revision}
-    this.poses = []; // [t, x, y, z, qx, qy, qz, qw], T_map_body
-    this.poseEpoch = newRevision(); // renewed when `poses` is replaced rather than appended to
+    // Per vehicle: {poses: [[t, x, y, z, qx, qy, qz, qw], ...] (T_map_body), epoch (renewed
+    // when the poses are replaced rather than appended to), updatedMs}.
+    this.trajectories = new Map();
     this.lastMessageMs = null; // wall-clock time of the last message about this session
     this.lastChangeMs = 0; // when the server last changed the map (its clock, Unix ms)
   }
@@ -52,12 +53,30 @@ export class SessionState {
     return true;
   }
 
-  applyPoses({ reset, poses }) {
-    if (reset) {
-      this.poses = [];
-      this.poseEpoch = newRevision();
+  /** Poses of every vehicle together. */
+  get poseCount() {
+    let n = 0;
+    for (const { poses } of this.trajectories.values()) n += poses.length;
+    return n;
+  }
+
+  /** The vehicle whose pose arrived last, or null. */
+  get latestVehicle() {
+    let latest = null;
+    for (const [vehicle, { updatedMs }] of this.trajectories) {
+      if (latest === null || updatedMs >= this.trajectories.get(latest).updatedMs) latest = vehicle;
     }
-    for (const pose of poses) this.poses.push(pose); // not push(...poses): long lists overflow the stack
+    return latest;
+  }
+
+  applyPoses({ vehicle, reset, poses }, nowMs = Date.now()) {
+    let trajectory = this.trajectories.get(vehicle);
+    if (!trajectory || reset) {
+      trajectory = { poses: [], epoch: newRevision(), updatedMs: nowMs };
+      this.trajectories.set(vehicle, trajectory);
+    }
+    for (const pose of poses) trajectory.poses.push(pose); // not push(...poses): long lists overflow the stack
+    if (poses.length > 0) trajectory.updatedMs = nowMs;
   }
 }
 
@@ -122,7 +141,7 @@ export class MapStore {
         return true;
       case 'poses':
         if (mine?.id !== message.session) return false;
-        mine.applyPoses(message);
+        mine.applyPoses(message, nowMs);
         mine.lastMessageMs = nowMs;
         return true;
       default:

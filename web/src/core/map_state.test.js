@@ -40,9 +40,14 @@ describe('MapStore', () => {
   it('takes poses, map markers and statuses for the subscribed session only', () => {
     const store = new MapStore();
     const mine = store.subscribe('s');
-    store.apply(parseMessage('{"type":"poses","session":"s","vehicle":"uav","reset":true,"poses":[[1,0,0,0,0,0,0,1]]}'));
+    store.apply(parseMessage('{"type":"poses","session":"s","vehicle":"uav","reset":true,"poses":[[1,0,0,0,0,0,0,1]]}'), 1000);
     store.apply(parseMessage('{"type":"poses","session":"t","vehicle":"uav","poses":[[1,0,0,0,0,0,0,1]]}'));
-    expect(mine.poses).toHaveLength(1);
+    expect(mine.poseCount).toBe(1);
+    // Each vehicle its own trajectory.
+    store.apply(parseMessage('{"type":"poses","session":"s","vehicle":"uav-2","poses":[[2,5,0,0,0,0,0,1],[3,6,0,0,0,0,0,1]]}'), 2000);
+    expect(mine.trajectories.get('uav').poses).toHaveLength(1);
+    expect(mine.trajectories.get('uav-2').poses).toHaveLength(2);
+    expect(mine.latestVehicle).toBe('uav-2');
     store.apply(parseMessage('{"type":"map","session":"s","version":3,"changed_ms":1000,"voxels":7,"tiles":1,"bounds":null}'), 1500);
     expect(mine.serverVoxels).toBe(7);
     expect(store.lastLatency).toBe(500);

@@ -9,6 +9,7 @@ import { TrajectoryLayer } from './trajectory_layer.js';
 import { TileLayer } from './tile_layer.js';
 
 const kBackground = 0x0d1117;
+const kTrajectoryColours = [0xf5f5f5, 0x7ee0ff, 0xffd166, 0xb5f277, 0xff8fa3]; // one per vehicle, in order
 const kViewDirection = new THREE.Vector3(-0.55, -1, 0.75).normalize(); // from the south-west, above
 
 export class MapView {
@@ -35,7 +36,10 @@ export class MapView {
     this.grid = null;
     this.setGrid(new THREE.Vector3(), 20);
     this.tiles = new TileLayer(this.scene);
-    this.trajectory = new TrajectoryLayer(this.scene);
+    this.trajectories = new Map(); // vehicle → TrajectoryLayer
+    this.markerScale = 0.3;
+    this.following = false; // keep the latest vehicle at the centre of the view
+    this.measure = { on: false, points: [], line: null }; // two clicked points and the line between
 
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.enableDamping = true;
@@ -61,7 +65,9 @@ export class MapView {
   }
 
   get trajectoryLength() {
-    return this.trajectory.length;
+    let n = 0;
+    for (const layer of this.trajectories.values()) n += layer.length;
+    return n;
   }
 
   get heightRange() {
@@ -80,12 +86,84 @@ export class MapView {
       this.framedBounds.makeEmpty();
     }
     this.tiles.sync(session);
-    this.trajectory.setPoses(session?.poses ?? [], session?.poseEpoch ?? null);
+    const wanted = session?.trajectories ?? new Map();
+    for (const [vehicle, layer] of this.trajectories) {
+      if (!wanted.has(vehicle)) {
+        layer.dispose();
+        this.trajectories.delete(vehicle);
+      }
+    }
+    for (const [vehicle, { poses, epoch }] of wanted) {
+      let layer = this.trajectories.get(vehicle);
+      if (!layer) {
+        layer = new TrajectoryLayer(this.scene, kTrajectoryColours[this.trajectories.size % kTrajectoryColours.length]);
+        layer.setMarkerScale(this.markerScale);
+        this.trajectories.set(vehicle, layer);
+      }
+      layer.setPoses(poses, epoch);
+    }
+    if (this.following && session?.latestVehicle) {
+      const poses = wanted.get(session.latestVehicle).poses;
+      if (poses.length > 0) this.lookAt(poses.at(-1).slice(1, 4));
+    }
     if (this.autoFrame && this.tiles.count > 0 && !this.framedBounds.containsBox(this.drawnBounds())) this.fit();
   }
 
   drawnBounds() {
-    return this.tiles.bounds.clone().union(this.trajectory.bounds);
+    const bounds = this.tiles.bounds.clone();
+    for (const layer of this.trajectories.values()) bounds.union(layer.bounds);
+    return bounds;
+  }
+
+  /** Moves the camera with its target so that the target is `point` ([x, y, z]). */
+  lookAt(point) {
+    const delta = new THREE.Vector3(...point).sub(this.controls.target);
+    if (delta.lengthSq() === 0) return;
+    this.autoFrame = false;
+    this.controls.target.add(delta);
+    this.camera.position.add(delta);
+    this.controls.update();
+  }
+
+  /**
+   * The map point under the pointer (a tile cell's box), or null: `event` is a pointer event on
+   * the canvas.
+   */
+  pick(event) {
+    const rect = this.renderer.domElement.getBoundingClientRect();
+    const ndc = new THREE.Vector2(((event.clientX - rect.left) / rect.width) * 2 - 1,
+      -((event.clientY - rect.top) / rect.height) * 2 + 1);
+    const raycaster = new THREE.Raycaster();
+    raycaster.setFromCamera(ndc, this.camera);
+    const meshes = [...this.tiles.drawn.values()].map((d) => d.mesh);
+    const hit = raycaster.intersectObjects(meshes, false)[0];
+    return hit ? hit.point : null;
+  }
+
+  /** Adds a measured point (a THREE.Vector3); returns the distance once there are two, else null. */
+  addMeasurePoint(point) {
+    const m = this.measure;
+    if (m.points.length === 2) this.clearMeasure();
+    m.points.push(point.clone());
+    if (m.points.length < 2) return null;
+    const geometry = new THREE.BufferGeometry().setFromPoints(m.points);
+    m.line = new THREE.Line(geometry, new THREE.LineBasicMaterial({ color: 0xff3df2, depthTest: false }));
+    m.line.renderOrder = 1;
+    this.scene.add(m.line);
+    this.requestRender();
+    return m.points[0].distanceTo(m.points[1]);
+  }
+
+  clearMeasure() {
+    const m = this.measure;
+    if (m.line) {
+      this.scene.remove(m.line);
+      m.line.geometry.dispose();
+      m.line.material.dispose();
+    }
+    m.points = [];
+    m.line = null;
+    this.requestRender();
   }
 
   /** Fits the camera to `bounds` ({min, max} in metres, the server's) before tiles arrive. */
@@ -124,7 +202,8 @@ export class MapView {
     this.camera.updateProjectionMatrix();
     const radius = this.framedBounds.getBoundingSphere(new THREE.Sphere()).radius;
     this.setGrid(centre, radius * 2.5);
-    this.trajectory.setMarkerScale(Math.max(radius * 0.1, 0.3));
+    this.markerScale = Math.max(radius * 0.1, 0.3);
+    for (const layer of this.trajectories.values()) layer.setMarkerScale(this.markerScale);
     this.controls.update();
     this.requestRender();
   }

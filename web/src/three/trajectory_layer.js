@@ -8,8 +8,10 @@ const kInitialCapacity = 256;
 const scratch = new THREE.Vector3();
 
 export class TrajectoryLayer {
-  constructor(scene) {
-    this.material = new THREE.LineBasicMaterial({ color: 0xf5f5f5 });
+  /** `colour`: of the line (each vehicle its own). */
+  constructor(scene, colour = 0xf5f5f5) {
+    this.scene = scene;
+    this.material = new THREE.LineBasicMaterial({ color: colour });
     this.line = new THREE.Line(new THREE.BufferGeometry(), this.material);
     this.line.frustumCulled = false; // the buffer grows in place; a cached bounding sphere would be stale
     this.drawn = 0; // poses in the line
@@ -63,6 +65,17 @@ export class TrajectoryLayer {
       this.marker.position.set(x, y, z);
       this.marker.quaternion.set(qx, qy, qz, qw).normalize();
     }
+  }
+
+  /** Removes the line and marker from the scene and frees their buffers. */
+  dispose() {
+    this.scene.remove(this.line, this.marker);
+    this.line.geometry.dispose();
+    this.material.dispose();
+    this.marker.traverse((object) => {
+      object.geometry?.dispose();
+      object.material?.dispose();
+    });
   }
 
   ensureCapacity(count) {
