@@ -31,11 +31,13 @@ bool writeAllAt(int fd, const void* data, size_t size, uint64_t offset) {
 
 Status syncDirectory(const fs::path& dir) {
   const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (fd < 0) return makeError(ErrorCode::kIo, "cannot open " + dir.string() + ": " + systemError(errno));
+  if (fd < 0)
+    return makeError(ErrorCode::kIo, "cannot open " + dir.string() + ": " + systemError(errno));
   const bool synced = ::fsync(fd) == 0;
   const int error = errno;
   ::close(fd);
-  if (!synced) return makeError(ErrorCode::kIo, "cannot flush " + dir.string() + ": " + systemError(error));
+  if (!synced)
+    return makeError(ErrorCode::kIo, "cannot flush " + dir.string() + ": " + systemError(error));
   return Ok{};
 }
 

@@ -4,10 +4,10 @@
 // must be byte-for-byte the map built from the journal's frames without a crash. And a kill
 // in the middle of a snapshot write (issue 21): recovery uses the previous snapshot.
 #include <gtest/gtest.h>
-#include <nlohmann/json.hpp>
 #include <poll.h>
 #include <sys/inotify.h>
 #include <unistd.h>
+#include <nlohmann/json.hpp>
 
 #include <filesystem>
 #include <sstream>

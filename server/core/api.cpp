@@ -178,7 +178,8 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts.size() < 2 || parts[1] != "sessions") {
     return error(404, "unknown API path '" + std::string(target) + "'");
   }
-  if (parts.size() == 2) return HttpAnswer{200, "application/json", sessionListJson(server, admin) + "\n", ""};
+  if (parts.size() == 2)
+    return HttpAnswer{200, "application/json", sessionListJson(server, admin) + "\n", ""};
   if (auto bad = badId("session id", parts[2])) return bad;
   const std::string vehicle = queryValue(target, "vehicle");
   if (!vehicle.empty()) {

@@ -136,14 +136,14 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
     if (!message) return;
     writing_ = true;
     ws_.binary(message->binary);
-    ws_.async_write(asio::buffer(*message->bytes),
-                    [self = shared_from_this(), bytes = message->bytes](beast::error_code ec,
-                                                                        size_t) {
-                      self->writing_ = false;
-                      if (ec) return self->finish();
-                      self->hub_.viewers.written(self->id_);
-                      self->pump();
-                    });
+    ws_.async_write(
+        asio::buffer(*message->bytes),
+        [self = shared_from_this(), bytes = message->bytes](beast::error_code ec, size_t) {
+          self->writing_ = false;
+          if (ec) return self->finish();
+          self->hub_.viewers.written(self->id_);
+          self->pump();
+        });
   }
 
   // Drops the connection at once (server shutdown, a failed read or write).
@@ -167,9 +167,9 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
     spdlog::warn("viewer {}: closing ({})", id_, order.reason);
     if (writing_) return finish();
     beast::get_lowest_layer(ws_).expires_after(std::chrono::seconds(2));
-    ws_.async_close(websocket::close_reason(static_cast<websocket::close_code>(order.code),
-                                            order.reason),
-                    [self = shared_from_this()](beast::error_code) { self->finish(); });
+    ws_.async_close(
+        websocket::close_reason(static_cast<websocket::close_code>(order.code), order.reason),
+        [self = shared_from_this()](beast::error_code) { self->finish(); });
   }
 
   void read() {
@@ -243,8 +243,8 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     const std::string method(request.method_string());
     // The viewer's files and /healthz are public; maps, poses and metrics need the token.
     // A WebSocket may also bring its token in its hello message (browsers cannot set headers).
-    const bool token_given = hub_.options.token.empty() ||
-                             common::sameSecret(tokenFrom(request), hub_.options.token);
+    const bool token_given =
+        hub_.options.token.empty() || common::sameSecret(tokenFrom(request), hub_.options.token);
     if (core::needsToken(target) && !token_given) {
       return sendError(http::status::unauthorized,
                        "a valid token is required (Authorization: Bearer T or ?token=T)",
@@ -305,7 +305,8 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     response->set(http::field::content_type, file->content_type);
     const bool head = request.method() == http::verb::head;
     if (!head) response->body() = file->content;
-    write(response, request.keep_alive(), head ? std::optional(file->content.size()) : std::nullopt);
+    write(response, request.keep_alive(),
+          head ? std::optional(file->content.size()) : std::nullopt);
   }
 
   void sendAnswer(core::HttpAnswer answer, unsigned version, bool head, bool keep_alive) {

@@ -256,8 +256,8 @@ void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& repl
         // of bytes that do not read is damage (a flipped byte in the last record): it may be
         // an acknowledged record, so it is set aside, never silently cut.
         if (bytes.size() - at >= kHeaderBytes) {
-          replay.damage.push_back({at, bytes.size(), replay.last_number + 1,
-                                   replay.last_number + 1, "unreadable bytes at the end"});
+          replay.damage.push_back({at, bytes.size(), replay.last_number + 1, replay.last_number + 1,
+                                   "unreadable bytes at the end"});
           replay.damaged_tail = true;
         }
         break;
@@ -432,8 +432,8 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
     return makeError(ErrorCode::kCorrupt, path.string() + ": " + recovered.problem);
   }
   // O_EXCL: a file that appeared since it was found missing is not overwritten.
-  journal->fd_ = ::open(path.c_str(), exists ? O_RDWR | O_CLOEXEC : O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC,
-                        0644);
+  journal->fd_ = ::open(path.c_str(),
+                        exists ? O_RDWR | O_CLOEXEC : O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
   if (journal->fd_ < 0) {
     return makeError(ErrorCode::kIo, path.string() + ": cannot open the journal for writing: " +
                                          common::systemError(errno));
@@ -493,7 +493,8 @@ common::Status Journal::setAsideTail() {
   if (auto kept = common::writeFileAtomically(tail_path, tail); !kept) {
     return makeError(ErrorCode::kIo, path_.string() +
                                          ": the damaged tail could not be set aside, so it is "
-                                         "not cut: " + kept.error().message);
+                                         "not cut: " +
+                                         kept.error().message);
   }
   recovered_.problem += "; the damaged tail was set aside as " + tail_path.string();
   return common::Ok{};

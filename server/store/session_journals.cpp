@@ -66,9 +66,11 @@ std::vector<std::string> removeLeftoverTemporaries(const fs::path& dir) {
     const std::string rest = name.substr(at + 5);  // <pid>-<n>
     const size_t dash = rest.find('-');
     auto digits = [](const std::string& text) {
-      return !text.empty() && std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
+      return !text.empty() &&
+             std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
     };
-    if (dash == std::string::npos || !digits(rest.substr(0, dash)) || !digits(rest.substr(dash + 1))) {
+    if (dash == std::string::npos || !digits(rest.substr(0, dash)) ||
+        !digits(rest.substr(dash + 1))) {
       continue;
     }
     std::error_code ec;
@@ -134,8 +136,8 @@ common::Result<RepairReport> repairJournal(const fs::path& dir) {
     std::error_code ec;
     fs::rename(hidden, snapshotPath(dir, number), ec);
     if (ec) {
-      spdlog::warn("{}: not relabelled ({}); the journal is replayed without it",
-                   hidden.string(), ec.message());
+      spdlog::warn("{}: not relabelled ({}); the journal is replayed without it", hidden.string(),
+                   ec.message());
     }
   }
   return report;

@@ -73,7 +73,7 @@ struct TileSummary {
   size_t occupied_voxels = 0;  // at the finest resolution
   common::Box3 bounds;         // of the occupied voxels' cells; empty when none
   size_t tiles = 0;
-  int64_t changed_ns = 0;      // wall-clock time of the newest change (0: none yet)
+  int64_t changed_ns = 0;  // wall-clock time of the newest change (0: none yet)
 };
 
 class TileSet {

@@ -23,10 +23,10 @@ struct ViewRequest {
   // Frustum planes (a, b, c, d) with a*x + b*y + c*z + d >= 0 inside, map frame; none: every
   // tile counts as visible.
   std::vector<std::array<double, 4>> planes;
-  double fov_y_rad = 1.0;          // vertical field of view
-  double height_px = 900;          // viewport height
-  uint64_t budget = 1'000'000;     // cells the viewer will draw at most
-  double error_px = 2.0;           // a cell may look this large before a finer level is due
+  double fov_y_rad = 1.0;       // vertical field of view
+  double height_px = 900;       // viewport height
+  uint64_t budget = 1'000'000;  // cells the viewer will draw at most
+  double error_px = 2.0;        // a cell may look this large before a finer level is due
 };
 
 struct PlannedTile {

@@ -35,9 +35,9 @@ TEST(ViewPlanner, CoarseEverywhereFirstThenFinerNearTheCamera) {
   ASSERT_GT(plan.tiles.size(), plan.coarse_count);
   std::map<int, unsigned> final_level;
   for (const auto& tile : plan.tiles) final_level[tile.key.x] = tile.level;
-  EXPECT_LT(final_level[0], 3u);                   // near: refined
-  EXPECT_LE(final_level[0], final_level[10]);      // never coarser near than far
-  EXPECT_EQ(final_level[19], 3u);                  // far: the coarse pass is enough
+  EXPECT_LT(final_level[0], 3u);               // near: refined
+  EXPECT_LE(final_level[0], final_level[10]);  // never coarser near than far
+  EXPECT_EQ(final_level[19], 3u);              // far: the coarse pass is enough
   EXPECT_LE(plan.cells, view.budget);
   // A larger budget draws more, within it.
   view.budget = 3'000'000;

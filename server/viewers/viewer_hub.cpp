@@ -81,8 +81,9 @@ std::array<double, 3> triple(const json& message, const char* name) {
 }
 
 // One "poses" message per vehicle and up to kPosesPerMessage poses, in arrival order.
-std::vector<Text> poseMessages(const std::string& session, const std::vector<core::PoseRecord>& poses,
-                               bool reset, const std::string& only_vehicle = "") {
+std::vector<Text> poseMessages(const std::string& session,
+                               const std::vector<core::PoseRecord>& poses, bool reset,
+                               const std::string& only_vehicle = "") {
   std::map<std::string, std::vector<json>> by_vehicle;
   std::vector<std::string> order;
   for (const auto& pose : poses) {
@@ -99,12 +100,13 @@ std::vector<Text> poseMessages(const std::string& session, const std::vector<cor
     const auto& all = by_vehicle[vehicle];
     for (size_t begin = 0; begin < all.size(); begin += kPosesPerMessage) {
       const size_t end = std::min(all.size(), begin + kPosesPerMessage);
-      out.push_back(textOf({{"type", "poses"},
-                            {"session", session},
-                            {"vehicle", vehicle},
-                            {"reset", reset && begin == 0},
-                            {"poses", json(std::vector<json>(all.begin() + static_cast<long>(begin),
-                                                             all.begin() + static_cast<long>(end)))}}));
+      out.push_back(
+          textOf({{"type", "poses"},
+                  {"session", session},
+                  {"vehicle", vehicle},
+                  {"reset", reset && begin == 0},
+                  {"poses", json(std::vector<json>(all.begin() + static_cast<long>(begin),
+                                                   all.begin() + static_cast<long>(end)))}}));
     }
   }
   return out;
@@ -192,7 +194,8 @@ struct ViewerHub::Impl {
     queueText(viewer, textOf({{"type", "error"}, {"message", message}}), false);
     if (viewer.bad_messages > options.max_bad_messages) {
       ++stats.closed_bad;
-      closeViewer(viewer, 1008, "too many bad messages (" + std::to_string(viewer.bad_messages) + ")");
+      closeViewer(viewer, 1008,
+                  "too many bad messages (" + std::to_string(viewer.bad_messages) + ")");
     }
   }
 
@@ -201,8 +204,9 @@ struct ViewerHub::Impl {
     if (protocol == message.end() || !protocol->is_number_integer() ||
         protocol->get<int64_t>() != kProtocol) {
       ++stats.closed_bad;
-      return closeViewer(viewer, 1002, "this server speaks protocol 2 only: send "
-                                       "{\"type\": \"hello\", \"protocol\": 2}");
+      return closeViewer(viewer, 1002,
+                         "this server speaks protocol 2 only: send "
+                         "{\"type\": \"hello\", \"protocol\": 2}");
     }
     if (!options.token.empty() && !viewer.authorised) {
       const auto token = message.find("token");
@@ -239,8 +243,9 @@ struct ViewerHub::Impl {
     const auto session = server.find(session_id);
     if (!session) {
       const auto stored = admin ? admin->closedSessions() : std::vector<core::SessionStatus>{};
-      const bool closed = std::any_of(stored.begin(), stored.end(),
-                                      [&](const core::SessionStatus& s) { return s.id == session_id; });
+      const bool closed =
+          std::any_of(stored.begin(), stored.end(),
+                      [&](const core::SessionStatus& s) { return s.id == session_id; });
       return queueText(
           viewer,
           textOf({{"type", "error"},
@@ -276,7 +281,8 @@ struct ViewerHub::Impl {
               false);
     auto poses = session->trajectory(0);
     poses.resize(std::min(poses.size(), feed->second.poses));  // the rest comes as pushes
-    for (auto& text : poseMessages(session_id, poses, true)) queueText(viewer, std::move(text), false);
+    for (auto& text : poseMessages(session_id, poses, true))
+      queueText(viewer, std::move(text), false);
   }
 
   void unsubscribe(Viewer& viewer) {
@@ -390,7 +396,9 @@ struct ViewerHub::Impl {
       queueText(viewer, std::move(text), false);
     }
     queueText(viewer,
-              textOf({{"type", "trajectory_done"}, {"session", session_id}, {"from", from},
+              textOf({{"type", "trajectory_done"},
+                      {"session", session_id},
+                      {"from", from},
                       {"poses", poses.size()}}),
               false);
   }
@@ -470,7 +478,8 @@ struct ViewerHub::Impl {
     while (session && !viewer.plan.empty()) {
       const auto planned = viewer.plan.front();
       viewer.plan.pop_front();
-      if (auto message = tileMessage(viewer, *session, planned.key, planned.level, planned.coarse)) {
+      if (auto message =
+              tileMessage(viewer, *session, planned.key, planned.level, planned.coarse)) {
         return message;
       }
     }
@@ -601,8 +610,9 @@ void ViewerHub::poll(int64_t now_ns) {
     if (!viewer.greeted &&
         now_ns - viewer.connected_ns > std::chrono::nanoseconds(options.hello_within).count()) {
       ++impl_->stats.closed_bad;
-      impl_->closeViewer(viewer, 1008,
-                         "no hello within " + std::to_string(options.hello_within.count() / 1000) + " s");
+      impl_->closeViewer(
+          viewer, 1008,
+          "no hello within " + std::to_string(options.hello_within.count() / 1000) + " s");
     } else if (viewer.writing && now_ns - viewer.write_started_ns >
                                      std::chrono::nanoseconds(options.stuck_after).count()) {
       ++impl_->stats.closed_stuck;

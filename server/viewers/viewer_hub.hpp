@@ -39,7 +39,7 @@ struct HubOptions {
   std::chrono::milliseconds stuck_after{10'000};  // a write unfinished this long: closed
   size_t max_queued_bytes = 4u << 20;             // unsent JSON per viewer: closed beyond
   std::chrono::milliseconds hello_within{10'000};
-  size_t max_bad_messages = 16;  // malformed or unknown messages tolerated per connection
+  size_t max_bad_messages = 16;      // malformed or unknown messages tolerated per connection
   uint64_t max_budget = 20'000'000;  // cells a view may ask for
   std::string server_name = "stereomap";
 };

@@ -66,7 +66,8 @@ void drain(ViewerHub& hub, ViewerHub::Id id, Received& into) {
 
 std::map<TileKey, TileCells> truth(const core::Session& session) {
   std::map<TileKey, TileCells> out;
-  for (const auto& info : session.tiles().list()) out[info.key] = session.tiles().find(info.key)->cells(0);
+  for (const auto& info : session.tiles().list())
+    out[info.key] = session.tiles().find(info.key)->cells(0);
   return out;
 }
 
@@ -75,17 +76,30 @@ const std::string kHello = R"({"type": "hello", "protocol": 2})";
 const std::string kFineView =
     R"({"type": "view", "id": 7, "eye": [0, 0, 1], "budget": 10000000, "error": 0.25})";
 
+// A viewer that says hello, subscribes to session "s" and asks for every tile at level 0;
+// what it was sent so far is in `got`.
+ViewerHub::Id watchEverything(ViewerHub& hub, Received& got) {
+  const auto id = hub.connect(true, common::nowNs());
+  hub.receive(id, kHello, 0);
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  hub.receive(id, kFineView, 0);
+  drain(hub, id, got);
+  return id;
+}
+
+size_t posesIn(const Received& got) {
+  size_t poses = 0;
+  for (const auto& m : got.ofType("poses")) poses += m["poses"].size();
+  return poses;
+}
+
 TEST(ViewerHub, EarlyAndLateViewersHoldExactlyTheServersMap) {
   core::MapServer server({.resolution = 0.1});
   ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
   server.find("s")->waitUntilIdle();
   ViewerHub hub(server, nullptr, {});
-  const auto early = hub.connect(true, common::nowNs());
   Received early_got;
-  hub.receive(early, kHello, 0);
-  hub.receive(early, R"({"type": "subscribe", "session": "s"})", 0);
-  hub.receive(early, kFineView, 0);
-  drain(hub, early, early_got);
+  const auto early = watchEverything(hub, early_got);
   ASSERT_EQ(early_got.ofType("hello").size(), 1u);
   EXPECT_EQ(early_got.ofType("hello")[0]["protocol"], 2);
   ASSERT_EQ(early_got.ofType("sessions").size(), 1u);
@@ -110,20 +124,12 @@ TEST(ViewerHub, EarlyAndLateViewersHoldExactlyTheServersMap) {
   ASSERT_FALSE(markers.empty());
   EXPECT_EQ(markers.back()["voxels"], voxels);
   EXPECT_GT(markers.back()["changed_ms"].get<double>(), 1.7e12);  // Unix time, in ms
-  size_t poses = 0;
-  for (const auto& m : early_got.ofType("poses")) poses += m["poses"].size();
-  EXPECT_EQ(poses, 4u);
+  EXPECT_EQ(posesIn(early_got), 4u);
 
-  const auto late = hub.connect(true, common::nowNs());
   Received late_got;
-  hub.receive(late, kHello, 0);
-  hub.receive(late, R"({"type": "subscribe", "session": "s"})", 0);
-  hub.receive(late, kFineView, 0);
-  drain(hub, late, late_got);
+  const auto late = watchEverything(hub, late_got);
   EXPECT_EQ(late_got.tiles, expected);
-  poses = 0;
-  for (const auto& m : late_got.ofType("poses")) poses += m["poses"].size();
-  EXPECT_EQ(poses, 4u);
+  EXPECT_EQ(posesIn(late_got), 4u);
   // The trajectory on request, from an index.
   hub.receive(late, R"({"type": "trajectory", "from": 2})", 0);
   Received asked;
@@ -138,12 +144,8 @@ TEST(ViewerHub, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
   ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
   server.find("s")->waitUntilIdle();
   ViewerHub hub(server, nullptr, {});
-  const auto id = hub.connect(true, 0);
   Received got;
-  hub.receive(id, kHello, 0);
-  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
-  hub.receive(id, kFineView, 0);
-  drain(hub, id, got);
+  const auto id = watchEverything(hub, got);
   const size_t before = got.binary;
   std::set<TileKey> changed;
   uint64_t version = server.find("s")->tiles().summary().version;
@@ -226,10 +228,10 @@ TEST(ViewerHub, BadMessagesAreAnsweredAndTooManyClose) {
   ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
   server.find("s")->waitUntilIdle();
   hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
-  for (const char* view : {R"({"type": "view", "eye": [0, 0]})",
-                           R"({"type": "view", "eye": [0, 0, 1], "budget": -5})",
-                           R"({"type": "view", "eye": [0, 0, 1], "fov": 1e300})",
-                           R"({"type": "view", "eye": [0, 0, 1], "planes": [[1, 2, 3]]})"}) {
+  for (const char* view :
+       {R"({"type": "view", "eye": [0, 0]})", R"({"type": "view", "eye": [0, 0, 1], "budget": -5})",
+        R"({"type": "view", "eye": [0, 0, 1], "fov": 1e300})",
+        R"({"type": "view", "eye": [0, 0, 1], "planes": [[1, 2, 3]]})"}) {
     got.texts.clear();
     hub.receive(id, view, 0);
     drain(hub, id, got);

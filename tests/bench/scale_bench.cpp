@@ -21,8 +21,8 @@
 #include <thread>
 
 #include "server/core/map_server.hpp"
-#include "tests/bench/bench_support.hpp"
 #include "server/store/session_journals.hpp"
+#include "tests/bench/bench_support.hpp"
 
 namespace {
 

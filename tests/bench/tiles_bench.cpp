@@ -51,7 +51,8 @@ class Viewer {
   explicit Viewer(uint16_t port, int receive_buffer = 0) {
     auto& socket = ws_.next_layer();
     socket.open(tcp::v4());
-    if (receive_buffer > 0) socket.set_option(asio::socket_base::receive_buffer_size(receive_buffer));
+    if (receive_buffer > 0)
+      socket.set_option(asio::socket_base::receive_buffer_size(receive_buffer));
     socket.connect({asio::ip::make_address("127.0.0.1"), port});
     ws_.handshake("127.0.0.1", "/ws");
     ws_.read_message_max(64u << 20);
@@ -98,8 +99,8 @@ json fitView(const json& bounds, uint64_t budget) {
   const double radius = 0.5 * (high - low).norm();
   const common::Vec3 eye =
       centre + common::Vec3(-0.55, -1, 0.75).normalized() * (radius / std::tan(25 * M_PI / 180));
-  return {{"type", "view"}, {"id", 1},           {"eye", {eye.x(), eye.y(), eye.z()}},
-          {"fov", 50},      {"height", 800},     {"budget", budget},
+  return {{"type", "view"}, {"id", 1},       {"eye", {eye.x(), eye.y(), eye.z()}},
+          {"fov", 50},      {"height", 800}, {"budget", budget},
           {"error", 2}};
 }
 
@@ -196,9 +197,11 @@ int main(int argc, char** argv) {
   int runs = 3;
   double seconds = 15;
   std::string campus_file = std::string(STEREOMAP_DATA_DIR) + "/octomap_samples/fr_campus.bt";
-  app.add_option("--runs", runs, "repetitions of A/B and of the live pair")->check(CLI::Range(1, 20));
-  app.add_option("--seconds", seconds, "length of each live run (the stuck viewer is closed "
-                                       "after 10 s)")
+  app.add_option("--runs", runs, "repetitions of A/B and of the live pair")
+      ->check(CLI::Range(1, 20));
+  app.add_option("--seconds", seconds,
+                 "length of each live run (the stuck viewer is closed "
+                 "after 10 s)")
       ->check(CLI::Range(2.0, 600.0));
   app.add_option("--campus", campus_file, "the large map")->check(CLI::ExistingFile);
   CLI11_PARSE(app, argc, argv);
@@ -247,12 +250,13 @@ int main(int argc, char** argv) {
     const json zoom_plan = viewer.readUntil("plan");
     viewer.readUntil("view_done", &zoom_tiles);
     zoom_ms.push_back(msSince(zoom_start));
-    std::printf("run %d: %zu tiles, coarse level %d (%zu tiles) in %.0f ms, %llu cells in %.0f ms; "
-                "zoomed in: %zu tiles, %llu cells in %.0f ms\n",
-                run + 1, tiles, plan["coarse_level"].get<int>(), coarse, first_view_ms.back(),
-                static_cast<unsigned long long>(plan["cells"].get<uint64_t>()),
-                budget_view_ms.back(), zoom_tiles,
-                static_cast<unsigned long long>(zoom_plan["cells"].get<uint64_t>()), zoom_ms.back());
+    std::printf(
+        "run %d: %zu tiles, coarse level %d (%zu tiles) in %.0f ms, %llu cells in %.0f ms; "
+        "zoomed in: %zu tiles, %llu cells in %.0f ms\n",
+        run + 1, tiles, plan["coarse_level"].get<int>(), coarse, first_view_ms.back(),
+        static_cast<unsigned long long>(plan["cells"].get<uint64_t>()), budget_view_ms.back(),
+        zoom_tiles, static_cast<unsigned long long>(zoom_plan["cells"].get<uint64_t>()),
+        zoom_ms.back());
     std::fflush(stdout);
     if (run == 0) {
       size_t bytes = 0;
@@ -285,30 +289,32 @@ int main(int argc, char** argv) {
     stuck_p95.push_back(with_stuck.p95_ms);
     rises.push_back(100.0 * (with_stuck.p95_ms / base.p95_ms - 1));
     extra_mb.push_back(std::max(0.0, with_stuck.rss_rise_mb - base.rss_rise_mb));
-    std::printf("live run %d: p95 %.1f ms (%zu markers) alone, %.1f ms (%zu) with a stuck viewer "
-                "(%s by the server); RSS rise %.1f MB vs %.1f MB\n",
-                run + 1, base.p95_ms, base.samples, with_stuck.p95_ms, with_stuck.samples,
-                with_stuck.stuck_closed ? "closed" : "not closed", with_stuck.rss_rise_mb,
-                base.rss_rise_mb);
+    std::printf(
+        "live run %d: p95 %.1f ms (%zu markers) alone, %.1f ms (%zu) with a stuck viewer "
+        "(%s by the server); RSS rise %.1f MB vs %.1f MB\n",
+        run + 1, base.p95_ms, base.samples, with_stuck.p95_ms, with_stuck.samples,
+        with_stuck.stuck_closed ? "closed" : "not closed", with_stuck.rss_rise_mb,
+        base.rss_rise_mb);
     std::fflush(stdout);
   }
   feeding = false;
   feeder.join();
   http->stop();
 
-  std::printf("ranges over %d runs: first view %s ms, budget view %s ms, zoomed in %s ms; live p95 "
-              "%s ms, with a stuck viewer %s ms (%s %%), +%s MB\n",
-              runs, range(first_view_ms).c_str(), range(budget_view_ms).c_str(),
-              range(zoom_ms).c_str(),
-              range(base_p95, "%.1f").c_str(), range(stuck_p95, "%.1f").c_str(),
-              range(rises).c_str(), range(extra_mb, "%.1f").c_str());
+  std::printf(
+      "ranges over %d runs: first view %s ms, budget view %s ms, zoomed in %s ms; live p95 "
+      "%s ms, with a stuck viewer %s ms (%s %%), +%s MB\n",
+      runs, range(first_view_ms).c_str(), range(budget_view_ms).c_str(), range(zoom_ms).c_str(),
+      range(base_p95, "%.1f").c_str(), range(stuck_p95, "%.1f").c_str(), range(rises).c_str(),
+      range(extra_mb, "%.1f").c_str());
   // The last line, exactly as issue 14 names it: the worst run of each.
-  std::printf("tiles: fr_campus first view %.0f ms, budget view %.0f ms, %.3f B/voxel; live p95 "
-              "%.0f ms at %d viewers; stuck viewer +%.0f%% p95, +%.0f MB\n",
-              *std::max_element(first_view_ms.begin(), first_view_ms.end()),
-              *std::max_element(budget_view_ms.begin(), budget_view_ms.end()), bytes_per_voxel,
-              *std::max_element(base_p95.begin(), base_p95.end()), kLiveViewers,
-              std::max(0.0, *std::max_element(rises.begin(), rises.end())),
-              *std::max_element(extra_mb.begin(), extra_mb.end()));
+  std::printf(
+      "tiles: fr_campus first view %.0f ms, budget view %.0f ms, %.3f B/voxel; live p95 "
+      "%.0f ms at %d viewers; stuck viewer +%.0f%% p95, +%.0f MB\n",
+      *std::max_element(first_view_ms.begin(), first_view_ms.end()),
+      *std::max_element(budget_view_ms.begin(), budget_view_ms.end()), bytes_per_voxel,
+      *std::max_element(base_p95.begin(), base_p95.end()), kLiveViewers,
+      std::max(0.0, *std::max_element(rises.begin(), rises.end())),
+      *std::max_element(extra_mb.begin(), extra_mb.end()));
   return 0;
 }

@@ -21,11 +21,12 @@ WebSocketClient::WebSocketClient(int port, const std::string& path, const std::s
   address.sin_port = htons(static_cast<uint16_t>(port));
   address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
   if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) return;
-  const std::string request = "GET " + path +
-                              " HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
-                              "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
-                              "Sec-WebSocket-Version: 13\r\n" +
-                              headers + "\r\n";
+  const std::string request =
+      "GET " + path +
+      " HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+      "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+      "Sec-WebSocket-Version: 13\r\n" +
+      headers + "\r\n";
   if (::send(fd_, request.data(), request.size(), MSG_NOSIGNAL) !=
       static_cast<ssize_t>(request.size())) {
     return;
@@ -61,7 +62,8 @@ bool WebSocketClient::sendFrame(uint8_t opcode, const std::string& payload, bool
     frame += static_cast<char>(payload.size() & 0xFF);
   } else {
     frame += static_cast<char>(mask_bit | 127);
-    for (int shift = 56; shift >= 0; shift -= 8) frame += static_cast<char>((payload.size() >> shift) & 0xFF);
+    for (int shift = 56; shift >= 0; shift -= 8)
+      frame += static_cast<char>((payload.size() >> shift) & 0xFF);
   }
   std::string body = payload;
   if (masked) {
@@ -86,7 +88,8 @@ bool WebSocketClient::readExactly(void* data, size_t size, Clock::time_point dea
   pending_.erase(0, from_pending);
   size_t done = from_pending;
   while (done < size) {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
     if (left.count() <= 0) return false;
     pollfd p{fd_, POLLIN, 0};
     if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) return false;
@@ -143,13 +146,15 @@ WsMessage WebSocketClient::read(std::chrono::milliseconds timeout) {
 WsMessage WebSocketClient::readUntil(const std::string& needle, std::chrono::milliseconds timeout) {
   const auto deadline = Clock::now() + timeout;
   for (;;) {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
     if (left.count() <= 0) return {};
     auto message = read(left);
     if (message.kind == WsMessage::Kind::kNone || message.kind == WsMessage::Kind::kClose) {
       return message;
     }
-    if (message.kind == WsMessage::Kind::kText && message.payload.find(needle) != std::string::npos) {
+    if (message.kind == WsMessage::Kind::kText &&
+        message.payload.find(needle) != std::string::npos) {
       return message;
     }
   }

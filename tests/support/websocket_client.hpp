@@ -12,7 +12,7 @@ namespace stereomap::testing {
 
 struct WsMessage {
   enum class Kind { kText, kBinary, kClose, kNone } kind = Kind::kNone;  // kNone: timed out or lost
-  std::string payload;  // kClose: the reason
+  std::string payload;                                                   // kClose: the reason
   uint16_t close_code = 0;
 };
 
