@@ -3,6 +3,7 @@
 // (server/core/api.hpp) and the offline CLI only call it.
 #pragma once
 
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -35,6 +36,12 @@ class SessionAdmin {
   // Writes a new, closed session whose journal holds both sessions' frames (the second's
   // moved by the transform; its vehicles renamed where they clash) and opens it read-only.
   virtual common::Status merge(const MergeRequest& request) = 0;
+  // The session as it was at `until_ns` (sample stamps, ns since the epoch): a new read-only
+  // Session, loaded nowhere, fused from the journal's frames and poses stamped no later
+  // (the time slider's replay). Any stored session with a journal, loaded or not; it takes
+  // as long as fusing those frames. kNotFound: no such session in the store.
+  virtual common::Result<std::shared_ptr<Session>> replay(const std::string& id,
+                                                          int64_t until_ns) const = 0;
 };
 
 }  // namespace stereomap::core

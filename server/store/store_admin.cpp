@@ -314,6 +314,35 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   return result;
 }
 
+common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::string& id,
+                                                                   int64_t until_ns) const {
+  const fs::path dir = root_ / id;
+  std::error_code ec;
+  if (!core::isValidId(id) || !fs::exists(dir / kJournalName, ec)) {
+    return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store");
+  }
+  auto replayed = readJournal(dir / kJournalName);
+  if (!replayed) return replayed.error();
+  // A scratch server does the fusing, through the same ingest path as recovery; the session
+  // outlives it.
+  const double resolution = resolutionOf(dir, options_.default_resolution);
+  core::MapServer scratch({.resolution = resolution, .max_sessions = 1});
+  auto created = scratch.createSession(id, resolution, /*read_only=*/true);
+  if (!created) return created.error();
+  for (size_t i = 0; i < replayed->records.size(); ++i) {
+    const auto& record = replayed->records[i];
+    if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+      if (frame->stamp_ns <= until_ns) {
+        scratch.ingest(*frame, core::Origin::kReplay, replayed->numbers[i]);
+      }
+    } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+      if (pose->stamp_ns <= until_ns) scratch.ingest(*pose, core::Origin::kReplay);
+    }
+  }
+  (*created)->waitUntilIdle();
+  return scratch.unload(id);
+}
+
 std::vector<core::SessionStatus> StoreAdmin::savedSessions() const {
   std::vector<core::SessionStatus> saved;
   for (const auto& id : storedIds()) {

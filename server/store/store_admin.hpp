@@ -67,6 +67,8 @@ class StoreAdmin : public core::SessionAdmin {
   common::Status open(const std::string& id) override;
   common::Status close(const std::string& id) override;
   common::Status remove(const std::string& id) override;
+  common::Result<std::shared_ptr<core::Session>> replay(const std::string& id,
+                                                        int64_t until_ns) const override;
   common::Status merge(const core::MergeRequest& request) override;
   // Makes an OctoMap file (.bt or .ot, checked whole before anything is written) a closed
   // session `id` of the store at the file's resolution, with no trajectory; it is left

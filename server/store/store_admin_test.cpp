@@ -165,6 +165,29 @@ TEST_F(StoreAdminTest, DeleteRefusesLiveSessionsAndRemovesEverything) {
   EXPECT_TRUE(server.map->ingest(wallFrame("gone", 0)));
 }
 
+// The time slider: a session as it was at a moment, fused from its journal; the loaded
+// session is untouched.
+TEST_F(StoreAdminTest, ReplayShowsTheSessionAsItWasThen) {
+  Server server(root_, 0.1);
+  fly(*server.map, "r", 6);
+  const int64_t third_frame = wallFrame("r", 2).stamp_ns;
+  auto then = server.admin->replay("r", third_frame);
+  ASSERT_TRUE(then.ok()) << then.error().message;
+  EXPECT_EQ((*then)->status().frames_fused, 3u);
+  EXPECT_EQ((*then)->trajectory(0).size(), 3u);  // poses stamped up to then
+  EXPECT_EQ(server.map->find("r")->status().frames_fused, 6u);
+
+  // Exactly the map of those three frames alone.
+  core::MapServer alone({.resolution = 0.1});
+  fly(alone, "r", 3);
+  EXPECT_EQ((*then)->occupiedVoxels(), alone.find("r")->occupiedVoxels());
+  EXPECT_LT((*then)->occupiedVoxels().size(), server.map->find("r")->occupiedVoxels().size());
+
+  EXPECT_EQ(server.admin->replay("nope", third_frame).error().code, ErrorCode::kNotFound);
+  EXPECT_EQ(server.admin->replay("../r", third_frame).error().code, ErrorCode::kNotFound);
+  EXPECT_EQ((*server.admin->replay("r", 0))->status().frames_fused, 0u);  // before the flight
+}
+
 TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   Server server(root_, 0.1);
   fly(*server.map, "a", 4);

@@ -4,8 +4,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <condition_variable>
 #include <deque>
+#include <mutex>
 #include <set>
+#include <thread>
+#include <utility>
 #include <variant>
 
 #include "common/time.hpp"
@@ -142,10 +146,79 @@ struct ViewerHub::Viewer {
   // The subscription.
   std::string session;
   std::optional<ViewRequest> view;
+  uint64_t view_id = 0;
   unsigned coarse_level = tiles::kLevels - 1;
+  // A replay (the time slider): the session as it was then, private to this viewer; null:
+  // the loaded session itself. `replay_request` numbers the newest replay asked for.
+  std::shared_ptr<core::Session> replay;
+  uint64_t replay_request = 0;
   std::map<TileKey, unsigned> level;                      // what it should hold
   std::map<TileKey, std::pair<unsigned, uint64_t>> held;  // level and version it was sent
 };
+
+namespace {
+
+// Makes replays off the network thread, one at a time; only each viewer's newest request is
+// made (a slider dragged across a flight asks for many).
+class ReplayWorker {
+ public:
+  struct Job {
+    uint64_t viewer = 0, request = 0;
+    std::string id;
+    int64_t until_ns = 0;
+  };
+  struct Done {
+    uint64_t viewer = 0, request = 0;
+    std::string id;
+    int64_t until_ns = 0;
+    common::Result<std::shared_ptr<core::Session>> session;
+  };
+  explicit ReplayWorker(const core::SessionAdmin* admin) : admin_(admin) {}
+  ~ReplayWorker() {
+    {
+      std::lock_guard lock(mutex_);
+      stopping_ = true;
+    }
+    changed_.notify_one();
+    if (thread_.joinable()) thread_.join();
+  }
+  void post(Job job) {
+    std::lock_guard lock(mutex_);
+    jobs_[job.viewer] = std::move(job);  // replaces an older request of the same viewer
+    if (!thread_.joinable()) thread_ = std::thread([this] { run(); });
+    changed_.notify_one();
+  }
+  std::vector<Done> take() {
+    std::lock_guard lock(mutex_);
+    return std::exchange(done_, {});
+  }
+
+ private:
+  void run() {
+    for (;;) {
+      Job job;
+      {
+        std::unique_lock lock(mutex_);
+        changed_.wait(lock, [this] { return stopping_ || !jobs_.empty(); });
+        if (stopping_) return;
+        job = std::move(jobs_.begin()->second);
+        jobs_.erase(jobs_.begin());
+      }
+      auto session = admin_->replay(job.id, job.until_ns);
+      std::lock_guard lock(mutex_);
+      done_.push_back({job.viewer, job.request, job.id, job.until_ns, std::move(session)});
+    }
+  }
+  const core::SessionAdmin* admin_;
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  std::map<uint64_t, Job> jobs_;  // by viewer
+  std::vector<Done> done_;
+  bool stopping_ = false;
+  std::thread thread_;
+};
+
+}  // namespace
 
 // A session's pushes, shared by its subscribers.
 struct ViewerHub::Feed {
@@ -165,6 +238,7 @@ struct ViewerHub::Impl {
   std::map<std::string, Feed> feeds;
   std::map<std::string, std::string> statuses;  // as last broadcast, by session
   HubStats stats;
+  ReplayWorker replays{admin};
 
   void closeViewer(Viewer& viewer, uint16_t code, std::string reason) {
     if (viewer.close) return;
@@ -287,6 +361,8 @@ struct ViewerHub::Impl {
 
   void unsubscribe(Viewer& viewer) {
     viewer.session.clear();
+    viewer.replay.reset();
+    ++viewer.replay_request;  // a replay still being made is no longer wanted
     viewer.view.reset();
     viewer.level.clear();
     viewer.held.clear();
@@ -295,9 +371,74 @@ struct ViewerHub::Impl {
     // Queued tiles of the old session are dropped when their turn comes (no session).
   }
 
+  std::shared_ptr<core::Session> sessionOf(const Viewer& viewer) const {
+    if (viewer.replay) return viewer.replay;
+    return viewer.session.empty() ? nullptr : server.find(viewer.session);
+  }
+
+  // {"type": "replay", "session": ID, "until": SECONDS}: the session as it was then.
+  void replay(Id id, Viewer& viewer, const json& message) {
+    if (admin == nullptr) return bad(viewer, "replay: this server keeps no store");
+    const auto session_id = message.find("session");
+    if (session_id == message.end() || !session_id->is_string() ||
+        !core::isValidId(session_id->get<std::string>())) {
+      return bad(viewer, "replay wants {\"session\": ID, \"until\": seconds since the epoch}");
+    }
+    std::optional<double> until;
+    try {
+      until = number(message, "until", 0, 1e10);
+    } catch (const std::exception& e) {
+      return bad(viewer, std::string("replay: ") + e.what());
+    }
+    if (!until) return bad(viewer, "replay: \"until\" (seconds since the epoch) is missing");
+    const uint64_t request = ++viewer.replay_request;
+    replays.post({id, request, session_id->get<std::string>(),
+                  static_cast<int64_t>(std::llround(*until * 1e9))});
+    queueText(viewer, textOf({{"type", "replaying"}, {"session", *session_id}, {"until", *until}}),
+              false);
+  }
+
+  // Replays made since the last poll: each viewer switches to its newest.
+  void takeReplays() {
+    for (auto& done : replays.take()) {
+      const auto found = viewers.find(done.viewer);
+      if (found == viewers.end() || found->second.replay_request != done.request) continue;
+      Viewer& viewer = found->second;
+      if (!done.session) {
+        queueText(viewer,
+                  textOf({{"type", "error"},
+                          {"code", "replay"},
+                          {"session", done.id},
+                          {"message", "replay: " + done.session.error().message}}),
+                  false);
+        continue;
+      }
+      const auto view = viewer.view;
+      const uint64_t view_id = viewer.view_id;
+      const uint64_t request = viewer.replay_request;
+      unsubscribe(viewer);
+      viewer.replay_request = request;
+      viewer.session = done.id;
+      viewer.replay = *done.session;
+      const auto summary = viewer.replay->tiles().summary();
+      queueText(viewer,
+                textOf({{"type", "replayed"},
+                        {"session", done.id},
+                        {"until", static_cast<double>(done.until_ns) * 1e-9},
+                        {"frames", viewer.replay->status().frames_fused},
+                        {"voxels", summary.occupied_voxels},
+                        {"bounds", boundsJson(summary.bounds)}}),
+                false);
+      for (auto& text : poseMessages(done.id, viewer.replay->trajectory(0), true)) {
+        queueText(viewer, std::move(text), false);
+      }
+      if (view) planFor(viewer, *viewer.replay, *view, view_id);
+    }
+  }
+
   void view(Viewer& viewer, const json& message) {
     if (viewer.session.empty()) return bad(viewer, "view: subscribe to a session first");
-    const auto session = server.find(viewer.session);
+    const auto session = sessionOf(viewer);
     if (!session) return bad(viewer, "view: session '" + viewer.session + "' is gone");
     ViewRequest request;
     uint64_t view_id = 0;
@@ -329,9 +470,17 @@ struct ViewerHub::Impl {
     } catch (const std::exception& e) {
       return bad(viewer, std::string("view: ") + e.what());
     }
-    const auto& tiles = session->tiles();
+    planFor(viewer, *session, request, view_id);
+  }
+
+  // Plans `request` for the viewer and queues its tiles (replacing the rest of any earlier
+  // view), announced by "plan" and closed by "view_done".
+  void planFor(Viewer& viewer, const core::Session& session, const ViewRequest& request,
+               uint64_t view_id) {
+    const auto& tiles = session.tiles();
     const ViewPlan plan = planView(tiles.list(), tiles.resolution(), request);
     viewer.view = request;
+    viewer.view_id = view_id;
     viewer.coarse_level = plan.coarse_level;
     viewer.plan.clear();
     viewer.level.clear();
@@ -389,7 +538,7 @@ struct ViewerHub::Impl {
     } catch (const std::exception& e) {
       return bad(viewer, std::string("trajectory: ") + e.what());
     }
-    const auto session = server.find(session_id);
+    const auto session = session_id == viewer.session ? sessionOf(viewer) : server.find(session_id);
     if (!session) return bad(viewer, "trajectory: no loaded session '" + session_id + "'");
     auto poses = session->trajectory(from);
     for (auto& text : poseMessages(session_id, poses, from == 0, vehicle)) {
@@ -403,7 +552,7 @@ struct ViewerHub::Impl {
               false);
   }
 
-  void receive(Viewer& viewer, std::string_view text) {
+  void receive(Id id, Viewer& viewer, std::string_view text) {
     if (viewer.close) return;
     if (nesting(text) > kMaxNesting) return bad(viewer, "message nested too deeply");
     const json message = json::parse(text, nullptr, false);
@@ -425,6 +574,7 @@ struct ViewerHub::Impl {
     if (type == "unsubscribe") return unsubscribe(viewer);
     if (type == "view") return view(viewer, message);
     if (type == "trajectory") return trajectory(viewer, message);
+    if (type == "replay") return replay(id, viewer, message);
     if (type == "ping") {
       json pong = {{"type", "pong"}};
       if (const auto t = message.find("t"); t != message.end() && t->is_number()) pong["t"] = *t;
@@ -460,7 +610,7 @@ struct ViewerHub::Impl {
   }
 
   std::optional<Outgoing> next(Viewer& viewer) {
-    const auto session = viewer.session.empty() ? nullptr : server.find(viewer.session);
+    const auto session = sessionOf(viewer);
     while (!viewer.queue.empty()) {
       auto item = std::move(viewer.queue.front());
       viewer.queue.pop_front();
@@ -519,7 +669,9 @@ struct ViewerHub::Impl {
   void pushFeeds() {
     std::map<std::string, std::vector<Viewer*>> subscribers;
     for (auto& [id, viewer] : viewers) {
-      if (!viewer.session.empty() && !viewer.close) subscribers[viewer.session].push_back(&viewer);
+      if (!viewer.session.empty() && !viewer.close && !viewer.replay) {
+        subscribers[viewer.session].push_back(&viewer);
+      }
     }
     for (auto feed = feeds.begin(); feed != feeds.end();) {
       const auto session = server.find(feed->first);
@@ -593,7 +745,7 @@ void ViewerHub::disconnect(Id id) { impl_->viewers.erase(id); }
 
 void ViewerHub::receive(Id id, std::string_view text, int64_t /*now_ns*/) {
   const auto found = impl_->viewers.find(id);
-  if (found != impl_->viewers.end()) impl_->receive(found->second, text);
+  if (found != impl_->viewers.end()) impl_->receive(id, found->second, text);
 }
 
 void ViewerHub::receiveBinary(Id id, size_t bytes) {
@@ -621,6 +773,7 @@ void ViewerHub::poll(int64_t now_ns) {
                              std::to_string(options.stuck_after.count() / 1000) + " s");
     }
   }
+  impl_->takeReplays();
   impl_->pushStatuses();
   impl_->pushFeeds();
 }

@@ -9,6 +9,9 @@
 // server a key per tile, not copies of the map. A viewer whose write has not finished for
 // `stuck_after`, or whose unsent messages pass `max_queued_bytes`, is closed with a reason.
 //
+// Replays (the time slider: a stored session as it was at a moment) are made by the
+// SessionAdmin on a thread of the hub's own and taken up by poll().
+//
 // Threads: one thread (the network thread) calls everything.
 //
 //   ViewerHub hub(map_server, admin, {});

@@ -3,7 +3,8 @@
 // source) over DDS on loopback, the built viewer in headless Debian chromium. Checks that the
 // page ends up drawing exactly the server's occupied voxels, frame count and trajectory; then
 // (with ../shared/data) the imported Freiburg campus map at the levels the server chose, tile
-// by tile against GET /api/sessions/campus/tiles; switching sessions; and a page that
+// by tile against GET /api/sessions/campus/tiles; the time slider replaying the flight to its
+// middle and back; switching sessions; and a page that
 // reconnects by itself after the server restarts. Screenshots sit beside --screenshot.
 //
 // Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P
@@ -275,6 +276,38 @@ async function run(options, resources, progress) {
   }
   pageHealthy();
 
+  progress.step = 'replaying the flight to its middle with the time slider';
+  const range = await page.evaluate(() => window.__stereomap.timeRange());
+  if (!range) throw new TestFailure('expected the time slider to span the e2e flight, seen no time range');
+  const tum = (await get('/api/sessions/e2e/trajectory.tum')).body.trim().split('\n').map((line) => Number(line.split(' ')[0]));
+  // Halfway between two poses in the middle of the flight, so that no pose sits on the edge.
+  const half = Math.floor(tum.length / 2);
+  const middle = (tum[half - 1] + tum[half]) / 2;
+  await page.evaluate((t) => {
+    const slider = document.getElementById('time-slider');
+    slider.value = String(t);
+    slider.dispatchEvent(new Event('input', { bubbles: true }));
+  }, middle);
+  const replayed = await waitUntil(`the page to show the flight as it was at ${middle.toFixed(1)} s (fewer voxels, the poses up to then)`,
+    kPageCatchUpTimeoutMs, 250, async () => {
+      const h = await hook();
+      const until = await page.evaluate(() => window.__stereomap.replayUntil());
+      if (until === null || Math.abs(until - middle) > 0.001) return { ok: false, seen: `replay at ${until}; ${shown(h)}` };
+      const posesThen = half;
+      return { ok: h.poses === posesThen && h.voxels > 0 && h.voxels < expected.voxels,
+        seen: `replay at ${until}: ${shown(h)}, expected ${posesThen} poses and 0 < voxels < ${expected.voxels}`, h };
+    }, pageHealthy);
+  console.log(`replay at the middle of the flight: ${replayed.h.voxels} voxels, ${replayed.h.poses} poses`);
+  const replayShot = options.screenshot.replace(/\.png$/, '') + '_replay.png';
+  await page.screenshot({ path: replayShot });
+  console.log(`screenshot: ${replayShot}`);
+  await page.click('#live-button');
+  await waitUntil(`the page to show the whole flight again after "now" (${JSON.stringify(expected)})`, kPageCatchUpTimeoutMs, 250, async () => {
+    const h = await hook();
+    const until = await page.evaluate(() => window.__stereomap.replayUntil());
+    return { ok: until === null && Object.keys(expected).every((k) => h[k] === expected[k]), seen: `replay ${until}; ${shown(h)}` };
+  }, pageHealthy);
+
   // Every tile the page holds has, at its level, exactly the cells the server's index lists,
   // and every tile of the map is held at some level.
   const tilesMatch = async (onPage, id) => {
@@ -303,7 +336,12 @@ async function run(options, resources, progress) {
     if (opened.status !== 200) throw new TestFailure(`expected POST /api/sessions/campus/open to answer 200, seen ${opened.status}`);
     const campusPage = await resources.browser.newPage({ viewport: { width: 1280, height: 800 } });
     campusPage.on('pageerror', (error) => pageErrors.push(`campus page uncaught: ${error.message}`));
-    await campusPage.goto(`${base}/?session=campus`);
+    campusPage.on('console', (message) => {
+      if (message.type() === 'error') pageErrors.push(`campus page console.error: ${message.text()}`);
+      else if (message.type() === 'warning') console.log(`campus page warns: ${message.text()}`);
+    });
+    // A budget that software rendering (SwiftShader) draws in good time; still several levels.
+    await campusPage.goto(`${base}/?session=campus&budget=300000`);
     const campus = await waitUntil('the campus page to hold every tile at the level the server chose, cells equal to the index',
       kCampusTimeoutMs, 1000, () => tilesMatch(campusPage, 'campus'), pageHealthy);
     console.log(`campus page: ${campus.seen}`);

@@ -7,7 +7,7 @@
 import { rampCssGradient } from './core/colour_ramp.js';
 import { statusText } from './core/format.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
-import { ProtocolError, helloMessage, parseMessage, subscribeMessage, viewMessage } from './core/protocol.js';
+import { ProtocolError, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
 import { TileFormatError, decodeTile } from './core/tile_codec.js';
 import { MapView } from './three/map_view.js';
 
@@ -15,13 +15,15 @@ const kRetryFirstMs = 500; // reconnect backoff doubles from here ...
 const kRetryMaxMs = 10_000; // ... up to this
 const kStatusRefreshMs = 500;
 const kViewEveryMs = 250; // camera moves are reported at most this often
+const kReplayAfterMs = 300; // the slider asks for a replay once it rests this long
 
 const params = new URLSearchParams(location.search);
 const kBudget = Number(params.get('budget')) || 1_000_000; // cells drawn at most
 const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look before a finer level is due
 
 const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'colour-select', 'legend',
-  'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result']
+  'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result',
+  'timeline', 'time-slider', 'time-label', 'live-button']
   .map((id) => [id, document.getElementById(id)]));
 
 const store = new MapStore();
@@ -32,6 +34,8 @@ let dataChanged = false; // messages arrived since the view was last synchronise
 let viewId = 0;
 let viewTimer = null;
 let subscribeError = '';
+let replayTimer = null;
+let pendingReplay = null; // the time the slider was moved to, until its replay arrives
 
 const view = new MapView(elements.view, syncView, scheduleView);
 
@@ -44,9 +48,9 @@ function send(text) {
 }
 
 // Subscribes to the session to show when it is not the one subscribed to.
-function followChoice() {
+function followChoice(again = false) {
   const id = displayedSessionId();
-  if (!link.connected || id === null || store.subscribed?.id === id) return;
+  if (!link.connected || id === null || (store.subscribed?.id === id && !again)) return;
   subscribeError = '';
   store.subscribe(id);
   send(subscribeMessage(id));
@@ -72,7 +76,27 @@ function syncView() {
   view.show(store.subscribed);
   updateLegend();
   updateSessionList();
+  updateTimeline();
   updateStatus();
+}
+
+const formatClock = (seconds) => new Date(seconds * 1000).toISOString().slice(11, 19);
+
+// The slider spans the subscribed session's flight; hidden when it has no poses (an imported map).
+function updateTimeline() {
+  const session = store.subscribed;
+  const range = session?.timeRange ?? null;
+  elements.timeline.hidden = range === null;
+  if (range === null) return;
+  const slider = elements['time-slider'];
+  const chosen = pendingReplay ?? session.replayUntil; // the slider's time, or null: now
+  Object.assign(slider, { min: range[0], max: range[1] });
+  if (pendingReplay === null) slider.value = chosen ?? range[1];
+  const shown = Number(slider.value);
+  elements['time-label'].textContent = chosen === null
+    ? `now (${formatClock(range[1])} UTC)`
+    : `${formatClock(shown)} UTC, +${(shown - range[0]).toFixed(1)} s`;
+  elements['live-button'].disabled = session.replayUntil === null;
 }
 
 function updateStatus() {
@@ -88,9 +112,12 @@ function updateStatus() {
     frames: session?.frames ?? 0,
     ageSeconds: session?.lastMessageMs ? (Date.now() - session.lastMessageMs) / 1000 : null,
   });
-  if (session?.status?.state === 'live') text += ` · ${rate.perSecond.toFixed(1)} frames/s`;
+  const live = session?.status?.state === 'live' && session.replayUntil === null;
+  if (live) text += ` · ${rate.perSecond.toFixed(1)} frames/s`;
   if (link.connected) text += ` · ${(link.bytesPerSecond / 1024).toFixed(0)} kB/s`;
-  if (store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
+  // Lag: from the server's change of the map to its tiles here (the same clock only on one host).
+  if (live && store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
+  if (session?.replayUntil != null) text += ` · replay at ${formatClock(session.replayUntil)} UTC`;
   if (subscribeError) text += ` · ${subscribeError}`;
   elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
@@ -138,8 +165,9 @@ function receiveText(text) {
     if (message.session && message.session === store.subscribed?.id) subscribeError = message.message;
   }
   store.apply(message);
+  if (message.type === 'replayed' && message.until === pendingReplay && replayTimer === null) pendingReplay = null;
   if (message.type === 'subscribed' && message.session === store.subscribed?.id) {
-    view.fitBounds(message.bounds);
+    if (view.shownId !== message.session) view.fitBounds(message.bounds); // not when coming back from a replay
     sendView();
   }
   followChoice();
@@ -204,6 +232,22 @@ elements['colour-select'].addEventListener('change', (event) => {
   dataChanged = true;
   view.requestRender();
 });
+elements['time-slider'].addEventListener('input', () => {
+  clearTimeout(replayTimer);
+  pendingReplay = Number(elements['time-slider'].value);
+  updateTimeline();
+  replayTimer = setTimeout(() => {
+    replayTimer = null;
+    if (store.subscribed) send(replayMessage(store.subscribed.id, pendingReplay));
+  }, kReplayAfterMs);
+});
+elements['live-button'].addEventListener('click', () => {
+  clearTimeout(replayTimer);
+  replayTimer = null;
+  pendingReplay = null;
+  followChoice(true); // subscribing again shows the session as it is now
+});
+
 elements['fit-button'].addEventListener('click', () => {
   elements['follow-check'].checked = false;
   view.following = false;
@@ -262,6 +306,9 @@ window.__stereomap = {
   tiles: () => (store.subscribed?.id === displayedSessionId() ? [...store.subscribed.tiles.values()] : [])
     .map((t) => ({ key: tileKeyText(t.key), level: t.level, cells: t.codes.length })),
   trajectoryLength: () => view.trajectoryLength,
+  // The time shown by a replay (seconds), or null for the session as it is.
+  replayUntil: () => store.subscribed?.replayUntil ?? null,
+  timeRange: () => store.subscribed?.timeRange ?? null,
   frames: () => (store.subscribed?.id === displayedSessionId() ? store.subscribed.frames : 0),
 };
 setInterval(() => {

@@ -26,10 +26,26 @@ export class SessionState {
     this.trajectories = new Map();
     this.lastMessageMs = null; // wall-clock time of the last message about this session
     this.lastChangeMs = 0; // when the server last changed the map (its clock, Unix ms)
+    this.replayUntil = null; // shown as it was at this time (seconds), or null: as it is
+    this.replayFrames = 0; // frames fused by then
+    this.timeRange = null; // [first, last] pose time of the whole session (seconds), for the slider
+  }
+
+  // The whole session's time span, from its trajectories (kept while a replay shows less).
+  updateTimeRange() {
+    if (this.replayUntil !== null) return;
+    let first = Infinity;
+    let last = -Infinity;
+    for (const { poses } of this.trajectories.values()) {
+      if (poses.length === 0) continue;
+      first = Math.min(first, poses[0][0]);
+      last = Math.max(last, poses.at(-1)[0]);
+    }
+    this.timeRange = first <= last ? [first, last] : null;
   }
 
   get frames() {
-    return this.status?.frames ?? 0;
+    return this.replayUntil !== null ? this.replayFrames : this.status?.frames ?? 0;
   }
 
   get vehicle() {
@@ -77,6 +93,7 @@ export class SessionState {
     }
     for (const pose of poses) trajectory.poses.push(pose); // not push(...poses): long lists overflow the stack
     if (poses.length > 0) trajectory.updatedMs = nowMs;
+    this.updateTimeRange();
   }
 }
 
@@ -138,6 +155,13 @@ export class MapStore {
         if (mine?.id !== message.session) return false;
         Object.assign(mine, { bounds: message.bounds, serverVoxels: message.voxels, lastChangeMs: message.changedMs, lastMessageMs: nowMs });
         this.lastLatency = nowMs - message.changedMs;
+        return true;
+      case 'replayed':
+        if (mine?.id !== message.session) return false;
+        // The map and trajectories as they were then follow: start them afresh.
+        mine.tiles.clear();
+        mine.trajectories.clear();
+        Object.assign(mine, { replayUntil: message.until, replayFrames: message.frames, bounds: message.bounds, serverVoxels: message.voxels, lastMessageMs: nowMs });
         return true;
       case 'poses':
         if (mine?.id !== message.session) return false;

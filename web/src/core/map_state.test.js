@@ -54,4 +54,20 @@ describe('MapStore', () => {
     store.apply(parseMessage(JSON.stringify({ type: 'session', ...status('s', 'live', 9) })));
     expect(mine.frames).toBe(9);
   });
+
+  it('starts a replay afresh and keeps the whole flight\'s time span for the slider', () => {
+    const store = new MapStore();
+    const mine = store.subscribe('s');
+    store.apply(parseMessage('{"type":"poses","session":"s","vehicle":"uav","reset":true,"poses":[[10,0,0,0,0,0,0,1],[20,1,0,0,0,0,0,1]]}'));
+    store.applyTile(tile('s', [0, 0, 0], 5, [1, 2]));
+    expect(mine.timeRange).toEqual([10, 20]);
+    store.apply(parseMessage('{"type":"replayed","session":"s","until":15,"frames":1,"voxels":1,"bounds":null}'));
+    expect(mine.replayUntil).toBe(15);
+    expect(mine.frames).toBe(1);
+    expect(mine.cells).toBe(0);
+    store.applyTile(tile('s', [0, 0, 0], 1, [1])); // the replay's own versions start low
+    store.apply(parseMessage('{"type":"poses","session":"s","vehicle":"uav","reset":true,"poses":[[10,0,0,0,0,0,0,1]]}'));
+    expect(mine.cells).toBe(1);
+    expect(mine.timeRange).toEqual([10, 20]);
+  });
 });

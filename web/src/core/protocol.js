@@ -138,6 +138,19 @@ const kParsers = {
   trajectory_done(m) {
     return { type: 'trajectory_done', session: requireId(m, 'session'), poses: count(m, 'poses') };
   },
+  replaying(m) {
+    return { type: 'replaying', session: requireId(m, 'session'), until: field(m, 'until', isFiniteNumber, 'a time (seconds since the epoch)') };
+  },
+  replayed(m) {
+    return {
+      type: 'replayed',
+      session: requireId(m, 'session'),
+      until: field(m, 'until', isFiniteNumber, 'a time (seconds since the epoch)'),
+      frames: count(m, 'frames'),
+      voxels: count(m, 'voxels'),
+      bounds: bounds(m),
+    };
+  },
   pong(m) {
     return { type: 'pong', t: field(m, 't', isFiniteNumber, 'a number', { optional: true, fallback: null }) };
   },
@@ -185,4 +198,9 @@ export function subscribeMessage(session) {
  */
 export function viewMessage({ id, eye, planes, fov, height, budget, error }) {
   return JSON.stringify({ type: 'view', id, eye, planes, fov, height: Math.max(1, Math.round(height)), budget, error });
+}
+
+/** The session as it was at `until` (seconds since the epoch): the time slider. */
+export function replayMessage(session, until) {
+  return JSON.stringify({ type: 'replay', session, until });
 }
