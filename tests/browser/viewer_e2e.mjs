@@ -316,7 +316,7 @@ async function run(options, resources, progress) {
     const index = JSON.parse(body);
     const cells = new Map(index.tiles.map((t) => [`${t.level}/${t.key}`, t.voxels]));
     const keys = new Set(index.tiles.filter((t) => t.level === 0).map((t) => t.key));
-    const held = await onPage.evaluate(() => ({ session: window.__stereomap.session, tiles: window.__stereomap.tiles() }));
+    const held = await onPage.evaluate(() => ({ session: window.__stereomap.session, tiles: window.__stereomap.tiles(), link: window.__stereomap.link() }));
     if (held.session !== id) return { ok: false, seen: `session ${held.session}` };
     const wrong = held.tiles.filter((t) => cells.get(`${t.level}/${t.key}`) !== t.cells);
     const missing = [...keys].filter((k) => !held.tiles.some((t) => t.key === k));
@@ -325,7 +325,7 @@ async function run(options, resources, progress) {
     return {
       ok: wrong.length === 0 && missing.length === 0 && held.tiles.length === keys.size,
       seen: `${held.tiles.length} of ${keys.size} tiles held, cells per level ${JSON.stringify(levels)}, ` +
-        `${wrong.length} differ from the server, ${missing.length} missing`,
+        `${wrong.length} differ from the server, ${missing.length} missing; link ${JSON.stringify(held.link)}`,
       levels,
     };
   };
@@ -341,7 +341,7 @@ async function run(options, resources, progress) {
       else if (message.type() === 'warning') console.log(`campus page warns: ${message.text()}`);
     });
     // A budget that software rendering (SwiftShader) draws in good time; still several levels.
-    await campusPage.goto(`${base}/?session=campus&budget=300000`);
+    await campusPage.goto(`${base}/?session=campus&budget=200000`);
     const campus = await waitUntil('the campus page to hold every tile at the level the server chose, cells equal to the index',
       kCampusTimeoutMs, 1000, () => tilesMatch(campusPage, 'campus'), pageHealthy);
     console.log(`campus page: ${campus.seen}`);

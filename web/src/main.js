@@ -27,7 +27,8 @@ const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-bu
   .map((id) => [id, document.getElementById(id)]));
 
 const store = new MapStore();
-const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0 };
+const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0,
+  received: 0, applied: 0, lastMessageMs: null };
 const rate = { frames: null, atMs: 0, perSecond: 0 }; // the subscribed session's fused frames per second
 let pinnedSessionId = params.get('session'); // null: follow the latest
 let dataChanged = false; // messages arrived since the view was last synchronised
@@ -174,6 +175,7 @@ function receiveText(text) {
 }
 
 async function receive(data) {
+  link.applied += 1;
   try {
     if (typeof data === 'string') {
       receiveText(data);
@@ -204,8 +206,11 @@ function connect() {
     updateStatus();
   };
   socket.onmessage = (event) => {
+    link.received += 1;
+    link.lastMessageMs = Date.now();
     if (typeof event.data === 'string') link.bytes += event.data.length;
-    inbox = inbox.then(() => receive(event.data));
+    // A failure nobody foresaw is reported and the chain goes on with the next message.
+    inbox = inbox.then(() => receive(event.data)).catch((error) => console.error(`stereomap: ${error.stack ?? error}`));
   };
   // Also called when connecting failed; the error event carries nothing more useful.
   socket.onclose = (event) => {
@@ -306,6 +311,9 @@ window.__stereomap = {
   tiles: () => (store.subscribed?.id === displayedSessionId() ? [...store.subscribed.tiles.values()] : [])
     .map((t) => ({ key: tileKeyText(t.key), level: t.level, cells: t.codes.length })),
   trajectoryLength: () => view.trajectoryLength,
+  // Messages received and taken up (decoded and applied) on this connection's page, and how
+  // long ago the last one came: tells a quiet server from a page that fell behind.
+  link: () => ({ received: link.received, applied: link.applied, lastMessageAgoMs: link.lastMessageMs && Date.now() - link.lastMessageMs }),
   // The time shown by a replay (seconds), or null for the session as it is.
   replayUntil: () => store.subscribed?.replayUntil ?? null,
   timeRange: () => store.subscribed?.timeRange ?? null,

@@ -55,6 +55,7 @@ export class MapView {
     });
 
     this.shownId = null; // the session the layers hold
+    this.mapBounds = null; // {min, max} of the shown session's map, the server's
     this.frameRequested = false;
     new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
@@ -106,11 +107,17 @@ export class MapView {
       const poses = wanted.get(session.latestVehicle).poses;
       if (poses.length > 0) this.lookAt(poses.at(-1).slice(1, 4));
     }
+    this.mapBounds = session?.bounds ?? null;
     if (this.autoFrame && this.tiles.count > 0 && !this.framedBounds.containsBox(this.drawnBounds())) this.fit();
   }
 
+  // What framing must show: the map's bounds as the server reports them (exact, and the same
+  // whatever levels are drawn: coarse cells reach beyond them, and framing by what is drawn
+  // would move the camera, which asks for other levels, which move the bounds...), else the
+  // drawn cells; and every trajectory.
   drawnBounds() {
-    const bounds = this.tiles.bounds.clone();
+    const b = this.mapBounds;
+    const bounds = b ? new THREE.Box3(new THREE.Vector3(...b.min), new THREE.Vector3(...b.max)) : this.tiles.bounds.clone();
     for (const layer of this.trajectories.values()) bounds.union(layer.bounds);
     return bounds;
   }
@@ -169,7 +176,7 @@ export class MapView {
   /** Fits the camera to `bounds` ({min, max} in metres, the server's) before tiles arrive. */
   fitBounds(bounds) {
     if (!bounds) return;
-    this.tiles.bounds.union(new THREE.Box3(new THREE.Vector3(...bounds.min), new THREE.Vector3(...bounds.max)));
+    this.mapBounds = bounds;
     this.fit();
   }
 
