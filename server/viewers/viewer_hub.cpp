@@ -517,6 +517,26 @@ struct ViewerHub::Impl {
     viewer.view_done = json{{"type", "view_done"}, {"id", view_id}, {"session", viewer.session}};
   }
 
+  // {"type": "drop", "session": ID, "keys": ["x_y_z", ...]}: tiles the viewer no longer holds
+  // (its own memory budget); they are sent again when a view needs them.
+  void drop(Viewer& viewer, const json& message) {
+    constexpr size_t kMaxKeys = 4096;
+    const auto session = message.find("session");
+    const auto keys = message.find("keys");
+    if (session == message.end() || !session->is_string() || keys == message.end() ||
+        !keys->is_array() || keys->size() > kMaxKeys) {
+      return bad(viewer, "drop wants {\"session\": ID, \"keys\": [\"x_y_z\", ...]} (at most " +
+                             std::to_string(kMaxKeys) + " keys)");
+    }
+    if (session->get<std::string>() != viewer.session) return;  // an old subscription's: moot
+    for (const auto& text : *keys) {
+      const auto key = text.is_string() ? TileKey::parse(text.get<std::string>()) : std::nullopt;
+      if (!key) return bad(viewer, "drop: a key is not \"x_y_z\"");
+      viewer.held.erase(*key);
+      viewer.level.erase(*key);
+    }
+  }
+
   void trajectory(Viewer& viewer, const json& message) {
     std::string session_id = viewer.session;
     std::string vehicle;
@@ -575,6 +595,7 @@ struct ViewerHub::Impl {
     if (type == "view") return view(viewer, message);
     if (type == "trajectory") return trajectory(viewer, message);
     if (type == "replay") return replay(id, viewer, message);
+    if (type == "drop") return drop(viewer, message);
     if (type == "ping") {
       json pong = {{"type", "pong"}};
       if (const auto t = message.find("t"); t != message.end() && t->is_number()) pong["t"] = *t;

@@ -163,6 +163,30 @@ TEST(ViewerHub, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
   EXPECT_EQ(got.tiles, truth(*server.find("s")));
 }
 
+// A viewer that dropped tiles (its memory budget) gets them again with its next view, and
+// only those.
+TEST(ViewerHub, DroppedTilesComeBackWithTheNextView) {
+  core::MapServer server({.resolution = 0.1});
+  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+  server.find("s")->waitUntilIdle();
+  ViewerHub hub(server, nullptr, {});
+  Received got;
+  const auto id = watchEverything(hub, got);
+  ASSERT_GE(got.tiles.size(), 2u);
+  const TileKey dropped = got.tiles.begin()->first;
+  got.tiles.erase(dropped);
+  hub.receive(id, R"({"type": "drop", "session": "s", "keys": [")" + dropped.text() + R"("]})", 0);
+  const size_t before = got.binary;
+  hub.receive(id, kFineView, 0);
+  drain(hub, id, got);
+  EXPECT_EQ(got.binary - before, 1u);
+  EXPECT_EQ(got.tiles, truth(*server.find("s")));
+  got.texts.clear();
+  hub.receive(id, R"({"type": "drop", "session": "s", "keys": ["1_2"]})", 0);
+  drain(hub, id, got);
+  EXPECT_EQ(got.ofType("error").size(), 1u);
+}
+
 TEST(ViewerHub, HandshakeAndTokens) {
   core::MapServer server({.resolution = 0.1});
   ViewerHub hub(server, nullptr, {.token = "t0ken"});

@@ -7,7 +7,7 @@
 import { rampCssGradient } from './core/colour_ramp.js';
 import { statusText } from './core/format.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
-import { ProtocolError, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
+import { ProtocolError, dropMessage, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
 import { TileFormatError, decodeTile } from './core/tile_codec.js';
 import { MapView } from './three/map_view.js';
 
@@ -20,13 +20,14 @@ const kReplayAfterMs = 300; // the slider asks for a replay once it rests this l
 const params = new URLSearchParams(location.search);
 const kBudget = Number(params.get('budget')) || 1_000_000; // cells drawn at most
 const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look before a finer level is due
+const kCacheBytes = (Number(params.get('cache')) || 256) * 2 ** 20; // the page's memory for tiles
 
 const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'colour-select', 'legend',
   'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result',
   'timeline', 'time-slider', 'time-label', 'live-button']
   .map((id) => [id, document.getElementById(id)]));
 
-const store = new MapStore();
+const store = new MapStore(kCacheBytes);
 const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0,
   received: 0, applied: 0, lastMessageMs: null };
 const rate = { frames: null, atMs: 0, perSecond: 0 }; // the subscribed session's fused frames per second
@@ -63,7 +64,9 @@ function sendView() {
   viewTimer = null;
   if (!link.connected || !store.subscribed) return;
   viewId += 1;
-  send(viewMessage({ id: viewId, ...view.cameraState(), budget: kBudget, error: kErrorPx }));
+  const camera = view.cameraState();
+  store.subscribed.tiles.setEye(camera.eye, store.subscribed.resolution ?? 1);
+  send(viewMessage({ id: viewId, ...camera, budget: kBudget, error: kErrorPx }));
 }
 
 function scheduleView() {
@@ -182,6 +185,8 @@ async function receive(data) {
     } else {
       link.bytes += data.byteLength;
       store.applyTile(await decodeTile(new Uint8Array(data)));
+      const mine = store.subscribed;
+      if (mine?.evicted.length > 0) send(dropMessage(mine.id, mine.evicted.splice(0)));
     }
   } catch (error) {
     if (!(error instanceof ProtocolError) && !(error instanceof TileFormatError)) throw error;

@@ -3,6 +3,8 @@
 // decoded tiles. Entry points: MapStore.apply(message) and MapStore.applyTile(tile).
 // Renderers compare revisions to redraw only what changed.
 
+import { TileCache } from './tile_cache.js';
+
 // Revisions are unique across the page's life, so a renderer never mistakes a tile or a
 // session that was re-created (after a reconnect) for the one it drew before.
 let lastRevision = 0;
@@ -14,13 +16,15 @@ export function tileKeyText([x, y, z]) {
 }
 
 export class SessionState {
-  constructor(id) {
+  /** `cacheBytes`: the budget of the tiles held (TileCache). */
+  constructor(id, cacheBytes = undefined) {
     this.id = id;
     this.status = null; // the server's latest status (protocol.js status fields)
     this.resolution = null; // metres per voxel edge
     this.bounds = null; // {min, max} of the occupied voxels, metres (server's)
     this.serverVoxels = 0; // occupied voxels at the finest level, as the server counts them
-    this.tiles = new Map(); // tileKeyText → {key, level, version, codes, values, revision}
+    this.tiles = new TileCache(cacheBytes); // tileKeyText → {key, level, version, codes, values, revision}
+    this.evicted = []; // key texts dropped to stay within the cache's budget, to tell the server
     // Per vehicle: {poses: [[t, x, y, z, qx, qy, qz, qw], ...] (T_map_body), epoch (renewed
     // when the poses are replaced rather than appended to), updatedMs}.
     this.trajectories = new Map();
@@ -64,8 +68,12 @@ export class SessionState {
     const held = this.tiles.get(text);
     // A tile older than the one held arrived late: keep the newer one.
     if (held && header.version < held.version) return false;
-    if (codes.length === 0) this.tiles.delete(text);
-    else this.tiles.set(text, { key: header.key, level: header.level, version: header.version, codes, values, revision: newRevision() });
+    if (codes.length === 0) {
+      this.tiles.delete(text);
+    } else {
+      const entry = { key: header.key, level: header.level, version: header.version, codes, values, revision: newRevision() };
+      for (const key of this.tiles.set(text, entry)) this.evicted.push(key);
+    }
     return true;
   }
 
@@ -98,7 +106,9 @@ export class SessionState {
 }
 
 export class MapStore {
-  constructor() {
+  /** `cacheBytes`: each subscribed session's tile budget (TileCache). */
+  constructor(cacheBytes = undefined) {
+    this.cacheBytes = cacheBytes;
     this.statuses = new Map(); // id → status, every session the server reported, in order
     this.subscribed = null; // the SessionState subscribed to, or null
     this.lastLatency = null; // ms from the server's map change to its tiles here (same clock only)
@@ -116,7 +126,7 @@ export class MapStore {
 
   /** Starts over for `id` (a new subscription); its data arrives from now on. */
   subscribe(id) {
-    this.subscribed = new SessionState(id);
+    this.subscribed = new SessionState(id, this.cacheBytes);
     const status = this.statuses.get(id);
     if (status) this.subscribed.status = status;
     return this.subscribed;

@@ -70,4 +70,13 @@ describe('MapStore', () => {
     expect(mine.cells).toBe(1);
     expect(mine.timeRange).toEqual([10, 20]);
   });
+
+  it('hands back the tiles its cache evicts, to tell the server', () => {
+    const store = new MapStore(1); // a budget of one byte: only the newest tile stays
+    const mine = store.subscribe('s');
+    store.applyTile(tile('s', [0, 0, 0], 1, [1]));
+    store.applyTile(tile('s', [1, 0, 0], 1, [2]));
+    expect([...mine.tiles.keys()]).toEqual(['1_0_0']);
+    expect(mine.evicted).toEqual(['0_0_0']);
+  });
 });

@@ -204,3 +204,8 @@ export function viewMessage({ id, eye, planes, fov, height, budget, error }) {
 export function replayMessage(session, until) {
   return JSON.stringify({ type: 'replay', session, until });
 }
+
+/** Tiles the page no longer holds (its cache's budget): the server sends them again when needed. */
+export function dropMessage(session, keys) {
+  return JSON.stringify({ type: 'drop', session, keys });
+}

@@ -1,6 +1,8 @@
 // The tile wire format (proto/tiles/FORMAT.md) in the browser: decodeTiles() reads one or
 // more tiles sent back to back, checking every size before it trusts it. Compressed payloads
-// are inflated with the platform's DecompressionStream (zlib), so decoding is async.
+// (zlib) are inflated by fflate. The functions stay async so that callers need not change.
+
+import { unzlibSync } from 'fflate';
 
 const MAGIC = [0x53, 0x4d, 0x54, 0x4c]; // "SMTL"
 const FIXED_HEADER = 49;
@@ -9,11 +11,13 @@ export const LEVELS = TILE_BITS + 1;
 
 export class TileFormatError extends Error {}
 
-async function inflate(bytes, expected) {
-  const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream('deflate'));
+// zlib (RFC 1950) by fflate, synchronously: the platform's DecompressionStream was seen to
+// leave a promise pending for good in a busy headless chromium, and one stuck tile stalls every
+// message after it.
+function inflate(bytes, expected) {
   let out;
   try {
-    out = new Uint8Array(await new Response(stream).arrayBuffer());
+    out = unzlibSync(bytes, { out: new Uint8Array(expected) });
   } catch (e) {
     throw new TileFormatError(`tile payload does not inflate: ${e.message}`);
   }
@@ -79,7 +83,7 @@ export async function decodeTile(bytes) {
   if (bytes.length < size) throw new TileFormatError(`tile is truncated: ${bytes.length} of ${size} bytes`);
   const session = new TextDecoder().decode(bytes.subarray(FIXED_HEADER, FIXED_HEADER + sessionBytes));
   const stored = bytes.subarray(FIXED_HEADER + sessionBytes, size);
-  const raw = flags & 1 ? await inflate(stored, rawBytes) : stored;
+  const raw = flags & 1 ? inflate(stored, rawBytes) : stored;
   const { codes, values } = cellsFromMasks(raw, maskLevels, count);
   return { header: { session, key, level, version, resolution }, codes, values, size };
 }
