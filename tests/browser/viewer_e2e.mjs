@@ -308,6 +308,19 @@ async function run(options, resources, progress) {
     return { ok: until === null && Object.keys(expected).every((k) => h[k] === expected[k]), seen: `replay ${until}; ${shown(h)}` };
   }, pageHealthy);
 
+  progress.step = 'measuring a distance with two clicks';
+  await page.keyboard.press('m');
+  const box = await page.locator('#view canvas').boundingBox();
+  for (const [fx, fy] of [[0.45, 0.55], [0.62, 0.5]]) {
+    await page.mouse.click(box.x + fx * box.width, box.y + fy * box.height);
+    await page.waitForTimeout(200);
+  }
+  const measured = await page.locator('#measure-result').textContent();
+  const metres = Number(/distance (\d+\.\d+) m/.exec(measured)?.[1]);
+  if (!(metres > 0.1 && metres < 30)) throw new TestFailure(`expected "distance N m" between two voxels of the room after two clicks, seen "${measured}"`);
+  console.log(`measured: ${measured}`);
+  await page.keyboard.press('Escape');
+
   // Every tile the page holds has, at its level, exactly the cells the server's index lists,
   // and every tile of the map is held at some level.
   const tilesMatch = async (onPage, id) => {
@@ -341,7 +354,7 @@ async function run(options, resources, progress) {
       else if (message.type() === 'warning') console.log(`campus page warns: ${message.text()}`);
     });
     // A budget that software rendering (SwiftShader) draws in good time; still several levels.
-    await campusPage.goto(`${base}/?session=campus&budget=200000`);
+    await campusPage.goto(`${base}/?session=campus&budget=100000`);
     const campus = await waitUntil('the campus page to hold every tile at the level the server chose, cells equal to the index',
       kCampusTimeoutMs, 1000, () => tilesMatch(campusPage, 'campus'), pageHealthy);
     console.log(`campus page: ${campus.seen}`);
