@@ -315,7 +315,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
 }
 
 common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::string& id,
-                                                                   int64_t until_ns) const {
+                                                                  int64_t until_ns) const {
   const fs::path dir = root_ / id;
   std::error_code ec;
   if (!core::isValidId(id) || !fs::exists(dir / kJournalName, ec)) {

@@ -93,11 +93,18 @@ size_t posesIn(const Received& got) {
   return poses;
 }
 
-TEST(ViewerHub, EarlyAndLateViewersHoldExactlyTheServersMap) {
-  core::MapServer server({.resolution = 0.1});
-  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
-  server.find("s")->waitUntilIdle();
-  ViewerHub hub(server, nullptr, {});
+// Session "s" with one wall fused, and a hub serving it.
+class OneWall : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+    server.find("s")->waitUntilIdle();
+  }
+  core::MapServer server{{.resolution = 0.1}};
+  ViewerHub hub{server, nullptr, {}};
+};
+
+TEST_F(OneWall, EarlyAndLateViewersHoldExactlyTheServersMap) {
   Received early_got;
   const auto early = watchEverything(hub, early_got);
   ASSERT_EQ(early_got.ofType("hello").size(), 1u);
@@ -139,11 +146,7 @@ TEST(ViewerHub, EarlyAndLateViewersHoldExactlyTheServersMap) {
   EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2);
 }
 
-TEST(ViewerHub, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
-  core::MapServer server({.resolution = 0.1});
-  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
-  server.find("s")->waitUntilIdle();
-  ViewerHub hub(server, nullptr, {});
+TEST_F(OneWall, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
   Received got;
   const auto id = watchEverything(hub, got);
   const size_t before = got.binary;
@@ -165,11 +168,7 @@ TEST(ViewerHub, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
 
 // A viewer that dropped tiles (its memory budget) gets them again with its next view, and
 // only those.
-TEST(ViewerHub, DroppedTilesComeBackWithTheNextView) {
-  core::MapServer server({.resolution = 0.1});
-  ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
-  server.find("s")->waitUntilIdle();
-  ViewerHub hub(server, nullptr, {});
+TEST_F(OneWall, DroppedTilesComeBackWithTheNextView) {
   Received got;
   const auto id = watchEverything(hub, got);
   ASSERT_GE(got.tiles.size(), 2u);
