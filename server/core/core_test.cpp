@@ -1,6 +1,8 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <set>
 
 #include "proto/cloud_codec.hpp"
@@ -118,6 +120,21 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   ASSERT_TRUE(png && png->status == 200);
   EXPECT_EQ(png->content_type, "image/png");
   EXPECT_EQ(png->body.substr(1, 3), "PNG");
+  // The wall seen from above: white voxels, each a square of `scale` pixels.
+  auto decoded = [](const std::string& body) {
+    return cv::imdecode(std::vector<uint8_t>(body.begin(), body.end()), cv::IMREAD_UNCHANGED);
+  };
+  const cv::Mat one = decoded(png->body);
+  ASSERT_EQ(one.type(), CV_8UC1);
+  EXPECT_GT(cv::countNonZero(one), 5);
+  auto png3 = answerApi(server, nullptr, "GET",
+                        "/api/sessions/flight-1/map.png?zmin=-0.2&zmax=0.2&scale=3");
+  ASSERT_TRUE(png3 && png3->status == 200);
+  cv::Mat expected;
+  cv::resize(one, expected, cv::Size(), 3, 3, cv::INTER_NEAREST);
+  const cv::Mat three = decoded(png3->body);
+  ASSERT_EQ(three.size(), expected.size());
+  EXPECT_EQ(cv::countNonZero(three != expected), 0);
   EXPECT_EQ(
       answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?zmin=5&zmax=6")->status,
       404);

@@ -7,10 +7,9 @@
 #include <spdlog/spdlog.h>
 
 #include "common/forked_write.hpp"
+#include "common/png.hpp"
 #include "common/time.hpp"
 
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 #include <sstream>
 
 namespace stereomap::core {
@@ -355,14 +354,21 @@ std::string Session::occupancyPng(double z_min, double z_max, int pixels_per_vox
     x0 = std::min(x0, v.x), x1 = std::max(x1, v.x);
     y0 = std::min(y0, v.y), y1 = std::max(y1, v.y);
   }
-  cv::Mat image(y1 - y0 + 1, x1 - x0 + 1, CV_8UC1, cv::Scalar(0));
-  for (const auto& v : band) image.at<uint8_t>(y1 - v.y, v.x - x0) = 255;  // north up
-  if (pixels_per_voxel > 1) {
-    cv::resize(image, image, cv::Size(), pixels_per_voxel, pixels_per_voxel, cv::INTER_NEAREST);
+  // North up: the first row is the largest y. Each voxel becomes a square of
+  // pixels_per_voxel pixels.
+  const uint32_t scale = static_cast<uint32_t>(std::max(1, pixels_per_voxel));
+  const uint32_t width = static_cast<uint32_t>(x1 - x0 + 1) * scale;
+  const uint32_t height = static_cast<uint32_t>(y1 - y0 + 1) * scale;
+  std::vector<uint8_t> pixels(static_cast<size_t>(width) * height, 0);
+  for (const auto& v : band) {
+    const size_t column = static_cast<size_t>(v.x - x0) * scale;
+    const size_t row = static_cast<size_t>(y1 - v.y) * scale;
+    for (uint32_t dy = 0; dy < scale; ++dy) {
+      std::fill_n(pixels.begin() + static_cast<std::ptrdiff_t>((row + dy) * width + column), scale,
+                  uint8_t{255});
+    }
   }
-  std::vector<uint8_t> png;
-  cv::imencode(".png", image, png);
-  return std::string(png.begin(), png.end());
+  return common::encodeGreyPng(pixels, width, height);
 }
 
 void Session::waitUntilIdle() const {
