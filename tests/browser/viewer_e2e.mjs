@@ -361,7 +361,9 @@ async function run(options, resources, progress) {
     if (Object.keys(campus.levels).length < 2) throw new TestFailure(`expected the campus at several levels of detail, seen ${JSON.stringify(campus.levels)}`);
     await campusPage.waitForTimeout(500);
     const campusShot = options.screenshot.replace(/\.png$/, '') + '_campus.png';
-    await campusPage.screenshot({ path: campusShot });
+    // Software rendering draws the 100k campus cells (and the first page's map) one frame in
+    // seconds, many more while other tests load both cores: a CI run saw 30 s pass.
+    await campusPage.screenshot({ path: campusShot, timeout: 120000 });
     console.log(`screenshot: ${campusShot}`);
 
     progress.step = 'switching the campus page to the live session and back';
