@@ -8,14 +8,22 @@ namespace stereomap::eval {
 double OdometryRun::medianMilliseconds() const {
   if (milliseconds.empty()) return 0;
   auto sorted = milliseconds;
-  std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2), sorted.end());
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2),
+                   sorted.end());
   return sorted[sorted.size() / 2];
 }
 
-OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& options) {
+namespace {
+
+// Both runs: the odometry over every frame; with a graph, its keyframes into it.
+OdometryRun run(camera::FrameSource& source, const odometry::VoOptions& options,
+                posegraph::KeyframeGraph* graph) {
   odometry::StereoOdometry vo(source.camera(), options);
   OdometryRun run;
   std::optional<common::Rigid3> anchor;
+  std::vector<std::pair<int, common::Rigid3>> through_keyframe;  // per frame
+  int keyframe = -1;
+  bool lost_since_keyframe = false;
   while (auto frame = source.next()) {
     const auto e = vo.track(frame->left, frame->right, frame->stamp_ns);
     run.milliseconds.push_back(e.milliseconds);
@@ -29,8 +37,38 @@ OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& 
     const double t = static_cast<double>(frame->stamp_ns) * 1e-9;
     run.truth.push_back({t, truth});
     run.estimate.push_back({t, *anchor * e.T_world_camera});
+    if (!graph) continue;
+    lost_since_keyframe |= e.state == odometry::TrackingState::kLost;
+    if ((e.keyframe || keyframe < 0) && e.state != odometry::TrackingState::kLost) {
+      const auto added = graph->add(frame->stamp_ns, e.T_world_camera, e.covariance, frame->left,
+                                    frame->right, lost_since_keyframe && keyframe >= 0);
+      keyframe = added.keyframe;
+      lost_since_keyframe = false;
+      run.solve_ms_max = std::max(run.solve_ms_max, added.solve.milliseconds);
+    }
+    through_keyframe.emplace_back(keyframe, e.T_world_camera);
+  }
+  if (graph) {
+    run.loops = graph->loops();
+    for (size_t i = 0; i < through_keyframe.size(); ++i) {
+      const auto& [k, pose] = through_keyframe[i];
+      run.optimised.push_back(
+          {run.estimate[i].t, *anchor * (k < 0 ? pose : graph->correct(k, pose))});
+    }
   }
   return run;
+}
+
+}  // namespace
+
+OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& options) {
+  return run(source, options, nullptr);
+}
+
+OdometryRun runOdometryWithGraph(camera::FrameSource& source, const odometry::VoOptions& options,
+                                 const posegraph::KeyframeGraphOptions& graph_options) {
+  posegraph::KeyframeGraph graph(source.camera(), graph_options);
+  return run(source, options, &graph);
 }
 
 }  // namespace stereomap::eval

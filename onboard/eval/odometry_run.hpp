@@ -8,11 +8,17 @@
 #include "common/trajectory.hpp"
 #include "onboard/camera/frame_source.hpp"
 #include "onboard/odometry/odometry.hpp"
+#include "onboard/posegraph/keyframe_graph.hpp"
 
 namespace stereomap::eval {
 
 struct OdometryRun {
   common::Trajectory truth, estimate;
+  // With a pose graph (runOdometryWithGraph): every frame through its keyframe's pose after
+  // the last solve, and what the graph found.
+  common::Trajectory optimised;
+  int loops = 0;
+  double solve_ms_max = 0;
   std::vector<double> milliseconds;  // per frame
   int lost = 0, degraded = 0, keyframes = 0;
   double right_offset_px = 0;  // the odometry's estimate after the last frame
@@ -21,5 +27,7 @@ struct OdometryRun {
 
 // Frames without ground truth get the identity as truth.
 OdometryRun runOdometry(camera::FrameSource& source, const odometry::VoOptions& options);
+OdometryRun runOdometryWithGraph(camera::FrameSource& source, const odometry::VoOptions& options,
+                                 const posegraph::KeyframeGraphOptions& graph_options = {});
 
 }  // namespace stereomap::eval
