@@ -18,6 +18,7 @@ struct OdometryRun {
   // the last solve, and what the graph found.
   common::Trajectory optimised;
   int loops = 0;
+  int tracks = 0, joined_tracks = 0;  // the odometry's tracks; later ones joined by a place
   double solve_ms_max = 0;
   std::vector<double> milliseconds;  // per frame
   int lost = 0, degraded = 0, keyframes = 0;

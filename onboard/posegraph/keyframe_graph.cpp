@@ -50,6 +50,17 @@ int KeyframeGraph::loops() const {
   return loops_;
 }
 
+int KeyframeGraph::tracks() const {
+  std::lock_guard lock(mutex_);
+  return static_cast<int>(joined_.size());
+}
+
+int KeyframeGraph::joinedTracks() const {
+  std::lock_guard lock(mutex_);
+  return joined_.empty() ? 0
+                         : static_cast<int>(std::count(joined_.begin() + 1, joined_.end(), true));
+}
+
 Rigid3 KeyframeGraph::optimised(int keyframe) const {
   std::lock_guard lock(mutex_);
   return graph_.pose(keyframe);
@@ -70,11 +81,16 @@ std::vector<int> KeyframeGraph::candidates(int current) const {
   // By the current estimates: places near where the new keyframe is thought to be, allowing
   // for the drift of the path flown since.
   const Rigid3& here = graph_.pose(current);
+  const int track = track_[static_cast<size_t>(current)];
+  const bool joined = joined_[static_cast<size_t>(track)];
   std::vector<std::pair<double, int>> near;
-  for (int k = 0; k + options_.recent_keyframes < current; ++k) {
+  for (int k = 0; k < current; ++k) {
+    const bool same_track = track_[static_cast<size_t>(k)] == track;
+    if (same_track && k + options_.recent_keyframes >= current) continue;
     const double distance = (graph_.pose(k).translation - here.translation).norm();
-    const double allowance =
+    double allowance =
         options_.search_radius_m + options_.drift_allowance * (path_m_[current] - path_m_[k]);
+    if (!joined && !same_track) allowance += options_.new_track_sigma_m;
     if (distance <= allowance) near.emplace_back(distance, k);
   }
   std::sort(near.begin(), near.end());
@@ -118,6 +134,12 @@ KeyframeAdded KeyframeGraph::add(int64_t /*stamp_ns*/, const Rigid3& T_world_cam
     }
     odometry_.push_back(T_world_camera);
     covariance_.push_back(covariance);
+    if (id == 0 || new_track) {
+      track_.push_back(static_cast<int>(joined_.size()));
+      joined_.push_back(id == 0);  // the first track is the reference
+    } else {
+      track_.push_back(track_.back());
+    }
     added.keyframe = id;
     nearby = candidates(id);
   }
@@ -132,6 +154,9 @@ KeyframeAdded KeyframeGraph::add(int64_t /*stamp_ns*/, const Rigid3& T_world_cam
   (void)graph_.addEdge({match->keyframe, added.keyframe, match->T_place_current, match->information,
                         EdgeKind::kLoop});
   ++loops_;
+  const int this_track = track_[static_cast<size_t>(added.keyframe)];
+  if (track_[static_cast<size_t>(match->keyframe)] != this_track)
+    joined_[static_cast<size_t>(this_track)] = true;
   added.place = match;
   added.solve = graph_.optimise();
   return added;

@@ -4,6 +4,9 @@
 // new track (the odometry was lost) gets only a weak tie to the one before; every keyframe is
 // compared with remembered places near its estimate (PlaceMemory), and a verified match
 // becomes a loop edge, or the join of the broken track, after which the graph is solved.
+// Until a track is joined, its keyframes look for places among every earlier track's, the
+// newest too (the place just before the loss is the likeliest to be seen again).
+// add() is called from one thread; the getters from any.
 //
 //   KeyframeGraph graph(camera);
 //   for (each VO estimate e with e.keyframe) graph.add(stamp, e.T_world_camera, e.covariance,
@@ -49,6 +52,8 @@ class KeyframeGraph {
 
   int size() const;
   int loops() const;
+  int tracks() const;        // tracks of the odometry so far (1 + losses)
+  int joinedTracks() const;  // of those after the first, tied to an earlier one by a place
   // The keyframe's pose after the last solve, and the odometry's own.
   common::Rigid3 optimised(int keyframe) const;
   common::Rigid3 odometry(int keyframe) const;
@@ -65,6 +70,8 @@ class KeyframeGraph {
   std::vector<common::Rigid3> odometry_;
   std::vector<Mat6> covariance_;
   std::vector<double> path_m_;  // odometry path length up to each keyframe
+  std::vector<int> track_;      // which track (between losses) each keyframe belongs to
+  std::vector<bool> joined_;    // per track: tied to an earlier track by a recognised place
   int loops_ = 0;
 };
 
