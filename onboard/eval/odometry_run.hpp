@@ -8,7 +8,7 @@
 #include "common/trajectory.hpp"
 #include "onboard/camera/frame_source.hpp"
 #include "onboard/odometry/odometry.hpp"
-#include "onboard/posegraph/keyframe_graph.hpp"
+#include "onboard/posegraph/graph_follower.hpp"
 
 namespace stereomap::eval {
 

@@ -1,0 +1,123 @@
+#include "onboard/posegraph/graph_follower.hpp"
+
+#include <spdlog/spdlog.h>
+
+namespace stereomap::posegraph {
+
+using common::Rigid3;
+
+GraphFollower::GraphFollower(const camera::StereoCamera& camera,
+                             const KeyframeGraphOptions& options, bool background)
+    : graph_(camera, options), background_(background) {
+  if (background_) worker_ = std::thread([this] { work(); });
+}
+
+GraphFollower::~GraphFollower() {
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  changed_.notify_all();
+  if (worker_.joinable()) worker_.join();
+}
+
+void GraphFollower::process(Pending pending) {
+  const auto added =
+      graph_.add(pending.frame.stamp_ns, pending.frame.T_world_camera, pending.frame.covariance,
+                 pending.frame.left, pending.frame.right, pending.new_track);
+  const Rigid3 correction =
+      graph_.optimised(added.keyframe) * graph_.odometry(added.keyframe).inverse();
+  std::lock_guard lock(mutex_);
+  processed_ = added.keyframe + 1;
+  correction_ = correction;
+  solve_ms_max_ = std::max(solve_ms_max_, added.solve.milliseconds);
+  changed_.notify_all();
+}
+
+void GraphFollower::work() {
+  for (;;) {
+    Pending pending;
+    {
+      std::unique_lock lock(mutex_);
+      changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      if (queue_.empty()) return;  // stopping, nothing left
+      pending = std::move(queue_.front());
+      queue_.pop_front();
+    }
+    process(std::move(pending));
+  }
+}
+
+Rigid3 GraphFollower::follow(const FollowedFrame& frame) {
+  lost_since_keyframe_ |= frame.lost;
+  const bool enters = !frame.lost && (frame.keyframe || submitted_ == 0 || lost_since_keyframe_);
+  if (enters) {
+    Pending pending{submitted_, frame, lost_since_keyframe_ && submitted_ > 0};
+    pending.frame.left = frame.left.clone();  // the caller's buffers move on
+    pending.frame.right = frame.right.clone();
+    ++submitted_;
+    lost_since_keyframe_ = false;
+    if (background_) {
+      std::lock_guard lock(mutex_);
+      queue_.push_back(std::move(pending));
+      if (queue_.size() == 16) {
+        spdlog::warn("pose graph: 16 keyframes wait for place recognition (it falls behind)");
+      }
+      changed_.notify_all();
+    } else {
+      process(std::move(pending));
+    }
+  }
+  through_.push_back(submitted_ - 1);
+  odometry_.push_back(frame.T_world_camera);
+  lost_.push_back(frame.lost);
+  stamps_.push_back(frame.stamp_ns);
+
+  std::lock_guard lock(mutex_);
+  return correction_ * frame.T_world_camera;
+}
+
+std::vector<Rigid3> GraphFollower::finish() {
+  {
+    std::unique_lock lock(mutex_);
+    changed_.wait(lock, [this] { return processed_ == submitted_; });
+  }
+  std::vector<Rigid3> poses(odometry_.size());
+  for (size_t i = 0; i < poses.size(); ++i) {
+    poses[i] = through_[i] < 0 ? odometry_[i] : graph_.correct(through_[i], odometry_[i]);
+  }
+  // Lost frames: interpolated in time between the tracked frames on either side (position
+  // linearly, attitude by slerp); at either end the odometry's guess stays.
+  for (size_t i = 0; i < poses.size();) {
+    if (!lost_[i]) {
+      ++i;
+      continue;
+    }
+    size_t end = i;
+    while (end < poses.size() && lost_[end]) ++end;
+    if (i > 0 && end < poses.size()) {
+      const double t0 = static_cast<double>(stamps_[i - 1]);
+      const double t1 = static_cast<double>(stamps_[end]);
+      for (size_t k = i; k < end; ++k) {
+        const double s = (static_cast<double>(stamps_[k]) - t0) / (t1 - t0);
+        poses[k].translation = (1 - s) * poses[i - 1].translation + s * poses[end].translation;
+        poses[k].rotation = poses[i - 1].rotation.slerp(s, poses[end].rotation);
+      }
+    }
+    i = end;
+  }
+  return poses;
+}
+
+FollowerStats GraphFollower::stats() const {
+  FollowerStats stats;
+  stats.keyframes = graph_.size();
+  stats.loops = graph_.loops();
+  stats.tracks = graph_.tracks();
+  stats.joined_tracks = graph_.joinedTracks();
+  std::lock_guard lock(mutex_);
+  stats.solve_ms_max = solve_ms_max_;
+  return stats;
+}
+
+}  // namespace stereomap::posegraph

@@ -1,0 +1,78 @@
+// Follows the odometry frame by frame with a KeyframeGraph: picks the frames that enter the
+// graph (the odometry's keyframes, and the first tracked frame after a loss, which starts a
+// new track), hands them to the graph (on a worker thread when `background`, so that
+// place recognition and solving never stall tracking), and corrects poses with it:
+//  - now(): a frame's pose through the newest keyframe the graph has taken (what a vehicle
+//    publishes live);
+//  - finish(): every frame's pose through the final graph, frames the odometry lost
+//    interpolated between the tracked frames on either side (the corrected trajectory).
+#pragma once
+
+#include <condition_variable>
+#include <deque>
+#include <memory>
+#include <thread>
+
+#include "onboard/posegraph/keyframe_graph.hpp"
+
+namespace stereomap::posegraph {
+
+struct FollowedFrame {
+  int64_t stamp_ns = 0;
+  common::Rigid3 T_world_camera;  // the odometry's
+  Mat6 covariance = Mat6::Zero();
+  bool keyframe = false;  // the odometry made one here
+  bool lost = false;      // the odometry lost track here
+  cv::Mat left, right;    // rectified; only read when the frame enters the graph
+};
+
+struct FollowerStats {
+  int keyframes = 0, loops = 0, tracks = 0, joined_tracks = 0;
+  double solve_ms_max = 0;
+};
+
+class GraphFollower {
+ public:
+  GraphFollower(const camera::StereoCamera& camera, const KeyframeGraphOptions& options,
+                bool background);
+  ~GraphFollower();
+  GraphFollower(const GraphFollower&) = delete;
+  GraphFollower& operator=(const GraphFollower&) = delete;
+
+  // One frame, in order; returns its pose corrected by the graph as it stands.
+  common::Rigid3 follow(const FollowedFrame& frame);
+  std::vector<common::Rigid3> finish();
+  FollowerStats stats() const;
+
+ private:
+  struct Pending {
+    int keyframe;
+    FollowedFrame frame;
+    bool new_track;
+  };
+  void work();
+  void process(Pending pending);
+
+  KeyframeGraph graph_;
+  const bool background_;
+  // Per frame: the keyframe it is corrected through (-1: none yet), its odometry pose, lost.
+  std::vector<int> through_;
+  std::vector<common::Rigid3> odometry_;
+  std::vector<bool> lost_;
+  std::vector<int64_t> stamps_;
+  int submitted_ = 0;
+  bool lost_since_keyframe_ = false;
+
+  mutable std::mutex mutex_;
+  std::condition_variable changed_;
+  std::deque<Pending> queue_;
+  int processed_ = 0;  // keyframes the graph has taken
+  // opt(k) * odometry(k)^-1 of the newest taken keyframe: follow() reads only this, so that
+  // a solve under way never holds up tracking.
+  common::Rigid3 correction_;
+  bool stopping_ = false;
+  double solve_ms_max_ = 0;
+  std::thread worker_;
+};
+
+}  // namespace stereomap::posegraph
