@@ -44,7 +44,7 @@ int main(int argc, char** argv) {
   uint32_t seed = 1;
   std::string stereo_preset = "fast";
   double noise_sigma = 0, blur_sigma = 0;
-  std::string vo = "fast", trajectory_out, kitti_out;
+  std::string vo = "fast", trajectory_out, kitti_out, odometry_out, truth_out;
   bool no_publish = false;
   double wait_s = 3.0;
   double paper_resolution = 0;
@@ -89,7 +89,15 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"fast", "paper", "gt"}))
       ->capture_default_str();
   app.add_option("--trajectory-out", trajectory_out,
-                 "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw");
+                 "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw; with "
+                 "--pose-graph, every frame through the final graph");
+  app.add_flag("--pose-graph", options.pose_graph,
+               "Correct the odometry with a pose graph over its keyframes: loop closures and "
+               "joins of lost tracks by place recognition, solved on a worker thread");
+  app.add_option("--odometry-trajectory-out", odometry_out,
+                 "Write the odometry's own poses (T_map_body, TUM), before any correction");
+  app.add_option("--truth-out", truth_out,
+                 "Write the source's ground-truth poses (T_map_body, TUM), where it has them");
   app.add_option("--kitti-poses-out", kitti_out,
                  "Write the left camera's poses relative to the first frame, KITTI format");
   app.add_flag("--no-publish", no_publish,
@@ -150,13 +158,14 @@ int main(int argc, char** argv) {
                  camera.depthFromDisparity(options.matcher.min_disparity), paper_resolution);
   }
 
-  options.pose_source = vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
+  options.pose_source =
+      vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
   options.odometry.mode = vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
   options.depth = !no_publish;  // the clouds only matter to a server
 
   // Trajectory files, and a progress bar when running the odometry alone.
   // Kept only when asked for: a live vehicle runs until Ctrl-C.
-  common::Trajectory trajectory, kitti_poses;
+  common::Trajectory trajectory, kitti_poses, odometry_poses, truth_poses;
   std::optional<common::Rigid3> first_camera;
   uint64_t n = 0;
   const bool bar = no_publish && isatty(STDERR_FILENO);
@@ -164,12 +173,14 @@ int main(int argc, char** argv) {
     const double t = static_cast<double>(r.stamp_ns) * 1e-9;
     ++n;
     if (!trajectory_out.empty()) trajectory.push_back({t, r.T_map_body});
+    if (!odometry_out.empty()) odometry_poses.push_back({t, r.T_map_body_odometry});
+    if (!truth_out.empty() && r.T_map_body_truth) truth_poses.push_back({t, *r.T_map_body_truth});
     if (!first_camera) first_camera = r.T_map_camera;
     if (!kitti_out.empty()) kitti_poses.push_back({t, first_camera->inverse() * r.T_map_camera});
     if (bar) {
       const int filled = frames > 0 ? static_cast<int>(30 * n / frames) : static_cast<int>(n % 31);
-      std::fprintf(stderr, "\r[%-30s] %llu%s frames, odometry %s, %.1f ms", std::string(filled, '#').c_str(),
-                   static_cast<unsigned long long>(n),
+      std::fprintf(stderr, "\r[%-30s] %llu%s frames, odometry %s, %.1f ms",
+                   std::string(filled, '#').c_str(), static_cast<unsigned long long>(n),
                    frames > 0 ? ("/" + std::to_string(frames)).c_str() : "",
                    odometry::stateName(r.state), r.odometry_ms);
     }
@@ -192,8 +203,7 @@ int main(int argc, char** argv) {
     }
     publisher = std::move(made).value();
     spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
-                 options.vehicle_id, options.session_id, dds.domain_id, source->describe(),
-                 rate_hz,
+                 options.vehicle_id, options.session_id, dds.domain_id, source->describe(), rate_hz,
                  frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"),
                  vo);
   } else {
@@ -201,8 +211,22 @@ int main(int argc, char** argv) {
   }
   const auto summary = pipeline::runPipeline(*source, publisher.get(), options, shutdown);
   if (bar) std::fprintf(stderr, "\n");
+  if (options.pose_graph && summary.corrected_T_map_body.size() == trajectory.size()) {
+    for (size_t i = 0; i < trajectory.size(); ++i) {
+      trajectory[i].pose = summary.corrected_T_map_body[i];
+    }
+  }
+  if (options.pose_graph) {
+    spdlog::info(
+        "pose graph: {} keyframes, {} loop closures, {} of {} later tracks joined, "
+        "longest solve {:.1f} ms",
+        summary.graph.keyframes, summary.graph.loops, summary.graph.joined_tracks,
+        std::max(0, summary.graph.tracks - 1), summary.graph.solve_ms_max);
+  }
   for (const auto& [path, text] : {std::pair{trajectory_out, common::tumText(trajectory)},
-                                   std::pair{kitti_out, common::kittiText(kitti_poses)}}) {
+                                   std::pair{kitti_out, common::kittiText(kitti_poses)},
+                                   std::pair{odometry_out, common::tumText(odometry_poses)},
+                                   std::pair{truth_out, common::tumText(truth_poses)}}) {
     if (path.empty()) continue;
     if (auto written = common::writeText(path, text); !written) {
       spdlog::error("{}", written.error().message);
@@ -216,11 +240,13 @@ int main(int argc, char** argv) {
                  summary.median_odometry_ms);
     // Half a pixel of disparity bias costs several percent of scale at 20 m.
     if (std::abs(summary.right_offset_px) > 0.5) {
-      spdlog::warn("the right image sits {:+.2f} px off its calibration (estimated by the odometry, "
-                   "which corrects for it); the stereo calibration needs redoing",
-                   summary.right_offset_px);
+      spdlog::warn(
+          "the right image sits {:+.2f} px off its calibration (estimated by the odometry, "
+          "which corrects for it); the stereo calibration needs redoing",
+          summary.right_offset_px);
     } else if (options.odometry.mode == odometry::VoMode::kFast) {
-      spdlog::info("stereo calibration check: right image offset {:+.2f} px", summary.right_offset_px);
+      spdlog::info("stereo calibration check: right image offset {:+.2f} px",
+                   summary.right_offset_px);
     }
   }
   if (no_publish) return 0;

@@ -182,7 +182,12 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   std::optional<odometry::StereoOdometry> odometry;
   if (options.pose_source == PoseSource::kOdometry)
     odometry.emplace(source.camera(), options.odometry);
-  std::optional<common::Rigid3> anchor;  // T_map_camera of the odometry's world frame
+  std::optional<posegraph::GraphFollower> graph;
+  if (odometry && options.pose_graph) {
+    graph.emplace(source.camera(), options.graph, /*background=*/true);
+  }
+  std::vector<common::Rigid3> T_body_cameras;  // per frame, for the corrected trajectory
+  std::optional<common::Rigid3> anchor;        // T_map_camera of the odometry's world frame
   std::optional<common::Rigid3> previous_pose;
   int64_t previous_stamp = 0;
   const auto start = Clock::now();
@@ -202,6 +207,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     auto frame = source.next();
     if (!frame) break;
     FrameReport report_frame{frame->index, frame->stamp_ns};
+    report_frame.T_map_body_truth = frame->T_map_body;
     std::optional<odometry::VoEstimate> estimate;
     // The left camera's mount; a forward-looking camera when the source does not say.
     const common::Rigid3 T_body_camera = frame->T_body_camera.value_or(
@@ -211,7 +217,16 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       estimate = odometry->track(frame->left, frame->right, frame->stamp_ns);
       odometry_ms.push_back(estimate->milliseconds);
       if (!anchor) anchor = frame->T_map_body.value_or(common::Rigid3{}) * T_body_camera;
-      T_map_body = *anchor * estimate->T_world_camera * T_body_camera.inverse();
+      report_frame.T_map_body_odometry =
+          *anchor * estimate->T_world_camera * T_body_camera.inverse();
+      const common::Rigid3 T_world_camera =
+          graph ? graph->follow({frame->stamp_ns, estimate->T_world_camera, estimate->covariance,
+                                 estimate->keyframe,
+                                 estimate->state == odometry::TrackingState::kLost, frame->left,
+                                 frame->right})
+                : estimate->T_world_camera;
+      if (graph) T_body_cameras.push_back(T_body_camera);
+      T_map_body = *anchor * T_world_camera * T_body_camera.inverse();
       report_frame.state = estimate->state;
       report_frame.odometry_ms = estimate->milliseconds;
       summary.lost_frames += estimate->state == odometry::TrackingState::kLost;
@@ -219,6 +234,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       summary.right_offset_px = estimate->right_offset_px;
     } else if (frame->T_map_body) {
       T_map_body = *frame->T_map_body;
+      report_frame.T_map_body_odometry = T_map_body;
     } else {
       spdlog::warn("frame {} has no ground-truth pose; skipped (use --vo fast)", frame->index);
       continue;
@@ -302,6 +318,13 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   summary.median_encode_ms = median(encode_ms);
   summary.median_frame_ms = median(frame_ms);
   summary.median_odometry_ms = median(odometry_ms);
+  if (graph) {
+    const auto poses = graph->finish();
+    for (size_t i = 0; i < poses.size(); ++i) {
+      summary.corrected_T_map_body.push_back(*anchor * poses[i] * T_body_cameras[i].inverse());
+    }
+    summary.graph = graph->stats();
+  }
   return summary;
 }
 

@@ -8,12 +8,14 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "common/result.hpp"
 #include "common/shutdown.hpp"
 #include "onboard/camera/frame_source.hpp"
 #include "onboard/odometry/odometry.hpp"
+#include "onboard/posegraph/graph_follower.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
@@ -28,8 +30,10 @@ struct FrameReport {
   uint64_t index = 0;
   int64_t stamp_ns = 0;
   odometry::TrackingState state = odometry::TrackingState::kOk;
-  common::Rigid3 T_map_body;
+  common::Rigid3 T_map_body;  // as published (corrected by the pose graph when it runs)
   common::Rigid3 T_map_camera;
+  common::Rigid3 T_map_body_odometry;              // the odometry's own
+  std::optional<common::Rigid3> T_map_body_truth;  // when the source knows it
   double odometry_ms = 0;
   double frame_ms = 0;
 };
@@ -51,6 +55,11 @@ struct PipelineOptions {
   PoseSource pose_source = PoseSource::kOdometry;
   odometry::VoOptions odometry;
   bool depth = true;  // false: poses only (odometry runs without the clouds)
+  // A pose graph over the odometry's keyframes (loop closures, joins of lost tracks), solved
+  // on a worker thread: published poses are corrected by it from then on, and the summary
+  // carries every frame's pose through the final graph.
+  bool pose_graph = false;
+  posegraph::KeyframeGraphOptions graph;
   std::function<void(const FrameReport&)> on_frame;  // after every frame, if set
 };
 
@@ -69,6 +78,9 @@ struct PipelineSummary {
   double median_odometry_ms = 0;
   // The odometry's last estimate of the right image's offset against its calibration (px).
   double right_offset_px = 0;
+  // With pose_graph: T_map_body of every frame through the final graph, and what it found.
+  std::vector<common::Rigid3> corrected_T_map_body;
+  posegraph::FollowerStats graph;
 };
 
 // The DDS side of the vehicle: one writer per topic.

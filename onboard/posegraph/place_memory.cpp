@@ -24,6 +24,42 @@ std::optional<Eigen::Vector2d> projectPerturbed(const camera::StereoCamera& came
   return camera.project(perturbed * point_place);
 }
 
+// ORB's keypoints sit on whole pixels of their pyramid level: a pixel of disparity is
+// several centimetres of depth at 3 m. The disparity is found again by the sum of absolute
+// differences of 9x9 patches along the row, within 2 px of the feature match, and refined by
+// a parabola through the best and its neighbours; nullopt at the image border or when the
+// best is at the end of the search.
+std::optional<double> subpixelDisparity(const cv::Mat& left, const cv::Mat& right,
+                                        const cv::Point2f& at, double matched_disparity) {
+  constexpr int kHalf = 4, kSearch = 2;
+  const int x = cvRound(at.x), y = cvRound(at.y);
+  const int d0 = cvRound(matched_disparity);
+  if (y - kHalf < 0 || y + kHalf >= left.rows || x + kHalf >= left.cols ||
+      x - d0 - kSearch - kHalf < 0 || x - kHalf < 0) {
+    return std::nullopt;
+  }
+  double cost[2 * kSearch + 1];
+  for (int k = -kSearch; k <= kSearch; ++k) {
+    const int d = d0 + k;
+    double sum = 0;
+    for (int dy = -kHalf; dy <= kHalf; ++dy) {
+      const uint8_t* l = left.ptr<uint8_t>(y + dy);
+      const uint8_t* r = right.ptr<uint8_t>(y + dy);
+      for (int dx = -kHalf; dx <= kHalf; ++dx) sum += std::abs(int{l[x + dx]} - int{r[x + dx - d]});
+    }
+    cost[k + kSearch] = sum;
+  }
+  int best = 0;
+  for (int k = 1; k <= 2 * kSearch; ++k) {
+    if (cost[k] < cost[best]) best = k;
+  }
+  if (best == 0 || best == 2 * kSearch) return std::nullopt;
+  const double a = cost[best - 1], b = cost[best], c = cost[best + 1];
+  const double curvature = a - 2 * b + c;
+  const double offset = curvature > 0 ? 0.5 * (a - c) / curvature : 0.0;
+  return d0 + (best - kSearch) + offset;
+}
+
 }  // namespace
 
 PlaceMemory::PlaceMemory(const camera::StereoCamera& camera, const PlaceOptions& options)
@@ -60,7 +96,9 @@ Place PlaceMemory::describe(int keyframe, const cv::Mat& left, const cv::Mat& ri
       }
     }
     if (best < 0 || best_distance > 50 || best_distance > 0.8 * second) continue;
-    const double disparity = l.x - right_points[best].pt.x;
+    const auto refined = subpixelDisparity(left, right, l, l.x - right_points[best].pt.x);
+    if (!refined || *refined < min_disparity) continue;
+    const double disparity = *refined;
     const double z = camera_.depthFromDisparity(disparity);
     place.points.push_back(camera_.rayThrough(l.x, l.y) * z);
     place.keypoints.push_back(left_points[i]);

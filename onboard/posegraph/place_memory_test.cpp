@@ -48,8 +48,9 @@ TEST(PlaceMemory, FindsAPlaceAgainWithItsRelativePose) {
   const double offset = (match->T_place_current.translation - truth.translation).norm();
   std::printf("place found again: %d inliers of %d matches, error %.4f deg, %.4f m\n",
               match->inliers, match->matches, angle * 180 / M_PI, offset);
-  EXPECT_LT(angle * 180 / M_PI, 0.5);
-  EXPECT_LT(offset, 0.03);
+  // Measured 0.04 deg / 2.6 mm (whole-pixel disparities gave 0.12 deg / 9.5 mm).
+  EXPECT_LT(angle * 180 / M_PI, 0.15);
+  EXPECT_LT(offset, 0.008);
   // The information matrix is a real one: symmetric positive definite.
   EXPECT_GT(Eigen::SelfAdjointEigenSolver<Mat6>(match->information).eigenvalues().minCoeff(), 0);
 
