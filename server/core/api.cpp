@@ -226,7 +226,10 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
         return error(400, "scale must be 1..16 pixels per voxel");
     }
     auto file = exportSession(*session, parts[2], request);
-    if (!file) return error(404, file.error().message);
+    if (!file) {
+      return error(file.error().code == common::ErrorCode::kTooLarge ? 413 : 404,
+                   file.error().message);
+    }
     return HttpAnswer{200, file->content_type, std::move(file->content), file->name};
   }
   return error(404, "unknown session resource '" + std::string(target) + "'");
@@ -243,11 +246,9 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
   }
   if (request.format == "ply") return ExportFile{session.occupiedPly(), binary, name};
   if (request.format == "png") {
-    std::string png = session.occupancyPng(request.z_min, request.z_max, request.scale);
-    if (png.empty())
-      return common::makeError(common::ErrorCode::kNotFound,
-                               "no occupied voxels in that height band");
-    return ExportFile{std::move(png), "image/png", name};
+    auto png = session.occupancyPng(request.z_min, request.z_max, request.scale);
+    if (!png) return png.error();
+    return ExportFile{std::move(*png), "image/png", name};
   }
   if (request.format == "tum") {
     const auto vehicles = session.status().vehicles;

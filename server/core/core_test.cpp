@@ -149,6 +149,22 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
   EXPECT_FALSE(answerApi(server, nullptr, "GET", "/index.html").has_value());
 }
 
+// A top view whose image would be gigabytes is refused before anything is allocated: two
+// walls 800 m apart at 0.1 m and 16 pixels per voxel would be 128,000 pixels on a side.
+TEST(Api, ATopViewTooLargeToDrawIsRefused) {
+  MapServer server({.resolution = 0.1});
+  ASSERT_TRUE(server.ingest(cloudFrame("far", 2.05, 0)));
+  auto far = cloudFrame("far", 2.05, 1);
+  far.sensor_position = {800.0, 800.0, 0.0};
+  ASSERT_TRUE(server.ingest(far));
+  server.find("far")->waitUntilIdle();
+  const auto refused =
+      answerApi(server, nullptr, "GET", "/api/sessions/far/map.png?zmin=-0.2&zmax=0.2&scale=16");
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->status, 413) << refused->body;
+  EXPECT_NE(refused->body.find("smaller scale"), std::string::npos) << refused->body;
+}
+
 TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
   Session session("q", {.resolution = 0.1, .queue_capacity = 1});
   size_t accepted = 0;

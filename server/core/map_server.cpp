@@ -22,8 +22,8 @@ constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 
 MapServer::MapServer(const MapServerOptions& options)
     : options_(options),
-      pool_(std::make_shared<common::WorkerPool>(
-          std::max(1u, std::thread::hardware_concurrency()) - 1)) {
+      pool_(std::make_shared<common::WorkerPool>(std::max(1u, std::thread::hardware_concurrency()) -
+                                                 1)) {
   metrics_.describe(kReceived, "counter", "DDS samples received, by topic");
   metrics_.describe(kAccepted, "counter", "DDS samples that passed validation, by topic");
   metrics_.describe(kRejected, "counter", "DDS samples rejected, by topic and reason");

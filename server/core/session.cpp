@@ -342,13 +342,17 @@ std::string Session::occupiedPly() const {
   return out.str();
 }
 
-std::string Session::occupancyPng(double z_min, double z_max, int pixels_per_voxel) const {
+common::Result<std::string> Session::occupancyPng(double z_min, double z_max,
+                                                  int pixels_per_voxel) const {
   std::vector<fusion::VoxelIndex> band;
   for (const auto& v : occupiedVoxels()) {
     const double z = (v.z + 0.5) * options_.resolution;
     if (z >= z_min && z <= z_max) band.push_back(v);
   }
-  if (band.empty()) return "";
+  if (band.empty()) {
+    return common::makeError(common::ErrorCode::kNotFound,
+                             "no occupied voxels in that height band");
+  }
   int32_t x0 = band[0].x, x1 = x0, y0 = band[0].y, y1 = y0;
   for (const auto& v : band) {
     x0 = std::min(x0, v.x), x1 = std::max(x1, v.x);
@@ -357,8 +361,17 @@ std::string Session::occupancyPng(double z_min, double z_max, int pixels_per_vox
   // North up: the first row is the largest y. Each voxel becomes a square of
   // pixels_per_voxel pixels.
   const uint32_t scale = static_cast<uint32_t>(std::max(1, pixels_per_voxel));
-  const uint32_t width = static_cast<uint32_t>(x1 - x0 + 1) * scale;
-  const uint32_t height = static_cast<uint32_t>(y1 - y0 + 1) * scale;
+  const uint64_t width64 = static_cast<uint64_t>(x1 - x0 + 1) * scale;
+  const uint64_t height64 = static_cast<uint64_t>(y1 - y0 + 1) * scale;
+  if (width64 * height64 > kMaxPngPixels) {
+    return common::makeError(common::ErrorCode::kTooLarge,
+                             "the image would be " + std::to_string(width64) + " x " +
+                                 std::to_string(height64) + " pixels (at most " +
+                                 std::to_string(kMaxPngPixels >> 20) +
+                                 " Mpx): ask for a smaller scale");
+  }
+  const auto width = static_cast<uint32_t>(width64);
+  const auto height = static_cast<uint32_t>(height64);
   std::vector<uint8_t> pixels(static_cast<size_t>(width) * height, 0);
   for (const auto& v : band) {
     const size_t column = static_cast<size_t>(v.x - x0) * scale;

@@ -142,8 +142,11 @@ class Session {
   std::string occupiedPly() const;
   // A top-down PNG of the occupied voxels with centres in [z_min, z_max] (one pixel per
   // voxel, or a square of pixels_per_voxel; white occupied, black not); pixel (0, 0) is the
-  // voxel with the smallest x and largest y. Empty when nothing is occupied in the band.
-  std::string occupancyPng(double z_min, double z_max, int pixels_per_voxel = 1) const;
+  // voxel with the smallest x and largest y. kNotFound when nothing is occupied in the band;
+  // kTooLarge above kMaxPngPixels (a request cannot make the server allocate gigabytes).
+  static constexpr size_t kMaxPngPixels = 64u << 20;
+  common::Result<std::string> occupancyPng(double z_min, double z_max,
+                                           int pixels_per_voxel = 1) const;
   // Blocks until every queued frame is fused (for tests and shutdown).
   void waitUntilIdle() const;
   // A .ot of the map and the journal record number it covers up to, once idle (close()).
