@@ -71,6 +71,11 @@ Rigid3 KeyframeGraph::odometry(int keyframe) const {
   return odometry_.at(static_cast<size_t>(keyframe));
 }
 
+int64_t KeyframeGraph::stamp(int keyframe) const {
+  std::lock_guard lock(mutex_);
+  return stamps_.at(static_cast<size_t>(keyframe));
+}
+
 Rigid3 KeyframeGraph::correct(int keyframe, const Rigid3& T_world_camera) const {
   std::lock_guard lock(mutex_);
   return graph_.pose(keyframe) * odometry_.at(static_cast<size_t>(keyframe)).inverse() *
@@ -101,7 +106,7 @@ std::vector<int> KeyframeGraph::candidates(int current) const {
   return out;
 }
 
-KeyframeAdded KeyframeGraph::add(int64_t /*stamp_ns*/, const Rigid3& T_world_camera,
+KeyframeAdded KeyframeGraph::add(int64_t stamp_ns, const Rigid3& T_world_camera,
                                  const Mat6& covariance, const cv::Mat& left, const cv::Mat& right,
                                  bool new_track) {
   Place place;
@@ -133,6 +138,7 @@ KeyframeAdded KeyframeGraph::add(int64_t /*stamp_ns*/, const Rigid3& T_world_cam
       path_m_.push_back(0.0);
     }
     odometry_.push_back(T_world_camera);
+    stamps_.push_back(stamp_ns);
     covariance_.push_back(covariance);
     if (id == 0 || new_track) {
       track_.push_back(static_cast<int>(joined_.size()));

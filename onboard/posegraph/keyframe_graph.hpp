@@ -57,6 +57,8 @@ class KeyframeGraph {
   // The keyframe's pose after the last solve, and the odometry's own.
   common::Rigid3 optimised(int keyframe) const;
   common::Rigid3 odometry(int keyframe) const;
+  // When the keyframe was taken (what a correction sent to the server is keyed by).
+  int64_t stamp(int keyframe) const;
   // A pose of the odometry corrected through keyframe `keyframe` (its latest keyframe).
   common::Rigid3 correct(int keyframe, const common::Rigid3& T_world_camera) const;
 
@@ -68,6 +70,7 @@ class KeyframeGraph {
   mutable std::mutex mutex_;
   PoseGraph graph_;
   std::vector<common::Rigid3> odometry_;
+  std::vector<int64_t> stamps_;
   std::vector<Mat6> covariance_;
   std::vector<double> path_m_;  // odometry path length up to each keyframe
   std::vector<int> track_;      // which track (between losses) each keyframe belongs to
