@@ -5,6 +5,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
 
+#include "onboard/camera/cv_pose.hpp"
 #include "onboard/posegraph/marker_pose.hpp"
 
 namespace stereomap::posegraph {
@@ -124,14 +125,8 @@ Rigid3 relativeFromImage(const Markers& earlier, const Rigid3& T_world_later_tru
       const cv::Point2d d = projected[i] - image[i];
       squared += d.dot(d);
     }
-    cv::Mat R_cv;
-    cv::Rodrigues(rvec, R_cv);
-    Eigen::Matrix3d R;
-    Eigen::Vector3d t;
-    cv::cv2eigen(R_cv, R);
-    cv::cv2eigen(tvec, t);
     return std::pair{std::sqrt(squared / 4.0),
-                     camera.T_world_camera * Rigid3{Quat(R).normalized(), t}};
+                     camera.T_world_camera * stereomap::camera::rigidFromRvecTvec(rvec, tvec)};
   };
   cv::Mat rvec, tvec;
   cv::solvePnP(object, image, K, cv::noArray(), rvec, tvec, false, cv::SOLVEPNP_EPNP);

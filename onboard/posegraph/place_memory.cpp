@@ -1,5 +1,7 @@
 #include "onboard/posegraph/place_memory.hpp"
 
+#include "onboard/camera/cv_pose.hpp"
+
 #include <algorithm>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
@@ -144,13 +146,7 @@ std::optional<PlaceMatch> PlaceMemory::recognise(const Place& current,
       inlier_image.push_back(image[static_cast<size_t>(i)]);
     }
     cv::solvePnPRefineLM(inlier_object, inlier_image, K, cv::noArray(), rvec, tvec);
-    cv::Mat R_cv;
-    cv::Rodrigues(rvec, R_cv);
-    Eigen::Matrix3d R;
-    Eigen::Vector3d t;
-    cv::cv2eigen(R_cv, R);
-    cv::cv2eigen(tvec, t);
-    const Rigid3 T_current_place{common::Quat(R).normalized(), t};
+    const Rigid3 T_current_place = camera::rigidFromRvecTvec(rvec, tvec);
     if (best && static_cast<int>(inliers.size()) <= best->inliers) continue;
 
     // Information J^T J / sigma^2 of the reprojection error, by central differences over
