@@ -110,18 +110,27 @@ export class MapStore {
   constructor(cacheBytes = undefined) {
     this.cacheBytes = cacheBytes;
     this.statuses = new Map(); // id → status, every session the server reported, in order
+    this.appeared = new Map(); // id → when it was first reported (0, 1, 2, ...)
     this.subscribed = null; // the SessionState subscribed to, or null
     this.lastLatency = null; // ms from the server's map change to its tiles here (same clock only)
   }
 
   /**
-   * The session to follow: the live one that changed most recently, else the last loaded one
-   * (ended or opened), else the last stored one; null when there is none.
+   * The session to follow: the live one that appeared most recently (a new flight), else the
+   * last loaded one (ended or opened), else the last stored one; null when there is none.
+   * By appearance, not by the latest update: with several vehicles live at once their updates
+   * interleave, and following the last one changed would switch sessions (and drop every
+   * tile) many times a second.
    */
   get latestSessionId() {
-    const all = [...this.statuses.values()];
+    const all = [...this.statuses.values()].sort((a, b) => this.appeared.get(a.id) - this.appeared.get(b.id));
     const last = (states) => all.filter((s) => states.includes(s.state)).at(-1);
     return (last(['live']) ?? last(['ended', 'opened']) ?? all.at(-1))?.id ?? null;
+  }
+
+  /** Notes when a session was first reported (kept across reconnects). */
+  noteAppearance(id) {
+    if (!this.appeared.has(id)) this.appeared.set(id, this.appeared.size);
   }
 
   /** Starts over for `id` (a new subscription); its data arrives from now on. */
@@ -141,12 +150,15 @@ export class MapStore {
         return true;
       case 'sessions':
         this.statuses.clear();
-        for (const status of message.sessions) this.statuses.set(status.id, status);
+        for (const status of message.sessions) {
+          this.noteAppearance(status.id);
+          this.statuses.set(status.id, status);
+        }
         if (mine && this.statuses.has(mine.id)) mine.status = this.statuses.get(mine.id);
         return true;
       case 'session': {
         const { type, ...status } = message;
-        this.statuses.delete(status.id); // re-inserted last: the most recently changed
+        this.noteAppearance(status.id);
         this.statuses.set(status.id, status);
         if (mine?.id === status.id) {
           mine.status = status;

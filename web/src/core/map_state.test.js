@@ -10,14 +10,22 @@ const tile = (session, key, version, codes) => ({
 });
 
 describe('MapStore', () => {
-  it('lists sessions and calls the live one changed last the latest', () => {
+  it('lists sessions and follows the live one that appeared last', () => {
     const store = new MapStore();
     store.apply(parseMessage(JSON.stringify({ type: 'sessions', sessions: [status('a', 'live'), status('b', 'closed'), status('c', 'live')] })));
     expect(store.latestSessionId).toBe('c');
-    store.apply(parseMessage(JSON.stringify({ type: 'session', ...status('a', 'live', 5) })));
-    expect(store.latestSessionId).toBe('a');
-    store.apply(parseMessage('{"type":"session_removed","id":"a"}'));
+    // Updates of live sessions interleave (several vehicles): the followed one stays.
+    for (let i = 0; i < 6; ++i) {
+      store.apply(parseMessage(JSON.stringify({ type: 'session', ...status(i % 2 ? 'a' : 'c', 'live', i) })));
+      expect(store.latestSessionId).toBe('c');
+    }
+    // A new flight is followed; when it ends, the newest live one before it.
+    store.apply(parseMessage(JSON.stringify({ type: 'session', ...status('d', 'live', 1) })));
+    expect(store.latestSessionId).toBe('d');
+    store.apply(parseMessage(JSON.stringify({ type: 'session', ...status('d', 'ended', 2) })));
     expect(store.latestSessionId).toBe('c');
+    store.apply(parseMessage('{"type":"session_removed","id":"c"}'));
+    expect(store.latestSessionId).toBe('a');
     // No live session: a loaded one before a stored one, whatever the order.
     store.apply(parseMessage(JSON.stringify({ type: 'sessions', sessions: [status('e', 'ended'), status('f', 'closed')] })));
     expect(store.latestSessionId).toBe('e');
