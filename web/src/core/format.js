@@ -36,7 +36,8 @@ export function statusText(link, session) {
     // Cells drawn (coarser levels far away) against the map's voxels at the finest level.
     const { renderedVoxels: shown, serverVoxels: total } = session;
     parts.push(total > 0 && total !== shown ? `${formatCount(shown)} cells of ${plural(total, 'voxel')}` : plural(shown, 'voxel'));
-    parts.push(plural(session.frames, 'frame'));
+    // A map with voxels and no frames came from a file (stereomap-store import).
+    parts.push(session.frames === 0 && total > 0 ? 'imported map' : plural(session.frames, 'frame'));
     parts.push(`updated ${formatAge(session.ageSeconds)}`);
   }
   return parts.join(' · ');

@@ -18,6 +18,8 @@ describe('statusText', () => {
     const session = { id: 'e2e', known: true, vehicle: 'sim-1', renderedVoxels: 12345, frames: 1, ageSeconds: 2.1 };
     expect(statusText({ connected: true }, session)).toBe('connected · session e2e (sim-1) · 12,345 voxels · 1 frame · updated 2.1 s ago');
     expect(statusText({ connected: true }, { ...session, serverVoxels: 99999 })).toBe('connected · session e2e (sim-1) · 12,345 cells of 99,999 voxels · 1 frame · updated 2.1 s ago');
+    expect(statusText({ connected: true }, { ...session, frames: 0, serverVoxels: 1198329 })).toBe('connected · session e2e (sim-1) · 12,345 cells of 1,198,329 voxels · imported map · updated 2.1 s ago');
+    expect(statusText({ connected: true }, { ...session, frames: 0, renderedVoxels: 0, serverVoxels: 0 })).toBe('connected · session e2e (sim-1) · 0 voxels · 0 frames · updated 2.1 s ago');
     expect(statusText({ connected: false, retryInSeconds: 1.2 }, null)).toBe('disconnected, retrying in 2 s · no session yet');
     expect(statusText({ connected: true }, { id: 'x', known: false })).toBe('connected · session x not on the server (yet)');
   });
