@@ -186,6 +186,56 @@ struct Topic<CloudFrameMsg> {
 };
 
 template <>
+struct Topic<PoseCorrectionMsg> {
+  using C = stereomap_msg_PoseCorrection;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_PoseCorrection_desc; }
+  static constexpr const char* kName = "stereomap_PoseCorrection";
+  static dds_qos_t* qos() { return poseCorrectionQos(); }
+  static dds_qos_t* readerQos() { return poseCorrectionQos(); }
+
+  // The keyframes are copied into a buffer that lives as long as the message being written.
+  static Status toC(const PoseCorrectionMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    if (m.keyframes.size() > kMaxCorrectedKeyframes) {
+      return makeError(ErrorCode::kTooLarge, std::to_string(m.keyframes.size()) +
+                                                 " keyframes exceed the IDL bound of " +
+                                                 std::to_string(kMaxCorrectedKeyframes));
+    }
+    c.seq = m.seq;
+    c.stamp_ns = m.stamp_ns;
+    thread_local std::vector<stereomap_msg_KeyframePose> buffer;
+    buffer.resize(m.keyframes.size());
+    for (size_t i = 0; i < m.keyframes.size(); ++i) {
+      buffer[i].stamp_ns = m.keyframes[i].stamp_ns;
+      std::copy(m.keyframes[i].position.begin(), m.keyframes[i].position.end(), buffer[i].position);
+      std::copy(m.keyframes[i].orientation.begin(), m.keyframes[i].orientation.end(),
+                buffer[i].orientation);
+    }
+    c.keyframes._maximum = c.keyframes._length = static_cast<uint32_t>(buffer.size());
+    c.keyframes._buffer = buffer.data();
+    c.keyframes._release = false;
+    return common::Ok{};
+  }
+  static Result<PoseCorrectionMsg> fromC(const C& c) {
+    PoseCorrectionMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.seq = c.seq;
+    m.stamp_ns = c.stamp_ns;
+    m.keyframes.resize(c.keyframes._length);
+    for (uint32_t i = 0; i < c.keyframes._length; ++i) {
+      const auto& k = c.keyframes._buffer[i];
+      m.keyframes[i].stamp_ns = k.stamp_ns;
+      std::copy(std::begin(k.position), std::end(k.position), m.keyframes[i].position.begin());
+      std::copy(std::begin(k.orientation), std::end(k.orientation),
+                m.keyframes[i].orientation.begin());
+    }
+    return m;
+  }
+};
+
+template <>
 struct Topic<SessionEventMsg> {
   using C = stereomap_msg_SessionEvent;
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_SessionEvent_desc; }
@@ -432,9 +482,11 @@ int Reader<T>::matchedWriters() const {
 template class Writer<PoseMsg>;
 template class Writer<CloudFrameMsg>;
 template class Writer<SessionEventMsg>;
+template class Writer<PoseCorrectionMsg>;
 template class Reader<PoseMsg>;
 template class Reader<CloudFrameMsg>;
 template class Reader<SessionEventMsg>;
+template class Reader<PoseCorrectionMsg>;
 
 const char* loopbackConfigXml() {
   return R"(<CycloneDDS><Domain Id="any"><General>

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <thread>
 
 namespace stereomap::proto {
@@ -126,6 +127,42 @@ TEST(Dds, SessionEventReachesALateJoiningReader) {
   EXPECT_EQ(got[0].session_id, "late");
   EXPECT_EQ(got[0].kind, SessionEventKind::kStarted);
   EXPECT_DOUBLE_EQ(got[0].baseline, 0.120081);
+}
+
+// A pose graph's correction: every keyframe arrives as sent, and a server that joins late
+// still gets the newest one (keep-last 1, transient-local).
+TEST(Dds, PoseCorrectionReachesALateJoiningReaderWithEveryKeyframe) {
+  auto participant = makeParticipant();
+  auto writer = Writer<PoseCorrectionMsg>::create(participant);
+  ASSERT_TRUE(writer.ok());
+  PoseCorrectionMsg correction;
+  correction.vehicle_id = "uav-7";
+  correction.session_id = "flight-42";
+  for (uint64_t seq = 1; seq <= 2; ++seq) {
+    correction.seq = seq;
+    correction.stamp_ns = static_cast<int64_t>(seq) * 1000;
+    correction.keyframes.clear();
+    for (int k = 0; k < 500 * static_cast<int>(seq); ++k) {
+      correction.keyframes.push_back({k * 100'000'000LL,
+                                      {0.1 * k, -0.2 * k, 1.5},
+                                      {0, 0, std::sin(0.01 * k), std::cos(0.01 * k)}});
+    }
+    ASSERT_TRUE((*writer)->write(correction).ok());
+  }
+  auto reader = Reader<PoseCorrectionMsg>::create(participant);  // joins after both writes
+  ASSERT_TRUE(reader.ok());
+  auto got = takeAtLeast(**reader, 1);
+  ASSERT_EQ(got.size(), 1u) << "only the newest correction is kept";
+  EXPECT_EQ(got[0].seq, 2u);
+  EXPECT_EQ(got[0].session_id, "flight-42");
+  ASSERT_EQ(got[0].keyframes.size(), correction.keyframes.size());
+  for (size_t k = 0; k < correction.keyframes.size(); ++k) {
+    EXPECT_EQ(got[0].keyframes[k].stamp_ns, correction.keyframes[k].stamp_ns);
+    EXPECT_EQ(got[0].keyframes[k].position, correction.keyframes[k].position);
+    EXPECT_EQ(got[0].keyframes[k].orientation, correction.keyframes[k].orientation);
+  }
+  correction.keyframes.resize(kMaxCorrectedKeyframes + 1);
+  EXPECT_FALSE((*writer)->write(correction).ok());
 }
 
 TEST(Dds, WakeReturnsABlockedTakeAtOnce) {

@@ -47,6 +47,24 @@ struct CloudFrameMsg {
   std::vector<uint8_t> payload;
 };
 
+// A keyframe's corrected pose (T_map_body) at the stamp of a Pose sent earlier.
+struct KeyframePoseMsg {
+  int64_t stamp_ns = 0;
+  std::array<double, 3> position{};
+  std::array<double, 4> orientation{0, 0, 0, 1};  // x y z w
+};
+
+// A vehicle's pose graph's correction of the poses it has sent: every keyframe so far.
+struct PoseCorrectionMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t seq = 0;
+  int64_t stamp_ns = 0;
+  std::vector<KeyframePoseMsg> keyframes;
+};
+
+inline constexpr size_t kMaxCorrectedKeyframes = 100000;  // the IDL bound
+
 struct SessionEventMsg {
   std::string vehicle_id;
   std::string session_id;

@@ -8,6 +8,9 @@ namespace stereomap::proto {
 
 // Reliable, transient-local: a late-joining server learns the live sessions.
 dds_qos_t* sessionEventQos();
+// Reliable, transient-local, keep-last 1 per session: each correction holds every keyframe,
+// so only the newest matters, and a late-joining server still gets it.
+dds_qos_t* poseCorrectionQos();
 // Reliable, transient-local, keep-last kPoseHistory: a server restarted within a few seconds
 // gets the poses it missed, as it does the clouds.
 dds_qos_t* poseQos();
