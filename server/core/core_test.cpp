@@ -62,6 +62,43 @@ TEST(Validate, RejectsEachKindOfBadSampleWithItsReason) {
   EXPECT_FALSE(validatePose(pose("s", 1.0, 5), valid_pose).has_value());
 }
 
+TEST(Validate, PoseCorrectionsAreCheckedKeyframeByKeyframe) {
+  proto::PoseCorrectionMsg correction;
+  correction.vehicle_id = "v1";
+  correction.session_id = "s1";
+  for (int k = 0; k < 3; ++k)
+    correction.keyframes.push_back({k * 100, {1.0 * k, 0, 0}, {0, 0, 0, 1}});
+  std::vector<ValidPose> out;
+  ASSERT_FALSE(validatePoseCorrection(correction, out));
+  ASSERT_EQ(out.size(), 3u);
+  EXPECT_EQ(out[2].stamp_ns, 200);
+  EXPECT_DOUBLE_EQ(out[2].T_map_body.translation.x(), 2.0);
+
+  auto reason = [&](proto::PoseCorrectionMsg bad) {
+    const auto rejection = validatePoseCorrection(bad, out);
+    EXPECT_TRUE(out.empty());
+    return rejection ? rejection->reason : std::string("accepted");
+  };
+  auto bad = correction;
+  bad.session_id = "../x";
+  EXPECT_EQ(reason(bad), "bad_id");
+  bad = correction;
+  bad.keyframes.clear();
+  EXPECT_EQ(reason(bad), "empty");
+  bad = correction;
+  bad.keyframes[2].stamp_ns = 100;  // repeats the one before
+  EXPECT_EQ(reason(bad), "bad_stamp");
+  bad = correction;
+  bad.keyframes[1].orientation = {0, 0, 0, 2};
+  EXPECT_EQ(reason(bad), "bad_quaternion");
+  bad = correction;
+  bad.keyframes[1].position[0] = std::nan("");
+  EXPECT_EQ(reason(bad), "non_finite");
+  bad = correction;
+  bad.keyframes.resize(proto::kMaxCorrectedKeyframes + 1);
+  EXPECT_EQ(reason(bad), "oversize");
+}
+
 TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
   MapServer server({.resolution = 0.1});
   EXPECT_TRUE(server.ingest(cloudFrame("a", 2.05)));

@@ -112,6 +112,33 @@ std::optional<Rejection> validatePose(const proto::PoseMsg& pose, ValidPose& out
   return std::nullopt;
 }
 
+std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& correction,
+                                                std::vector<ValidPose>& out) {
+  out.clear();
+  if (auto bad = checkIds(correction.vehicle_id, correction.session_id)) return bad;
+  if (correction.keyframes.empty()) return Rejection{"empty", "a correction without keyframes"};
+  if (correction.keyframes.size() > proto::kMaxCorrectedKeyframes) {
+    return Rejection{"oversize", std::to_string(correction.keyframes.size()) + " keyframes"};
+  }
+  out.reserve(correction.keyframes.size());
+  for (size_t i = 0; i < correction.keyframes.size(); ++i) {
+    const auto& k = correction.keyframes[i];
+    if (k.stamp_ns < 0 || (i > 0 && k.stamp_ns <= correction.keyframes[i - 1].stamp_ns)) {
+      out.clear();
+      return Rejection{"bad_stamp", "keyframe " + std::to_string(i) +
+                                        ": stamps must be non-negative and strictly increasing"};
+    }
+    ValidPose pose{k.stamp_ns, {}};
+    if (auto bad = checkPose(k.position, k.orientation, "keyframe", pose.T_map_body)) {
+      out.clear();
+      bad->detail = "keyframe " + std::to_string(i) + ": " + bad->detail;
+      return bad;
+    }
+    out.push_back(pose);
+  }
+  return std::nullopt;
+}
+
 std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event) {
   if (auto bad = checkIds(event.vehicle_id, event.session_id)) return bad;
   for (double v : {event.fx, event.fy, event.cx, event.cy, event.baseline, event.resolution_hint}) {

@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
@@ -42,5 +43,10 @@ std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
                                             const IngestLimits& limits, ValidCloud& out);
 std::optional<Rejection> validatePose(const proto::PoseMsg& pose, ValidPose& out);
 std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event);
+// A pose graph's correction: ids, at least one and at most kMaxCorrectedKeyframes keyframes,
+// stamps non-negative and strictly increasing, every pose finite with a unit quaternion.
+// `out` gets the keyframes (stamp, T_map_body) in order.
+std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& correction,
+                                                std::vector<ValidPose>& out);
 
 }  // namespace stereomap::core
