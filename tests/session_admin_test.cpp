@@ -70,7 +70,8 @@ TEST(SessionAdmin, RestAndOfflineToolManageStoredSessions) {
     reply = server.request("POST", "/api/sessions/f1/open");
     ASSERT_EQ(reply.status, 200) << reply.body;
     EXPECT_EQ(json::parse(reply.body)["state"], "opened");
-    EXPECT_EQ(server.get("/api/sessions/f1/map.bt").body, readFile(fs::path(root) / "f1" / "map.bt"));
+    EXPECT_EQ(server.get("/api/sessions/f1/map.bt").body,
+              readFile(fs::path(root) / "f1" / "map.bt"));
     EXPECT_EQ(server.get("/api/sessions/f1/trajectory.tum").body,
               readFile(fs::path(root) / "f1" / "trajectory.tum"));
     EXPECT_EQ(status(server, "f1")["poses"], f1["poses"]);
@@ -86,8 +87,9 @@ TEST(SessionAdmin, RestAndOfflineToolManageStoredSessions) {
     EXPECT_EQ(both["vehicles"], json({"sim-1", "sim-1-f2"}));
     EXPECT_GT(both["bounds"]["max"][2].get<double>(), f1["bounds"]["max"][2].get<double>() + 15);
     EXPECT_EQ(server.request("POST", "/api/sessions/merge", R"({"first": "f1"})").status, 400);
-    EXPECT_EQ(server.request("POST", "/api/sessions/merge",
-                             R"({"first": "f1", "second": "f2", "into": "both"})")
+    EXPECT_EQ(server
+                  .request("POST", "/api/sessions/merge",
+                           R"({"first": "f1", "second": "f2", "into": "both"})")
                   .status,
               409);
 
@@ -98,7 +100,8 @@ TEST(SessionAdmin, RestAndOfflineToolManageStoredSessions) {
     const auto refused = store(root, {"delete", "f1", "--yes"});
     EXPECT_EQ(refused.exit_code, 1);
     EXPECT_NE(refused.output.find("in use"), std::string::npos) << refused.output;
-    const auto png = store(root, {"export", "both", "--format", "png", "--out", root + "/both.png"});
+    const auto png =
+        store(root, {"export", "both", "--format", "png", "--out", root + "/both.png"});
     EXPECT_EQ(png.exit_code, 0) << png.output;  // reading is fine beside a server
     EXPECT_EQ(readFile(root + "/both.png").substr(1, 3), "PNG");
   }

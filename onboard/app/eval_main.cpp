@@ -15,8 +15,8 @@ using namespace stereomap;
 using nlohmann::json;
 
 json statsJson(const eval::Stats& s) {
-  return {{"n", s.n},     {"rmse", s.rmse},     {"mean", s.mean}, {"median", s.median},
-          {"std", s.std}, {"min", s.min},       {"max", s.max},   {"sse", s.sse}};
+  return {{"n", s.n},     {"rmse", s.rmse}, {"mean", s.mean}, {"median", s.median},
+          {"std", s.std}, {"min", s.min},   {"max", s.max},   {"sse", s.sse}};
 }
 
 void printStats(const char* what, const eval::Stats& s, const char* unit) {
@@ -48,11 +48,10 @@ common::Result<eval::Associated> load(Inputs& in) {
   }
   auto pairs = by_index ? eval::associateByIndex(*gt, *est) : eval::associate(*gt, *est, in.max_dt);
   if (pairs.ref.size() < 2) {
-    return common::makeError(common::ErrorCode::kInvalidArgument,
-                             "only " + std::to_string(pairs.ref.size()) +
-                                 " poses could be paired (stamps within " +
-                                 std::to_string(in.max_dt) +
-                                 " s; KITTI files pair by line): are these the same run?");
+    return common::makeError(
+        common::ErrorCode::kInvalidArgument,
+        "only " + std::to_string(pairs.ref.size()) + " poses could be paired (stamps within " +
+            std::to_string(in.max_dt) + " s; KITTI files pair by line): are these the same run?");
   }
   return pairs;
 }
@@ -60,8 +59,9 @@ common::Result<eval::Associated> load(Inputs& in) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"stereomap-eval: trajectory error of an estimate against ground truth (TUM or "
-               "KITTI pose files), as evo and the KITTI benchmark compute it"};
+  CLI::App app{
+      "stereomap-eval: trajectory error of an estimate against ground truth (TUM or "
+      "KITTI pose files), as evo and the KITTI benchmark compute it"};
   app.require_subcommand(1);
   Inputs in;
   bool as_json = false, scale = false, no_align = false;
@@ -95,11 +95,13 @@ int main(int argc, char** argv) {
   rpe->add_option("--unit", unit, "f: frames, m: metres travelled (evo's consecutive pairs)")
       ->check(CLI::IsMember({"f", "m"}))
       ->capture_default_str();
-  auto* kitti = app.add_subcommand("kitti", "KITTI drift: translation % and deg/100 m over segments");
+  auto* kitti =
+      app.add_subcommand("kitti", "KITTI drift: translation % and deg/100 m over segments");
   common_flags(kitti);
-  kitti->add_option("--lengths", lengths,
-                    "Segment lengths, m (default: KITTI's 100..800 that fit, else 10 m steps up "
-                    "to half the path)")
+  kitti
+      ->add_option("--lengths", lengths,
+                   "Segment lengths, m (default: KITTI's 100..800 that fit, else 10 m steps up "
+                   "to half the path)")
       ->delimiter(',');
   kitti->add_option("--step", step, "Frames between segment starts")->capture_default_str();
   try {
@@ -128,8 +130,8 @@ int main(int argc, char** argv) {
       char title[160];
       std::snprintf(title, sizeof(title), "ATE (%s alignment): rmse %.4f m, max %.4f m, %zu poses",
                     name, result.translation.rmse, result.translation.max, result.translation.n);
-      if (auto written = common::writeText(
-              plot, eval::plotPng(pairs->ref, result.aligned_est, result.errors, title, in.by_index));
+      if (auto written = common::writeText(plot, eval::plotPng(pairs->ref, result.aligned_est,
+                                                               result.errors, title, in.by_index));
           !written) {
         std::fprintf(stderr, "error: %s\n", written.error().message.c_str());
         return 1;
@@ -142,9 +144,9 @@ int main(int argc, char** argv) {
       printStats("  rotation", result.rotation, "deg");
     }
   } else if (*rpe) {
-    const auto index_pairs = unit == "m" ? eval::pairsByPath(pairs->est, delta)
-                                         : eval::pairsByFrames(pairs->ref.size(),
-                                                               static_cast<size_t>(delta));
+    const auto index_pairs =
+        unit == "m" ? eval::pairsByPath(pairs->est, delta)
+                    : eval::pairsByFrames(pairs->ref.size(), static_cast<size_t>(delta));
     const auto result = eval::relativeError(pairs->ref, pairs->est, index_pairs);
     out["delta"] = delta;
     out["unit"] = unit;
@@ -177,10 +179,10 @@ int main(int argc, char** argv) {
       std::printf("KITTI drift over %.1f m of reference path (segment starts every %zu frames):\n",
                   eval::pathLength(pairs->ref), step);
       for (const auto& d : drift) {
-        std::printf("  %-10s %4zu segments  translation %7.3f %%  rotation %7.3f deg/100 m\n",
-                    d.length_m > 0 ? (std::to_string(static_cast<int>(d.length_m)) + " m").c_str()
-                                   : "all",
-                    d.segments, d.translation_percent, d.rotation_deg_per_100m);
+        std::printf(
+            "  %-10s %4zu segments  translation %7.3f %%  rotation %7.3f deg/100 m\n",
+            d.length_m > 0 ? (std::to_string(static_cast<int>(d.length_m)) + " m").c_str() : "all",
+            d.segments, d.translation_percent, d.rotation_deg_per_100m);
       }
     }
   }

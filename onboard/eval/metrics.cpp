@@ -127,7 +127,8 @@ AbsoluteError absoluteError(const Trajectory& ref, const Trajectory& est, Alignm
   std::vector<double> rotation;
   for (size_t i = 0; i < ref.size(); ++i) {
     out.errors.push_back((ref[i].pose.translation - out.aligned_est[i].pose.translation).norm());
-    rotation.push_back(angleDegrees(ref[i].pose.rotation.conjugate() * out.aligned_est[i].pose.rotation));
+    rotation.push_back(
+        angleDegrees(ref[i].pose.rotation.conjugate() * out.aligned_est[i].pose.rotation));
   }
   out.translation = statsOf(out.errors);
   out.rotation = statsOf(rotation);
@@ -214,7 +215,8 @@ std::vector<Drift> kittiDrift(const Trajectory& ref, const Trajectory& est,
     Drift d;
     d.length_m = length;
     for (size_t i = 0; i < ref.size(); i += std::max<size_t>(step, 1)) {
-      const auto last = std::lower_bound(distance.begin() + i, distance.end(), distance[i] + length);
+      const auto last =
+          std::lower_bound(distance.begin() + i, distance.end(), distance[i] + length);
       if (last == distance.end()) break;
       const Rigid3 e = relativeErrorPose(ref, est, i, last - distance.begin());
       d.translation_percent += e.translation.norm() / length * 100;

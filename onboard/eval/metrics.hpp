@@ -46,10 +46,10 @@ Similarity umeyama(const std::vector<common::Vec3>& src, const std::vector<commo
 common::Trajectory aligned(const common::Trajectory& est, const Similarity& a);
 
 struct AbsoluteError {
-  Stats translation;            // metres
-  Stats rotation;               // degrees
+  Stats translation;  // metres
+  Stats rotation;     // degrees
   Similarity alignment;
-  std::vector<double> errors;   // translation error per pair, metres
+  std::vector<double> errors;  // translation error per pair, metres
   common::Trajectory aligned_est;
 };
 AbsoluteError absoluteError(const common::Trajectory& ref, const common::Trajectory& est,

@@ -33,7 +33,8 @@ Trajectory load(const std::string& name) {
   return trajectory.ok() ? *trajectory : Trajectory{};
 }
 
-void expectMatches(const Stats& ours, const json& theirs, double tolerance, const std::string& what) {
+void expectMatches(const Stats& ours, const json& theirs, double tolerance,
+                   const std::string& what) {
   for (const auto& [key, value] : std::vector<std::pair<const char*, double>>{
            {"rmse", ours.rmse}, {"mean", ours.mean}, {"median", ours.median}, {"max", ours.max}}) {
     const double expected = theirs.at(key).get<double>();
@@ -110,7 +111,7 @@ TEST(Metrics, UmeyamaRecoversASimilarity) {
 }
 
 TEST(Metrics, KittiDriftOfAScaledEstimate) {
-  const Trajectory gt = straightLine(101, 1.0);        // 100 m straight
+  const Trajectory gt = straightLine(101, 1.0);         // 100 m straight
   const Trajectory est = straightLine(101, 1.0, 1.02);  // 2% too long
   const auto drift = kittiDrift(gt, est, {10, 20});
   ASSERT_EQ(drift.size(), 3u);
@@ -141,7 +142,8 @@ TEST(Trajectories, BadFilesNameTheLine) {
   common::writeText(path, "# comment\n0 1 2 3 0 0 0 1\n1 1 2 3 0 0 0\n").value();
   auto read = common::readTrajectory(path);
   ASSERT_FALSE(read.ok());
-  EXPECT_NE(read.error().message.find(":3: 7 numbers where earlier lines have 8"), std::string::npos)
+  EXPECT_NE(read.error().message.find(":3: 7 numbers where earlier lines have 8"),
+            std::string::npos)
       << read.error().message;
   common::writeText(path, "0 1 2 3 0 0 0 2\n").value();
   EXPECT_NE(common::readTrajectory(path).error().message.find("not unit"), std::string::npos);

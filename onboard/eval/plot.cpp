@@ -27,8 +27,7 @@ std::string metres(double value) {
 }  // namespace
 
 std::string plotPng(const common::Trajectory& ref, const common::Trajectory& est,
-                    const std::vector<double>& errors, const std::string& title,
-                    bool frames) {
+                    const std::vector<double>& errors, const std::string& title, bool frames) {
   cv::Mat image(600, 1400, CV_8UC3, cv::Scalar(255, 255, 255));
   label(image, title, {20, 30}, 0.6);
   if (ref.empty()) {
@@ -64,8 +63,9 @@ std::string plotPng(const common::Trajectory& ref, const common::Trajectory& est
     cv::polylines(image, line, false, colour, width, cv::LINE_AA);
   }
   const char* axes = "xyz";
-  label(image, std::string("top view: ") + axes[a] + " right, " + axes[b] + " up; " +
-                   metres(extent) + " across; grey reference, blue estimate (aligned)",
+  label(image,
+        std::string("top view: ") + axes[a] + " right, " + axes[b] + " up; " + metres(extent) +
+            " across; grey reference, blue estimate (aligned)",
         {60, 565}, 0.45);
 
   // Error over time.

@@ -11,10 +11,14 @@ namespace stereomap::odometry {
 
 const char* stateName(TrackingState state) {
   switch (state) {
-    case TrackingState::kInit: return "init";
-    case TrackingState::kOk: return "ok";
-    case TrackingState::kDegraded: return "degraded";
-    case TrackingState::kLost: return "lost";
+    case TrackingState::kInit:
+      return "init";
+    case TrackingState::kOk:
+      return "ok";
+    case TrackingState::kDegraded:
+      return "degraded";
+    case TrackingState::kLost:
+      return "lost";
   }
   return "?";
 }

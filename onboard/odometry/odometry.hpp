@@ -67,10 +67,10 @@ struct VoOptions {
 
 struct VoEstimate {
   TrackingState state = TrackingState::kInit;
-  common::Rigid3 T_world_camera;                           // left camera, OpenCV axes
+  common::Rigid3 T_world_camera;  // left camera, OpenCV axes
   Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();  // rot, trans
   common::Vec3 velocity = common::Vec3::Zero();  // world frame, m/s (finite difference)
-  int features = 0;   // tracked or matched this frame
+  int features = 0;                              // tracked or matched this frame
   int inliers = 0;
   bool keyframe = false;
   double milliseconds = 0;

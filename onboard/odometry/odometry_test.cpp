@@ -59,12 +59,13 @@ TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
   const auto run = eval::runOdometry(source, {});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
-  std::printf("sim room %u: path %.1f m, ATE %.4f m (%.2f%%), attitude %.3f deg, %d lost, %.1f ms\n",
-              GetParam(), path, ate.translation.rmse, 100 * ate.translation.rmse / path,
-              ate.rotation.rmse, run.lost, run.medianMilliseconds());
+  std::printf(
+      "sim room %u: path %.1f m, ATE %.4f m (%.2f%%), attitude %.3f deg, %d lost, %.1f ms\n",
+      GetParam(), path, ate.translation.rmse, 100 * ate.translation.rmse / path, ate.rotation.rmse,
+      run.lost, run.medianMilliseconds());
   EXPECT_EQ(run.lost, 0);
   EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue: ATE <= 0.5% of the path
-  EXPECT_LE(ate.rotation.rmse, 0.3);               // the issue: <= 0.5 deg; measured 0.14-0.19
+  EXPECT_LE(ate.rotation.rmse, 0.3);              // the issue: <= 0.5 deg; measured 0.14-0.19
   // A well calibrated rig: the estimated offset of the right image stays near 0 (measured
   // within 0.19 px over the flight, 0.02-0.05 at its end).
   EXPECT_LE(std::abs(run.right_offset_px), 0.15);
@@ -84,7 +85,8 @@ class ShiftedRight : public camera::FrameSource {
     if (!frame) return frame;
     cv::Mat shifted(frame->right.size(), frame->right.type(), cv::Scalar(0));
     const int w = frame->right.cols - std::abs(shift_), h = frame->right.rows;
-    frame->right(cv::Rect(std::max(-shift_, 0), 0, w, h)).copyTo(shifted(cv::Rect(std::max(shift_, 0), 0, w, h)));
+    frame->right(cv::Rect(std::max(-shift_, 0), 0, w, h))
+        .copyTo(shifted(cv::Rect(std::max(shift_, 0), 0, w, h)));
     frame->right = shifted;
     return frame;
   }
@@ -103,8 +105,8 @@ TEST_P(MiscalibratedRig, RightImageOffsetIsEstimatedAndCorrected) {
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
   std::printf("right image %+d px off: estimated %.3f px, ATE %.4f m (%.2f%%), attitude %.3f deg\n",
-              GetParam(), run.right_offset_px, ate.translation.rmse, 100 * ate.translation.rmse / path,
-              ate.rotation.rmse);
+              GetParam(), run.right_offset_px, ate.translation.rmse,
+              100 * ate.translation.rmse / path, ate.rotation.rmse);
   // Measured: within 0.1 px of the shift after 100 frames. Without the estimate (shift +1) the
   // ATE was 0.78 % of the path and the attitude 1.5 deg; with it 0.11 % and 0.20-0.47 deg
   // (rooms 1-3, shifts +-1; the first 100 frames fly on a biased depth).

@@ -90,9 +90,9 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
     // A fresh pattern per image (one seed for all would be fixed-pattern noise that stereo
     // and tracking lock onto), reproducible from the seed and the pose.
     uint64_t seed = options_.noise_seed;
-    for (const double v : {T_map_camera.translation.x(), T_map_camera.translation.y(),
-                           T_map_camera.translation.z(), T_map_camera.rotation.w(),
-                           T_map_camera.rotation.x(), T_map_camera.rotation.y()}) {
+    for (const double v :
+         {T_map_camera.translation.x(), T_map_camera.translation.y(), T_map_camera.translation.z(),
+          T_map_camera.rotation.w(), T_map_camera.rotation.x(), T_map_camera.rotation.y()}) {
       seed = seed * 0x9E3779B97F4A7C15ull ^ std::hash<double>{}(v);
     }
     cv::Mat noise(image->size(), CV_16SC1);

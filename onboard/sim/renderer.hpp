@@ -18,7 +18,7 @@ struct StereoFrame {
 };
 
 struct RenderOptions {
-  double max_depth = 40.0;   // metres; farther surfaces are not rendered
+  double max_depth = 40.0;  // metres; farther surfaces are not rendered
   // Gaussian image noise, grey levels (0 = exact images): drawn afresh for every image, as a
   // sensor's, reproducibly from the seed and the camera's pose.
   double noise_sigma = 0.0;

@@ -81,7 +81,8 @@ TEST(CloudFromDisparity, TheDisparityOffsetCorrectsDepth) {
                           cv::Scalar(kCamera.disparityFromDepth(z) - offset));
   const cv::Mat left(kCamera.height, kCamera.width, CV_8UC1, cv::Scalar(77));
   const auto biased = cloudFromDisparity(disparity, left, kCamera);
-  const auto corrected = cloudFromDisparity(disparity, left, kCamera, {.disparity_offset_px = offset});
+  const auto corrected =
+      cloudFromDisparity(disparity, left, kCamera, {.disparity_offset_px = offset});
   ASSERT_EQ(corrected.size(), static_cast<size_t>(128 * 240));
   EXPECT_GT(biased.points[0].z(), z + 0.2);
   for (const auto& p : corrected.points) ASSERT_NEAR(p.z(), z, quantisationBound(z) * 1.01);

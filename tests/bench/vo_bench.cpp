@@ -32,12 +32,15 @@ void row(const char* data, const char* mode, const eval::OdometryRun& run,
   const auto se3 = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
   const double path = eval::pathLength(run.truth);
   const double moved = eval::largestDisplacement(run.estimate);
-  std::printf("| %s | %s | %zu | %d | %.2f %% / %.2f | %.3f m (scale %.3f) | %.3f m (%.2f %% of %.1f m) | %.3f | %.4f | %+.2f | %.1f |\n",
-              data, mode, run.estimate.size(), run.lost,
-              drift.empty() ? 0.0 : drift.back().translation_percent,
-              drift.empty() ? 0.0 : drift.back().rotation_deg_per_100m, sim3.translation.rmse,
-              sim3.alignment.scale, se3.translation.rmse, path > 0 ? 100 * se3.translation.rmse / path : 0.0,
-              path, se3.rotation.rmse, moved, run.right_offset_px, run.medianMilliseconds());
+  std::printf(
+      "| %s | %s | %zu | %d | %.2f %% / %.2f | %.3f m (scale %.3f) | %.3f m (%.2f %% of %.1f m) | "
+      "%.3f | %.4f | %+.2f | %.1f |\n",
+      data, mode, run.estimate.size(), run.lost,
+      drift.empty() ? 0.0 : drift.back().translation_percent,
+      drift.empty() ? 0.0 : drift.back().rotation_deg_per_100m, sim3.translation.rmse,
+      sim3.alignment.scale, se3.translation.rmse,
+      path > 0 ? 100 * se3.translation.rmse / path : 0.0, path, se3.rotation.rmse, moved,
+      run.right_offset_px, run.medianMilliseconds());
 }
 
 // Rotation drift of the 5-point essential matrix between consecutive left images (GFTT 2000,
@@ -47,7 +50,8 @@ struct RotationReference {
   double drift = 0;
   Eigen::Vector3d mean_error_deg = Eigen::Vector3d::Zero();
 };
-RotationReference essentialRotation(camera::FrameSource& source, double length, double focal_scale) {
+RotationReference essentialRotation(camera::FrameSource& source, double length,
+                                    double focal_scale) {
   const auto& c = source.camera();
   const cv::Matx33d K(c.fx * focal_scale, 0, c.cx, 0, c.fy * focal_scale, c.cy, 0, 0, 1);
   RotationReference reference;
@@ -81,7 +85,7 @@ RotationReference essentialRotation(camera::FrameSource& source, double length, 
     for (int r = 0; r < 3; ++r) {
       for (int k = 0; k < 3; ++k) M(r, k) = R.at<double>(r, k);
     }
-    common::Rigid3 step = truth.back().pose.inverse() * T;  // true previous-to-current
+    common::Rigid3 step = truth.back().pose.inverse() * T;      // true previous-to-current
     const common::Quat measured = common::Quat(M).conjugate();  // R maps previous to current
     const Eigen::AngleAxisd wrong(step.rotation.conjugate() * measured);
     reference.mean_error_deg += wrong.axis() * wrong.angle() * 180.0 / M_PI;
@@ -104,7 +108,9 @@ int main(int argc, char** argv) {
   app.add_option("--data", data, "The shared data folder")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   cv::setNumThreads(0);  // one core, as on the vehicle's budget
-  std::printf("| data | mode | frames | lost | drift: translation / rotation (deg/100 m) | ATE Sim3 | ATE SE3 | attitude RMS (deg) | largest motion (m) | right offset (px) | ms/frame (median) |\n");
+  std::printf(
+      "| data | mode | frames | lost | drift: translation / rotation (deg/100 m) | ATE Sim3 | ATE "
+      "SE3 | attitude RMS (deg) | largest motion (m) | right offset (px) | ms/frame (median) |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
   odometry::VoOptions no_window, no_offset, paper;
   no_window.window_frames = 0;
@@ -124,17 +130,20 @@ int main(int argc, char** argv) {
   for (const auto& [mode, options, ablation] : modes) {
     if (std::filesystem::exists(kitti)) {
       auto source = camera::openDatasetSource("kitti:" + kitti.string(), {});
-      if (source) row("KITTI 01 0-50 (20 m segments)", mode, eval::runOdometry(**source, options), {20});
+      if (source)
+        row("KITTI 01 0-50 (20 m segments)", mode, eval::runOdometry(**source, options), {20});
     }
     for (uint32_t seed : {1u, 2u, 3u}) {
       if (ablation && seed > 1) break;
       sim::SimSource source(testing::noisyFlight(seed));
-      const std::string label = "sim room " + std::to_string(seed) + ", noise 2, blur 1 (5 m segments)";
+      const std::string label =
+          "sim room " + std::to_string(seed) + ", noise 2, blur 1 (5 m segments)";
       row(label.c_str(), mode, eval::runOdometry(source, options), {5});
     }
     if (!ablation) {  // the paper's setting: near walls, clean images
       sim::SimSource source({.seed = 1, .rate_hz = 10.0, .max_frames = 300});
-      row("sim room 1, no noise or blur (5 m segments)", mode, eval::runOdometry(source, options), {5});
+      row("sim room 1, no noise or blur (5 m segments)", mode, eval::runOdometry(source, options),
+          {5});
     }
     if (std::filesystem::exists(euroc) && !ablation) {
       auto source = camera::openDatasetSource("euroc:" + euroc.string(), {});
@@ -146,10 +155,11 @@ int main(int argc, char** argv) {
     auto source = camera::openDatasetSource("kitti:" + kitti.string(), {});
     if (!source) break;
     const auto r = essentialRotation(**source, 20, focal_scale);
-    std::printf("\nRotation-only reference on KITTI 01 0-50 (essential matrix, true translations, "
-                "focal length x %.2f): %.2f deg/100 m over 20 m segments; mean error per frame "
-                "(camera x, y, z) %+.4f %+.4f %+.4f deg\n",
-                focal_scale, r.drift, r.mean_error_deg.x(), r.mean_error_deg.y(), r.mean_error_deg.z());
+    std::printf(
+        "\nRotation-only reference on KITTI 01 0-50 (essential matrix, true translations, "
+        "focal length x %.2f): %.2f deg/100 m over 20 m segments; mean error per frame "
+        "(camera x, y, z) %+.4f %+.4f %+.4f deg\n",
+        focal_scale, r.drift, r.mean_error_deg.x(), r.mean_error_deg.y(), r.mean_error_deg.z());
   }
   return 0;
 }

@@ -33,7 +33,8 @@ void toRvecTvec(const Rigid3& T, cv::Mat& rvec, cv::Mat& tvec) {
 }
 
 // Pose covariance moved into the world frame (both 3x3 blocks rotated by R).
-Eigen::Matrix<double, 6, 6> rotated(const Eigen::Matrix<double, 6, 6>& c, const Eigen::Matrix3d& R) {
+Eigen::Matrix<double, 6, 6> rotated(const Eigen::Matrix<double, 6, 6>& c,
+                                    const Eigen::Matrix3d& R) {
   Eigen::Matrix<double, 6, 6> G = Eigen::Matrix<double, 6, 6>::Zero();
   G.topLeftCorner<3, 3>() = R;
   G.bottomRightCorner<3, 3>() = R;
@@ -46,23 +47,25 @@ FastTracker::FastTracker(const camera::StereoCamera& camera, const VoOptions& op
     : camera_(camera), options_(options), window_(camera, options.window_frames) {}
 
 std::vector<cv::Point2f> FastTracker::matchRight(const std::vector<cv::Mat>& left_pyramid,
-                                           const std::vector<cv::Mat>& right_pyramid,
-                                           const std::vector<cv::Point2f>& left_points,
-                                           const std::vector<float>* guess_disparity) {
-  std::vector<cv::Point2f> matches(left_points.size(), {std::numeric_limits<float>::quiet_NaN(), 0.0f});
+                                                 const std::vector<cv::Mat>& right_pyramid,
+                                                 const std::vector<cv::Point2f>& left_points,
+                                                 const std::vector<float>* guess_disparity) {
+  std::vector<cv::Point2f> matches(left_points.size(),
+                                   {std::numeric_limits<float>::quiet_NaN(), 0.0f});
   if (left_points.empty()) return matches;
   const cv::Size window(options_.klt_window, options_.klt_window);
   std::vector<cv::Point2f> guess(left_points);
   for (size_t i = 0; guess_disparity != nullptr && i < guess.size(); ++i) {
-    if ((*guess_disparity)[i] > 0) guess[i].x -= (*guess_disparity)[i] - static_cast<float>(right_offset_);
+    if ((*guess_disparity)[i] > 0)
+      guess[i].x -= (*guess_disparity)[i] - static_cast<float>(right_offset_);
   }
   std::vector<uchar> status, back_status;
   std::vector<float> error;
   cv::calcOpticalFlowPyrLK(left_pyramid, right_pyramid, left_points, guess, status, error, window,
                            options_.klt_levels + 1, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
   std::vector<cv::Point2f> back(left_points);
-  cv::calcOpticalFlowPyrLK(right_pyramid, left_pyramid, guess, back, back_status, error, window,
-                           1, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+  cv::calcOpticalFlowPyrLK(right_pyramid, left_pyramid, guess, back, back_status, error, window, 1,
+                           kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
   for (size_t i = 0; i < left_points.size(); ++i) {
     const float disparity = left_points[i].x - guess[i].x + static_cast<float>(right_offset_);
     const bool ok = status[i] && back_status[i] && std::abs(guess[i].y - left_points[i].y) < 1.0f &&
@@ -82,8 +85,7 @@ void FastTracker::fuse(size_t i, const Vec3& point, double disparity) {
 
 void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
                                const std::vector<cv::Mat>& right_pyramid, const cv::Mat& left,
-                               const std::vector<Carried>& carried,
-                               const Rigid3& T_world_camera,
+                               const std::vector<Carried>& carried, const Rigid3& T_world_camera,
                                const Eigen::Matrix<double, 6, 6>& covariance) {
   std::vector<cv::Point2f> keep;
   for (const auto& c : carried) keep.push_back(c.pixel);
@@ -93,9 +95,9 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
   std::vector<int> per_cell(static_cast<size_t>(options_.grid_cols * options_.grid_rows), 0);
   cv::Mat taken(left.rows / 8 + 1, left.cols / 8 + 1, CV_8UC1, cv::Scalar(0));
   for (const auto& p : keep) {
-    const int cell = std::clamp(static_cast<int>(p.y) / cell_h, 0, options_.grid_rows - 1) *
-                         options_.grid_cols +
-                     std::clamp(static_cast<int>(p.x) / cell_w, 0, options_.grid_cols - 1);
+    const int cell =
+        std::clamp(static_cast<int>(p.y) / cell_h, 0, options_.grid_rows - 1) * options_.grid_cols +
+        std::clamp(static_cast<int>(p.x) / cell_w, 0, options_.grid_cols - 1);
     ++per_cell[static_cast<size_t>(cell)];
     taken.at<uchar>(std::clamp(static_cast<int>(p.y) / 8, 0, taken.rows - 1),
                     std::clamp(static_cast<int>(p.x) / 8, 0, taken.cols - 1)) = 1;
@@ -113,10 +115,14 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
   }
   for (size_t cell = 0; cell < by_cell.size(); ++cell) {
     auto& candidates = by_cell[cell];
-    const auto strongest = [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; };
+    const auto strongest = [](const cv::KeyPoint& a, const cv::KeyPoint& b) {
+      return a.response > b.response;
+    };
     // Enough candidates to fill the bucket even when some fall next to points kept.
-    const size_t look = std::min(candidates.size(), static_cast<size_t>(4 * options_.features_per_bucket));
-    std::partial_sort(candidates.begin(), candidates.begin() + static_cast<long>(look), candidates.end(), strongest);
+    const size_t look =
+        std::min(candidates.size(), static_cast<size_t>(4 * options_.features_per_bucket));
+    std::partial_sort(candidates.begin(), candidates.begin() + static_cast<long>(look),
+                      candidates.end(), strongest);
     for (size_t j = 0; j < look && per_cell[cell] < options_.features_per_bucket; ++j) {
       const cv::Point2f& pt = candidates[j].pt;
       uchar& mark = taken.at<uchar>(static_cast<int>(pt.y) / 8, static_cast<int>(pt.x) / 8);
@@ -128,7 +134,8 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
   }
   // Carried points already hold this pair's stereo (fused by track()); only new corners are
   // matched here.
-  const std::vector<cv::Point2f> fresh(keep.begin() + static_cast<long>(carried.size()), keep.end());
+  const std::vector<cv::Point2f> fresh(keep.begin() + static_cast<long>(carried.size()),
+                                       keep.end());
   const std::vector<cv::Point2f> right = matchRight(pyramid, right_pyramid, fresh, nullptr);
   keyframe_ = Keyframe{{}, {}, {}, {}, T_world_camera, frame_, covariance};
   tracks_.clear();
@@ -148,7 +155,8 @@ void FastTracker::makeKeyframe(const std::vector<cv::Mat>& pyramid,
     keyframe_.weighted_sum.push_back(Vec3::Zero());
     tracks_.push_back(fresh[i]);
     fuse(keyframe_.points.size() - 1, stereoPoint(fresh[i].x, fresh[i].y, disparity), disparity);
-    window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y), rawRight(Eigen::Vector2d(right[i].x, right[i].y))},
+    window_.observe({keyframe_.ids.back(), Eigen::Vector2d(fresh[i].x, fresh[i].y),
+                     rawRight(Eigen::Vector2d(right[i].x, right[i].y))},
                     T_world_camera * keyframe_.points.back());
   }
   alive_.assign(tracks_.size(), true);
@@ -166,7 +174,8 @@ void FastTracker::adjustWindow(Rigid3& T_world_current) {
       !window_.adjust(options_.window_iterations, options_.ransac_px, right_offset_, step)) {
     return;
   }
-  right_offset_ = std::clamp(right_offset_, -options_.right_offset_max_px, options_.right_offset_max_px);
+  right_offset_ =
+      std::clamp(right_offset_, -options_.right_offset_max_px, options_.right_offset_max_px);
   T_world_current = *window_.pose(frame_);
   if (const auto T = window_.pose(keyframe_.frame)) keyframe_.T_world_keyframe = *T;
   const Rigid3 T_keyframe_world = keyframe_.T_world_keyframe.inverse();
@@ -188,7 +197,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   ++frame_;
   if (!initialised_) {
     restartWindow(Rigid3::identity());
-    makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(), Eigen::Matrix<double, 6, 6>::Zero());
+    makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(),
+                 Eigen::Matrix<double, 6, 6>::Zero());
     previous_pyramid_ = std::move(pyramid);
     initialised_ = !keyframe_.points.empty();
     estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
@@ -219,8 +229,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     cv::calcOpticalFlowPyrLK(pyramid, previous_pyramid_, to, back, back_status, error, window,
                              options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
     for (size_t k = 0; k < from.size(); ++k) {
-      const bool inside = to[k].x >= 0 && to[k].y >= 0 && to[k].x < left.cols - 1 &&
-                          to[k].y < left.rows - 1;
+      const bool inside =
+          to[k].x >= 0 && to[k].y >= 0 && to[k].x < left.cols - 1 && to[k].y < left.rows - 1;
       if (!status[k] || !back_status[k] || !inside ||
           cv::norm(back[k] - from[k]) > options_.forward_backward_px) {
         alive_[index[k]] = false;
@@ -233,7 +243,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   for (size_t k = 0; k < index.size(); ++k) {
     if (!alive_[index[k]]) continue;
     const Vec3& p = keyframe_.points[index[k]];
-    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                        static_cast<float>(p.z()));
     image.push_back(to[k]);
     used.push_back(k);
   }
@@ -272,7 +283,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   for (int k : inliers) {
     inlier_points.push_back(image[static_cast<size_t>(k)]);
     const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
-    guess_disparity.push_back(static_cast<float>(camera_.disparityFromDepth(std::max(p.z(), 1e-3))));
+    guess_disparity.push_back(
+        static_cast<float>(camera_.disparityFromDepth(std::max(p.z(), 1e-3))));
   }
   const std::vector<cv::Point2f> right_matches =
       matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
@@ -280,7 +292,8 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   for (size_t j = 0; j < inliers.size(); ++j) {
     Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
                   Eigen::Vector2d(inlier_points[j].x, inlier_points[j].y), std::nullopt};
-    if (!std::isnan(right_matches[j].x)) o.right = Eigen::Vector2d(right_matches[j].x, right_matches[j].y);
+    if (!std::isnan(right_matches[j].x))
+      o.right = Eigen::Vector2d(right_matches[j].x, right_matches[j].y);
     observations.push_back(o);
   }
   RefineOptions refine;
@@ -324,21 +337,22 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   }
   T_current_keyframe = T_world_current.inverse() * keyframe_.T_world_keyframe;
   estimate.T_world_camera = T_world_current;
-  estimate.covariance =
-      keyframe_.covariance + rotated(refined.covariance, T_world_current.rotation.toRotationMatrix());
+  estimate.covariance = keyframe_.covariance +
+                        rotated(refined.covariance, T_world_current.rotation.toRotationMatrix());
   motion_ = T_world_current.inverse() * window_.pose(frame_ - 1).value_or(T_world_previous_);
   T_world_previous_ = T_world_current;
   for (size_t k = 0; k < index.size(); ++k) tracks_[index[k]] = to[k];
 
-  const bool weak = good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
-                    good < 2 * options_.ok_inliers;
+  const bool weak =
+      good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
+      good < 2 * options_.ok_inliers;
   if (weak || estimate.state != TrackingState::kOk) {
     std::vector<Carried> carried;
     for (size_t j = 0; j < inliers.size(); ++j) {
       if (!good_observation[j]) continue;
       const size_t i = index[used[static_cast<size_t>(inliers[j])]];
-      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i], keyframe_.weight[i],
-                         keyframe_.ids[i]});
+      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i],
+                         keyframe_.weight[i], keyframe_.ids[i]});
     }
     makeKeyframe(pyramid, right_pyramid, left, carried, T_world_current, estimate.covariance);
     estimate.keyframe = true;

@@ -48,9 +48,9 @@ class FastTracker {
   // by the right camera's estimated offset (as a calibrated camera would see it); x NaN where
   // no valid match.
   std::vector<cv::Point2f> matchRight(const std::vector<cv::Mat>& left_pyramid,
-                                const std::vector<cv::Mat>& right_pyramid,
-                                const std::vector<cv::Point2f>& left_points,
-                                const std::vector<float>* guess_disparity);
+                                      const std::vector<cv::Mat>& right_pyramid,
+                                      const std::vector<cv::Point2f>& left_points,
+                                      const std::vector<float>* guess_disparity);
 
   // Window adjustment after the frame's own refinement: moves the current pose, the keyframe's
   // pose (while in the window) and the keyframe's points.

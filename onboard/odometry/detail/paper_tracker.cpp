@@ -18,10 +18,17 @@ using common::Vec3;
 // R from the paper's Euler angles (eq. 6): R = Rz(yaw) Ry(pitch) Rx(roll) in camera axes.
 template <typename T>
 void eulerToMatrix(const T* e, T R[9]) {
-  const T cy = cos(e[0]), sy = sin(e[0]), cp = cos(e[1]), sp = sin(e[1]), cr = cos(e[2]), sr = sin(e[2]);
-  R[0] = cy * cp;  R[1] = cy * sp * sr - sy * cr;  R[2] = cy * sp * cr + sy * sr;
-  R[3] = sy * cp;  R[4] = sy * sp * sr + cy * cr;  R[5] = sy * sp * cr - cy * sr;
-  R[6] = -sp;      R[7] = cp * sr;                 R[8] = cp * cr;
+  const T cy = cos(e[0]), sy = sin(e[0]), cp = cos(e[1]), sp = sin(e[1]), cr = cos(e[2]),
+          sr = sin(e[2]);
+  R[0] = cy * cp;
+  R[1] = cy * sp * sr - sy * cr;
+  R[2] = cy * sp * cr + sy * sr;
+  R[3] = sy * cp;
+  R[4] = sy * sp * sr + cy * cr;
+  R[5] = sy * sp * cr - cy * sr;
+  R[6] = -sp;
+  R[7] = cp * sr;
+  R[8] = cp * cr;
 }
 
 // Eq. (5): P_c - (R P_p + t) for one point pair.
@@ -32,7 +39,8 @@ struct PointToPoint {
     T R[9];
     eulerToMatrix(euler, R);
     for (int i = 0; i < 3; ++i) {
-      r[i] = T(c[i]) - (R[3 * i] * T(p.x()) + R[3 * i + 1] * T(p.y()) + R[3 * i + 2] * T(p.z()) + t[i]);
+      r[i] = T(c[i]) -
+             (R[3 * i] * T(p.x()) + R[3 * i + 1] * T(p.y()) + R[3 * i + 2] * T(p.z()) + t[i]);
     }
     return true;
   }
@@ -74,13 +82,15 @@ Vec3 triangulate(const camera::StereoCamera& c, cv::Point2f l, cv::Point2f r) {
 std::vector<cv::Point2f> harrisCorners(const cv::Mat& image, double k, int nms_window, int count) {
   cv::Mat response, dilated;
   cv::cornerHarris(image, response, 3, 3, k);
-  cv::dilate(response, dilated, cv::getStructuringElement(cv::MORPH_RECT, {nms_window, nms_window}));
+  cv::dilate(response, dilated,
+             cv::getStructuringElement(cv::MORPH_RECT, {nms_window, nms_window}));
   std::vector<std::pair<float, cv::Point2f>> peaks;
   for (int y = 0; y < response.rows; ++y) {
     const float* r = response.ptr<float>(y);
     const float* d = dilated.ptr<float>(y);
     for (int x = 0; x < response.cols; ++x) {
-      if (r[x] > 0 && r[x] >= d[x]) peaks.emplace_back(r[x], cv::Point2f(static_cast<float>(x), static_cast<float>(y)));
+      if (r[x] > 0 && r[x] >= d[x])
+        peaks.emplace_back(r[x], cv::Point2f(static_cast<float>(x), static_cast<float>(y)));
     }
   }
   const size_t keep = std::min(peaks.size(), static_cast<size_t>(count));
@@ -118,10 +128,13 @@ double ncc(const cv::Mat& a, cv::Point2f pa, const cv::Mat& b, cv::Point2f pb, i
 PaperTracker::PaperTracker(const camera::StereoCamera& camera, const VoOptions& options)
     : camera_(camera), options_(options) {}
 
-PaperTracker::StereoFrame PaperTracker::stereoFrame(const cv::Mat& left, const cv::Mat& right) const {
+PaperTracker::StereoFrame PaperTracker::stereoFrame(const cv::Mat& left,
+                                                    const cv::Mat& right) const {
   StereoFrame frame{left.clone(), right.clone(), {}, {}};  // kept for the next frame
-  const auto lc = harrisCorners(left, options_.harris_k, options_.nms_window, options_.paper_corners);
-  const auto rc = harrisCorners(right, options_.harris_k, options_.nms_window, options_.paper_corners);
+  const auto lc =
+      harrisCorners(left, options_.harris_k, options_.nms_window, options_.paper_corners);
+  const auto rc =
+      harrisCorners(right, options_.harris_k, options_.nms_window, options_.paper_corners);
   const double max_disparity = camera_.width / 3.0;
   for (const auto& l : lc) {
     double best = options_.ncc_min;
@@ -201,7 +214,8 @@ VoEstimate PaperTracker::track(const cv::Mat& left, const cv::Mat& right) {
       std::vector<size_t> inliers;
       for (size_t i : all) {
         const auto pixel = project(camera_, T * before[i]);
-        if (pixel && (*pixel - Eigen::Vector2d(pixels[i].x, pixels[i].y)).norm() <= options_.paper_ransac_px) {
+        if (pixel && (*pixel - Eigen::Vector2d(pixels[i].x, pixels[i].y)).norm() <=
+                         options_.paper_ransac_px) {
           inliers.push_back(i);
         }
       }
@@ -216,7 +230,8 @@ VoEstimate PaperTracker::track(const cv::Mat& left, const cv::Mat& right) {
                    : estimate.inliers >= options_.degraded_inliers ? TrackingState::kDegraded
                                                                    : TrackingState::kLost;
   // Eqs. (7)-(9): chain the inverse frame-to-frame motions (identity when lost).
-  if (estimate.state != TrackingState::kLost) T_world_camera_ = T_world_camera_ * T_current_previous.inverse();
+  if (estimate.state != TrackingState::kLost)
+    T_world_camera_ = T_world_camera_ * T_current_previous.inverse();
   estimate.T_world_camera = T_world_camera_;
   estimate.keyframe = true;
   previous_ = std::move(current);

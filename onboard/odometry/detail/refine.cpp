@@ -39,17 +39,16 @@ struct Prior {
 
 }  // namespace
 
-std::optional<Eigen::Vector2d> project(const camera::StereoCamera& camera,
-                                       const common::Vec3& p, bool right) {
+std::optional<Eigen::Vector2d> project(const camera::StereoCamera& camera, const common::Vec3& p,
+                                       bool right) {
   if (p.z() <= 1e-6) return std::nullopt;
   const double x = p.x() - (right ? camera.baseline : 0.0);
   return Eigen::Vector2d(camera.fx * x / p.z() + camera.cx, camera.fy * p.y() / p.z() + camera.cy);
 }
 
 RefineResult refinePose(const camera::StereoCamera& camera,
-                        const std::vector<Observation>& observations,
-                        const common::Rigid3& initial, const common::Rigid3& prior,
-                        const RefineOptions& options) {
+                        const std::vector<Observation>& observations, const common::Rigid3& initial,
+                        const common::Rigid3& prior, const RefineOptions& options) {
   Eigen::Vector3d angle_axis = angleAxisOf(initial.rotation);
   Eigen::Vector3d translation = initial.translation;
   ceres::Problem::Options problem_options;
@@ -57,10 +56,9 @@ RefineResult refinePose(const camera::StereoCamera& camera,
   ceres::Problem problem(problem_options);
   ceres::HuberLoss huber(options.huber_px);
   for (const auto& o : observations) {
-    problem.AddResidualBlock(
-        new ceres::AutoDiffCostFunction<Reprojection, 2, 3, 3>(
-            new Reprojection(camera, o.point, o.left.x(), o.left.y(), 0.0)),
-        &huber, angle_axis.data(), translation.data());
+    problem.AddResidualBlock(new ceres::AutoDiffCostFunction<Reprojection, 2, 3, 3>(
+                                 new Reprojection(camera, o.point, o.left.x(), o.left.y(), 0.0)),
+                             &huber, angle_axis.data(), translation.data());
     if (o.right) {
       problem.AddResidualBlock(
           new ceres::AutoDiffCostFunction<Reprojection, 2, 3, 3>(
@@ -86,7 +84,8 @@ RefineResult refinePose(const camera::StereoCamera& camera,
   result.T_current_reference.rotation = quatOf(angle_axis);
   result.T_current_reference.translation = translation;
   const size_t residuals = static_cast<size_t>(summary.num_residuals);
-  result.rms_px = residuals > 0 ? std::sqrt(2.0 * summary.final_cost / static_cast<double>(residuals)) : 0;
+  result.rms_px =
+      residuals > 0 ? std::sqrt(2.0 * summary.final_cost / static_cast<double>(residuals)) : 0;
   if (options.covariance) {
     ceres::Covariance::Options covariance_options;
     covariance_options.algorithm_type = ceres::DENSE_SVD;

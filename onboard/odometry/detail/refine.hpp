@@ -12,8 +12,8 @@
 namespace stereomap::odometry::detail {
 
 struct Observation {
-  common::Vec3 point;          // in the reference frame
-  Eigen::Vector2d left;        // pixel in the current left image
+  common::Vec3 point;                    // in the reference frame
+  Eigen::Vector2d left;                  // pixel in the current left image
   std::optional<Eigen::Vector2d> right;  // the same point in the current right image
 };
 
@@ -34,9 +34,8 @@ struct RefineResult {
 
 // Minimises the reprojection error in both cameras (robust) from `initial`.
 RefineResult refinePose(const camera::StereoCamera& camera,
-                        const std::vector<Observation>& observations,
-                        const common::Rigid3& initial, const common::Rigid3& prior,
-                        const RefineOptions& options);
+                        const std::vector<Observation>& observations, const common::Rigid3& initial,
+                        const common::Rigid3& prior, const RefineOptions& options);
 
 // Pixel of a point in the left (baseline 0) or right camera; nullopt behind the camera.
 std::optional<Eigen::Vector2d> project(const camera::StereoCamera& camera,
