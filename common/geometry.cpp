@@ -18,4 +18,9 @@ bool isUnitQuaternion(const Quat& q, double tolerance) {
   return std::abs(q.norm() - 1.0) <= tolerance;
 }
 
+Rigid3 interpolate(const Rigid3& a, const Rigid3& b, double s) {
+  return {a.rotation.slerp(s, b.rotation).normalized(),
+          (1 - s) * a.translation + s * b.translation};
+}
+
 }  // namespace stereomap::common

@@ -30,6 +30,9 @@ struct Rigid3 {
   }
 };
 
+// The pose a fraction s (0..1) of the way from a to b: position linearly, attitude by slerp.
+Rigid3 interpolate(const Rigid3& a, const Rigid3& b, double s);
+
 // Axis-aligned box; empty when min > max on any axis.
 struct Box3 {
   Vec3 min = Vec3::Constant(std::numeric_limits<double>::infinity());

@@ -39,4 +39,14 @@ TEST(Box3, ExtendAndContain) {
 }
 
 }  // namespace
+TEST(Geometry, InterpolateRunsFromOnePoseToTheOther) {
+  const Rigid3 a{Quat::Identity(), Vec3(0, 0, 0)};
+  const Rigid3 b{Quat(Eigen::AngleAxisd(1.0, Vec3::UnitZ())), Vec3(2, 4, -6)};
+  EXPECT_LT((interpolate(a, b, 0).translation - a.translation).norm(), 1e-12);
+  EXPECT_LT(interpolate(a, b, 1).rotation.angularDistance(b.rotation), 1e-12);
+  const Rigid3 half = interpolate(a, b, 0.5);
+  EXPECT_LT((half.translation - Vec3(1, 2, -3)).norm(), 1e-12);
+  EXPECT_NEAR(half.rotation.angularDistance(a.rotation), 0.5, 1e-12);
+}
+
 }  // namespace stereomap::common

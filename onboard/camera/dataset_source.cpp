@@ -238,8 +238,7 @@ std::optional<Rigid3> interpolate(const std::vector<Stamped>& track, int64_t sta
   const auto before = after - 1;
   const double a = static_cast<double>(stamp_ns - before->stamp_ns) /
                    static_cast<double>(after->stamp_ns - before->stamp_ns);
-  return Rigid3{before->T.rotation.slerp(a, after->T.rotation),
-                (1 - a) * before->T.translation + a * after->T.translation};
+  return common::interpolate(before->T, after->T, a);
 }
 
 Result<std::unique_ptr<FrameSource>> openEuroc(const fs::path& dir, const DatasetOptions& options) {

@@ -100,8 +100,7 @@ std::vector<Rigid3> GraphFollower::finish() {
       const double t1 = static_cast<double>(stamps_[end]);
       for (size_t k = i; k < end; ++k) {
         const double s = (static_cast<double>(stamps_[k]) - t0) / (t1 - t0);
-        poses[k].translation = (1 - s) * poses[i - 1].translation + s * poses[end].translation;
-        poses[k].rotation = poses[i - 1].rotation.slerp(s, poses[end].rotation);
+        poses[k] = common::interpolate(poses[i - 1], poses[end], s);
       }
     }
     i = end;

@@ -36,8 +36,10 @@ std::optional<double> subpixelDisparity(const cv::Mat& left, const cv::Mat& righ
   constexpr int kHalf = 4, kSearch = 2;
   const int x = cvRound(at.x), y = cvRound(at.y);
   const int d0 = cvRound(matched_disparity);
-  if (y - kHalf < 0 || y + kHalf >= left.rows || x + kHalf >= left.cols ||
-      x - d0 - kSearch - kHalf < 0 || x - kHalf < 0) {
+  // Every pixel read: left columns x +- kHalf, right columns x - d +- kHalf for d within
+  // d0 +- kSearch (d0 may be below kSearch: then right columns beyond x are read too).
+  if (y - kHalf < 0 || y + kHalf >= left.rows || x - kHalf < 0 || x + kHalf >= left.cols ||
+      x - d0 - kSearch - kHalf < 0 || x - d0 + kSearch + kHalf >= right.cols) {
     return std::nullopt;
   }
   double cost[2 * kSearch + 1];

@@ -227,7 +227,10 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
     }
     auto file = exportSession(*session, parts[2], request);
     if (!file) {
-      return error(file.error().code == common::ErrorCode::kTooLarge ? 413 : 404,
+      const auto code = file.error().code;
+      return error(code == common::ErrorCode::kTooLarge ? 413
+                   : code == common::ErrorCode::kIo     ? 500
+                                                        : 404,
                    file.error().message);
     }
     return HttpAnswer{200, file->content_type, std::move(file->content), file->name};

@@ -16,11 +16,6 @@ bool rigid(const Rigid3& T) {
 
 bool byStamp(const StampedBodyPose& a, const StampedBodyPose& b) { return a.stamp_ns < b.stamp_ns; }
 
-Rigid3 blend(const Rigid3& a, const Rigid3& b, double s) {
-  return {a.rotation.slerp(s, b.rotation).normalized(),
-          (1 - s) * a.translation + s * b.translation};
-}
-
 }  // namespace
 
 common::Result<PoseCorrection> PoseCorrection::create(std::vector<StampedBodyPose> sent,
@@ -66,7 +61,7 @@ Rigid3 PoseCorrection::sentAt(int64_t stamp_ns) const {
   const auto before = after - 1;
   const double s = static_cast<double>(stamp_ns - before->stamp_ns) /
                    static_cast<double>(after->stamp_ns - before->stamp_ns);
-  return blend(before->T_map_body, after->T_map_body, s);
+  return common::interpolate(before->T_map_body, after->T_map_body, s);
 }
 
 Rigid3 PoseCorrection::delta(int64_t stamp_ns) const {
@@ -87,7 +82,7 @@ Rigid3 PoseCorrection::delta(int64_t stamp_ns) const {
     const size_t a = b - 1;
     const double s = static_cast<double>(stamp_ns - keyframes_[a].stamp_ns) /
                      static_cast<double>(keyframes_[b].stamp_ns - keyframes_[a].stamp_ns);
-    corrected = blend(through(a), through(b), s);
+    corrected = common::interpolate(through(a), through(b), s);
   }
   return corrected * sent.inverse();
 }

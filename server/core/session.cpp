@@ -381,7 +381,9 @@ common::Result<std::string> Session::occupancyPng(double z_min, double z_max,
                   uint8_t{255});
     }
   }
-  return common::encodeGreyPng(pixels, width, height);
+  std::string png = common::encodeGreyPng(pixels, width, height);
+  if (png.empty()) return common::makeError(common::ErrorCode::kIo, "the PNG could not be encoded");
+  return png;
 }
 
 void Session::waitUntilIdle() const {
