@@ -25,6 +25,12 @@ const Markers& vehicleMarkers() {
   return markers;
 }
 
+// The body frame of eqs. 2-9 in the markers' own frame.
+const Rigid3& bodyInModel() {
+  static const Rigid3 body = *bodyFrameFromMarkers(vehicleMarkers());
+  return body;
+}
+
 // The camera that sees the joins: 3 m in front of the volume, looking at its middle.
 struct JoinCamera {
   Rigid3 T_world_camera;
@@ -46,7 +52,7 @@ struct Truth {
 Truth flight(const GroundTestOptions& options, std::mt19937& rng) {
   std::normal_distribution<double> normal;
   const Vec3 direction = Vec3(normal(rng), normal(rng), normal(rng)).normalized();
-  const Rigid3 body_in_model = *bodyFrameFromMarkers(vehicleMarkers());
+  const Rigid3& body_in_model = bodyInModel();
   Truth truth;
   const int per_segment = options.frames / options.segments;
   for (int k = 0; k < options.frames; ++k) {
@@ -67,7 +73,7 @@ Truth flight(const GroundTestOptions& options, std::mt19937& rng) {
 
 Markers measure(const Rigid3& T_world_body, double sigma, std::mt19937& rng) {
   std::normal_distribution<double> noise(0.0, sigma);
-  static const Rigid3 body_in_model = *bodyFrameFromMarkers(vehicleMarkers());
+  const Rigid3& body_in_model = bodyInModel();
   const Rigid3 T_world_model = T_world_body * body_in_model.inverse();
   Markers out;
   for (int m = 0; m < 4; ++m) {
@@ -99,7 +105,7 @@ Rigid3 relativeFromImage(const Markers& earlier, const Rigid3& T_world_later_tru
   const Rigid3 B_earlier = *bodyFrameFromMarkers(earlier);
   const double pixel_sigma = sigma * camera.focal_px / 3.0;  // the same noise, seen from 3 m
   std::normal_distribution<double> noise(0.0, pixel_sigma > 0 ? pixel_sigma : 1e-12);
-  static const Rigid3 body_in_model = *bodyFrameFromMarkers(vehicleMarkers());
+  const Rigid3& body_in_model = bodyInModel();
   const Rigid3 T_camera_model =
       camera.T_world_camera.inverse() * T_world_later_true * body_in_model.inverse();
   std::vector<cv::Point3d> object;
