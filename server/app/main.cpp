@@ -166,10 +166,12 @@ int main(int argc, char** argv) {
   auto clouds = proto::Reader<proto::CloudFrameMsg>::create(*participant);
   auto poses = proto::Reader<proto::PoseMsg>::create(*participant);
   auto events = proto::Reader<proto::SessionEventMsg>::create(*participant);
-  if (!clouds || !poses || !events) {
-    spdlog::error("cannot create DDS readers: {}", !clouds  ? clouds.error().message
-                                                   : !poses ? poses.error().message
-                                                            : events.error().message);
+  auto corrections = proto::Reader<proto::PoseCorrectionMsg>::create(*participant);
+  if (!clouds || !poses || !events || !corrections) {
+    spdlog::error("cannot create DDS readers: {}", !clouds   ? clouds.error().message
+                                                   : !poses  ? poses.error().message
+                                                   : !events ? events.error().message
+                                                             : corrections.error().message);
     return 1;
   }
 
@@ -178,6 +180,7 @@ int main(int argc, char** argv) {
   store::SessionJournals journals(store_dir, options.resolution);
   options.log = &journals;
   options.snapshots = &journals;
+  options.archive = &journals;
   core::MapServer server(options);
   auto admin = store::StoreAdmin::create(store_dir, server, &journals,
                                          {.default_resolution = options.resolution});
@@ -208,11 +211,13 @@ int main(int argc, char** argv) {
     (*clouds)->wake();
     (*poses)->wake();
     (*events)->wake();
+    (*corrections)->wake();
   });
   std::vector<std::thread> ingest;
   ingest.emplace_back([&] { pump(**clouds, server, shutdown); });
   ingest.emplace_back([&] { pump(**poses, server, shutdown); });
   ingest.emplace_back([&] { pump(**events, server, shutdown); });
+  ingest.emplace_back([&] { pump(**corrections, server, shutdown); });
 
   spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", dds.domain_id,
                options.resolution, store_dir);
@@ -248,7 +253,7 @@ int main(int argc, char** argv) {
                shutdown.signal());
   for (auto& thread : ingest) thread.join();
   (*http_server)->stop();
-  for (const auto& session : server.sessions()) session->waitUntilIdle();
+  for (const auto& session : server.sessions()) session->waitUntilFused();
   (*admin)->checkpoint(/*all=*/true);
   spdlog::info("stopped");
   return 0;

@@ -51,7 +51,11 @@ json statusJson(const SessionStatus& s) {
           {"bounds", boundsJson(s.bounds)},
           {"ended_by", s.ended_by.empty() ? json(nullptr) : json(s.ended_by)},
           {"store_error", s.store_error.empty() ? json(nullptr) : json(s.store_error)},
-          {"samples_refused", s.samples_refused}};
+          {"samples_refused", s.samples_refused},
+          {"corrections", s.corrections},
+          {"refusions", s.refusions},
+          {"refusing", s.refusing},
+          {"refusion_error", s.refusion_error.empty() ? json(nullptr) : json(s.refusion_error)}};
 }
 
 // Splits "/api/sessions/x/y?q" into path segments (query dropped).

@@ -61,6 +61,18 @@ Session::Options MapServer::sessionOptions(const std::string& id, double resolut
                                            bool read_only) const {
   Session::Options session_options{resolution, options_.queue_capacity, read_only};
   session_options.pool = pool_;
+  if (options_.archive != nullptr) {
+    session_options.reread_frames = [archive = options_.archive, limits = options_.limits, id](
+                                        uint64_t after, uint64_t up_to,
+                                        const std::function<void(FusionJob &&)>& fuse) {
+      return archive->forEachFrame(id, after, up_to,
+                                   [&](const proto::CloudFrameMsg& frame, uint64_t number) {
+                                     FusionJob job;
+                                     if (!fusionJobFrom(frame, limits, number, job))
+                                       fuse(std::move(job));
+                                   });
+    };
+  }
   if (options_.snapshots != nullptr) {
     session_options.snapshot_every = options_.snapshot_every;
     session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t journal_number,
@@ -221,9 +233,19 @@ StoreHealth MapServer::storeHealth() const {
   return store_health_;
 }
 
-bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
+std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
+                                       const IngestLimits& limits, uint64_t journal_number,
+                                       FusionJob& job) {
   ValidCloud valid;
-  const auto rejection = validateCloudFrame(frame, options_.limits, valid);
+  if (auto rejection = validateCloudFrame(frame, limits, valid)) return rejection;
+  job = {frame.vehicle_id,   frame.seq,         frame.stamp_ns, std::move(valid.cloud_camera),
+         valid.T_map_camera, valid.max_range_m, journal_number};
+  return std::nullopt;
+}
+
+bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
+  FusionJob job;
+  const auto rejection = fusionJobFrom(frame, options_.limits, journal_number, job);
   auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection, origin);
   if (!session) return false;
   const auto logged = record("CloudFrame", frame, *session, origin);
@@ -232,10 +254,8 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_
     session->countCovered(frame.vehicle_id);
     return true;
   }
-  const bool queued = session->enqueue(
-      {frame.vehicle_id, frame.seq, std::move(valid.cloud_camera), valid.T_map_camera,
-       valid.max_range_m, origin == Origin::kLive ? *logged : journal_number},
-      /*wait_for_room=*/origin == Origin::kReplay);
+  if (origin == Origin::kLive) job.journal_number = *logged;
+  const bool queued = session->enqueue(std::move(job), /*wait_for_room=*/origin == Origin::kReplay);
   if (!queued) {
     metrics_.add(kDropped, {{"session", frame.session_id}});
     spdlog::warn("session '{}': fusion is behind ({} frames queued); frame {} dropped",
@@ -260,6 +280,34 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
+  }
+  return true;
+}
+
+bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin) {
+  std::vector<ValidPose> keyframes;
+  const auto rejection = validatePoseCorrection(correction, keyframes);
+  auto session =
+      admit("PoseCorrection", correction.vehicle_id, correction.session_id, rejection, origin);
+  if (!session) return false;
+  const bool live = origin == Origin::kLive;
+  // Announced before it is journaled: no snapshot numbered after it may miss it.
+  if (live) session->announceCorrection();
+  if (!record("PoseCorrection", correction, *session, origin)) {
+    if (live) session->withdrawCorrection();
+    return false;
+  }
+  std::vector<StampedBodyPose> poses;
+  poses.reserve(keyframes.size());
+  for (const auto& k : keyframes) poses.push_back({k.stamp_ns, k.T_map_body});
+  if (auto taken = session->correct(correction.vehicle_id, std::move(poses), live); !taken) {
+    reject("PoseCorrection", {"unknown_poses", taken.error().message},
+           correction.vehicle_id + "/" + correction.session_id);
+    return false;
+  }
+  if (live) {
+    spdlog::info("session '{}': vehicle '{}' corrected {} keyframe poses; fusing its map again",
+                 correction.session_id, correction.vehicle_id, correction.keyframes.size());
   }
   return true;
 }

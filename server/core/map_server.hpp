@@ -5,6 +5,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -31,6 +32,18 @@ class IngestLog {
   virtual common::Result<uint64_t> append(const proto::CloudFrameMsg& frame) = 0;
   virtual common::Result<uint64_t> append(const proto::PoseMsg& pose) = 0;
   virtual common::Result<uint64_t> append(const proto::SessionEventMsg& event) = 0;
+  virtual common::Result<uint64_t> append(const proto::PoseCorrectionMsg& correction) = 0;
+};
+
+// Where journaled frames can be read again (the store): a session's map is fused again from
+// them when a vehicle's pose graph corrects the poses it sent. Called from re-fusion threads.
+class FrameArchive {
+ public:
+  virtual ~FrameArchive() = default;
+  // Every intact cloud frame of `session` numbered in (after, up_to], in journal order.
+  virtual common::Status forEachFrame(const std::string& session, uint64_t after, uint64_t up_to,
+                                      const std::function<void(const proto::CloudFrameMsg& frame,
+                                                               uint64_t number)>& visit) const = 0;
 };
 
 // Where sessions' map snapshots go (the store): a .ot of the map holding every frame up to
@@ -63,8 +76,15 @@ struct MapServerOptions {
   IngestLimits limits;
   IngestLog* log = nullptr;           // not owned; nullptr: nothing is journaled
   SnapshotSink* snapshots = nullptr;  // not owned; nullptr: no snapshots
+  FrameArchive* archive = nullptr;    // not owned; nullptr: corrections never re-fuse a map
   size_t snapshot_every = 100;        // frames between snapshots
 };
+
+// A frame as fusion takes it (the cloud decoded, the pose as sent), or the reason it is not
+// a valid frame.
+std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
+                                       const IngestLimits& limits, uint64_t journal_number,
+                                       FusionJob& job);
 
 class MapServer {
  public:
@@ -78,6 +98,11 @@ class MapServer {
               uint64_t journal_number = 0);
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event, Origin origin = Origin::kLive);
+  // A vehicle's pose graph's correction (newest per vehicle wins): live ones are journaled
+  // and re-fuse the session's map; replayed ones (recovery, which sets them before it fuses
+  // the frames) do not. Refused (counted, reason "unknown_poses") when none of its keyframes
+  // is a pose the vehicle sent.
+  bool ingest(const proto::PoseCorrectionMsg& correction, Origin origin = Origin::kLive);
 
   // Creates session `id` (recovery, or opening a stored session read-only) at its own
   // resolution; fails when it is already loaded or the session limit is reached.

@@ -39,15 +39,19 @@ common::Result<PoseCorrection> PoseCorrection::create(std::vector<StampedBodyPos
   }
   PoseCorrection correction;
   correction.sent_ = std::move(sent);
+  // A keyframe whose pose never arrived (lost on the link, or still on its way) cannot say
+  // how far the sent poses were off: it is left out, and its neighbours correct its stretch.
   for (const auto& k : keyframes) {
     const auto it = std::lower_bound(correction.sent_.begin(), correction.sent_.end(), k, byStamp);
-    if (it == correction.sent_.end() || it->stamp_ns != k.stamp_ns) {
-      return makeError(ErrorCode::kInvalidArgument, "keyframe stamp " + std::to_string(k.stamp_ns) +
-                                                        " is not a pose the vehicle sent");
-    }
+    if (it == correction.sent_.end() || it->stamp_ns != k.stamp_ns) continue;
+    correction.keyframes_.push_back(k);
     correction.sent_at_keyframe_.push_back(it->T_map_body);
   }
-  correction.keyframes_ = std::move(keyframes);
+  if (correction.keyframes_.empty()) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     "none of the " + std::to_string(keyframes.size()) +
+                         " corrected keyframes is a pose the vehicle sent");
+  }
   return correction;
 }
 

@@ -29,9 +29,10 @@ struct StampedBodyPose {
 
 class PoseCorrection {
  public:
-  // `sent`: every pose the vehicle sent (any order); `keyframes`: the corrected ones, whose
-  // stamps must be among `sent`'s. Refuses an empty correction, unknown stamps, repeated
-  // keyframes and poses that are not rigid transforms.
+  // `sent`: every pose the vehicle sent (any order); `keyframes`: the corrected ones, by the
+  // stamps of sent poses (keyframes at other stamps are left out). Refuses an empty
+  // correction, one with no known stamp, repeated keyframes and poses that are not rigid
+  // transforms.
   static common::Result<PoseCorrection> create(std::vector<StampedBodyPose> sent,
                                                std::vector<StampedBodyPose> keyframes);
 

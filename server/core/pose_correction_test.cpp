@@ -93,5 +93,17 @@ TEST(PoseCorrection, RefusesWhatItCannotApply) {
   EXPECT_TRUE(PoseCorrection::create(sent, {sent[1]}));
 }
 
+// A keyframe whose pose never reached the server is left out; the others still correct.
+TEST(PoseCorrection, AKeyframeWhosePoseNeverArrivedIsLeftOut) {
+  const auto sent = flight(Vec3::Zero(), 5);
+  Rigid3 moved = sent[3].T_map_body;
+  moved.translation.z() += 0.5;
+  const auto correction =
+      PoseCorrection::create(sent, {{kStep / 2, sent[0].T_map_body}, {sent[3].stamp_ns, moved}});
+  ASSERT_TRUE(correction);
+  EXPECT_NEAR((correction->delta(sent[3].stamp_ns) * sent[3].T_map_body).translation.z(),
+              moved.translation.z(), 1e-9);
+}
+
 }  // namespace
 }  // namespace stereomap::core

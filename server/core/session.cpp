@@ -31,7 +31,8 @@ const char* stateName(const SessionStatus& status) {
 Session::Session(std::string id, const Options& options)
     : id_(std::move(id)),
       options_(options),
-      map_({.resolution = options.resolution, .pool = options.pool.get()}),
+      map_(std::make_unique<fusion::OccupancyMap>(fusion::OccupancyMap::Options{
+          .resolution = options.resolution, .pool = options.pool.get()})),
       tiles_(id_, options.resolution),
       snapshot_due_(options.snapshot_every),
       last_live_ns_(common::nowNs()) {
@@ -47,6 +48,8 @@ Session::~Session() {
     stopping_ = true;
   }
   queue_changed_.notify_all();
+  refuse_changed_.notify_all();
+  if (refuser_.joinable()) refuser_.join();
   worker_.join();
   if (snapshot_writer_.joinable()) {
     {
@@ -111,9 +114,9 @@ bool Session::enqueue(FusionJob job, bool wait_for_room) {
 common::Status Session::restore(std::istream& ot, uint64_t journal_number) {
   {
     std::lock_guard lock(map_mutex_);
-    if (auto status = map_.readFull(ot); !status) return status;
+    if (auto status = map_->readFull(ot); !status) return status;
     last_fused_number_ = journal_number;
-    tiles_.rebuild(map_);
+    tiles_.rebuild(*map_);
   }
   return common::Ok{};
 }
@@ -129,6 +132,166 @@ void Session::addPose(PoseRecord pose) {
   std::lock_guard lock(state_mutex_);
   noteVehicle(vehicles_, pose.vehicle_id);
   trajectory_.push_back(std::move(pose));
+}
+
+void Session::announceCorrection() {
+  std::lock_guard lock(state_mutex_);
+  ++corrections_announced_;
+}
+
+void Session::withdrawCorrection() {
+  std::lock_guard lock(state_mutex_);
+  if (corrections_announced_ > 0) --corrections_announced_;
+}
+
+common::Status Session::correct(const std::string& vehicle, std::vector<StampedBodyPose> keyframes,
+                                bool refuse) {
+  std::vector<StampedBodyPose> sent;
+  {
+    std::lock_guard lock(state_mutex_);
+    if (refuse && corrections_announced_ > 0) --corrections_announced_;
+    for (const auto& pose : trajectory_) {
+      if (pose.vehicle_id == vehicle) sent.push_back({pose.stamp_ns, pose.T_map_body});
+    }
+  }
+  auto correction = PoseCorrection::create(std::move(sent), std::move(keyframes));
+  if (!correction) return correction.error();
+  {
+    std::lock_guard lock(state_mutex_);
+    corrections_[vehicle] = std::make_shared<const PoseCorrection>(std::move(*correction));
+    ++corrections_set_;
+    ++trajectory_version_;
+    if (!refuse || !options_.reread_frames) corrections_in_map_ = corrections_set_;
+  }
+  if (refuse && options_.reread_frames) {
+    {
+      std::lock_guard lock(queue_mutex_);
+      refuse_wanted_ = true;
+      if (!refuser_.joinable()) refuser_ = std::thread([this] { refuseLoop(); });
+    }
+    refuse_changed_.notify_all();
+  }
+  return common::Ok{};
+}
+
+std::map<std::string, std::shared_ptr<const PoseCorrection>> Session::corrections() const {
+  std::lock_guard lock(state_mutex_);
+  return corrections_;
+}
+
+void Session::fuse(fusion::OccupancyMap& map, const FusionJob& job,
+                   const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
+                   fusion::MapChanges* changes) {
+  const auto correction = corrections.find(job.vehicle_id);
+  const common::Rigid3 T_map_camera =
+      correction == corrections.end() ? job.T_map_camera
+                                      : correction->second->delta(job.stamp_ns) * job.T_map_camera;
+  map.insertCloud(job.cloud_camera, T_map_camera, job.max_range_m, changes);
+}
+
+bool Session::stopping() const {
+  std::lock_guard lock(queue_mutex_);
+  return stopping_;
+}
+
+uint64_t Session::fusedUpTo() const {
+  std::lock_guard lock(map_mutex_);
+  return last_fused_number_;
+}
+
+// Fuses every journaled frame again into a new map with the corrections as they are now, in
+// rounds that catch up with the frames fused live meanwhile, and hands the map to the worker
+// when the frames still missing from it are in the worker's tail.
+void Session::refuseLoop() {
+  for (;;) {
+    {
+      std::unique_lock lock(queue_mutex_);
+      refuse_changed_.wait(lock, [this] { return stopping_ || refuse_wanted_; });
+      if (stopping_) return;
+      refuse_wanted_ = false;
+      refusing_ = true;
+      keep_tail_ = true;
+      tail_bounded_ = true;
+      tail_.clear();
+      tail_floor_ = last_fused_number_;
+    }
+    const auto start = std::chrono::steady_clock::now();
+    uint64_t corrections_set;
+    {
+      std::lock_guard lock(state_mutex_);
+      corrections_set = corrections_set_;
+    }
+    const auto corrections = this->corrections();
+    auto map = std::make_unique<fusion::OccupancyMap>(fusion::OccupancyMap::Options{
+        .resolution = options_.resolution, .pool = options_.pool.get()});
+    uint64_t up_to = 0;
+    common::Status read = common::Ok{};
+    for (int round = 0; read; ++round) {
+      const uint64_t fused = fusedUpTo();
+      {
+        std::lock_guard lock(queue_mutex_);
+        if (stopping_) break;
+        if (tail_floor_ <= up_to && (fused - up_to <= 10 || round >= 4)) {
+          refused_ = Refused{std::move(map), up_to, corrections, corrections_set};
+          break;
+        }
+        // Frames come faster than the journal is read: the tail keeps all from now on, so
+        // that the next read or the one after ends the chase.
+        if (round >= 3) tail_bounded_ = false;
+      }
+      read = options_.reread_frames(up_to, fused, [&](FusionJob&& job) {
+        if (!stopping()) fuse(*map, job, corrections, nullptr);
+      });
+      up_to = fused;
+    }
+    if (!read) {
+      // The map stays as it is (and unsnapshotted: recovery fuses the journal again).
+      spdlog::error("session '{}': cannot fuse the journal again with corrected poses: {}", id_,
+                    read.error().message);
+      std::lock_guard state(state_mutex_);
+      refusion_error_ = read.error().message;
+    }
+    queue_changed_.notify_all();  // the worker takes the map between two frames
+    std::unique_lock lock(queue_mutex_);
+    queue_changed_.wait(lock, [this] { return stopping_ || !refused_; });
+    keep_tail_ = false;
+    tail_.clear();
+    refusing_ = false;
+    queue_changed_.notify_all();
+    if (read && !stopping_) {
+      std::lock_guard state(state_mutex_);
+      refusion_error_.clear();
+      refusion_seconds_ =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    }
+  }
+}
+
+void Session::swapInRefused() {
+  Refused refused;
+  std::deque<FusionJob> tail;
+  {
+    std::lock_guard lock(queue_mutex_);
+    refused = std::move(*refused_);
+    refused_.reset();
+    tail.swap(tail_);
+  }
+  for (const auto& job : tail) {
+    if (job.journal_number > refused.up_to) fuse(*refused.map, job, corrections(), nullptr);
+  }
+  {
+    std::lock_guard lock(map_mutex_);
+    map_.swap(refused.map);
+    tiles_.rebuild(*map_);
+  }
+  {
+    std::lock_guard state(state_mutex_);
+    corrections_in_map_ = refused.corrections_set;
+    ++refusions_;
+  }
+  spdlog::info("session '{}': map fused again with corrected poses", id_);
+  refused.map.reset();  // the old map, freed off every lock
+  queue_changed_.notify_all();
 }
 
 void Session::markEnded() {
@@ -158,23 +321,42 @@ void Session::run() {
       std::unique_lock lock(queue_mutex_);
       busy_ = false;
       queue_changed_.notify_all();
-      queue_changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      queue_changed_.wait(lock,
+                          [this] { return stopping_ || !queue_.empty() || refused_.has_value(); });
+      if (refused_) {
+        busy_ = true;
+        lock.unlock();
+        swapInRefused();
+        continue;
+      }
       if (queue_.empty()) return;  // stopping, and everything queued is fused
       job = std::move(queue_.front());
       queue_.pop_front();
       busy_ = true;
     }
     const auto start = std::chrono::steady_clock::now();
+    const auto corrections = this->corrections();
     {
       std::lock_guard lock(map_mutex_);
-      map_.insertCloud(job.cloud_camera, job.T_map_camera, job.max_range_m, &changes_);
+      fuse(*map_, job, corrections, &changes_);
       last_fused_number_ = job.journal_number;
     }
     // The tiles follow the frame's changes without the map; only changes they cannot take
     // (a block larger than a tile) need a walk of the map.
     if (!tiles_.apply(changes_)) {
       std::lock_guard lock(map_mutex_);
-      tiles_.rebuild(map_);
+      tiles_.rebuild(*map_);
+    }
+    {
+      std::lock_guard lock(queue_mutex_);
+      if (keep_tail_) {
+        tail_.push_back(std::move(job));
+        // Bounded while nobody waits to take it: the re-fusion reads further instead.
+        while (tail_.size() > kMaxTail && tail_bounded_ && !refused_) {
+          tail_floor_ = tail_.front().journal_number;
+          tail_.pop_front();
+        }
+      }
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -190,6 +372,12 @@ void Session::run() {
 
 void Session::snapshotIfDue(uint64_t fused) {
   if (!snapshot_writer_.joinable() || fused < snapshot_due_) return;
+  {
+    // A correction not yet in the map: a snapshot now would not hold it (see
+    // announceCorrection()); the next frame after the swap takes it.
+    std::lock_guard state(state_mutex_);
+    if (corrections_announced_ > 0 || corrections_in_map_ < corrections_set_) return;
+  }
   {
     std::lock_guard lock(snapshot_mutex_);
     if (snapshot_wanted_ || snapshot_writing_) return;  // one at a time: next frame again
@@ -236,7 +424,7 @@ common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journa
     std::lock_guard lock(map_mutex_);  // the map and its journal place, as of one frame
     const auto locked = std::chrono::steady_clock::now();
     auto started = common::ForkedWrite::start([this, full](std::ostream& out) {
-      return full ? map_.writeFull(out) : map_.writeBinary(out);
+      return full ? map_->writeFull(out) : map_->writeBinary(out);
     });
     if (!started) return started.error();
     job.emplace(std::move(*started));
@@ -283,6 +471,12 @@ SessionStatus Session::status() const {
   status.fusion_seconds = fusion_seconds_;
   status.store_error = store_error_;
   status.samples_refused = samples_refused_;
+  status.corrections = corrections_set_;
+  status.refusions = refusions_;
+  status.refusing = corrections_in_map_ < corrections_set_ && refusion_error_.empty();
+  status.refusion_error = refusion_error_;
+  status.refusion_seconds = refusion_seconds_;
+  status.trajectory_version = trajectory_version_;
   return status;
 }
 
@@ -299,7 +493,14 @@ std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
 std::vector<PoseRecord> Session::trajectory(size_t from) const {
   std::lock_guard state(state_mutex_);
   if (from >= trajectory_.size()) return {};
-  return {trajectory_.begin() + static_cast<long>(from), trajectory_.end()};
+  std::vector<PoseRecord> poses(trajectory_.begin() + static_cast<long>(from), trajectory_.end());
+  for (auto& pose : poses) {
+    const auto correction = corrections_.find(pose.vehicle_id);
+    if (correction == corrections_.end()) continue;
+    pose.T_map_body = correction->second->delta(pose.stamp_ns) * pose.T_map_body;
+    pose.T_map_body.rotation.normalize();
+  }
+  return poses;
 }
 
 std::string Session::trajectoryTum(const std::string& vehicle_id) const {
@@ -386,9 +587,26 @@ common::Result<std::string> Session::occupancyPng(double z_min, double z_max,
   return png;
 }
 
-void Session::waitUntilIdle() const {
+void Session::waitUntilFused() const {
   std::unique_lock lock(queue_mutex_);
   queue_changed_.wait(lock, [this] { return queue_.empty() && !busy_; });
+}
+
+void Session::waitUntilIdle() const {
+  for (;;) {
+    {
+      std::unique_lock lock(queue_mutex_);
+      queue_changed_.wait(lock, [this] {
+        return queue_.empty() && !busy_ && !refuse_wanted_ && !refusing_ && !refused_;
+      });
+    }
+    {
+      // A correction set whose re-fusion has not started yet (or one that failed).
+      std::lock_guard state(state_mutex_);
+      if (corrections_in_map_ >= corrections_set_ || !refusion_error_.empty()) return;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
 }
 
 }  // namespace stereomap::core

@@ -4,8 +4,13 @@
 // viewers, counts and exports read the tiles, never the live map. Snapshots and map exports
 // are serialised by a forked child (common/forked_write), so fusion stops only for the fork.
 //
-// Threads: enqueue()/addPose() from ingest threads; status()/tiles()/trajectory()/
-// mapBinary() from any thread; the fusion worker is owned by the session.
+// A vehicle's pose graph may correct poses it sent (correct()): its frames are fused and its
+// trajectory shown corrected from then on, and a thread of the session's own fuses the frames
+// it already holds again from the journal with the corrected poses, while the live map goes on;
+// the worker swaps the new map in once it has caught up (re-fusion).
+//
+// Threads: enqueue()/addPose()/correct() from ingest threads; status()/tiles()/trajectory()/
+// mapBinary() from any thread; the fusion worker and the re-fusion thread are the session's.
 #pragma once
 
 #include <atomic>
@@ -26,6 +31,7 @@
 #include "common/point_cloud.hpp"
 #include "common/result.hpp"
 #include "common/worker_pool.hpp"
+#include "server/core/pose_correction.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/tiles/tile_set.hpp"
 
@@ -40,8 +46,9 @@ struct PoseRecord {
 struct FusionJob {
   std::string vehicle_id;
   uint64_t seq = 0;
+  int64_t stamp_ns = 0;
   common::PointCloud cloud_camera;
-  common::Rigid3 T_map_camera;
+  common::Rigid3 T_map_camera;  // as the vehicle sent it (a correction is applied at fusion)
   double max_range_m = 0;
   // The frame's journal record number; 0: none (no journal), enqueue() numbers it by arrival.
   uint64_t journal_number = 0;
@@ -71,7 +78,13 @@ struct SessionStatus {
   double snapshot_stall_max_seconds = 0;
   // Why the last sample could not be journaled ("" once one could again): it was refused.
   std::string store_error;
-  uint64_t samples_refused = 0;  // samples the journal could not keep
+  uint64_t samples_refused = 0;     // samples the journal could not keep
+  uint64_t corrections = 0;         // pose corrections taken (every vehicle's)
+  uint64_t refusions = 0;           // maps fused again with corrected poses and swapped in
+  bool refusing = false;            // a re-fusion is under way (or waits to start)
+  double refusion_seconds = 0;      // the last re-fusion, from its start to the swap
+  std::string refusion_error;       // why the last re-fusion failed ("" when it did not)
+  uint64_t trajectory_version = 0;  // bumps when poses already shown change (a correction)
 };
 
 // "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
@@ -90,6 +103,12 @@ class Session {
     size_t snapshot_every = 0;
     std::function<common::Status(uint64_t journal_number, const std::string& ot)> on_snapshot;
     std::shared_ptr<common::WorkerPool> pool;  // fusion's helper threads; null: its own
+    // Reads the session's journaled frames numbered in (after, up_to] again, in order, as
+    // fusion jobs (poses as sent): what re-fusion after a pose correction fuses. Unset (no
+    // journal): a correction applies to later frames and the trajectory only.
+    std::function<common::Status(uint64_t after, uint64_t up_to,
+                                 const std::function<void(FusionJob&&)>& fuse)>
+        reread_frames;
   };
 
   Session(std::string id, const Options& options);
@@ -117,6 +136,18 @@ class Session {
   // Why a sample could not be journaled; "" when one was journaled again.
   void noteStoreError(const std::string& error);
   void addPose(PoseRecord pose);
+  // Before a correction is journaled: from now until the re-fusion that takes it has swapped
+  // its map in, no snapshot is taken (so a snapshot numbered after a correction always holds
+  // it). withdrawCorrection() when it could not be journaled.
+  void announceCorrection();
+  void withdrawCorrection();
+  // Vehicle `vehicle`'s pose graph corrected these keyframes (stamps of poses it sent, T_map_body
+  // as it now believes): later frames and the trajectory are corrected; with `refuse` the map
+  // so far is fused again (live corrections; recovery sets corrections before it fuses). The
+  // correction replaces the vehicle's earlier one. kInvalidArgument when none of the stamps is
+  // a pose the vehicle sent.
+  common::Status correct(const std::string& vehicle, std::vector<StampedBodyPose> keyframes,
+                         bool refuse);
   void markEnded();  // by its vehicle's end event
   // A live sample arrived (a new one or DDS history): the vehicle is there. Revives a
   // session that silence had ended.
@@ -147,13 +178,28 @@ class Session {
   static constexpr size_t kMaxPngPixels = 64u << 20;
   common::Result<std::string> occupancyPng(double z_min, double z_max,
                                            int pixels_per_voxel = 1) const;
-  // Blocks until every queued frame is fused (for tests and shutdown).
+  // Blocks until every queued frame is fused and no re-fusion is under way (for tests and
+  // closing: the map then holds every correction).
   void waitUntilIdle() const;
+  // Blocks until every queued frame is fused; a re-fusion may still be under way (shutdown:
+  // it is left to recovery, which fuses corrected from the journal).
+  void waitUntilFused() const;
   // A .ot of the map and the journal record number it covers up to, once idle (close()).
   common::Result<std::pair<uint64_t, std::string>> snapshotNow() const;
 
  private:
   void run();
+  // Fuses one frame into `map` with its vehicle's correction in `corrections`.
+  void fuse(fusion::OccupancyMap& map, const FusionJob& job,
+            const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
+            fusion::MapChanges* changes);
+  std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections() const;
+  void refuseLoop();  // the re-fusion thread
+  // On the worker, between frames: the re-fused map takes the frames fused since it was read
+  // from the journal (the tail) and replaces the live one.
+  void swapInRefused();
+  uint64_t fusedUpTo() const;
+  bool stopping() const;
   // After a fused frame: asks the snapshot writer for a snapshot when one is due.
   void snapshotIfDue(uint64_t fused);
   void writeSnapshots();  // the snapshot writer thread
@@ -171,12 +217,12 @@ class Session {
   bool busy_ = false;
   bool stopping_ = false;
 
-  mutable std::mutex map_mutex_;  // the worker holds it while inserting
-  fusion::OccupancyMap map_;
-  uint64_t last_fused_number_ = 0;  // journal record number of the last frame in map_
-  tiles::TileSet tiles_;            // written by the worker only
-  fusion::MapChanges changes_;      // the worker's scratch
-  uint64_t snapshot_due_ = 0;       // fused-frame count at which the next snapshot is due (worker)
+  mutable std::mutex map_mutex_;               // the worker holds it while inserting
+  std::unique_ptr<fusion::OccupancyMap> map_;  // replaced (under map_mutex_) by a re-fusion
+  uint64_t last_fused_number_ = 0;             // journal record number of the last frame in map_
+  tiles::TileSet tiles_;                       // written by the worker only
+  fusion::MapChanges changes_;                 // the worker's scratch
+  uint64_t snapshot_due_ = 0;  // fused-frame count at which the next snapshot is due (worker)
   std::mutex snapshot_mutex_;
   std::condition_variable snapshot_changed_;
   bool snapshot_wanted_ = false, snapshot_writing_ = false, snapshot_stopping_ = false;
@@ -195,6 +241,32 @@ class Session {
   int64_t last_live_ns_ = 0;  // the last live sample (or the session's creation)
   std::string store_error_;
   uint64_t samples_refused_ = 0;
+  std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections_;  // by vehicle
+  uint64_t corrections_announced_ = 0;  // announced, not yet set (or withdrawn)
+  uint64_t corrections_set_ = 0;        // correct() calls
+  uint64_t corrections_in_map_ = 0;     // correct() calls the map reflects (swapped in)
+  uint64_t refusions_ = 0;
+  double refusion_seconds_ = 0;
+  std::string refusion_error_;  // the last re-fusion failed: why ("" once one succeeds)
+  uint64_t trajectory_version_ = 0;
+
+  // Re-fusion. Under queue_mutex_: the map handed over for the swap and the frames the worker
+  // fused since the re-fusion began (poses as sent; the oldest dropped beyond kMaxTail until
+  // the re-fusion's last rounds).
+  struct Refused {
+    std::unique_ptr<fusion::OccupancyMap> map;
+    uint64_t up_to = 0;  // journal number of its last frame
+    std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections;
+    uint64_t corrections_set = 0;  // how many correct() calls it reflects
+  };
+  static constexpr size_t kMaxTail = 100;
+  std::optional<Refused> refused_;
+  bool keep_tail_ = false, tail_bounded_ = true;
+  std::deque<FusionJob> tail_;
+  uint64_t tail_floor_ = 0;                 // the tail holds every fused frame numbered above this
+  std::condition_variable refuse_changed_;  // with queue_mutex_
+  bool refuse_wanted_ = false, refusing_ = false;
+  std::thread refuser_;  // started by the first correction that asks for re-fusion
 
   std::thread worker_;
 };

@@ -27,7 +27,7 @@ constexpr uint8_t kMarker[4] = {'S', 'M', 'R', 2};
 constexpr size_t kHeaderBytes = 24;   // marker, length, number, body CRC, header CRC
 constexpr size_t kV1HeaderBytes = 8;  // length, CRC
 constexpr uint32_t kMaxRecordBytes = 64u << 20;
-enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2, kSessionEvent = 3 };
+enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2, kSessionEvent = 3, kPoseCorrection = 4 };
 
 // Little-endian field writer/reader; the reader fails (ok() false) on any overrun.
 class Writer {
@@ -130,6 +130,15 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     w.put(e->width);
     w.put(e->height);
     for (double v : {e->fx, e->fy, e->cx, e->cy, e->baseline, e->resolution_hint}) w.put(v);
+  } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
+    type = kPoseCorrection;
+    putHeader(w, *c);
+    w.put(static_cast<uint32_t>(c->keyframes.size()));
+    for (const auto& k : c->keyframes) {
+      w.put(k.stamp_ns);
+      putArray(w, k.position);
+      putArray(w, k.orientation);
+    }
   } else {
     const auto& p = std::get<proto::PoseMsg>(record);
     type = kPose;
@@ -178,6 +187,19 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
       *v = r.get<double>();
     }
     out = std::move(e);
+  } else if (type == kPoseCorrection) {
+    proto::PoseCorrectionMsg c;
+    getHeader(r, c);
+    const uint32_t count = r.get<uint32_t>();
+    // Bounded before anything is allocated: a damaged count must not ask for gigabytes.
+    if (count > proto::kMaxCorrectedKeyframes || count > size / 64) return false;
+    c.keyframes.resize(count);
+    for (auto& k : c.keyframes) {
+      k.stamp_ns = r.get<int64_t>();
+      getArray(r, k.position);
+      getArray(r, k.orientation);
+    }
+    out = std::move(c);
   } else {
     return false;
   }
@@ -244,7 +266,8 @@ size_t nextHeader(const std::vector<uint8_t>& bytes, size_t from) {
 }
 
 // Format 2: records with markers and numbers; damage is skipped up to the next valid header.
-void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay) {
+void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay,
+            const JournalVisitor& visit, uint64_t min_number) {
   size_t at = start;
   replay.good_bytes = at;
   while (at < bytes.size()) {
@@ -274,9 +297,11 @@ void readV2(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& repl
     const uint8_t* payload = &bytes[at + kHeaderBytes];
     JournalRecord decoded;
     const bool whole = crc32(payload, header->length) == header->body_crc;
-    if (whole && decode(payload[0], payload + 1, header->length - 1, decoded)) {
-      replay.records.push_back(std::move(decoded));
-      replay.numbers.push_back(header->number);
+    if (whole && header->number < min_number) {
+      ++replay.kept;  // checked, not wanted: not decoded
+    } else if (whole && decode(payload[0], payload + 1, header->length - 1, decoded)) {
+      ++replay.kept;
+      visit(std::move(decoded), header->number);
     } else {
       replay.damage.push_back({at, end, header->number, header->number,
                                whole ? "undecodable record" : "checksum mismatch"});
@@ -304,14 +329,16 @@ size_t v1RecordAt(const std::vector<uint8_t>& bytes, size_t at, JournalRecord* d
 }
 
 // Format 1: no markers, so after damage every later offset is tried for a whole record.
-void readV1(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay) {
+void readV1(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& replay,
+            const JournalVisitor& visit, uint64_t min_number) {
   size_t at = start;
   replay.good_bytes = at;
+  uint64_t count = 0;
   while (at < bytes.size()) {
     JournalRecord decoded;
     if (const size_t length = v1RecordAt(bytes, at, &decoded)) {
-      replay.records.push_back(std::move(decoded));
-      replay.numbers.push_back(replay.records.size());
+      ++replay.kept;
+      if (++count >= min_number) visit(std::move(decoded), count);
       at += length;
       replay.good_bytes = at;
       continue;
@@ -322,7 +349,7 @@ void readV1(const std::vector<uint8_t>& bytes, size_t start, JournalReplay& repl
     replay.damage.push_back({at, next, 0, 0, "unreadable bytes (format 1: records not numbered)"});
     at = next;
   }
-  replay.last_number = replay.records.size();
+  replay.last_number = count;
 }
 
 std::string summary(const JournalReplay& replay) {
@@ -335,7 +362,7 @@ std::string summary(const JournalReplay& replay) {
         std::to_string(replay.file_bytes - replay.good_bytes) + " bytes cut)");
   }
   if (!text.empty()) {
-    text += "; kept " + std::to_string(replay.records.size()) + " records";
+    text += "; kept " + std::to_string(replay.kept) + " records";
     if (const uint64_t lost = replay.lostRecords()) text += ", lost " + std::to_string(lost);
   }
   return text;
@@ -378,6 +405,19 @@ uint32_t crc32(const uint8_t* data, size_t size) {
 }
 
 common::Result<JournalReplay> readJournal(const fs::path& path) {
+  JournalReplay replay;
+  auto read = visitJournal(path, 0, [&](JournalRecord&& record, uint64_t number) {
+    replay.records.push_back(std::move(record));
+    replay.numbers.push_back(number);
+  });
+  if (!read) return read.error();
+  read->records = std::move(replay.records);
+  read->numbers = std::move(replay.numbers);
+  return read;
+}
+
+common::Result<JournalReplay> visitJournal(const fs::path& path, uint64_t min_number,
+                                           const JournalVisitor& visit) {
   auto read = common::readWholeFile(path);
   if (!read) return read.error();
   const std::vector<uint8_t>& bytes = *read;
@@ -395,12 +435,12 @@ common::Result<JournalReplay> readJournal(const fs::path& path) {
       bytes.size() >= kMagicBytes && std::memcmp(bytes.data(), kMagicV2, kMagicBytes) == 0;
   if (v1) {
     replay.version = 1;
-    readV1(bytes, kMagicBytes, replay);
+    readV1(bytes, kMagicBytes, replay, visit, min_number);
   } else {
     // A damaged file header costs nothing when records follow it.
-    readV2(bytes, kMagicBytes, replay);
+    readV2(bytes, kMagicBytes, replay, visit, min_number);
     replay.header_damaged = !v2;
-    if (!v2 && replay.records.empty()) {
+    if (!v2 && replay.kept == 0) {
       JournalReplay not_ours;
       not_ours.file_bytes = bytes.size();
       not_ours.problem = "not a stereomap journal (bad header); nothing kept";

@@ -17,6 +17,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
 #include <variant>
@@ -27,7 +28,8 @@
 
 namespace stereomap::store {
 
-using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg>;
+using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg,
+                                   proto::PoseCorrectionMsg>;
 
 // A stretch of the file that could not be read. Reading continued after it.
 struct JournalDamage {
@@ -42,6 +44,7 @@ struct JournalReplay {
   int version = 2;
   std::vector<JournalRecord> records;
   std::vector<uint64_t> numbers;      // numbers[i]: records[i]'s record number
+  uint64_t kept = 0;                  // intact records (those visitJournal skipped included)
   std::vector<JournalDamage> damage;  // inside the file; the records around it are kept
   uint64_t good_bytes = 0;            // end of the last whole record: where appending continues
   uint64_t file_bytes = 0;            // a torn tail is what lies between the two
@@ -58,6 +61,13 @@ struct JournalReplay {
 // Reads every intact record. A missing file is an error; damage is not (see `damage` and
 // `problem`). A file that is not a journal has good_bytes 0 and a problem.
 common::Result<JournalReplay> readJournal(const std::filesystem::path& path);
+
+// The same, streamed: each intact record numbered at least `min_number` goes to `visit` in
+// file order and is not kept (the result's `records` stay empty); records below it are
+// checked but not decoded. For reading a long journal again (re-fusing a session's frames).
+using JournalVisitor = std::function<void(JournalRecord&& record, uint64_t number)>;
+common::Result<JournalReplay> visitJournal(const std::filesystem::path& path, uint64_t min_number,
+                                           const JournalVisitor& visit);
 
 class Journal {
  public:

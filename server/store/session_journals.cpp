@@ -184,6 +184,24 @@ common::Result<uint64_t> SessionJournals::append(const proto::SessionEventMsg& e
   return appendTo(event.session_id, event);
 }
 
+common::Result<uint64_t> SessionJournals::append(const proto::PoseCorrectionMsg& correction) {
+  return appendTo(correction.session_id, correction);
+}
+
+common::Status SessionJournals::forEachFrame(
+    const std::string& session, uint64_t after, uint64_t up_to,
+    const std::function<void(const proto::CloudFrameMsg& frame, uint64_t number)>& visit) const {
+  // Read beside the appends: a record being written is a torn tail here, and numbered above
+  // anything fused (`up_to`).
+  const auto read = visitJournal(root_ / session / kJournalName, after + 1,
+                                 [&](JournalRecord&& record, uint64_t number) {
+                                   const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+                                   if (frame != nullptr && number <= up_to) visit(*frame, number);
+                                 });
+  if (!read) return read.error();
+  return common::Ok{};
+}
+
 common::Result<uint64_t> SessionJournals::appendTo(const std::string& session,
                                                    const JournalRecord& record) {
   std::lock_guard lock(mutex_);

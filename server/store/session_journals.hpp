@@ -1,6 +1,6 @@
 // The server side of the store's durability: one Journal per session under the store root
-// (<root>/<session>/journal.smj, the MapServer's IngestLog; a new session's directory also
-// gets meta.json with its resolution), periodic map snapshots
+// (<root>/<session>/journal.smj, the MapServer's IngestLog and FrameArchive; a new session's
+// directory also gets meta.json with its resolution), periodic map snapshots
 // (<root>/<session>/snapshot-<record number>.ot, the MapServer's SnapshotSink), and the
 // repair of damaged or format 1 journals. Recovery lives in store_admin.hpp.
 #pragma once
@@ -17,7 +17,9 @@
 
 namespace stereomap::store {
 
-class SessionJournals : public core::IngestLog, public core::SnapshotSink {
+class SessionJournals : public core::IngestLog,
+                        public core::SnapshotSink,
+                        public core::FrameArchive {
  public:
   // `resolution`: what new sessions are created with (the server's --resolution).
   SessionJournals(std::filesystem::path root, double resolution)
@@ -25,6 +27,11 @@ class SessionJournals : public core::IngestLog, public core::SnapshotSink {
   common::Result<uint64_t> append(const proto::CloudFrameMsg& frame) override;
   common::Result<uint64_t> append(const proto::PoseMsg& pose) override;
   common::Result<uint64_t> append(const proto::SessionEventMsg& event) override;
+  common::Result<uint64_t> append(const proto::PoseCorrectionMsg& correction) override;
+  // Reads the session's journal file (streamed: one frame in memory at a time).
+  common::Status forEachFrame(const std::string& session, uint64_t after, uint64_t up_to,
+                              const std::function<void(const proto::CloudFrameMsg& frame,
+                                                       uint64_t number)>& visit) const override;
   // Written atomically (temporary file + rename); older snapshots are then removed.
   common::Status saveSnapshot(const std::string& session, uint64_t journal_number,
                               const std::string& ot) override;

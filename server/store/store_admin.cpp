@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <fstream>
+#include <limits>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
@@ -106,6 +107,29 @@ void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
   pose.rotation.normalize();
   position = {pose.translation.x(), pose.translation.y(), pose.translation.z()};
   orientation = {pose.rotation.x(), pose.rotation.y(), pose.rotation.z(), pose.rotation.w()};
+}
+
+// Replays the journal's poses stamped no later than `until_ns` into `server`, then each
+// vehicle's newest correction made by then (so that the frames replayed next are fused
+// corrected); counts the poses taken into `poses`. Returns the newest correction's record
+// number (0: none).
+uint64_t replayPosesAndCorrections(core::MapServer& server, const JournalReplay& replay,
+                                   int64_t until_ns, size_t& poses) {
+  std::map<std::string, size_t> newest;  // vehicle -> record index
+  for (size_t i = 0; i < replay.records.size(); ++i) {
+    const auto& record = replay.records[i];
+    if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+      if (pose->stamp_ns <= until_ns) poses += server.ingest(*pose, core::Origin::kReplay);
+    } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
+      if (c->stamp_ns <= until_ns) newest[c->vehicle_id] = i;
+    }
+  }
+  uint64_t newest_number = 0;
+  for (const auto& [vehicle, i] : newest) {
+    server.ingest(std::get<proto::PoseCorrectionMsg>(replay.records[i]), core::Origin::kReplay);
+    newest_number = std::max(newest_number, replay.numbers[i]);
+  }
+  return newest_number;
 }
 
 }  // namespace
@@ -281,12 +305,18 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   RecoveredSession result{id};
   result.problem = replay->problem;
   result.lost_records = replay->lostRecords();
+  // Poses and pose corrections first: every frame is fused with its vehicle's newest
+  // correction, which needs the poses it corrects.
+  const uint64_t newest_correction = replayPosesAndCorrections(
+      server_, *replay, std::numeric_limits<int64_t>::max(), result.poses);
   // The newest snapshot that loads: it holds every frame up to its record number, even
-  // ones the journal has lost since. Else a full replay.
+  // ones the journal has lost since. Else a full replay. One older than the newest
+  // correction holds frames where they were before it.
   uint64_t covered_up_to = 0;
   for (const auto& [label, path] : snapshotsIn(dir)) {
     const uint64_t number = replay->version == 1 ? legacySnapshotNumber(*replay, label) : label;
     if (replay->version == 1 && number == 0) continue;  // damage makes the label ambiguous
+    if (number < newest_correction) continue;
     std::ifstream ot(path, std::ios::binary);
     if (auto restored = session->restore(ot, number); restored) {
       covered_up_to = number;
@@ -304,10 +334,8 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
       result.frames +=
           server_.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
       result.snapshot_frames += covered;
-    } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-      result.poses += server_.ingest(*pose, core::Origin::kReplay);
-    } else {
-      server_.ingest(std::get<proto::SessionEventMsg>(record), core::Origin::kReplay);
+    } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
+      server_.ingest(*event, core::Origin::kReplay);
     }
   }
   session->waitUntilIdle();
@@ -329,14 +357,12 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
   core::MapServer scratch({.resolution = resolution, .max_sessions = 1});
   auto created = scratch.createSession(id, resolution, /*read_only=*/true);
   if (!created) return created.error();
+  size_t poses = 0;
+  replayPosesAndCorrections(scratch, *replayed, until_ns, poses);
   for (size_t i = 0; i < replayed->records.size(); ++i) {
-    const auto& record = replayed->records[i];
-    if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
-      if (frame->stamp_ns <= until_ns) {
-        scratch.ingest(*frame, core::Origin::kReplay, replayed->numbers[i]);
-      }
-    } else if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-      if (pose->stamp_ns <= until_ns) scratch.ingest(*pose, core::Origin::kReplay);
+    const auto* frame = std::get_if<proto::CloudFrameMsg>(&replayed->records[i]);
+    if (frame != nullptr && frame->stamp_ns <= until_ns) {
+      scratch.ingest(*frame, core::Origin::kReplay, replayed->numbers[i]);
     }
   }
   (*created)->waitUntilIdle();
@@ -507,6 +533,10 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
               using Message = std::decay_t<decltype(m)>;
               if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
                 transformPose(request.T_first_second, m.sensor_position, m.sensor_orientation);
+              } else if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
+                for (auto& k : m.keyframes) {
+                  transformPose(request.T_first_second, k.position, k.orientation);
+                }
               } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
                 transformPose(request.T_first_second, m.position, m.orientation);
                 // The velocity is in the map frame too.

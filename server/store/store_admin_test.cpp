@@ -20,6 +20,7 @@ struct Server {
     options.resolution = resolution;
     options.log = &journals;
     options.snapshots = &journals;
+    options.archive = &journals;
     options.snapshot_every = 4;
     map = std::make_unique<core::MapServer>(options);
     auto created = StoreAdmin::create(root, *map, &journals, {.default_resolution = resolution});
@@ -59,8 +60,24 @@ proto::SessionEventMsg ended(const std::string& session) {
   return e;
 }
 
-void fly(core::MapServer& map, const std::string& session, int frames, double y_offset = 0) {
+// The poses of frames [0, frames) moved by `dy` in y, as a vehicle's pose graph would send.
+proto::PoseCorrectionMsg correction(const std::string& session, int frames, double dy) {
+  proto::PoseCorrectionMsg c;
+  c.vehicle_id = "v1";
+  c.session_id = session;
+  c.seq = 1;
+  c.stamp_ns = pose(session, frames).stamp_ns;
   for (int i = 0; i < frames; ++i) {
+    const auto sent = pose(session, i);
+    c.keyframes.push_back(
+        {sent.stamp_ns, {sent.position[0], sent.position[1] + dy, sent.position[2]}, {0, 0, 0, 1}});
+  }
+  return c;
+}
+
+void fly(core::MapServer& map, const std::string& session, int frames, double y_offset = 0,
+         int first = 0) {
+  for (int i = first; i < first + frames; ++i) {
     ASSERT_TRUE(map.ingest(wallFrame(session, i, y_offset)));
     ASSERT_TRUE(map.ingest(pose(session, i)));
   }
@@ -220,6 +237,59 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_EQ(server.admin->merge({"a", "zz", "c", {}}).error().code, ErrorCode::kNotFound);
   EXPECT_EQ(server.admin->merge({"a", "a", "c", {}}).error().code, ErrorCode::kInvalidArgument);
   EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code, ErrorCode::kInvalidArgument);
+}
+
+// A vehicle's pose graph moves poses it sent: the map is fused again from the journal with
+// them, later frames are fused corrected, and a restart recovers the corrected map: never
+// from a snapshot older than the correction, from a newer one when there is one.
+TEST_F(StoreAdminTest, APoseCorrectionFusesTheMapAgainAndSurvivesRestarts) {
+  std::vector<fusion::VoxelIndex> right;
+  {
+    Server server(root_, 0.1);
+    fly(*server.map, "truth", 14);
+    right = server.map->find("truth")->occupiedVoxels();
+  }
+  std::vector<fusion::VoxelIndex> corrected;
+  {
+    Server server(root_, 0.1);
+    fly(*server.map, "c", 6, /*y_offset=*/0.5);  // every frame 0.5 m off in y
+    const auto session = server.map->find("c");
+    const auto wrong = session->occupiedVoxels();
+    ASSERT_TRUE(server.map->ingest(correction("c", 6, -0.5)));
+    session->waitUntilIdle();
+    const auto status = session->status();
+    EXPECT_EQ(status.corrections, 1u);
+    EXPECT_EQ(status.refusions, 1u);
+    EXPECT_FALSE(status.refusing);
+    corrected = session->occupiedVoxels();
+    EXPECT_NE(corrected, wrong);
+    EXPECT_EQ(session->trajectory(0).at(3).T_map_body.translation.y(), -0.5);
+    // Six frames fused where they belong: a prefix of the truth's map, not the wrong one's.
+    Server check(root_ / "check", 0.1);
+    fly(*check.map, "t6", 6);
+    EXPECT_EQ(corrected, check.map->find("t6")->occupiedVoxels());
+  }
+  {
+    Server restarted(root_, 0.1);
+    const auto recovered = restarted.admin->recoverAll();
+    const auto c =
+        std::find_if(recovered.begin(), recovered.end(), [](const auto& r) { return r.id == "c"; });
+    ASSERT_NE(c, recovered.end());
+    EXPECT_EQ(c->snapshot_frames, 0u);  // snapshot-4 holds the frames where they were
+    EXPECT_EQ(restarted.map->find("c")->occupiedVoxels(), corrected);
+    // More frames, sent with the old error: corrected as they come; snapshots again.
+    fly(*restarted.map, "c", 8, /*y_offset=*/0.5, /*first=*/6);
+    EXPECT_EQ(restarted.map->find("c")->occupiedVoxels(), right);
+    EXPECT_GT(restarted.map->find("c")->status().snapshots, 0u);
+  }
+  Server again(root_, 0.1);
+  const auto recovered = again.admin->recoverAll();
+  const auto c =
+      std::find_if(recovered.begin(), recovered.end(), [](const auto& r) { return r.id == "c"; });
+  ASSERT_NE(c, recovered.end());
+  EXPECT_GT(c->snapshot_frames, 0u);  // newer than the correction: used
+  EXPECT_EQ(again.map->find("c")->occupiedVoxels(), right);
+  EXPECT_EQ(again.map->find("c")->trajectory(0).back().T_map_body.translation.y(), -0.5);
 }
 
 }  // namespace

@@ -222,8 +222,9 @@ class ReplayWorker {
 
 // A session's pushes, shared by its subscribers.
 struct ViewerHub::Feed {
-  uint64_t version = 0;  // tile changes up to this version have been pushed
-  size_t poses = 0;      // poses pushed
+  uint64_t version = 0;             // tile changes up to this version have been pushed
+  size_t poses = 0;                 // poses pushed
+  uint64_t trajectory_version = 0;  // of the poses pushed (a correction changes old ones)
 };
 
 struct ViewerHub::Impl {
@@ -338,6 +339,7 @@ struct ViewerHub::Impl {
     const auto summary = tiles.summary();
     if (created) {
       feed->second.version = summary.version;
+      feed->second.trajectory_version = session->status().trajectory_version;
       feed->second.poses = session->trajectory(0).size();
     }
     queueText(viewer,
@@ -735,10 +737,17 @@ struct ViewerHub::Impl {
           queueText(*viewer, marker);
         }
       }
+      // A pose correction changed poses already pushed: every pose again, replacing them.
+      const uint64_t trajectory_version = session->status().trajectory_version;
+      const bool corrected = trajectory_version != feed->second.trajectory_version;
+      if (corrected) {
+        feed->second.trajectory_version = trajectory_version;
+        feed->second.poses = 0;
+      }
       const auto poses = session->trajectory(feed->second.poses);
       if (!poses.empty()) {
         feed->second.poses += poses.size();
-        const auto messages = poseMessages(feed->first, poses, false);
+        const auto messages = poseMessages(feed->first, poses, corrected);
         for (Viewer* viewer : subscribers[feed->first]) {
           for (const auto& text : messages) queueText(*viewer, text);
         }
