@@ -48,9 +48,12 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   if (!poses) return poses.error();
   auto clouds = makeWriter<proto::CloudFrameMsg>(participant);
   if (!clouds) return clouds.error();
+  auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant);
+  if (!corrections) return corrections.error();
   publisher->events_ = std::move(events).value();
   publisher->poses_ = std::move(poses).value();
   publisher->clouds_ = std::move(clouds).value();
+  publisher->corrections_ = std::move(corrections).value();
   return publisher;
 }
 
@@ -60,6 +63,9 @@ common::Status VehiclePublisher::publish(const proto::SessionEventMsg& event) {
 common::Status VehiclePublisher::publish(const proto::PoseMsg& pose) { return poses_->write(pose); }
 common::Status VehiclePublisher::publish(const proto::CloudFrameMsg& frame) {
   return clouds_->write(frame);
+}
+common::Status VehiclePublisher::publish(const proto::PoseCorrectionMsg& correction) {
+  return corrections_->write(correction);
 }
 bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);
@@ -73,7 +79,8 @@ bool VehiclePublisher::flush(std::chrono::milliseconds timeout) const {
   };
   const bool clouds = clouds_->waitForAcks(left());
   const bool poses = poses_->waitForAcks(left());
-  return events_->waitForAcks(left()) && clouds && poses;
+  const bool corrections = corrections_->waitForAcks(left());
+  return events_->waitForAcks(left()) && clouds && poses && corrections;
 }
 
 // The fields every message of this vehicle starts with.
@@ -117,6 +124,24 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
     }
   }
   return pose;
+}
+
+proto::PoseCorrectionMsg makePoseCorrectionMsg(const PipelineOptions& options, uint64_t seq,
+                                               int64_t stamp_ns,
+                                               const std::vector<posegraph::KeyframePose>& keyframes,
+                                               const common::Rigid3& anchor,
+                                               const common::Rigid3& T_body_camera) {
+  proto::PoseCorrectionMsg correction;
+  address(correction, options, seq, stamp_ns);
+  const common::Rigid3 T_camera_body = T_body_camera.inverse();
+  correction.keyframes.reserve(keyframes.size());
+  for (const auto& k : keyframes) {
+    proto::KeyframePoseMsg pose;
+    pose.stamp_ns = k.stamp_ns;
+    copyPose(anchor * k.T_world_camera * T_camera_body, pose.position, pose.orientation);
+    correction.keyframes.push_back(pose);
+  }
+  return correction;
 }
 
 common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
@@ -188,6 +213,30 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   }
   std::vector<common::Rigid3> T_body_cameras;  // per frame, for the corrected trajectory
   std::optional<common::Rigid3> anchor;        // T_map_camera of the odometry's world frame
+  // The graph's newest keyframe poses not yet sent, and when the last were.
+  std::vector<posegraph::KeyframePose> unsent_correction;
+  std::optional<Clock::time_point> last_correction;
+  // Sends the graph's newest correction, at most once per period (or now, at the end); the
+  // camera's mount is taken as fixed (the current frame's).
+  auto sendCorrection = [&](int64_t stamp_ns, const common::Rigid3& T_body_camera, bool now) {
+    if (!graph || publisher == nullptr) return;
+    if (auto moved = graph->takeCorrection(); !moved.empty()) unsent_correction = std::move(moved);
+    if (unsent_correction.empty()) return;
+    if (!now && last_correction && Clock::now() - *last_correction < options.correction_period) {
+      return;
+    }
+    report(publisher->publish(makePoseCorrectionMsg(options, summary.corrections_sent, stamp_ns,
+                                                    unsent_correction, *anchor, T_body_camera)),
+           "PoseCorrection");
+    spdlog::info("pose graph: sent the corrected poses of {} keyframes ({} loop closures, {} "
+                 "tracks joined so far)",
+                 unsent_correction.size(), graph->stats().loops, graph->stats().joined_tracks);
+    ++summary.corrections_sent;
+    unsent_correction.clear();
+    last_correction = Clock::now();
+  };
+  std::optional<common::Rigid3> last_T_body_camera;
+  int64_t last_stamp = 0;
   std::optional<common::Rigid3> previous_pose;
   int64_t previous_stamp = 0;
   const auto start = Clock::now();
@@ -241,6 +290,10 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
     report_frame.T_map_body = T_map_body;
     report_frame.T_map_camera = T_map_body * T_body_camera;
+    // Before this frame's pose: a correction may name keyframes up to the previous frame.
+    sendCorrection(frame->stamp_ns, T_body_camera, /*now=*/false);
+    last_T_body_camera = T_body_camera;
+    last_stamp = frame->stamp_ns;
     common::Vec3 velocity = common::Vec3::Zero();
     if (previous_pose && frame->stamp_ns > previous_stamp) {
       velocity = (T_map_body.translation - previous_pose->translation) /
@@ -302,6 +355,11 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
   }
 
+  // The graph's last word before the end: every keyframe it was handed, solved.
+  if (graph && last_T_body_camera) {
+    graph->waitUntilCaughtUp();
+    sendCorrection(last_stamp, *last_T_body_camera, /*now=*/true);
+  }
   if (publisher != nullptr) {
     report(publisher->publish(
                makeSessionEvent(options, source.camera(), proto::SessionEventKind::kEnded)),

@@ -56,9 +56,12 @@ struct PipelineOptions {
   odometry::VoOptions odometry;
   bool depth = true;  // false: poses only (odometry runs without the clouds)
   // A pose graph over the odometry's keyframes (loop closures, joins of lost tracks), solved
-  // on a worker thread: published poses are corrected by it from then on, and the summary
+  // on a worker thread: published poses are corrected by it from then on, every keyframe's
+  // corrected pose is sent after a solve that found a place (a PoseCorrection, at most one
+  // per correction_period; the server fuses its map again with them), and the summary
   // carries every frame's pose through the final graph.
   bool pose_graph = false;
+  std::chrono::milliseconds correction_period{1000};
   posegraph::KeyframeGraphOptions graph;
   std::function<void(const FrameReport&)> on_frame;  // after every frame, if set
 };
@@ -81,6 +84,7 @@ struct PipelineSummary {
   // With pose_graph: T_map_body of every frame through the final graph, and what it found.
   std::vector<common::Rigid3> corrected_T_map_body;
   posegraph::FollowerStats graph;
+  uint64_t corrections_sent = 0;  // PoseCorrection samples published
 };
 
 // The DDS side of the vehicle: one writer per topic.
@@ -91,6 +95,7 @@ class VehiclePublisher {
   common::Status publish(const proto::SessionEventMsg& event);
   common::Status publish(const proto::PoseMsg& pose);
   common::Status publish(const proto::CloudFrameMsg& frame);
+  common::Status publish(const proto::PoseCorrectionMsg& correction);
   bool waitForServer(std::chrono::milliseconds timeout) const;
   // Waits until the server acknowledged everything published (the final SessionEvent
   // included), up to `timeout`; false when something is still unacknowledged.
@@ -100,6 +105,7 @@ class VehiclePublisher {
   std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events_;
   std::unique_ptr<proto::Writer<proto::PoseMsg>> poses_;
   std::unique_ptr<proto::Writer<proto::CloudFrameMsg>> clouds_;
+  std::unique_ptr<proto::Writer<proto::PoseCorrectionMsg>> corrections_;
 };
 
 // Messages for one frame (exposed for tests).
@@ -110,6 +116,13 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
                                                        int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
                                                        const common::PointCloud& cloud_camera);
+// The pose graph's keyframe poses (odometry world frame, left camera) as the server takes
+// them: T_map_body by stamp, through `anchor` (T_map_world) and the camera's mount.
+proto::PoseCorrectionMsg makePoseCorrectionMsg(const PipelineOptions& options, uint64_t seq,
+                                               int64_t stamp_ns,
+                                               const std::vector<posegraph::KeyframePose>& keyframes,
+                                               const common::Rigid3& anchor,
+                                               const common::Rigid3& T_body_camera);
 proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
                                         const camera::StereoCamera& camera,
                                         proto::SessionEventKind kind);

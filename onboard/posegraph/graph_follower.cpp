@@ -2,6 +2,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include <utility>
+
 namespace stereomap::posegraph {
 
 using common::Rigid3;
@@ -27,9 +29,19 @@ void GraphFollower::process(Pending pending) {
                  pending.frame.left, pending.frame.right, pending.new_track);
   const Rigid3 correction =
       graph_.optimised(added.keyframe) * graph_.odometry(added.keyframe).inverse();
+  // Only a place moves keyframes the odometry has already left: between places the graph is
+  // a chain that its solve leaves as the odometry made it.
+  std::vector<KeyframePose> moved;
+  if (added.place) {
+    moved.reserve(static_cast<size_t>(added.keyframe) + 1);
+    for (int k = 0; k <= added.keyframe; ++k) {
+      moved.push_back({graph_.stamp(k), graph_.optimised(k)});
+    }
+  }
   std::lock_guard lock(mutex_);
   processed_ = added.keyframe + 1;
   correction_ = correction;
+  if (!moved.empty()) new_poses_ = std::move(moved);
   solve_ms_max_ = std::max(solve_ms_max_, added.solve.milliseconds);
   changed_.notify_all();
 }
@@ -77,11 +89,18 @@ Rigid3 GraphFollower::follow(const FollowedFrame& frame) {
   return correction_ * frame.T_world_camera;
 }
 
+std::vector<KeyframePose> GraphFollower::takeCorrection() {
+  std::lock_guard lock(mutex_);
+  return std::exchange(new_poses_, {});
+}
+
+void GraphFollower::waitUntilCaughtUp() {
+  std::unique_lock lock(mutex_);
+  changed_.wait(lock, [this] { return processed_ == submitted_; });
+}
+
 std::vector<Rigid3> GraphFollower::finish() {
-  {
-    std::unique_lock lock(mutex_);
-    changed_.wait(lock, [this] { return processed_ == submitted_; });
-  }
+  waitUntilCaughtUp();
   std::vector<Rigid3> poses(odometry_.size());
   for (size_t i = 0; i < poses.size(); ++i) {
     poses[i] = through_[i] < 0 ? odometry_[i] : graph_.correct(through_[i], odometry_[i]);

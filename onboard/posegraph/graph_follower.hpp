@@ -5,7 +5,10 @@
 //  - now(): a frame's pose through the newest keyframe the graph has taken (what a vehicle
 //    publishes live);
 //  - finish(): every frame's pose through the final graph, frames the odometry lost
-//    interpolated between the tracked frames on either side (the corrected trajectory).
+//    interpolated between the tracked frames on either side (the corrected trajectory);
+//  - takeCorrection(): after a solve that found a place (a loop closure or the join of a
+//    lost track), every keyframe's new pose: what the vehicle sends the server, which fuses
+//    its map again with them.
 #pragma once
 
 #include <condition_variable>
@@ -26,6 +29,12 @@ struct FollowedFrame {
   cv::Mat left, right;    // rectified; only read when the frame enters the graph
 };
 
+// A keyframe's pose after a solve, keyed by the stamp of the frame it was taken at.
+struct KeyframePose {
+  int64_t stamp_ns = 0;
+  common::Rigid3 T_world_camera;
+};
+
 struct FollowerStats {
   int keyframes = 0, loops = 0, tracks = 0, joined_tracks = 0;
   double solve_ms_max = 0;
@@ -42,6 +51,11 @@ class GraphFollower {
   // One frame, in order; returns its pose corrected by the graph as it stands.
   common::Rigid3 follow(const FollowedFrame& frame);
   std::vector<common::Rigid3> finish();
+  // Every keyframe's pose after the newest solve that found a place since the last call;
+  // empty when there was none.
+  std::vector<KeyframePose> takeCorrection();
+  // Blocks until the graph has taken every keyframe handed to it so far.
+  void waitUntilCaughtUp();
   FollowerStats stats() const;
 
  private:
@@ -70,6 +84,7 @@ class GraphFollower {
   // opt(k) * odometry(k)^-1 of the newest taken keyframe: follow() reads only this, so that
   // a solve under way never holds up tracking.
   common::Rigid3 correction_;
+  std::vector<KeyframePose> new_poses_;  // for takeCorrection()
   bool stopping_ = false;
   double solve_ms_max_ = 0;
   std::thread worker_;
