@@ -126,11 +126,10 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
   return pose;
 }
 
-proto::PoseCorrectionMsg makePoseCorrectionMsg(const PipelineOptions& options, uint64_t seq,
-                                               int64_t stamp_ns,
-                                               const std::vector<posegraph::KeyframePose>& keyframes,
-                                               const common::Rigid3& anchor,
-                                               const common::Rigid3& T_body_camera) {
+proto::PoseCorrectionMsg makePoseCorrectionMsg(
+    const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
+    const std::vector<posegraph::KeyframePose>& keyframes, const common::Rigid3& anchor,
+    const common::Rigid3& T_body_camera) {
   proto::PoseCorrectionMsg correction;
   address(correction, options, seq, stamp_ns);
   const common::Rigid3 T_camera_body = T_body_camera.inverse();
@@ -219,19 +218,22 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   // Sends the graph's newest correction, at most once per period (or now, at the end); the
   // camera's mount is taken as fixed (the current frame's).
   auto sendCorrection = [&](int64_t stamp_ns, const common::Rigid3& T_body_camera, bool now) {
-    if (!graph || publisher == nullptr) return;
+    if (!graph) return;
     if (auto moved = graph->takeCorrection(); !moved.empty()) unsent_correction = std::move(moved);
     if (unsent_correction.empty()) return;
     if (!now && last_correction && Clock::now() - *last_correction < options.correction_period) {
       return;
     }
-    report(publisher->publish(makePoseCorrectionMsg(options, summary.corrections_sent, stamp_ns,
-                                                    unsent_correction, *anchor, T_body_camera)),
-           "PoseCorrection");
-    spdlog::info("pose graph: sent the corrected poses of {} keyframes ({} loop closures, {} "
-                 "tracks joined so far)",
-                 unsent_correction.size(), graph->stats().loops, graph->stats().joined_tracks);
-    ++summary.corrections_sent;
+    if (publisher != nullptr) {
+      report(publisher->publish(makePoseCorrectionMsg(options, summary.corrections, stamp_ns,
+                                                      unsent_correction, *anchor, T_body_camera)),
+             "PoseCorrection");
+      spdlog::info(
+          "pose graph: sent the corrected poses of {} keyframes ({} loop closures, {} "
+          "tracks joined so far)",
+          unsent_correction.size(), graph->stats().loops, graph->stats().joined_tracks);
+    }
+    ++summary.corrections;
     unsent_correction.clear();
     last_correction = Clock::now();
   };
@@ -268,14 +270,17 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       if (!anchor) anchor = frame->T_map_body.value_or(common::Rigid3{}) * T_body_camera;
       report_frame.T_map_body_odometry =
           *anchor * estimate->T_world_camera * T_body_camera.inverse();
-      const common::Rigid3 T_world_camera =
-          graph ? graph->follow({frame->stamp_ns, estimate->T_world_camera, estimate->covariance,
-                                 estimate->keyframe,
-                                 estimate->state == odometry::TrackingState::kLost, frame->left,
-                                 frame->right})
-                : estimate->T_world_camera;
-      if (graph) T_body_cameras.push_back(T_body_camera);
-      T_map_body = *anchor * T_world_camera * T_body_camera.inverse();
+      // With the graph, the odometry's own poses are still what is published: the graph's
+      // corrections go separately (PoseCorrection), and the server applies them to every
+      // pose and cloud, earlier and later ones alike. Published poses corrected live would
+      // jump whenever the graph moved, which no correction of keyframes could undo between them.
+      if (graph) {
+        graph->follow({frame->stamp_ns, estimate->T_world_camera, estimate->covariance,
+                       estimate->keyframe, estimate->state == odometry::TrackingState::kLost,
+                       frame->left, frame->right});
+        T_body_cameras.push_back(T_body_camera);
+      }
+      T_map_body = report_frame.T_map_body_odometry;
       report_frame.state = estimate->state;
       report_frame.odometry_ms = estimate->milliseconds;
       summary.lost_frames += estimate->state == odometry::TrackingState::kLost;

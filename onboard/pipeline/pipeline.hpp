@@ -30,7 +30,7 @@ struct FrameReport {
   uint64_t index = 0;
   int64_t stamp_ns = 0;
   odometry::TrackingState state = odometry::TrackingState::kOk;
-  common::Rigid3 T_map_body;  // as published (corrected by the pose graph when it runs)
+  common::Rigid3 T_map_body;  // as published (the odometry's; the graph's corrections go apart)
   common::Rigid3 T_map_camera;
   common::Rigid3 T_map_body_odometry;              // the odometry's own
   std::optional<common::Rigid3> T_map_body_truth;  // when the source knows it
@@ -56,10 +56,11 @@ struct PipelineOptions {
   odometry::VoOptions odometry;
   bool depth = true;  // false: poses only (odometry runs without the clouds)
   // A pose graph over the odometry's keyframes (loop closures, joins of lost tracks), solved
-  // on a worker thread: published poses are corrected by it from then on, every keyframe's
-  // corrected pose is sent after a solve that found a place (a PoseCorrection, at most one
-  // per correction_period; the server fuses its map again with them), and the summary
-  // carries every frame's pose through the final graph.
+  // on a worker thread: every keyframe's corrected pose is sent after a solve that found a
+  // place and moved some keyframe (a PoseCorrection, at most one per correction_period; the
+  // server corrects the poses and clouds it has and gets with it, and fuses its map again);
+  // the poses published stay the odometry's. The summary carries every frame's pose through
+  // the final graph.
   bool pose_graph = false;
   std::chrono::milliseconds correction_period{1000};
   posegraph::KeyframeGraphOptions graph;
@@ -84,7 +85,7 @@ struct PipelineSummary {
   // With pose_graph: T_map_body of every frame through the final graph, and what it found.
   std::vector<common::Rigid3> corrected_T_map_body;
   posegraph::FollowerStats graph;
-  uint64_t corrections_sent = 0;  // PoseCorrection samples published
+  uint64_t corrections = 0;  // corrections the graph made (PoseCorrection samples, if publishing)
 };
 
 // The DDS side of the vehicle: one writer per topic.
@@ -118,11 +119,10 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
                                                        const common::PointCloud& cloud_camera);
 // The pose graph's keyframe poses (odometry world frame, left camera) as the server takes
 // them: T_map_body by stamp, through `anchor` (T_map_world) and the camera's mount.
-proto::PoseCorrectionMsg makePoseCorrectionMsg(const PipelineOptions& options, uint64_t seq,
-                                               int64_t stamp_ns,
-                                               const std::vector<posegraph::KeyframePose>& keyframes,
-                                               const common::Rigid3& anchor,
-                                               const common::Rigid3& T_body_camera);
+proto::PoseCorrectionMsg makePoseCorrectionMsg(
+    const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
+    const std::vector<posegraph::KeyframePose>& keyframes, const common::Rigid3& anchor,
+    const common::Rigid3& T_body_camera);
 proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
                                         const camera::StereoCamera& camera,
                                         proto::SessionEventKind kind);

@@ -67,9 +67,9 @@ TEST(Pipeline, StopRequestEndsAPacedRun) {
   EXPECT_LE(summary.frames, 3u);
 }
 
-// The pose graph on a worker thread: past one loop of the flight it closes loops, what the
-// pipeline publishes from then on is corrected, and the final trajectory beats the odometry.
-TEST(Pipeline, APoseGraphCorrectsThePublishedPoses) {
+// The pose graph on a worker thread: past one loop of the flight it closes loops and makes
+// corrections (what a vehicle sends the server), and the final trajectory beats the odometry.
+TEST(Pipeline, APoseGraphCorrectsThePoses) {
   sim::SimSourceOptions sim_options{.seed = 1, .max_frames = 520};
   sim_options.render.noise_sigma = 2.0;
   sim::SimSource source(sim_options);
@@ -92,10 +92,9 @@ TEST(Pipeline, APoseGraphCorrectsThePublishedPoses) {
       eval::absoluteError(truth, odometry_only, eval::Alignment::kSe3).translation.rmse;
   const double corrected =
       eval::absoluteError(truth, corrected_poses, eval::Alignment::kSe3).translation.rmse;
-  // The live poses differ from the odometry's once the first closure has been solved.
-  EXPECT_GT((reports.back().T_map_body.translation - reports.back().T_map_body_odometry.translation)
-                .norm(),
-            0.0);
+  EXPECT_GT(summary.corrections, 0u);
+  // Published poses stay the odometry's (the corrections go apart).
+  EXPECT_EQ(reports.back().T_map_body.translation, reports.back().T_map_body_odometry.translation);
   std::printf("520 frames: %d closures; ATE %.4f m (odometry) -> %.4f m\n", summary.graph.loops,
               odometry, corrected);
   EXPECT_LT(corrected, odometry);

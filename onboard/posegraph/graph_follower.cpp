@@ -10,7 +10,10 @@ using common::Rigid3;
 
 GraphFollower::GraphFollower(const camera::StereoCamera& camera,
                              const KeyframeGraphOptions& options, bool background)
-    : graph_(camera, options), background_(background) {
+    : graph_(camera, options),
+      background_(background),
+      min_change_m_(options.report_min_change_m),
+      min_change_rad_(options.report_min_change_rad) {
   if (background_) worker_ = std::thread([this] { work(); });
 }
 
@@ -39,9 +42,12 @@ void GraphFollower::process(Pending pending) {
     }
   }
   std::lock_guard lock(mutex_);
+  if (!moved.empty() && movedEnough(moved)) {
+    new_poses_ = std::move(moved);
+    reported_ = new_poses_;
+  }
   processed_ = added.keyframe + 1;
   correction_ = correction;
-  if (!moved.empty()) new_poses_ = std::move(moved);
   solve_ms_max_ = std::max(solve_ms_max_, added.solve.milliseconds);
   changed_.notify_all();
 }
@@ -87,6 +93,23 @@ Rigid3 GraphFollower::follow(const FollowedFrame& frame) {
 
   std::lock_guard lock(mutex_);
   return correction_ * frame.T_world_camera;
+}
+
+// Whether some keyframe moved by more than the thresholds since the poses last reported (a
+// keyframe reported never is measured against the odometry's pose of it corrected as the
+// vehicle now publishes, about what it was sent with): every correction makes the server
+// fuse the session again, so that small ones wait until they add up. Under mutex_.
+bool GraphFollower::movedEnough(const std::vector<KeyframePose>& moved) const {
+  for (size_t k = 0; k < moved.size(); ++k) {
+    const Rigid3 before = k < reported_.size() ? reported_[k].T_world_camera
+                                               : correction_ * graph_.odometry(static_cast<int>(k));
+    const Rigid3 change = before.inverse() * moved[k].T_world_camera;
+    if (change.translation.norm() > min_change_m_ ||
+        Eigen::AngleAxisd(change.rotation).angle() > min_change_rad_) {
+      return true;
+    }
+  }
+  return false;
 }
 
 std::vector<KeyframePose> GraphFollower::takeCorrection() {

@@ -51,8 +51,9 @@ class GraphFollower {
   // One frame, in order; returns its pose corrected by the graph as it stands.
   common::Rigid3 follow(const FollowedFrame& frame);
   std::vector<common::Rigid3> finish();
-  // Every keyframe's pose after the newest solve that found a place since the last call;
-  // empty when there was none.
+  // Every keyframe's pose after the newest solve that found a place and moved some keyframe
+  // by more than the options' report_min_change since the poses last reported; empty when
+  // there was none since the last call.
   std::vector<KeyframePose> takeCorrection();
   // Blocks until the graph has taken every keyframe handed to it so far.
   void waitUntilCaughtUp();
@@ -85,6 +86,9 @@ class GraphFollower {
   // a solve under way never holds up tracking.
   common::Rigid3 correction_;
   std::vector<KeyframePose> new_poses_;  // for takeCorrection()
+  std::vector<KeyframePose> reported_;   // the poses last handed to takeCorrection()
+  const double min_change_m_, min_change_rad_;
+  bool movedEnough(const std::vector<KeyframePose>& moved) const;
   bool stopping_ = false;
   double solve_ms_max_ = 0;
   std::thread worker_;

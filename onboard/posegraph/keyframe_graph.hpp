@@ -33,6 +33,10 @@ struct KeyframeGraphOptions {
   double min_sigma_m = 1e-3;
   double new_track_sigma_rad = 0.5;  // the weak tie across a lost track
   double new_track_sigma_m = 2.0;
+  // A correction is reported (and sent to the server, which fuses its map again) only when
+  // a keyframe moved by more than this since the last one: a fraction of a map voxel.
+  double report_min_change_m = 0.01;
+  double report_min_change_rad = 0.002;  // 0.11 deg: 1 cm at 5 m
 };
 
 struct KeyframeAdded {

@@ -264,6 +264,11 @@ void Session::refuseLoop() {
       refusion_seconds_ =
           std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     }
+    // At most half the time re-fusing: corrections that come meanwhile wait (the newest of
+    // them is taken) for as long as the last re-fusion took, up to a minute.
+    const auto took = std::min<std::chrono::steady_clock::duration>(
+        std::chrono::steady_clock::now() - start, std::chrono::minutes(1));
+    refuse_changed_.wait_for(lock, took, [this] { return stopping_; });
   }
 }
 

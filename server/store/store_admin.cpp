@@ -266,7 +266,9 @@ void StoreAdmin::checkpoint(bool all) {
   for (const auto& session : server_.sessions()) {
     const auto status = session->status();
     record(status);
-    if (status.read_only || (!all && (!status.ended || status.backlog > 0))) continue;
+    if (status.read_only || (!all && (!status.ended || status.backlog > 0 || status.refusing))) {
+      continue;
+    }
     const uint64_t version = status.map_version + status.poses;
     if (saved_versions_[session->id()] == version) continue;
     if (auto saved = files_->save(*session); !saved) {

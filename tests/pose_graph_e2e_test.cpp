@@ -1,0 +1,109 @@
+// Cross-process (issue 18): stereomap-onboard flies the simulated room's loop with image noise
+// and its pose graph on, over real DDS to a real stereomap-server: the vehicle's corrections
+// reach the server, which fuses the session again with them. The same flight without the
+// graph is the baseline: the server's trajectory and map of both are compared with the truth.
+// Figures in docs/BENCHMARKS.md ("Pose graph in the product").
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <cstdio>
+#include <fstream>
+
+#include "common/trajectory.hpp"
+#include "onboard/eval/metrics.hpp"
+#include "onboard/sim/sim_source.hpp"
+#include "tests/support/map_score.hpp"
+#include "tests/support/server_fixture.hpp"
+
+namespace stereomap::testing {
+namespace {
+
+using namespace std::chrono_literals;
+using nlohmann::json;
+
+constexpr int kDomain = 87;
+constexpr int kFrames = 600;  // one loop of 40 s and half another: the loop closes
+constexpr double kResolution = 0.05;
+constexpr double kMaxRange = 6.0;  // the onboard default
+
+struct Flown {
+  json status;
+  double ate_m = 0;
+  double unaligned_m = 0;   // the same without alignment: where the map puts things
+  double rotation_deg = 0;  // unaligned attitude error (rms)
+  MapScore map;
+};
+
+Flown fly(ServerProcess& server, const std::string& session, bool pose_graph) {
+  Flown flown;
+  const std::string truth_path = server.logPath() + "." + session + ".truth.tum";
+  std::vector<std::string> extra = {"--rate",        "0",       "--seed",       "1",
+                                    "--image-noise", "2",       "--image-blur", "1",
+                                    "--truth-out",   truth_path};
+  if (pose_graph) extra.push_back("--pose-graph");
+  ChildProcess onboard(onboardArgs(kDomain, session, kFrames, extra),
+                       server.logPath() + "." + session + ".onboard");
+  const auto code = onboard.waitExit(300s);
+  EXPECT_TRUE(code.has_value() && *code == 0) << "onboard failed";
+  // Every frame fused and every correction fused in.
+  const bool settled = waitUntil(180s, [&] {
+    const auto reply = server.get("/api/sessions/" + session);
+    if (reply.status != 200) return false;
+    flown.status = json::parse(reply.body);
+    return flown.status["frames"] == kFrames && flown.status["fusion_backlog"] == 0 &&
+           flown.status["refusing"] == false;
+  });
+  EXPECT_TRUE(settled) << flown.status.dump() << "\n" << server.log();
+
+  const auto tum = server.get("/api/sessions/" + session + "/trajectory.tum");
+  const std::string estimate_path = server.logPath() + "." + session + ".server.tum";
+  std::ofstream(estimate_path) << tum.body;
+  const auto truth = common::readTrajectory(truth_path);
+  const auto estimate = common::readTrajectory(estimate_path);
+  EXPECT_TRUE(truth.ok() && estimate.ok());
+  if (truth.ok() && estimate.ok()) {
+    flown.ate_m = eval::absoluteError(*truth, *estimate, eval::Alignment::kSe3).translation.rmse;
+    const auto unaligned = eval::absoluteError(*truth, *estimate, eval::Alignment::kNone);
+    flown.unaligned_m = unaligned.translation.rmse;
+    flown.rotation_deg = unaligned.rotation.rmse;
+  }
+  const sim::SimSource room({.seed = 1, .rate_hz = 10.0, .max_frames = kFrames});
+  flown.map = scoreMap(server.get("/api/sessions/" + session + "/map.bt").body, kResolution, room,
+                       kFrames, kMaxRange);
+  return flown;
+}
+
+TEST(PoseGraphEndToEnd, CorrectionsReachTheServerAndItsMapAndTrajectoryImprove) {
+  ServerProcess server(kDomain, {"--resolution", std::to_string(kResolution)});
+  const Flown odometry = fly(server, "odometry", /*pose_graph=*/false);
+  const Flown graph = fly(server, "graph", /*pose_graph=*/true);
+  std::printf(
+      "pose graph over DDS, %d frames at %.2f m: %d corrections, %d re-fusions (last %.2f s); "
+      "server trajectory ATE %.4f m (odometry) -> %.4f m (unaligned %.4f -> %.4f, attitude %.3f -> "
+      "%.3f deg); map precision %.4f -> %.4f, "
+      "within one voxel %.4f -> %.4f, coverage %.4f -> %.4f\n",
+      kFrames, kResolution, graph.status["corrections"].get<int>(),
+      graph.status["refusions"].get<int>(), 0.0, odometry.ate_m, graph.ate_m, odometry.unaligned_m,
+      graph.unaligned_m, odometry.rotation_deg, graph.rotation_deg, odometry.map.precision,
+      graph.map.precision, odometry.map.precision_1, graph.map.precision_1, odometry.map.coverage,
+      graph.map.coverage);
+  EXPECT_EQ(odometry.status["corrections"], 0);
+  EXPECT_GE(graph.status["corrections"].get<int>(), 1);
+  EXPECT_GE(graph.status["refusions"].get<int>(), 1);
+  EXPECT_TRUE(graph.status["refusion_error"].is_null());
+  RecordProperty("ate_odometry_m", std::to_string(odometry.ate_m));
+  RecordProperty("ate_graph_m", std::to_string(graph.ate_m));
+  RecordProperty("precision_odometry", std::to_string(odometry.map.precision));
+  RecordProperty("precision_graph", std::to_string(graph.map.precision));
+  // The issue's goal for the trajectory: at most half the odometry's ATE (measured 0.34x:
+  // 16.1 -> 5.5 mm; the run is deterministic but for thread timing).
+  EXPECT_LE(graph.ate_m, 0.5 * odometry.ate_m);
+  EXPECT_LT(graph.unaligned_m, odometry.unaligned_m);
+  // The map's figures are reported, not asserted: on this noisy flight the corrected map is
+  // not more precise (docs/BENCHMARKS.md says by how much, and what is left to find out).
+  // That the server fuses exactly what the corrections say is asserted by store_test
+  // (APoseCorrectionFusesTheMapAgainAndSurvivesRestarts) and core_test.
+}
+
+}  // namespace
+}  // namespace stereomap::testing

@@ -1,0 +1,94 @@
+// How right a server's map of the simulated room is: its occupied voxels (map.bt, as the
+// server exports it) against the room's true surfaces. Shared by the cross-process accuracy
+// tests.
+//   precision: share of occupied voxels a true surface passes through (within one voxel:
+//              precision_1);
+//   coverage:  share of the true surface voxels the left camera saw within range that are
+//              occupied.
+#pragma once
+
+#include <octomap/OcTree.h>
+
+#include <cmath>
+#include <set>
+#include <sstream>
+#include <string>
+#include <tuple>
+
+#include "onboard/sim/sim_source.hpp"
+
+namespace stereomap::testing {
+
+struct MapScore {
+  size_t occupied = 0, seen = 0;
+  double precision = 0, precision_1 = 0, coverage = 0;
+};
+
+// `bt`: the map's OctoMap binary; `truth`: the room and flight the vehicle flew (its first
+// `frames` frames at 10 Hz); `max_range`: the onboard cloud range.
+inline MapScore scoreMap(const std::string& bt, double resolution, const sim::SimSource& truth,
+                         int frames, double max_range) {
+  using Key = std::tuple<int, int, int>;
+  auto keyOf = [resolution](const common::Vec3& p) {
+    return Key{static_cast<int>(std::floor(p.x() / resolution)),
+               static_cast<int>(std::floor(p.y() / resolution)),
+               static_cast<int>(std::floor(p.z() / resolution))};
+  };
+  std::istringstream in(bt);
+  octomap::OcTree map(resolution);
+  MapScore score;
+  if (!map.readBinary(in)) return score;
+  std::set<Key> occupied;
+  for (auto it = map.begin_leafs(); it != map.end_leafs(); ++it) {
+    if (!map.isNodeOccupied(*it)) continue;
+    // A pruned leaf stands for all the finest voxels inside it.
+    const int span = 1 << (16 - it.getDepth());
+    const common::Vec3 corner =
+        common::Vec3(it.getX(), it.getY(), it.getZ()) - common::Vec3::Constant(it.getSize() / 2);
+    for (int dx = 0; dx < span; ++dx) {
+      for (int dy = 0; dy < span; ++dy) {
+        for (int dz = 0; dz < span; ++dz) {
+          occupied.insert(keyOf(corner + (common::Vec3(dx, dy, dz) + common::Vec3::Constant(0.5)) *
+                                             resolution));
+        }
+      }
+    }
+  }
+  const auto& scene = truth.scene();
+  const double half_diagonal = resolution * std::sqrt(3.0) / 2.0;
+  size_t correct = 0, within_one_voxel = 0;
+  for (const auto& [x, y, z] : occupied) {
+    const common::Vec3 centre((x + 0.5) * resolution, (y + 0.5) * resolution,
+                              (z + 0.5) * resolution);
+    const double distance = scene.distanceToSurface(centre);
+    correct += distance <= half_diagonal;
+    within_one_voxel += distance <= half_diagonal + resolution;
+  }
+  const sim::Renderer renderer(scene, truth.camera());
+  std::set<Key> seen;
+  for (int i = 0; i < frames; ++i) {
+    const auto T_map_camera = truth.flight().T_map_camera(i / 10.0);
+    const cv::Mat depth = renderer.renderDepth(T_map_camera);
+    for (int v = 0; v < depth.rows; v += 2) {
+      for (int u = 0; u < depth.cols; u += 2) {
+        const float z = depth.at<float>(v, u);
+        if (z <= 0 || z > max_range) continue;
+        seen.insert(keyOf(T_map_camera * (truth.camera().rayThrough(u, v) * z)));
+      }
+    }
+  }
+  size_t covered = 0;
+  for (const auto& key : seen) covered += occupied.count(key);
+  score.occupied = occupied.size();
+  score.seen = seen.size();
+  if (!occupied.empty()) {
+    score.precision = static_cast<double>(correct) / static_cast<double>(occupied.size());
+    score.precision_1 =
+        static_cast<double>(within_one_voxel) / static_cast<double>(occupied.size());
+  }
+  if (!seen.empty())
+    score.coverage = static_cast<double>(covered) / static_cast<double>(seen.size());
+  return score;
+}
+
+}  // namespace stereomap::testing
