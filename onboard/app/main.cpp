@@ -93,7 +93,8 @@ int main(int argc, char** argv) {
                  "--pose-graph, every frame through the final graph");
   app.add_flag("--pose-graph", options.pose_graph,
                "Correct the odometry with a pose graph over its keyframes: loop closures and "
-               "joins of lost tracks by place recognition, solved on a worker thread");
+               "joins of lost tracks by place recognition, solved on a worker thread; the "
+               "corrected keyframe poses are sent to the server, which fuses its map again");
   app.add_option("--odometry-trajectory-out", odometry_out,
                  "Write the odometry's own poses (T_map_body, TUM), before any correction");
   app.add_option("--truth-out", truth_out,
