@@ -146,6 +146,35 @@ TEST_F(OneWall, EarlyAndLateViewersHoldExactlyTheServersMap) {
   EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2);
 }
 
+// A vehicle's pose correction changes poses the viewer already has: every pose comes again,
+// corrected, the first message with reset (the viewer replaces its trajectory).
+TEST_F(OneWall, ACorrectedTrajectoryIsSentAgainWhole) {
+  for (int seq = 1; seq < 4; ++seq) ASSERT_TRUE(server.ingest(pose("s", seq)));
+  Received got;
+  const auto id = watchEverything(hub, got);
+  EXPECT_EQ(posesIn(got), 3u);
+  proto::PoseCorrectionMsg correction;
+  correction.vehicle_id = "v1";
+  correction.session_id = "s";
+  correction.seq = 1;
+  correction.stamp_ns = 2000;
+  correction.keyframes.push_back({pose("s", 2).stamp_ns, {0.2, 1.0, 0}, {0, 0, 0, 1}});
+  ASSERT_TRUE(server.ingest(correction));
+  server.find("s")->waitUntilIdle();
+  Received after;
+  hub.poll(common::nowNs());
+  drain(hub, id, after);
+  const auto poses = after.ofType("poses");
+  ASSERT_EQ(poses.size(), 1u);
+  EXPECT_TRUE(poses[0]["reset"].get<bool>());
+  ASSERT_EQ(poses[0]["poses"].size(), 3u);
+  for (const auto& p : poses[0]["poses"]) EXPECT_DOUBLE_EQ(p[2].get<double>(), 1.0);  // y moved
+  hub.poll(common::nowNs());
+  Received quiet;
+  drain(hub, id, quiet);
+  EXPECT_EQ(posesIn(quiet), 0u);  // once
+}
+
 TEST_F(OneWall, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
   Received got;
   const auto id = watchEverything(hub, got);
