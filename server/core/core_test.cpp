@@ -262,7 +262,9 @@ TEST(Session, FramesArrivingDuringARefusionAreNotLost) {
   session.waitUntilIdle();
   std::vector<StampedBodyPose> keyframes;
   for (int i = 0; i < 20; i += 5) keyframes.push_back({job(i, 0).stamp_ns, job(i, 0).T_map_camera});
-  ASSERT_TRUE(session.correct("v", keyframes, /*refuse=*/true));
+  auto correction = session.correctionFor("v", keyframes);
+  ASSERT_TRUE(correction);
+  session.correct("v", *correction, /*refuse=*/true);
   while (session.status().refusions == 0 && sent < 2000) {
     send();
     std::this_thread::sleep_for(std::chrono::milliseconds(3));

@@ -286,7 +286,27 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
 
 bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin) {
   std::vector<ValidPose> keyframes;
-  const auto rejection = validatePoseCorrection(correction, keyframes);
+  auto rejection = validatePoseCorrection(correction, keyframes);
+  // Made before anything is journaled: one that corrects no pose the server has is refused,
+  // not kept.
+  std::shared_ptr<const PoseCorrection> made;
+  if (!rejection) {
+    std::vector<StampedBodyPose> poses;
+    poses.reserve(keyframes.size());
+    for (const auto& k : keyframes) poses.push_back({k.stamp_ns, k.T_map_body});
+    const auto existing = find(correction.session_id);
+    auto built =
+        existing
+            ? existing->correctionFor(correction.vehicle_id, std::move(poses))
+            : common::Result<std::shared_ptr<const PoseCorrection>>(common::makeError(
+                  common::ErrorCode::kNotFound, "no session '" + correction.session_id +
+                                                    "': a correction needs the poses it corrects"));
+    if (built) {
+      made = std::move(*built);
+    } else {
+      rejection = Rejection{"unknown_poses", built.error().message};
+    }
+  }
   auto session =
       admit("PoseCorrection", correction.vehicle_id, correction.session_id, rejection, origin);
   if (!session) return false;
@@ -297,14 +317,7 @@ bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin
     if (live) session->withdrawCorrection();
     return false;
   }
-  std::vector<StampedBodyPose> poses;
-  poses.reserve(keyframes.size());
-  for (const auto& k : keyframes) poses.push_back({k.stamp_ns, k.T_map_body});
-  if (auto taken = session->correct(correction.vehicle_id, std::move(poses), live); !taken) {
-    reject("PoseCorrection", {"unknown_poses", taken.error().message},
-           correction.vehicle_id + "/" + correction.session_id);
-    return false;
-  }
+  session->correct(correction.vehicle_id, std::move(made), live);
   if (live) {
     spdlog::info("session '{}': vehicle '{}' corrected {} keyframe poses; fusing its map again",
                  correction.session_id, correction.vehicle_id, correction.keyframes.size());

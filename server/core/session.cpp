@@ -20,6 +20,18 @@ void noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle)
     vehicles.push_back(vehicle);
   }
 }
+
+// Fuses one frame into `map`, moved by its vehicle's correction in `corrections` if any.
+void fuse(fusion::OccupancyMap& map, const FusionJob& job,
+          const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
+          fusion::MapChanges* changes) {
+  const auto correction = corrections.find(job.vehicle_id);
+  const common::Rigid3 T_map_camera =
+      correction == corrections.end() ? job.T_map_camera
+                                      : correction->second->delta(job.stamp_ns) * job.T_map_camera;
+  map.insertCloud(job.cloud_camera, T_map_camera, job.max_range_m, changes);
+}
+
 }  // namespace
 
 const char* stateName(const SessionStatus& status) {
@@ -144,21 +156,26 @@ void Session::withdrawCorrection() {
   if (corrections_announced_ > 0) --corrections_announced_;
 }
 
-common::Status Session::correct(const std::string& vehicle, std::vector<StampedBodyPose> keyframes,
-                                bool refuse) {
+common::Result<std::shared_ptr<const PoseCorrection>> Session::correctionFor(
+    const std::string& vehicle, std::vector<StampedBodyPose> keyframes) const {
   std::vector<StampedBodyPose> sent;
   {
     std::lock_guard lock(state_mutex_);
-    if (refuse && corrections_announced_ > 0) --corrections_announced_;
     for (const auto& pose : trajectory_) {
       if (pose.vehicle_id == vehicle) sent.push_back({pose.stamp_ns, pose.T_map_body});
     }
   }
   auto correction = PoseCorrection::create(std::move(sent), std::move(keyframes));
   if (!correction) return correction.error();
+  return std::make_shared<const PoseCorrection>(std::move(*correction));
+}
+
+void Session::correct(const std::string& vehicle, std::shared_ptr<const PoseCorrection> correction,
+                      bool refuse) {
   {
     std::lock_guard lock(state_mutex_);
-    corrections_[vehicle] = std::make_shared<const PoseCorrection>(std::move(*correction));
+    if (refuse && corrections_announced_ > 0) --corrections_announced_;
+    corrections_[vehicle] = std::move(correction);
     ++corrections_set_;
     ++trajectory_version_;
     if (!refuse || !options_.reread_frames) corrections_in_map_ = corrections_set_;
@@ -171,22 +188,11 @@ common::Status Session::correct(const std::string& vehicle, std::vector<StampedB
     }
     refuse_changed_.notify_all();
   }
-  return common::Ok{};
 }
 
 std::map<std::string, std::shared_ptr<const PoseCorrection>> Session::corrections() const {
   std::lock_guard lock(state_mutex_);
   return corrections_;
-}
-
-void Session::fuse(fusion::OccupancyMap& map, const FusionJob& job,
-                   const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
-                   fusion::MapChanges* changes) {
-  const auto correction = corrections.find(job.vehicle_id);
-  const common::Rigid3 T_map_camera =
-      correction == corrections.end() ? job.T_map_camera
-                                      : correction->second->delta(job.stamp_ns) * job.T_map_camera;
-  map.insertCloud(job.cloud_camera, T_map_camera, job.max_range_m, changes);
 }
 
 bool Session::stopping() const {
@@ -483,6 +489,11 @@ SessionStatus Session::status() const {
   status.refusion_seconds = refusion_seconds_;
   status.trajectory_version = trajectory_version_;
   return status;
+}
+
+uint64_t Session::trajectoryVersion() const {
+  std::lock_guard state(state_mutex_);
+  return trajectory_version_;
 }
 
 std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {

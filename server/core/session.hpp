@@ -141,13 +141,16 @@ class Session {
   // it). withdrawCorrection() when it could not be journaled.
   void announceCorrection();
   void withdrawCorrection();
-  // Vehicle `vehicle`'s pose graph corrected these keyframes (stamps of poses it sent, T_map_body
-  // as it now believes): later frames and the trajectory are corrected; with `refuse` the map
-  // so far is fused again (live corrections; recovery sets corrections before it fuses). The
-  // correction replaces the vehicle's earlier one. kInvalidArgument when none of the stamps is
-  // a pose the vehicle sent.
-  common::Status correct(const std::string& vehicle, std::vector<StampedBodyPose> keyframes,
-                         bool refuse);
+  // Vehicle `vehicle`'s pose graph corrected these keyframes (stamps of poses it sent,
+  // T_map_body as it now believes): the correction of its poses so far. kInvalidArgument when
+  // none of the stamps is a pose the vehicle sent.
+  common::Result<std::shared_ptr<const PoseCorrection>> correctionFor(
+      const std::string& vehicle, std::vector<StampedBodyPose> keyframes) const;
+  // Takes it (replacing the vehicle's earlier one): later frames and the trajectory are
+  // corrected; with `refuse` the map so far is fused again (live corrections; recovery sets
+  // corrections before it fuses).
+  void correct(const std::string& vehicle, std::shared_ptr<const PoseCorrection> correction,
+               bool refuse);
   void markEnded();  // by its vehicle's end event
   // A live sample arrived (a new one or DDS history): the vehicle is there. Revives a
   // session that silence had ended.
@@ -156,6 +159,8 @@ class Session {
   bool endIfSilent(int64_t now_ns, int64_t timeout_ns);
 
   SessionStatus status() const;
+  // SessionStatus::trajectory_version alone (viewers poll it).
+  uint64_t trajectoryVersion() const;
   // The map as tiles: what viewers and tile requests read.
   const tiles::TileSet& tiles() const { return tiles_; }
   // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
@@ -189,10 +194,6 @@ class Session {
 
  private:
   void run();
-  // Fuses one frame into `map` with its vehicle's correction in `corrections`.
-  void fuse(fusion::OccupancyMap& map, const FusionJob& job,
-            const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
-            fusion::MapChanges* changes);
   std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections() const;
   void refuseLoop();  // the re-fusion thread
   // On the worker, between frames: the re-fused map takes the frames fused since it was read

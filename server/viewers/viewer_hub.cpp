@@ -339,7 +339,7 @@ struct ViewerHub::Impl {
     const auto summary = tiles.summary();
     if (created) {
       feed->second.version = summary.version;
-      feed->second.trajectory_version = session->status().trajectory_version;
+      feed->second.trajectory_version = session->trajectoryVersion();
       feed->second.poses = session->trajectory(0).size();
     }
     queueText(viewer,
@@ -738,7 +738,7 @@ struct ViewerHub::Impl {
         }
       }
       // A pose correction changed poses already pushed: every pose again, replacing them.
-      const uint64_t trajectory_version = session->status().trajectory_version;
+      const uint64_t trajectory_version = session->trajectoryVersion();
       const bool corrected = trajectory_version != feed->second.trajectory_version;
       if (corrected) {
         feed->second.trajectory_version = trajectory_version;
