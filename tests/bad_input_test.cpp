@@ -114,6 +114,86 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   EXPECT_EQ(server.process().stop(), 0) << "the server should stop cleanly on SIGTERM";
 }
 
+// Pose corrections (issue 18) that must never touch a map: each refused with its reason,
+// none journaled; a hostile but well-formed one (every pose a kilometre off) is taken and
+// fused away from the map, and the server stays healthy.
+TEST(BadInput, HostileCorrectionsAreRefusedWithTheirReasons) {
+  ServerProcess server(kDomain);
+  auto participant =
+      proto::Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
+  ASSERT_TRUE(participant.ok()) << participant.error().message;
+  auto clouds = proto::Writer<proto::CloudFrameMsg>::create(*participant);
+  auto poses = proto::Writer<proto::PoseMsg>::create(*participant);
+  auto corrections = proto::Writer<proto::PoseCorrectionMsg>::create(*participant);
+  ASSERT_TRUE(clouds.ok() && poses.ok() && corrections.ok());
+  ASSERT_TRUE((*corrections)->waitForReaders(1, 20s)) << "the server never subscribed";
+  ASSERT_TRUE((*poses)->waitForReaders(1, 20s));
+  ASSERT_TRUE((*clouds)->waitForReaders(1, 20s));
+  for (uint64_t seq = 0; seq < 3; ++seq) {
+    ASSERT_TRUE((*clouds)->write(wallFrame(seq, 2.05 + 0.5 * static_cast<double>(seq))).ok());
+    ASSERT_TRUE((*poses)->write(goodPose(seq)).ok());
+  }
+  ASSERT_TRUE(waitUntil(30s, [&] {
+    return server.get("/api/sessions/" + kSession).body.find("\"poses\":3") != std::string::npos;
+  })) << server.log();
+
+  // One vehicle id per case: each is its own DDS instance (keep-last 1), so all arrive.
+  auto correction = [](const std::string& vehicle, const std::string& session) {
+    proto::PoseCorrectionMsg c;
+    c.vehicle_id = vehicle;
+    c.session_id = session;
+    c.seq = 1;
+    c.stamp_ns = 5;
+    c.keyframes.push_back({goodPose(1).stamp_ns, {0.1, 0, 1}, {0, 0, 0, 1}});
+    return c;
+  };
+  auto bad_id = correction("tester", "../../etc");
+  auto empty = correction("empty", kSession);
+  empty.keyframes.clear();
+  auto nan = correction("nan", kSession);
+  nan.keyframes[0].position[2] = std::nan("");
+  auto backwards = correction("backwards", kSession);
+  backwards.keyframes.push_back({goodPose(0).stamp_ns, {0, 0, 1}, {0, 0, 0, 1}});
+  auto strangers = correction("stranger", kSession);  // a vehicle that sent no pose
+  auto nowhere = correction("tester", "no-such-session");
+  for (const auto* c : {&bad_id, &empty, &nan, &backwards, &strangers, &nowhere}) {
+    ASSERT_TRUE((*corrections)->write(*c).ok());
+  }
+  auto far = correction("tester", kSession);  // well formed, but a kilometre off
+  far.keyframes[0].position = {1000.1, 0, 1};
+  ASSERT_TRUE((*corrections)->write(far).ok());
+
+  auto rejected = [](const std::string& metrics, const std::string& reason) {
+    return metric(metrics, "stereomap_samples_rejected_total{topic=\"PoseCorrection\",reason=\"" +
+                               reason + "\"}");
+  };
+  std::string metrics;
+  const bool counted = waitUntil(30s, [&] {
+    metrics = server.get("/metrics").body;
+    return rejected(metrics, "bad_id") == 1 && rejected(metrics, "empty") == 1 &&
+           rejected(metrics, "non_finite") == 1 && rejected(metrics, "bad_stamp") == 1 &&
+           rejected(metrics, "unknown_poses") == 2 &&
+           metric(metrics, "stereomap_samples_accepted_total{topic=\"PoseCorrection\"}") == 1;
+  });
+  EXPECT_TRUE(counted) << metrics << "\n" << server.log();
+  nlohmann::json status;
+  ASSERT_TRUE(waitUntil(30s,
+                        [&] {
+                          status =
+                              nlohmann::json::parse(server.get("/api/sessions/" + kSession).body);
+                          return status["refusions"] == 1 && status["refusing"] == false;
+                        }))
+      << status.dump() << "\n"
+      << server.log();
+  EXPECT_EQ(status["corrections"], 1);
+  EXPECT_FALSE(std::filesystem::exists(server.store() + "/no-such-session"));
+  // The map went where the correction said: a kilometre away.
+  EXPECT_GT(status["bounds"]["min"][0].get<double>(), 1000.0) << status.dump();
+  EXPECT_EQ(server.get("/healthz").status, 200);
+  EXPECT_TRUE(server.process().running());
+  EXPECT_EQ(server.process().stop(), 0);
+}
+
 TEST(BadInput, HostileViewersGetClearErrorsAndTheServerLivesOn) {
   constexpr int kViewerDomain = 84;
   const std::string token = "viewer-t0ken";

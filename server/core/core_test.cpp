@@ -217,6 +217,58 @@ TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
   EXPECT_GT(status.frames_dropped, 0u);
 }
 
+// A journal that keeps everything but pose corrections (a disk that fills up just then).
+class NoRoomForCorrections : public IngestLog {
+ public:
+  common::Result<uint64_t> append(const proto::CloudFrameMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::PoseMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::SessionEventMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::PoseCorrectionMsg&) override {
+    return common::makeError(common::ErrorCode::kIo, "No space left on device");
+  }
+
+ private:
+  uint64_t number_ = 0;
+};
+
+// A correction the journal cannot keep is refused (the vehicle's DDS history brings it again)
+// and changes nothing: not the trajectory, not the snapshots, which it would otherwise hold up.
+TEST(MapServer, ACorrectionThatCannotBeJournaledChangesNothing) {
+  NoRoomForCorrections journal;
+  struct Snapshots : SnapshotSink {
+    common::Status saveSnapshot(const std::string&, uint64_t, const std::string&) override {
+      ++taken;
+      return common::Ok{};
+    }
+    std::atomic<int> taken{0};
+  } snapshots;
+  MapServerOptions options{.resolution = 0.1, .log = &journal};
+  options.snapshots = &snapshots;
+  options.snapshot_every = 1;
+  MapServer server(options);
+  ASSERT_TRUE(server.ingest(pose("s", 1.0, 10)));
+  proto::PoseCorrectionMsg correction;
+  correction.vehicle_id = "v1";
+  correction.session_id = "s";
+  correction.seq = 1;
+  correction.keyframes.push_back({10, {1.0, 2.0, 0}, {0, 0, 0, 1}});
+  EXPECT_FALSE(server.ingest(correction));
+  const auto session = server.find("s");
+  EXPECT_EQ(session->status().corrections, 0u);
+  EXPECT_EQ(session->trajectory(0).at(0).T_map_body.translation.y(), 0.0);
+  EXPECT_NE(session->status().store_error.find("No space left"), std::string::npos);
+  EXPECT_FALSE(server.storeHealth().ok);
+  EXPECT_NE(server.metricsText().find("reason=\"journal_failed\""), std::string::npos);
+  session->waitUntilIdle();  // returns: nothing is pending
+  // Snapshots go on (the correction's announcement was withdrawn).
+  ASSERT_TRUE(server.ingest(cloudFrame("s", 3.0, 1)));
+  session->waitUntilIdle();
+  for (int i = 0; i < 500 && snapshots.taken == 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));  // the writer's own thread
+  }
+  EXPECT_GT(snapshots.taken, 0);
+}
+
 // Frames keep coming, faster than a correction's re-fusion reads the journal, so that it
 // never catches up by reading and hands over with frames only the worker's tail holds: the
 // swapped-in map has every frame, each where the correction puts it. The journal is a list
