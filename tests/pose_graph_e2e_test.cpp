@@ -1,8 +1,9 @@
-// Cross-process (issue 18): stereomap-onboard flies the simulated room's loop with image noise
-// and its pose graph on, over real DDS to a real stereomap-server: the vehicle's corrections
-// reach the server, which fuses the session again with them. The same flight without the
-// graph is the baseline: the server's trajectory and map of both are compared with the truth.
-// Figures in docs/BENCHMARKS.md ("Pose graph in the product").
+// Cross-process (issue 18): stereomap-onboard flies the simulated room's loop with its pose
+// graph on, over real DDS to a real stereomap-server: the vehicle's corrections reach the
+// server, which fuses the session again with them. The same flight without the graph is the
+// baseline: the server's trajectory and map of both are compared with the truth, with image
+// noise (the trajectory) and without (the map: with noise its errors are the stereo's, whatever
+// the poses). Figures in docs/BENCHMARKS.md ("Pose graph in the product").
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
@@ -34,12 +35,13 @@ struct Flown {
   MapScore map;
 };
 
-Flown fly(ServerProcess& server, const std::string& session, bool pose_graph) {
+// `noise`: the images' noise, grey levels (blur 1 px either way).
+Flown fly(ServerProcess& server, const std::string& session, bool pose_graph, int noise) {
   Flown flown;
   const std::string truth_path = server.logPath() + "." + session + ".truth.tum";
-  std::vector<std::string> extra = {"--rate",        "0",       "--seed",       "1",
-                                    "--image-noise", "2",       "--image-blur", "1",
-                                    "--truth-out",   truth_path};
+  std::vector<std::string> extra = {
+      "--rate",       "0", "--seed",      "1",       "--image-noise", std::to_string(noise),
+      "--image-blur", "1", "--truth-out", truth_path};
   if (pose_graph) extra.push_back("--pose-graph");
   ChildProcess onboard(onboardArgs(kDomain, session, kFrames, extra),
                        server.logPath() + "." + session + ".onboard");
@@ -73,17 +75,14 @@ Flown fly(ServerProcess& server, const std::string& session, bool pose_graph) {
   return flown;
 }
 
-TEST(PoseGraphEndToEnd, CorrectionsReachTheServerAndItsMapAndTrajectoryImprove) {
-  ServerProcess server(kDomain, {"--resolution", std::to_string(kResolution)});
-  const Flown odometry = fly(server, "odometry", /*pose_graph=*/false);
-  const Flown graph = fly(server, "graph", /*pose_graph=*/true);
+void report(const char* what, const Flown& odometry, const Flown& graph) {
   std::printf(
-      "pose graph over DDS, %d frames at %.2f m: %d corrections, %d re-fusions (last %.2f s); "
-      "server trajectory ATE %.4f m (odometry) -> %.4f m (unaligned %.4f -> %.4f, attitude %.3f -> "
-      "%.3f deg); map precision %.4f -> %.4f, "
-      "within one voxel %.4f -> %.4f, coverage %.4f -> %.4f\n",
-      kFrames, kResolution, graph.status["corrections"].get<int>(),
-      graph.status["refusions"].get<int>(), 0.0, odometry.ate_m, graph.ate_m, odometry.unaligned_m,
+      "pose graph over DDS, %s, %d frames at %.2f m: %d corrections, %d re-fusions; server "
+      "trajectory ATE %.4f m (odometry) -> %.4f m (unaligned %.4f -> %.4f, attitude %.3f -> "
+      "%.3f deg); map precision %.4f -> %.4f, within one voxel %.4f -> %.4f, coverage %.4f -> "
+      "%.4f\n",
+      what, kFrames, kResolution, graph.status["corrections"].get<int>(),
+      graph.status["refusions"].get<int>(), odometry.ate_m, graph.ate_m, odometry.unaligned_m,
       graph.unaligned_m, odometry.rotation_deg, graph.rotation_deg, odometry.map.precision,
       graph.map.precision, odometry.map.precision_1, graph.map.precision_1, odometry.map.coverage,
       graph.map.coverage);
@@ -91,18 +90,34 @@ TEST(PoseGraphEndToEnd, CorrectionsReachTheServerAndItsMapAndTrajectoryImprove) 
   EXPECT_GE(graph.status["corrections"].get<int>(), 1);
   EXPECT_GE(graph.status["refusions"].get<int>(), 1);
   EXPECT_TRUE(graph.status["refusion_error"].is_null());
+}
+
+// Image noise sigma 2: the trajectory.
+TEST(PoseGraphEndToEnd, CorrectionsReachTheServerAndTheTrajectoryImproves) {
+  ServerProcess server(kDomain, {"--resolution", std::to_string(kResolution)});
+  const Flown odometry = fly(server, "odometry", /*pose_graph=*/false, /*noise=*/2);
+  const Flown graph = fly(server, "graph", /*pose_graph=*/true, /*noise=*/2);
+  report("noise sigma 2", odometry, graph);
   RecordProperty("ate_odometry_m", std::to_string(odometry.ate_m));
   RecordProperty("ate_graph_m", std::to_string(graph.ate_m));
-  RecordProperty("precision_odometry", std::to_string(odometry.map.precision));
-  RecordProperty("precision_graph", std::to_string(graph.map.precision));
   // The issue's goal for the trajectory: at most half the odometry's ATE (measured 0.34x:
   // 16.1 -> 5.5 mm; the run is deterministic but for thread timing).
   EXPECT_LE(graph.ate_m, 0.5 * odometry.ate_m);
   EXPECT_LT(graph.unaligned_m, odometry.unaligned_m);
-  // The map's figures are reported, not asserted: on this noisy flight the corrected map is
-  // not more precise (docs/BENCHMARKS.md says by how much, and what is left to find out).
-  // That the server fuses exactly what the corrections say is asserted by store_test
-  // (APoseCorrectionFusesTheMapAgainAndSurvivesRestarts) and core_test.
+}
+
+// Clean images: the map. Measured precision 0.764 -> 0.868 (ground-truth poses: 0.943),
+// coverage 0.748 -> 0.820; asserted at about half the gain.
+TEST(PoseGraphEndToEnd, OnCleanImagesTheCorrectedMapIsMorePrecise) {
+  ServerProcess server(kDomain, {"--resolution", std::to_string(kResolution)});
+  const Flown odometry = fly(server, "clean-odometry", /*pose_graph=*/false, /*noise=*/0);
+  const Flown graph = fly(server, "clean-graph", /*pose_graph=*/true, /*noise=*/0);
+  report("clean images", odometry, graph);
+  RecordProperty("precision_odometry", std::to_string(odometry.map.precision));
+  RecordProperty("precision_graph", std::to_string(graph.map.precision));
+  EXPECT_GE(graph.map.precision, odometry.map.precision + 0.05);
+  EXPECT_GE(graph.map.coverage, odometry.map.coverage + 0.03);
+  EXPECT_LE(graph.ate_m, 0.5 * odometry.ate_m);
 }
 
 }  // namespace
