@@ -115,6 +115,8 @@ function updateStatus() {
     serverVoxels: session?.serverVoxels ?? 0,
     frames: session?.frames ?? 0,
     ageSeconds: session?.lastMessageMs ? (Date.now() - session.lastMessageMs) / 1000 : null,
+    corrections: session?.status?.corrections ?? 0,
+    refusing: session?.status?.refusing ?? false,
   });
   const live = session?.status?.state === 'live' && session.replayUntil === null;
   if (live) text += ` · ${rate.perSecond.toFixed(1)} frames/s`;

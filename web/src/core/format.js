@@ -20,8 +20,10 @@ function plural(n, word) {
 
 /**
  * The status line. `link` is {connected, retryInSeconds}; `session` is null (none chosen) or
- * {id, known, vehicle, renderedVoxels, serverVoxels, frames, ageSeconds}; `known` is false for a session
- * asked for (?session=ID) that the server has not reported.
+ * {id, known, vehicle, renderedVoxels, serverVoxels, frames, ageSeconds, corrections, refusing};
+ * `known` is false for a session asked for (?session=ID) that the server has not reported;
+ * `corrections` counts the vehicles' pose-graph corrections the map took, `refusing` is true
+ * while the server fuses the map again with the newest.
  */
 export function statusText(link, session) {
   const parts = [link.connected ? 'connected'
@@ -38,6 +40,9 @@ export function statusText(link, session) {
     parts.push(total > 0 && total !== shown ? `${formatCount(shown)} cells of ${plural(total, 'voxel')}` : plural(shown, 'voxel'));
     // A map with voxels and no frames came from a file (stereomap-store import).
     parts.push(session.frames === 0 && total > 0 ? 'imported map' : plural(session.frames, 'frame'));
+    if (session.corrections > 0) {
+      parts.push(`${plural(session.corrections, 'pose correction')}${session.refusing ? ', map being fused again' : ''}`);
+    }
     parts.push(`updated ${formatAge(session.ageSeconds)}`);
   }
   return parts.join(' · ');

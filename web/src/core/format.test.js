@@ -14,6 +14,12 @@ describe('formatAge', () => {
 });
 
 describe('statusText', () => {
+  it('says when pose corrections moved the map, and while it is fused again', () => {
+    const session = { id: 's', known: true, vehicle: '', renderedVoxels: 5, frames: 3, ageSeconds: 1, corrections: 2, refusing: true };
+    expect(statusText({ connected: true }, session)).toBe('connected · session s · 5 voxels · 3 frames · 2 pose corrections, map being fused again · updated 1.0 s ago');
+    expect(statusText({ connected: true }, { ...session, corrections: 1, refusing: false })).toContain('· 1 pose correction ·');
+    expect(statusText({ connected: true }, { ...session, corrections: 0 })).not.toContain('correction');
+  });
   it('names the link, session, voxels, frames and age', () => {
     const session = { id: 'e2e', known: true, vehicle: 'sim-1', renderedVoxels: 12345, frames: 1, ageSeconds: 2.1 };
     expect(statusText({ connected: true }, session)).toBe('connected · session e2e (sim-1) · 12,345 voxels · 1 frame · updated 2.1 s ago');

@@ -75,6 +75,8 @@ function status(m) {
     poses: optionalCount(m, 'poses'),
     droppedFrames: optionalCount(m, 'dropped_frames'),
     backlog: optionalCount(m, 'fusion_backlog'),
+    corrections: optionalCount(m, 'corrections'),
+    refusing: field(m, 'refusing', (v) => typeof v === 'boolean', 'true or false', { optional: true, fallback: false }),
     bounds: bounds(m),
   };
 }

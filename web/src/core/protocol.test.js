@@ -7,7 +7,10 @@ describe('parseMessage', () => {
   it('reads the messages of protocol 2', () => {
     expect(parseMessage('{"type":"hello","protocol":2,"server":"stereomap"}').protocol).toBe(2);
     const list = parseMessage(JSON.stringify({ type: 'sessions', sessions: [status] }));
-    expect(list.sessions[0]).toMatchObject({ id: 's1', occupiedVoxels: 40, state: 'live' });
+    expect(list.sessions[0]).toMatchObject({ id: 's1', occupiedVoxels: 40, state: 'live', corrections: 0, refusing: false });
+    const corrected = parseMessage(JSON.stringify({ type: 'session', ...status, corrections: 3, refusing: true }));
+    expect(corrected).toMatchObject({ corrections: 3, refusing: true });
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, refusing: 'yes' }))).toThrow(/"refusing"/);
     const subscribed = parseMessage(JSON.stringify({ type: 'subscribed', session: 's1', resolution: 0.1, version: 4, voxels: 40, tiles: 2,
       bounds: { min: [0, 0, 0], max: [1, 1, 1] }, status }));
     expect(subscribed.status.frames).toBe(3);
