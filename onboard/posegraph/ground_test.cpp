@@ -82,27 +82,43 @@ Markers measure(const Rigid3& T_world_body, double sigma, std::mt19937& rng) {
   return out;
 }
 
-// The motion of the body between two frames from their markers: the earlier frame's markers,
-// in its own body frame (eqs. 2-9), are the model the later frame's are fitted to.
-Rigid3 relativeFromMarkers(const Markers& earlier, const Markers& later, MarkerMethod method) {
-  const Rigid3 B_earlier = *bodyFrameFromMarkers(earlier);
-  if (method == MarkerMethod::kBodyFrames)
-    return B_earlier.inverse() * *bodyFrameFromMarkers(later);
-  Markers model;
-  for (int m = 0; m < 4; ++m) model[m] = B_earlier.inverse() * earlier[m];
-  const auto fitted =
-      method == MarkerMethod::kVectorCross
-          ? vectorCrossPose(model, later)
-          : leastSquaresPose({model.begin(), model.end()}, {later.begin(), later.end()});
-  return fitted ? B_earlier.inverse() * *fitted : Rigid3::identity();
+// The pose of the body in the world from one frame's markers, against the track's model of
+// the markers (body coordinates).
+std::optional<Rigid3> fitModel(const Markers& model, const Markers& world, MarkerMethod method) {
+  if (method == MarkerMethod::kBodyFrames) return bodyFrameFromMarkers(world);
+  return method == MarkerMethod::kVectorCross
+             ? vectorCrossPose(model, world)
+             : leastSquaresPose({model.begin(), model.end()}, {world.begin(), world.end()});
 }
 
-// The join over a gap: EPnP (then Levenberg-Marquardt) of the earlier frame's markers, as its
-// model, in the camera's image of the later frame.
-Rigid3 relativeFromImage(const Markers& earlier, const Rigid3& T_world_later_true, double sigma,
-                         std::mt19937& rng) {
+// The markers in the body frame of eqs. 2-9, from every frame of a track (or only its first,
+// `frames` of 1): each frame is fitted to the model, brought back into the body frame, and
+// the model is their mean, three times over (generalised Procrustes).
+Markers trackModel(const std::vector<const Markers*>& frames, MarkerMethod method) {
+  auto inBodyFrame = [](const Markers& markers) {
+    const Rigid3 B = *bodyFrameFromMarkers(markers);
+    Markers model;
+    for (int m = 0; m < 4; ++m) model[m] = B.inverse() * markers[m];
+    return model;
+  };
+  Markers model = inBodyFrame(*frames.front());
+  for (int round = 0; round < (frames.size() > 1 ? 3 : 0); ++round) {
+    Markers mean;
+    mean.fill(Vec3::Zero());
+    for (const Markers* frame : frames) {
+      const Rigid3 P = fitModel(model, *frame, method).value_or(Rigid3::identity()).inverse();
+      for (int m = 0; m < 4; ++m) mean[m] += P * (*frame)[m] / static_cast<double>(frames.size());
+    }
+    model = inBodyFrame(mean);
+  }
+  return model;
+}
+
+// The join over a gap: EPnP (then Levenberg-Marquardt) of the earlier track's model in the
+// camera's image of the later frame, as a motion from the earlier frame's pose B_earlier.
+Rigid3 relativeFromImage(const Markers& model, const Rigid3& B_earlier,
+                         const Rigid3& T_world_later_true, double sigma, std::mt19937& rng) {
   const JoinCamera camera = joinCamera();
-  const Rigid3 B_earlier = *bodyFrameFromMarkers(earlier);
   const double pixel_sigma = sigma * camera.focal_px / 3.0;  // the same noise, seen from 3 m
   std::normal_distribution<double> noise(0.0, pixel_sigma > 0 ? pixel_sigma : 1e-12);
   const Rigid3& body_in_model = bodyInModel();
@@ -111,8 +127,7 @@ Rigid3 relativeFromImage(const Markers& earlier, const Rigid3& T_world_later_tru
   std::vector<cv::Point3d> object;
   std::vector<cv::Point2d> image;
   for (int m = 0; m < 4; ++m) {
-    const Vec3 model = B_earlier.inverse() * earlier[m];
-    object.emplace_back(model.x(), model.y(), model.z());
+    object.emplace_back(model[m].x(), model[m].y(), model[m].z());
     const Vec3 p = T_camera_model * vehicleMarkers()[m];
     image.emplace_back(camera.focal_px * p.x() / p.z() + noise(rng),
                        camera.focal_px * p.y() / p.z() + noise(rng));
@@ -168,6 +183,38 @@ Mat6 informationOf(const std::vector<Vec6>& errors) {
   return covariance.inverse();
 }
 
+void appendError(const Rigid3& estimate, const Rigid3& truth, GroundTestErrors::Axes& into) {
+  const Rigid3 e = truth.inverse() * estimate;
+  const Eigen::AngleAxisd rotation(e.rotation);
+  const Vec3 attitude = rotation.axis() * rotation.angle() / kDeg;         // body axes, degrees
+  const Vec3 position = (estimate.translation - truth.translation) * 1e3;  // world, mm
+  for (int a = 0; a < 3; ++a) {
+    into.deg[a].push_back(attitude[a]);
+    into.mm[a].push_back(position[a]);
+  }
+  into.deg_norm.push_back(attitude.norm());
+  into.mm_norm.push_back(position.norm());
+}
+
+// The rigid transform G of the world that best brings a trial's estimates onto the truth
+// (G * estimate ~ truth): attitude by the mean of the rotations, then position.
+Rigid3 alignment(const std::vector<Rigid3>& estimate, const std::vector<Rigid3>& truth) {
+  Eigen::Vector4d sum = Eigen::Vector4d::Zero();
+  for (size_t k = 0; k < estimate.size(); ++k) {
+    Quat q = truth[k].rotation * estimate[k].rotation.conjugate();
+    if (q.w() < 0) q.coeffs() *= -1;
+    sum += q.coeffs();
+  }
+  Rigid3 G;
+  if (estimate.empty()) return G;
+  G.rotation = Quat(sum.normalized());
+  Vec3 offset = Vec3::Zero();
+  for (size_t k = 0; k < estimate.size(); ++k)
+    offset += truth[k].translation - G.rotation * estimate[k].translation;
+  G.translation = offset / static_cast<double>(estimate.size());
+  return G;
+}
+
 }  // namespace
 
 void GroundTestErrors::Axes::append(const Axes& other) {
@@ -195,21 +242,42 @@ double threeSigma(const std::vector<double>& values) {
 
 EdgeInformation calibrateEdges(const GroundTestOptions& options, std::mt19937& rng) {
   const double sigma = options.noise_mm * 1e-3 / 3.0;
+  const int per_track = options.frames / options.segments;
   std::vector<Vec6> odometry, join;
   for (int run = 0; run < 20; ++run) {
     const Truth truth = flight(options, rng);
-    for (int k = 0; k + options.frames / options.segments < options.frames; k += 2) {
+    std::vector<Markers> observed;
+    std::vector<const Markers*> frames;
+    for (int k = 0; k < per_track; ++k)
+      observed.push_back(measure(truth.T_world_body[k], sigma, rng));
+    for (const auto& o : observed) frames.push_back(&o);
+    if (!options.track_model) frames.resize(1);
+    const Markers model = trackModel(frames, options.method);
+    std::vector<Rigid3> P;
+    for (const auto& o : observed)
+      P.push_back(fitModel(model, o, options.method).value_or(Rigid3::identity()));
+    for (int k = 0; k + 1 < per_track; ++k) {
       const Rigid3& a = truth.T_world_body[k];
       const Rigid3& b = truth.T_world_body[k + 1];
-      odometry.push_back(logError(
-          relativeFromMarkers(measure(a, sigma, rng), measure(b, sigma, rng), options.method),
-          a.inverse() * b));
+      odometry.push_back(logError(P[k].inverse() * P[k + 1], a.inverse() * b));
       const Rigid3& c = truth.T_world_body[k + options.gap + 1];
-      join.push_back(
-          logError(relativeFromImage(measure(a, sigma, rng), c, sigma, rng), a.inverse() * c));
+      join.push_back(logError(relativeFromImage(model, P[k], c, sigma, rng), a.inverse() * c));
     }
   }
   return {informationOf(odometry), informationOf(join)};
+}
+
+GroundTestErrors::Axes oneFrameErrors(const GroundTestOptions& options, std::mt19937& rng) {
+  const double sigma = options.noise_mm * 1e-3 / 3.0;
+  const Truth truth = flight(options, rng);
+  Markers model;  // the true layout, in the body frame of eqs. 2-9
+  for (int m = 0; m < 4; ++m) model[m] = bodyInModel().inverse() * vehicleMarkers()[m];
+  GroundTestErrors::Axes errors;
+  for (const Rigid3& pose : truth.T_world_body) {
+    const auto fitted = fitModel(model, measure(pose, sigma, rng), MarkerMethod::kLeastSquares);
+    appendError(fitted.value_or(Rigid3::identity()), pose, errors);
+  }
+  return errors;
 }
 
 GroundTestErrors runGroundTrial(const GroundTestOptions& options,
@@ -217,33 +285,55 @@ GroundTestErrors runGroundTrial(const GroundTestOptions& options,
   const double sigma = options.noise_mm * 1e-3 / 3.0;
   const Truth truth = flight(options, rng);
   std::vector<Markers> observed(options.frames);
-  std::vector<int> vertex(options.frames, -1);
   for (int k = 0; k < options.frames; ++k) {
     if (truth.seen[k]) observed[k] = measure(truth.T_world_body[k], sigma, rng);
   }
+  // Tracks: runs of seen frames (the markers keep their names along one).
+  std::vector<int> track(options.frames, -1), first_of_track;
+  for (int k = 0, last = -2; k < options.frames; ++k) {
+    if (!truth.seen[k]) continue;
+    if (k != last + 1) first_of_track.push_back(k);
+    track[k] = static_cast<int>(first_of_track.size()) - 1;
+    last = k;
+  }
+  std::vector<Markers> models;
+  for (size_t t = 0; t < first_of_track.size(); ++t) {
+    std::vector<const Markers*> frames;
+    for (int k = first_of_track[t]; k < options.frames && track[k] == static_cast<int>(t); ++k)
+      frames.push_back(&observed[k]);
+    if (!options.track_model) frames.resize(1);
+    models.push_back(trackModel(frames, options.method));
+  }
+  std::vector<Rigid3> P(options.frames);  // each frame's pose in the world by its track's model
+  for (int k = 0; k < options.frames; ++k) {
+    if (truth.seen[k])
+      P[k] = fitModel(models[track[k]], observed[k], options.method).value_or(Rigid3::identity());
+  }
 
-  // The linear solution (eq. 15): every seen frame chained to the one before (the markers
-  // keep their names along a track; the first frame of a track joined to the last seen one
-  // by EPnP), from the true first pose (the gauge). The same measurements are the graph's
-  // edges.
+  // The linear solution (eq. 15): every frame of a track placed by its pose relative to the
+  // track's first frame, the first frame of a track joined to the last seen one by EPnP, from
+  // the true first pose (the gauge). The same measurements are the graph's edges.
   PoseGraph graph;
   std::vector<Rigid3> linear(options.frames);
+  std::vector<int> vertex(options.frames, -1);
   int previous = -1;
   for (int k = 0; k < options.frames; ++k) {
     if (!truth.seen[k]) continue;
+    const int first = first_of_track[track[k]];
     if (previous < 0) {
       linear[k] = truth.T_world_body[k];
       vertex[k] = graph.addVertex(linear[k]);
-    } else if (k != previous + 1) {
-      const Rigid3 step = relativeFromImage(observed[previous], truth.T_world_body[k], sigma, rng);
+    } else if (k == first) {
+      const Rigid3 step = relativeFromImage(models[track[previous]], P[previous],
+                                            truth.T_world_body[k], sigma, rng);
       linear[k] = linear[previous] * step;
       vertex[k] = graph.addVertex(linear[k]);
       (void)graph.addEdge({vertex[previous], vertex[k], step, information.join, EdgeKind::kJoin});
     } else {
-      const Rigid3 step = relativeFromMarkers(observed[previous], observed[k], options.method);
-      linear[k] = linear[previous] * step;
+      linear[k] = linear[first] * P[first].inverse() * P[k];
       vertex[k] = graph.addVertex(linear[k]);
-      (void)graph.addEdge({vertex[previous], vertex[k], step, information.odometry});
+      (void)graph.addEdge(
+          {vertex[previous], vertex[k], P[previous].inverse() * P[k], information.odometry});
     }
     previous = k;
   }
@@ -251,13 +341,6 @@ GroundTestErrors runGroundTrial(const GroundTestOptions& options,
   // Loop closures: each frame registered to the nearest frame of an earlier track that the
   // linear solution puts close enough (the markers found again by their layout).
   GroundTestErrors errors;
-  std::vector<int> track(options.frames, -1);
-  for (int k = 0, t = -1, last = -2; k < options.frames; ++k) {
-    if (!truth.seen[k]) continue;
-    if (k != last + 1) ++t;
-    track[k] = t;
-    last = k;
-  }
   for (int j = 0; j < options.frames; ++j) {
     if (!truth.seen[j]) continue;
     int best = -1;
@@ -273,32 +356,30 @@ GroundTestErrors runGroundTrial(const GroundTestOptions& options,
       }
     }
     if (best < 0) continue;
-    (void)graph.addEdge({vertex[best], vertex[j],
-                         relativeFromMarkers(observed[best], observed[j], options.method),
-                         information.odometry, EdgeKind::kLoop});
+    (void)graph.addEdge(
+        {vertex[best], vertex[j], P[best].inverse() * P[j], information.odometry, EdgeKind::kLoop});
     ++errors.loop_edges;
   }
   const SolveReport report = graph.optimise();
   errors.rejected_edges = report.rejected_edges;
   errors.solve_ms = report.milliseconds;
 
-  auto record = [](const Rigid3& estimate, const Rigid3& truth_pose, GroundTestErrors::Axes& into) {
-    const Rigid3 e = truth_pose.inverse() * estimate;
-    const Eigen::AngleAxisd rotation(e.rotation);
-    const Vec3 attitude = rotation.axis() * rotation.angle() / kDeg;  // body axes, degrees
-    const Vec3 position = (estimate.translation - truth_pose.translation) * 1e3;  // world, mm
-    for (int a = 0; a < 3; ++a) {
-      into.deg[a].push_back(attitude[a]);
-      into.mm[a].push_back(position[a]);
+  auto record = [&](const std::vector<Rigid3>& all, GroundTestErrors::Axes& into) {
+    std::vector<Rigid3> estimate, truth_poses;
+    for (int k = 0; k < options.frames; ++k) {
+      // Unaligned, the gauge is exact by construction; aligned, it is a pose like the others.
+      if (!truth.seen[k] || (!options.align && vertex[k] == 0)) continue;
+      estimate.push_back(all[k]);
+      truth_poses.push_back(truth.T_world_body[k]);
     }
-    into.deg_norm.push_back(attitude.norm());
-    into.mm_norm.push_back(position.norm());
+    const Rigid3 G = options.align ? alignment(estimate, truth_poses) : Rigid3::identity();
+    for (size_t k = 0; k < estimate.size(); ++k) appendError(G * estimate[k], truth_poses[k], into);
   };
-  for (int k = 0; k < options.frames; ++k) {
-    if (!truth.seen[k] || vertex[k] == 0) continue;  // the gauge is exact by construction
-    record(linear[k], truth.T_world_body[k], errors.linear);
-    record(graph.pose(vertex[k]), truth.T_world_body[k], errors.optimised);
-  }
+  std::vector<Rigid3> optimised(options.frames);
+  for (int k = 0; k < options.frames; ++k)
+    if (vertex[k] >= 0) optimised[k] = graph.pose(vertex[k]);
+  record(linear, errors.linear);
+  record(optimised, errors.optimised);
   return errors;
 }
 

@@ -1,6 +1,7 @@
 #include <ceres/ceres.h>
 #include <gtest/gtest.h>
 
+#include <cstdio>
 #include <random>
 
 #include "onboard/posegraph/ground_test.hpp"
@@ -224,8 +225,10 @@ namespace {
 
 // The simulated ground test: without noise both solutions are exact (to the tolerance of
 // the EPnP refinement); with the paper's noise the graph (loop closures) beats the chained
-// solution over 10 trials (single trials can be lucky chains).
-TEST(GroundTest, ExactWithoutNoiseAndTheGraphBeatsChaining) {
+// solution over 10 trials (single trials can be lucky chains) and comes as close to what each
+// frame's own markers tell as the trials show (the bound: no solution that does not model
+// the motion beats it).
+TEST(GroundTest, ExactWithoutNoiseAndTheGraphReachesWhatOneFrameTells) {
   std::mt19937 rng(6);
   GroundTestOptions clean;
   clean.noise_mm = 0;
@@ -237,15 +240,23 @@ TEST(GroundTest, ExactWithoutNoiseAndTheGraphBeatsChaining) {
 
   GroundTestOptions noisy;
   const EdgeInformation information = calibrateEdges(noisy, rng);
-  GroundTestErrors::Axes linear, optimised;
+  GroundTestErrors::Axes linear, optimised, one_frame;
   for (int trial = 0; trial < 10; ++trial) {
     const auto errors = runGroundTrial(noisy, information, rng);
     EXPECT_GT(errors.loop_edges, 50);
     linear.append(errors.linear);
     optimised.append(errors.optimised);
+    one_frame.append(oneFrameErrors(noisy, rng));
   }
   EXPECT_LT(optimised.degPerAxis(), 0.8 * linear.degPerAxis());
   EXPECT_LT(optimised.mmPerAxis(), 0.5 * linear.mmPerAxis());
+  std::printf("ground test, 10 trials: optimised %.3f deg / %.3f mm, one frame %.3f / %.3f\n",
+              optimised.degPerAxis(), optimised.mmPerAxis(), one_frame.degPerAxis(),
+              one_frame.mmPerAxis());
+  // 20 seeds of 10 trials: 0.97-1.04 in attitude, 0.97-1.07 in position; with the layout
+  // from a track's first frame alone 1.7 and 2.5.
+  EXPECT_LT(optimised.degPerAxis(), 1.15 * one_frame.degPerAxis());
+  EXPECT_LT(optimised.mmPerAxis(), 1.2 * one_frame.mmPerAxis());
 }
 
 }  // namespace
