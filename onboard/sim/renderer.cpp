@@ -44,6 +44,28 @@ cv::Rect projectedRect(const SceneBox& box, const Rigid3& T_camera_map,
 }  // namespace
 
 void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* depth) const {
+  if (image != nullptr && options_.supersample > 1) {
+    // The image at s times the resolution (pixel centres: u' = s u + (s - 1) / 2), averaged
+    // down; depth at the camera's own resolution.
+    const int s = options_.supersample;
+    camera::StereoCamera fine = camera_;
+    fine.width *= s;
+    fine.height *= s;
+    fine.fx *= s;
+    fine.fy *= s;
+    fine.cx = s * camera_.cx + (s - 1) / 2.0;
+    fine.cy = s * camera_.cy + (s - 1) / 2.0;
+    RenderOptions fine_options = options_;
+    fine_options.supersample = 1;
+    fine_options.noise_sigma = 0;
+    fine_options.blur_sigma = 0;
+    cv::Mat sharp;
+    Renderer(scene_, fine, fine_options).renderView(T_map_camera, &sharp, nullptr);
+    cv::resize(sharp, *image, cv::Size(camera_.width, camera_.height), 0, 0, cv::INTER_AREA);
+    if (depth != nullptr) renderView(T_map_camera, nullptr, depth);
+    finishImage(T_map_camera, *image);
+    return;
+  }
   if (image != nullptr) image->create(camera_.height, camera_.width, CV_8UC1);
   if (depth != nullptr) depth->create(camera_.height, camera_.width, CV_32FC1);
   const Eigen::Matrix3d R = T_map_camera.rotation.toRotationMatrix();
@@ -83,10 +105,12 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
       }
     }
   });
-  if (image != nullptr && options_.blur_sigma > 0) {
-    cv::GaussianBlur(*image, *image, cv::Size(), options_.blur_sigma);
-  }
-  if (image != nullptr && options_.noise_sigma > 0) {
+  if (image != nullptr) finishImage(T_map_camera, *image);
+}
+
+void Renderer::finishImage(const Rigid3& T_map_camera, cv::Mat& image) const {
+  if (options_.blur_sigma > 0) cv::GaussianBlur(image, image, cv::Size(), options_.blur_sigma);
+  if (options_.noise_sigma > 0) {
     // A fresh pattern per image (one seed for all would be fixed-pattern noise that stereo
     // and tracking lock onto), reproducible from the seed and the pose.
     uint64_t seed = options_.noise_seed;
@@ -95,13 +119,13 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
           T_map_camera.rotation.w(), T_map_camera.rotation.x(), T_map_camera.rotation.y()}) {
       seed = seed * 0x9E3779B97F4A7C15ull ^ std::hash<double>{}(v);
     }
-    cv::Mat noise(image->size(), CV_16SC1);
+    cv::Mat noise(image.size(), CV_16SC1);
     cv::RNG rng(seed);
     rng.fill(noise, cv::RNG::NORMAL, 0, options_.noise_sigma);
     cv::Mat noisy;
-    image->convertTo(noisy, CV_16SC1);
+    image.convertTo(noisy, CV_16SC1);
     noisy += noise;
-    noisy.convertTo(*image, CV_8UC1);
+    noisy.convertTo(image, CV_8UC1);
   }
 }
 

@@ -24,6 +24,9 @@ struct RenderOptions {
   double noise_sigma = 0.0;
   uint32_t noise_seed = 1;
   double blur_sigma = 0.0;  // Gaussian blur (defocus, motion), pixels; 0 = sharp
+  // Rays per pixel along each axis, averaged (anti-aliasing: a sharp painted edge then lands
+  // between pixels as a real lens and sensor put it, which sub-pixel corners rely on).
+  int supersample = 1;
 };
 
 class Renderer {
@@ -37,6 +40,8 @@ class Renderer {
  private:
   // Renders one camera: grey image and (if depth != nullptr) its depth.
   void renderView(const common::Rigid3& T_map_camera, cv::Mat* image, cv::Mat* depth) const;
+  // Blur, then noise drawn afresh for this pose.
+  void finishImage(const common::Rigid3& T_map_camera, cv::Mat& image) const;
 
   const Scene& scene_;
   camera::StereoCamera camera_;

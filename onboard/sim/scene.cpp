@@ -54,6 +54,18 @@ double footprintDistance(const SceneBox& box, double px, double py) {
   return std::hypot(dx, dy);
 }
 
+// Even-odd rule.
+bool insidePolygon(const std::vector<Eigen::Vector2d>& polygon, double x, double y) {
+  bool inside = false;
+  for (size_t i = 0, j = polygon.size() - 1; i < polygon.size(); j = i++) {
+    const Eigen::Vector2d& a = polygon[i];
+    const Eigen::Vector2d& b = polygon[j];
+    if ((a.y() > y) != (b.y() > y) && x < (b.x() - a.x()) * (y - a.y()) / (b.y() - a.y()) + a.x())
+      inside = !inside;
+  }
+  return inside;
+}
+
 }  // namespace
 
 Scene::Scene(std::vector<SceneBox> boxes, uint32_t texture_seed)
@@ -150,7 +162,14 @@ uint8_t Scene::textureAt(const Vec3& p, int box) const {
   // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away.
   const float fine = valueNoise(p * (1.0 / 0.06), seed);
   const float coarse = valueNoise(p * (1.0 / 0.25), seed ^ 0x5bd1e995u);
-  const float value = boxes_[box].albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
+  float albedo = boxes_[box].albedo;
+  for (const auto& marking : markings_) {
+    if (marking.box == box && p.z() >= boxes_[box].max.z() - 1e-9 &&
+        insidePolygon(marking.polygon, p.x(), p.y())) {
+      albedo = marking.albedo;
+    }
+  }
+  const float value = albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
   return static_cast<uint8_t>(std::clamp(value * 255.0f, 0.0f, 255.0f));
 }
 

@@ -20,6 +20,14 @@ struct SceneBox {
   float albedo = 0.6f;  // base brightness of the texture, 0..1
 };
 
+// Paint on the top face of a box (a landing pad's T on a deck): a polygon in the face's x, y
+// (map frame), drawn at `albedo` with the box's texture still showing through.
+struct SceneMarking {
+  int box = 0;
+  std::vector<Eigen::Vector2d> polygon;
+  float albedo = 0.08f;
+};
+
 struct RayHit {
   double t = 0;  // distance along the (not necessarily unit) direction
   int box = -1;
@@ -56,8 +64,11 @@ class Scene {
   // Grey value (0..255) of the solid texture at a surface point of box `box`.
   uint8_t textureAt(const common::Vec3& p, int box) const;
 
+  void addMarking(SceneMarking marking) { markings_.push_back(std::move(marking)); }
+
  private:
   std::vector<SceneBox> boxes_;
+  std::vector<SceneMarking> markings_;
   uint32_t texture_seed_;
 };
 

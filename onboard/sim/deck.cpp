@@ -1,0 +1,163 @@
+#include "onboard/sim/deck.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "common/time.hpp"
+#include "onboard/landing/pad_detector.hpp"
+
+namespace stereomap::sim {
+
+using common::Quat;
+using common::Rigid3;
+using common::Vec3;
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+struct Angles {
+  double roll, pitch, yaw, roll_rate, pitch_rate, yaw_rate;
+};
+
+Angles anglesAt(const DeckMotionOptions& o, double t) {
+  const double wr = 2 * M_PI / o.roll_period_s, wp = 2 * M_PI / o.pitch_period_s;
+  return {o.roll_deg * kDeg * std::sin(wr * t),
+          o.pitch_deg * kDeg * std::sin(wp * t + 0.7),
+          o.yaw_rate_deg_s * kDeg * t,
+          o.roll_deg * kDeg * wr * std::cos(wr * t),
+          o.pitch_deg * kDeg * wp * std::cos(wp * t + 0.7),
+          o.yaw_rate_deg_s * kDeg};
+}
+
+// The deck's mean track (no heave): the origin moving at the set speed along its heading.
+Vec3 trackAt(const DeckMotionOptions& o, double t) {
+  const double w = o.yaw_rate_deg_s * kDeg;
+  if (std::abs(w) < 1e-12) return {o.speed_m_s * t, 0, 0};
+  return {o.speed_m_s / w * std::sin(w * t), o.speed_m_s / w * (1 - std::cos(w * t)), 0};
+}
+
+}  // namespace
+
+Rigid3 DeckMotion::T_world_deck(double t) const {
+  const Angles a = anglesAt(options_, t);
+  const Quat q = Quat(Eigen::AngleAxisd(a.yaw, Vec3::UnitZ())) *
+                 Quat(Eigen::AngleAxisd(a.pitch, Vec3::UnitY())) *
+                 Quat(Eigen::AngleAxisd(a.roll, Vec3::UnitX()));
+  const double heave = options_.heave_m * std::sin(2 * M_PI * t / options_.heave_period_s);
+  return {q, trackAt(options_, t) + Vec3(0, 0, heave)};
+}
+
+Vec3 DeckMotion::velocity(double t) const {
+  const double yaw = options_.yaw_rate_deg_s * kDeg * t;
+  const double w = 2 * M_PI / options_.heave_period_s;
+  return {options_.speed_m_s * std::cos(yaw), options_.speed_m_s * std::sin(yaw),
+          options_.heave_m * w * std::cos(w * t)};
+}
+
+Vec3 DeckMotion::angularRate(double t) const {
+  // Body rates of Z-Y-X (yaw, pitch, roll) angles.
+  const Angles a = anglesAt(options_, t);
+  return {a.roll_rate - a.yaw_rate * std::sin(a.pitch),
+          a.pitch_rate * std::cos(a.roll) + a.yaw_rate * std::cos(a.pitch) * std::sin(a.roll),
+          -a.pitch_rate * std::sin(a.roll) + a.yaw_rate * std::cos(a.pitch) * std::cos(a.roll)};
+}
+
+Rigid3 DeckMotion::T_deck_pad() {
+  // Pad x along the deck's x, pad y and z along the deck's -y and -z; the pad's centre
+  // (1.5, 2) at the deck's origin.
+  return {Quat(Eigen::AngleAxisd(M_PI, Vec3::UnitX())), Vec3(-1.5, 2.0, 0.0)};
+}
+
+Rigid3 LandingFlight::T_world_body(double t) const {
+  const double s = std::clamp(t / options_.duration_s, 0.0, 1.0);
+  const DeckMotionOptions& o = deck_.options();
+  const double yaw = o.yaw_rate_deg_s * kDeg * t;
+  const Quat heading(Eigen::AngleAxisd(yaw, Vec3::UnitZ()));
+  const double closing = 1.0 - 0.9 * s;
+  const Vec3 offset(options_.offset_along_m * closing, options_.offset_across_m * closing, 0);
+  const double height =
+      options_.start_height_m + (options_.end_height_m - options_.start_height_m) * s;
+  return {heading * Quat(Eigen::AngleAxisd(options_.heading_deg * kDeg, Vec3::UnitZ())),
+          trackAt(o, t) + heading * offset + Vec3(0, 0, height)};
+}
+
+Rigid3 LandingFlight::T_body_camera() {
+  // Pitched down by 90 deg from the forward camera: the image's x is the body's right.
+  return {Quat(Eigen::AngleAxisd(M_PI / 2, Vec3::UnitY())) * common::bodyFromCameraRotation(),
+          Vec3::Zero()};
+}
+
+Scene makeDeckScene(uint32_t seed) {
+  std::vector<SceneBox> boxes = {
+      {Vec3(-20, -8, -1), Vec3(20, 8, 0), 0.6f},         // the deck
+      {Vec3(-300, -300, -6), Vec3(300, 300, -5), 0.3f},  // the sea
+  };
+  Scene scene(std::move(boxes), seed);
+  SceneMarking pad{.box = 0};
+  for (const Vec3& corner : landing::padModel()) {
+    const Vec3 p = DeckMotion::T_deck_pad() * corner;
+    pad.polygon.emplace_back(p.x(), p.y());
+  }
+  scene.addMarking(std::move(pad));
+  return scene;
+}
+
+DeckSource::DeckSource(const DeckSourceOptions& options)
+    : options_(options),
+      scene_(makeDeckScene(options.seed)),
+      deck_(options.deck),
+      flight_(deck_, options.flight),
+      renderer_(scene_, camera_, options.render) {
+  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
+}
+
+DeckTruth DeckSource::truthAt(double t) const {
+  DeckTruth truth;
+  truth.t_s = t;
+  truth.T_world_deck = deck_.T_world_deck(t);
+  truth.deck_velocity = deck_.velocity(t);
+  truth.deck_angular_rate = deck_.angularRate(t);
+  const Rigid3 T_world_camera = flight_.T_world_body(t) * LandingFlight::T_body_camera();
+  truth.T_camera_pad = T_world_camera.inverse() * truth.T_world_deck * DeckMotion::T_deck_pad();
+  truth.distance_m = (truth.T_camera_pad * Vec3(1.5, 2.0, 0.0)).norm();
+  for (const Vec3& corner : landing::padModel()) {
+    const auto uv = camera_.project(truth.T_camera_pad * corner);
+    if (uv && uv->x() >= 0 && uv->y() >= 0 && uv->x() <= camera_.width - 1 &&
+        uv->y() <= camera_.height - 1) {
+      ++truth.corners_in_view;
+    }
+  }
+  return truth;
+}
+
+std::optional<camera::SourceFrame> DeckSource::next() {
+  if (options_.max_frames != 0 && index_ >= options_.max_frames) return std::nullopt;
+  const double t = options_.start_s + static_cast<double>(index_) / options_.rate_hz;
+  if (t > flight_.options().duration_s) return std::nullopt;
+  camera::SourceFrame frame;
+  frame.index = index_++;
+  frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t * 1e9));
+  frame.T_map_body = flight_.T_world_body(t);
+  frame.T_body_camera = LandingFlight::T_body_camera();
+  truth_ = truthAt(t);
+  // The scene is rigid in the deck's frame: render the camera's pose there.
+  const Rigid3 T_deck_camera =
+      truth_.T_world_deck.inverse() * *frame.T_map_body * *frame.T_body_camera;
+  StereoFrame rendered = renderer_.render(T_deck_camera);
+  frame.left = std::move(rendered.left);
+  frame.right = std::move(rendered.right);
+  return frame;
+}
+
+std::string DeckSource::describe() const {
+  std::ostringstream out;
+  out << "sim:deck (seed " << options_.seed << ", descent " << flight_.options().start_height_m
+      << " -> " << flight_.options().end_height_m << " m over " << flight_.options().duration_s
+      << " s, deck at " << options_.deck.speed_m_s << " m/s, " << camera_.width << "x"
+      << camera_.height << ")";
+  return out.str();
+}
+
+}  // namespace stereomap::sim
