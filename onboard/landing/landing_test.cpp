@@ -2,8 +2,10 @@
 
 #include <random>
 
+#include "onboard/landing/deck_filter.hpp"
 #include "onboard/landing/pad_detector.hpp"
 #include "onboard/landing/pad_pose.hpp"
+#include "onboard/landing/pad_tracker.hpp"
 #include "onboard/sim/deck.hpp"
 
 namespace stereomap::landing {
@@ -97,8 +99,8 @@ TEST(PadCorners, NamedByStructureAtAnyRotation) {
 }
 
 // Rendered frames of the descent: the pad is found, its corners land near their true
-// projections, and a frame of the deck without the pad finds nothing, with a reason.
-TEST(PadDetector, FindsThePadOnRenderedDeckFramesAndNothingWithoutIt) {
+// projections.
+TEST(PadDetector, FindsThePadOnRenderedDeckFrames) {
   for (const double start : {4.0, 25.0, 40.0}) {
     sim::DeckSource source({.max_frames = 1, .start_s = start});
     const auto frame = source.next();
@@ -114,6 +116,153 @@ TEST(PadDetector, FindsThePadOnRenderedDeckFramesAndNothingWithoutIt) {
                 source.truth().distance_m, worst, found.shape_error, found.contrast);
     EXPECT_LT(worst, 1.0) << "at " << source.truth().distance_m << " m";
   }
+}
+
+// What one rendered frame gives: the tracker's state and, when it tracks, the default pose's
+// error (% of distance, degrees).
+struct Seen {
+  TrackState state;
+  std::string reason;
+  bool published = false;
+  double position_pct = 0, attitude_deg = 0, distance_m = 0, corner_px = 0;
+};
+
+std::vector<Seen> follow(sim::DeckSourceOptions options) {
+  sim::DeckSource source(options);
+  PadTracker left, right;
+  std::vector<Seen> out;
+  while (const auto frame = source.next()) {
+    const auto& truth = source.truth();
+    const PadTrack seen = left.update(frame->left);
+    const PadTrack& other = right.update(frame->right);
+    Seen s{seen.state, seen.reason};
+    s.distance_m = truth.distance_m;
+    if (seen.state == TrackState::kTracking) {
+      double squared = 0;
+      for (int k = 0; k < 8; ++k) {
+        const auto uv = *source.camera().project(truth.T_camera_pad * padModel()[k]);
+        squared +=
+            std::pow(seen.corners[k].x - uv.x(), 2) + std::pow(seen.corners[k].y - uv.y(), 2);
+      }
+      s.corner_px = std::sqrt(squared / 8);
+      const PadPose pose = estimatePadPose(PadView{seen.corners, seen.edges},
+                                           other.state == TrackState::kTracking
+                                               ? std::optional(PadView{other.corners, other.edges})
+                                               : std::nullopt,
+                                           source.camera());
+      s.published = pose.ok;
+      if (pose.ok) {
+        s.position_pct =
+            100 * (pose.T_camera_pad * padCentre() - truth.T_camera_pad * padCentre()).norm() /
+            truth.distance_m;
+        s.attitude_deg =
+            pose.T_camera_pad.rotation.angularDistance(truth.T_camera_pad.rotation) * 180 / M_PI;
+      }
+    }
+    out.push_back(s);
+  }
+  return out;
+}
+
+// The descent's first frames: locked at once (within 3 frames of the whole pad in view),
+// followed from then on with corners on their true projections and poses within 1 % of the
+// distance.
+TEST(PadTracker, LocksAtOnceAndFollowsThePad) {
+  const auto seen = follow({.max_frames = 20, .start_s = 10});
+  int first = -1;
+  for (size_t i = 0; i < seen.size() && first < 0; ++i) {
+    if (seen[i].state == TrackState::kTracking) first = static_cast<int>(i);
+  }
+  ASSERT_GE(first, 0);
+  EXPECT_LE(first, 2);
+  for (size_t i = static_cast<size_t>(first); i < seen.size(); ++i) {
+    EXPECT_EQ(seen[i].state, TrackState::kTracking) << i << ": " << seen[i].reason;
+    EXPECT_LT(seen[i].corner_px, 0.6) << i;
+    EXPECT_TRUE(seen[i].published) << i;
+    EXPECT_LT(seen[i].position_pct, 1.0) << i;
+  }
+}
+
+// A deck without the pad: SEARCHING, with a reason, never a pose.
+TEST(PadTracker, ADeckWithoutThePadIsSearchedWithAReason) {
+  for (const auto& s : follow({.max_frames = 3, .start_s = 20, .markings = {.pad = false}})) {
+    EXPECT_EQ(s.state, TrackState::kSearching);
+    EXPECT_FALSE(s.reason.empty());
+    EXPECT_FALSE(s.published);
+  }
+}
+
+// A T-like mark beside the pad (a shorter stem) is never taken for it.
+TEST(PadTracker, ATLikeMarkBesideThePadIsNotThePad) {
+  for (const auto& s : follow({.max_frames = 4, .start_s = 15, .markings = {.distractor = true}})) {
+    EXPECT_EQ(s.state, TrackState::kTracking) << s.reason;
+    EXPECT_LT(s.corner_px, 0.6);
+    EXPECT_LT(s.position_pct, 1.0);
+  }
+  // The distractor alone: nothing found.
+  for (const auto& s :
+       follow({.max_frames = 2, .start_s = 15, .markings = {.pad = false, .distractor = true}})) {
+    EXPECT_NE(s.state, TrackState::kTracking);
+    EXPECT_NE(s.reason.find("proportions"), std::string::npos) << s.reason;
+  }
+}
+
+// A strong shadow over half the pad (a third of the light): still found, still accurate.
+TEST(PadTracker, AStrongShadowOverHalfThePad) {
+  for (const auto& s : follow({.max_frames = 4, .start_s = 25, .markings = {.shadow = 0.35}})) {
+    EXPECT_EQ(s.state, TrackState::kTracking) << s.reason;
+    EXPECT_LT(s.corner_px, 0.6);
+    EXPECT_LT(s.position_pct, 1.0);
+    EXPECT_LT(s.attitude_deg, 2.0);
+  }
+}
+
+// The last metres: the pad leaves the image. The tracker says so (LOST, with a reason) and
+// no pose it publishes is off by more than 5 % of the distance.
+TEST(PadTracker, ThePadLeavingTheImageIsLostAndNoWrongPoseIsPublished) {
+  const auto seen = follow({.start_s = 52});
+  ASSERT_FALSE(seen.empty());
+  int lost = 0;
+  for (const auto& s : seen) {
+    if (s.published) {
+      EXPECT_LT(s.position_pct, 5.0) << s.distance_m;
+    }
+    lost += s.state == TrackState::kLost;
+  }
+  EXPECT_GT(lost, 0);
+  EXPECT_EQ(seen.back().state, TrackState::kLost);
+  EXPECT_FALSE(seen.back().reason.empty());
+}
+
+// The deck filter on measurements of a known motion (heave 0.5 m at 0.1 Hz, roll 5 deg, 5 m/s
+// forward) with 1 cm and 0.3 deg of noise at 10 Hz: heave rate within 0.1 m/s RMS after a
+// second.
+TEST(DeckFilter, FollowsAHeavingRollingDeck) {
+  sim::DeckMotion motion;
+  DeckFilter filter;
+  std::mt19937 rng(8);
+  std::normal_distribution<double> noise;
+  double squared = 0;
+  int n = 0;
+  for (int k = 0; k < 600; ++k) {
+    const double t = k * 0.1;
+    const Rigid3 T_map_deck = motion.T_world_deck(t);
+    const Vec3 small(noise(rng), noise(rng), noise(rng));
+    const Rigid3 measured{
+        T_map_deck.rotation *
+            Quat(Eigen::AngleAxisd(0.3 * M_PI / 180 * small.norm(), small.normalized())),
+        T_map_deck.translation + 0.01 * Vec3(noise(rng), noise(rng), noise(rng))};
+    Mat6 covariance = Mat6::Zero();
+    covariance.diagonal() << Vec3::Constant(std::pow(0.3 * M_PI / 180, 2)), Vec3::Constant(1e-4);
+    const auto& estimate = filter.update(t, measured * T_pad_deck().inverse(), covariance);
+    if (t < 1.0) continue;
+    squared += std::pow(estimate.velocity.z() - motion.velocity(t).z(), 2);
+    ++n;
+  }
+  const double rms = std::sqrt(squared / n);
+  std::printf("heave rate error %.3f m/s RMS\n", rms);
+  EXPECT_LT(rms, 0.1);
+  EXPECT_LT((filter.estimate().velocity.head<2>() - motion.velocity(59.9).head<2>()).norm(), 0.2);
 }
 
 }  // namespace

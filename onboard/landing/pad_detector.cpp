@@ -53,7 +53,8 @@ std::optional<cv::Point2d> crossing(const cv::Vec4f& a, const cv::Vec4f& b) {
 
 // A line through points, fitted again without those farther than 1.5 px from it (a dark
 // speck of the deck merged into the T's outline bulges its edge).
-cv::Vec4f trimmedLine(std::vector<cv::Point2f> points) {
+cv::Vec4f trimmedLine(std::vector<cv::Point2f> points,
+                      std::vector<cv::Point2f>* kept_out = nullptr) {
   cv::Vec4f line;
   for (int round = 0; round < 3; ++round) {
     cv::fitLine(points, line, cv::DIST_HUBER, 0, 0.01, 0.01);
@@ -65,6 +66,7 @@ cv::Vec4f trimmedLine(std::vector<cv::Point2f> points) {
     if (kept.size() < 2 || kept.size() == points.size()) break;
     points = std::move(kept);
   }
+  if (kept_out != nullptr) *kept_out = std::move(points);
   return line;
 }
 
@@ -114,7 +116,7 @@ std::vector<cv::Point2d> fitSides(const std::vector<cv::Point>& contour,
 
 // Largest distance of a corner from the template mapped by the least-squares homography, as
 // a fraction of sqrt(image area).
-double shapeError(const std::array<cv::Point2d, 8>& corners) {
+double shapeErrorOf(const std::array<cv::Point2d, 8>& corners) {
   std::vector<cv::Point2d> model, image(corners.begin(), corners.end());
   for (const Vec3& p : padModel()) model.emplace_back(p.x(), p.y());
   const cv::Mat H = cv::findHomography(model, image, 0);
@@ -205,8 +207,21 @@ struct Candidate {
 };
 
 // Dark regions of a binarised image as T candidates; the reasons for the ones refused.
+// The reason for the refused region that came closest to being the pad (rank: not a T 1, a T
+// of the wrong proportions 2, a right T too faint 3).
+struct WhyNot {
+  int rank = 0;
+  std::string text;
+  void offer(int r, std::string t) {
+    if (r >= rank) {
+      rank = r;
+      text = std::move(t);
+    }
+  }
+};
+
 void collect(const cv::Mat& grey, const cv::Mat& dark, const DetectorOptions& options,
-             std::vector<Candidate>& out, PadDetection& report, std::string& why_not) {
+             std::vector<Candidate>& out, PadDetection& report, WhyNot& why_not) {
   cv::Mat clean;
   const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_RECT, {3, 3});
   cv::morphologyEx(dark, clean, cv::MORPH_OPEN, kernel);
@@ -224,18 +239,18 @@ void collect(const cv::Mat& grey, const cv::Mat& dark, const DetectorOptions& op
     for (int round = 0; round < 3; ++round) polygon = fitSides(contour, polygon);
     const auto ordered = orderTCorners(polygon);
     if (!ordered) {
-      why_not = "an 8-cornered shape that is not a T";
+      why_not.offer(1, "an 8-cornered shape that is not a T");
       continue;
     }
-    Candidate candidate{*ordered, shapeError(*ordered), 0};
+    Candidate candidate{*ordered, shapeErrorOf(*ordered), 0};
     if (candidate.shape_error > options.max_shape_error) {
-      why_not = "a T of the wrong proportions (shape error " +
-                std::to_string(candidate.shape_error).substr(0, 5) + ")";
+      why_not.offer(2, "a T of the wrong proportions (shape error " +
+                           std::to_string(candidate.shape_error).substr(0, 5) + ")");
       continue;
     }
     candidate.contrast = contrastOf(grey, candidate.corners);
     if (candidate.contrast < options.min_contrast) {
-      why_not = "a T too faint against its surroundings";
+      why_not.offer(3, "a T too faint against its surroundings");
       continue;
     }
     out.push_back(candidate);
@@ -243,6 +258,8 @@ void collect(const cv::Mat& grey, const cv::Mat& dark, const DetectorOptions& op
 }
 
 }  // namespace
+
+double padShapeError(const std::array<cv::Point2d, 8>& corners) { return shapeErrorOf(corners); }
 
 std::optional<std::array<cv::Point2d, 8>> orderTCorners(const std::vector<cv::Point2d>& polygon) {
   if (polygon.size() != 8) return std::nullopt;
@@ -280,11 +297,13 @@ std::array<cv::Point2d, 8> patentOrder(const std::vector<cv::Point2d>& clockwise
   return order;
 }
 
-std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
-                                         const std::array<cv::Point2d, 8>& corners) {
-  cv::Mat smooth;
-  cv::GaussianBlur(grey, smooth, cv::Size(), 0.8);
-  smooth.convertTo(smooth, CV_32F);
+namespace {
+
+// One pass of refineCorners on the image as floats.
+std::array<cv::Point2d, 8> refineOnce(const cv::Mat& smooth,
+                                      const std::array<cv::Point2d, 8>& corners,
+                                      PadEdgePoints* edges) {
+  if (edges != nullptr) *edges = {};
   auto sample = [&](double x, double y) {
     const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
     if (x0 < 0 || y0 < 0 || x0 + 1 >= smooth.cols || y0 + 1 >= smooth.rows) return -1.0;
@@ -302,10 +321,11 @@ std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
     if (length < 6) continue;
     const cv::Point2d along = (b - a) / length, normal(-along.y, along.x);
     std::vector<cv::Point2f> points;
-    const double margin = std::min(3.0, 0.2 * length);
+    constexpr int kReach = 3;  // pixels either side of the polygon's edge
+    // Away from the corners, where a profile across this edge would cross the next one.
+    const double margin = std::min(kReach + 1.5, 0.25 * length);
     for (double s = margin; s <= length - margin; s += 1.0) {
       const cv::Point2d p = a + along * s;
-      constexpr int kReach = 3;  // pixels either side of the polygon's edge
       std::array<double, 2 * kReach * 4 + 1> profile{};
       bool inside = true;
       for (int i = 0; i < static_cast<int>(profile.size()) && inside; ++i) {
@@ -325,14 +345,30 @@ std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
         }
       }
       if (best <= 1 || best + 2 >= static_cast<int>(profile.size())) continue;
-      const double g0 = gradient[best - 1], g1 = gradient[best], g2 = gradient[best + 1];
-      const double denominator = g0 - 2 * g1 + g2;
-      const double peak = denominator < 0 ? 0.5 * (g0 - g2) / denominator : 0.0;
-      const double offset = (best - kReach * 4 + peak) * 0.25;
+      // The edge is where the grey crosses halfway from the deck (outside, the profile's
+      // start) to the paint (inside, its end): the level crossing nearest the steepest
+      // point, which the texture beside the edge moves less than it moves the peak.
+      double outside = 0, inside_level = 0;
+      for (int i = 0; i < 4; ++i) {
+        outside += profile[i] / 4;
+        inside_level += profile[profile.size() - 1 - i] / 4;
+      }
+      if (outside - inside_level < 10) continue;
+      const double level = 0.5 * (outside + inside_level);
+      std::optional<double> at;
+      for (int step = 0; step < 8 && !at; ++step) {
+        for (const int i : {best - step, best + step - 1}) {
+          if (i < 0 || i + 1 >= static_cast<int>(profile.size()) || at) continue;
+          const double u = profile[i] - level, w = profile[i + 1] - level;
+          if (u >= 0 && w < 0) at = i + u / (u - w);
+        }
+      }
+      if (!at) continue;
+      const double offset = (*at - kReach * 4) * 0.25;
       points.emplace_back(p + normal * offset);
     }
     if (points.size() < 3) continue;
-    lines[k] = trimmedLine(points);
+    lines[k] = trimmedLine(points, edges != nullptr ? &(*edges)[k] : nullptr);
   }
   std::array<cv::Point2d, 8> refined = corners;
   for (int k = 0; k < 8; ++k) {
@@ -345,6 +381,23 @@ std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
   return refined;
 }
 
+}  // namespace
+
+std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
+                                         const std::array<cv::Point2d, 8>& corners,
+                                         PadEdgePoints* edges) {
+  cv::Mat image;
+  grey.convertTo(image, CV_32F);
+  // Twice: the profiles across each edge are centred on the first pass's lines, so the deck's
+  // and the paint's levels are read as far from the edge on both sides.
+  const auto first = refineOnce(image, corners, nullptr);
+  auto second = refineOnce(image, first, edges);
+  for (int k = 0; k < 8; ++k) {
+    if (cv::norm(second[k] - corners[k]) >= 3.0) second[k] = corners[k];
+  }
+  return second;
+}
+
 PadDetection detectPad(const cv::Mat& grey, const DetectorOptions& options) {
   PadDetection result;
   if (grey.empty() || grey.type() != CV_8UC1) {
@@ -352,7 +405,7 @@ PadDetection detectPad(const cv::Mat& grey, const DetectorOptions& options) {
     return result;
   }
   std::vector<Candidate> candidates;
-  std::string why_not;
+  WhyNot why_not;
   cv::Mat dark;
   cv::threshold(grey, dark, 0, 255, cv::THRESH_BINARY_INV | cv::THRESH_OTSU);
   collect(grey, dark, options, candidates, result, why_not);
@@ -364,15 +417,16 @@ PadDetection detectPad(const cv::Mat& grey, const DetectorOptions& options) {
     collect(grey, dark, options, candidates, result, why_not);
   }
   if (candidates.empty()) {
-    result.reason =
-        result.candidates == 0 ? "no T-shaped dark region in view" : "no pad: " + why_not;
+    result.reason = result.candidates == 0 ? "no dark region with 8 corners in view"
+                                           : "no pad: " + why_not.text;
     return result;
   }
   const auto best = std::min_element(
       candidates.begin(), candidates.end(),
       [](const Candidate& a, const Candidate& b) { return a.shape_error < b.shape_error; });
   result.found = true;
-  result.corners = options.refine ? refineCorners(grey, best->corners) : best->corners;
+  result.corners =
+      options.refine ? refineCorners(grey, best->corners, &result.edges) : best->corners;
   result.shape_error = best->shape_error;
   result.contrast = best->contrast;
   return result;

@@ -28,6 +28,10 @@ namespace stereomap::landing {
 // starting at the bar's corner a.
 const std::array<common::Vec3, 8>& padModel();
 
+// Sub-pixel points along each of the pad's 8 edges in an image: edge k runs from corner k to
+// corner k + 1 (a-b, b-c, ..., h-a).
+using PadEdgePoints = std::array<std::vector<cv::Point2f>, 8>;
+
 struct DetectorOptions {
   double min_area_px = 120;  // the smallest pad looked for (about 40 m away at 640x480)
   // Largest distance of a corner from the template mapped by the best homography, as a
@@ -43,6 +47,7 @@ struct PadDetection {
   bool found = false;
   std::string reason;                    // why not, when not found
   std::array<cv::Point2d, 8> corners{};  // a..h
+  PadEdgePoints edges;                   // the points the corners' edges were fitted to
   double shape_error = 0;                // as DetectorOptions::max_shape_error
   double contrast = 0;
   int candidates = 0;  // contours with 8 vertices that were checked
@@ -61,9 +66,15 @@ std::optional<std::array<cv::Point2d, 8>> orderTCorners(const std::vector<cv::Po
 // (the bar at the top), kept for comparison: detectPad orders by structure.
 std::array<cv::Point2d, 8> patentOrder(const std::vector<cv::Point2d>& clockwise);
 
-// Sub-pixel corners: each of the 8 edges fitted as a line to the gradient's maxima across it,
-// neighbouring lines crossed. Keeps a corner as it was where its edges cannot be fitted.
+// Largest distance of a corner from the template mapped by the least-squares homography, as a
+// fraction of the square root of the pad's image area (DetectorOptions::max_shape_error).
+double padShapeError(const std::array<cv::Point2d, 8>& corners);
+
+// Sub-pixel corners: each of the 8 edges fitted as a line to the points where the grey crosses
+// halfway between deck and paint across it, neighbouring lines crossed. Keeps a corner as it
+// was where its edges cannot be fitted. `edges`: the points kept on each edge.
 std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
-                                         const std::array<cv::Point2d, 8>& corners);
+                                         const std::array<cv::Point2d, 8>& corners,
+                                         PadEdgePoints* edges = nullptr);
 
 }  // namespace stereomap::landing

@@ -47,6 +47,45 @@ struct CornerError {
   double shift, fx, fy, cx, cy;
 };
 
+// One sub-pixel point on edge k seen by one camera: its distance (pixels) from the line
+// through the projections of the edge's two pad corners.
+struct EdgeError {
+  EdgeError(const cv::Point2f& seen, const Vec3& from, const Vec3& to, double shift,
+            const camera::StereoCamera& camera)
+      : u(seen.x),
+        v(seen.y),
+        A(from),
+        B(to),
+        shift(shift),
+        fx(camera.fx),
+        fy(camera.fy),
+        cx(camera.cx),
+        cy(camera.cy) {}
+
+  template <typename T>
+  bool operator()(const T* q, const T* t, T* residual) const {
+    const Eigen::Map<const Eigen::Quaternion<T>> Q(q);
+    const Eigen::Map<const Eigen::Matrix<T, 3, 1>> translation(t);
+    Eigen::Matrix<T, 2, 1> ends[2];
+    const Vec3* points[2] = {&A, &B};
+    for (int i = 0; i < 2; ++i) {
+      Eigen::Matrix<T, 3, 1> p = Q * points[i]->cast<T>() + translation;
+      p.x() -= T(shift);
+      if (p.z() <= T(1e-6)) return false;
+      ends[i] << T(fx) * p.x() / p.z() + T(cx), T(fy) * p.y() / p.z() + T(cy);
+    }
+    const Eigen::Matrix<T, 2, 1> d = ends[1] - ends[0];
+    const T length = d.norm();
+    if (length < T(1e-9)) return false;
+    residual[0] = (d.x() * (T(v) - ends[0].y()) - d.y() * (T(u) - ends[0].x())) / length;
+    return true;
+  }
+
+  double u, v;
+  Vec3 A, B;
+  double shift, fx, fy, cx, cy;
+};
+
 double rmsOf(const Rigid3& T_camera_pad, const std::array<cv::Point2d, 8>& image,
              const camera::StereoCamera& camera, double shift) {
   double squared = 0;
@@ -66,19 +105,33 @@ struct Refined {
   Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
 };
 
-Refined refine(const Rigid3& start, const std::array<cv::Point2d, 8>& left,
-               const std::optional<std::array<cv::Point2d, 8>>& right,
+Refined refine(const Rigid3& start, const PadView& left, const std::optional<PadView>& right,
                const camera::StereoCamera& camera, const PadPoseOptions& options) {
   Eigen::Quaterniond q = start.rotation;
   Vec3 t = start.translation;
   ceres::Problem problem;
   int residuals = 0;
-  auto add = [&](const std::array<cv::Point2d, 8>& image, double shift) {
+  auto add = [&](const PadView& view, double shift) {
+    bool edges = true;
+    for (const auto& side : view.edges) edges = edges && side.size() >= 2;
+    if (!edges) {
+      for (int k = 0; k < 8; ++k) {
+        problem.AddResidualBlock(
+            new ceres::AutoDiffCostFunction<CornerError, 2, 4, 3>(
+                new CornerError(view.corners[k], padModel()[k], shift, camera)),
+            new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
+        residuals += 2;
+      }
+      return;
+    }
     for (int k = 0; k < 8; ++k) {
-      problem.AddResidualBlock(new ceres::AutoDiffCostFunction<CornerError, 2, 4, 3>(
-                                   new CornerError(image[k], padModel()[k], shift, camera)),
-                               new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
-      residuals += 2;
+      for (const cv::Point2f& point : view.edges[k]) {
+        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<EdgeError, 1, 4, 3>(new EdgeError(
+                                     point, padModel()[k], padModel()[(k + 1) % 8], shift, camera)),
+                                 new ceres::HuberLoss(options.huber_px), q.coeffs().data(),
+                                 t.data());
+        ++residuals;
+      }
     }
   };
   add(left, 0.0);
@@ -206,6 +259,16 @@ std::optional<Rigid3> patentLinearPose(const std::array<cv::Point2d, 8>& image,
 PadPose estimatePadPose(const std::array<cv::Point2d, 8>& left,
                         const std::optional<std::array<cv::Point2d, 8>>& right,
                         const camera::StereoCamera& camera, const PadPoseOptions& options) {
+  return estimatePadPose(PadView{left, {}},
+                         right ? std::optional(PadView{*right, {}}) : std::nullopt, camera,
+                         options);
+}
+
+PadPose estimatePadPose(const PadView& left_view, const std::optional<PadView>& right_view,
+                        const camera::StereoCamera& camera, const PadPoseOptions& options) {
+  const std::array<cv::Point2d, 8>& left = left_view.corners;
+  const std::optional<std::array<cv::Point2d, 8>> right =
+      right_view ? std::optional(right_view->corners) : std::nullopt;
   PadPose result;
   if (options.mode == PoseMode::kPatent) {
     const auto linear = patentLinearPose(left, camera);
@@ -226,7 +289,7 @@ PadPose estimatePadPose(const std::array<cv::Point2d, 8>& left,
     for (size_t i = 0; i < rvecs.size(); ++i) {
       const Rigid3 start = camera::rigidFromRvecTvec(rvecs[i], tvecs[i]);
       if (start.translation.z() <= 0) continue;
-      Refined refined = refine(start, left, right, camera, options);
+      Refined refined = refine(start, left_view, right_view, camera, options);
       if (!best || refined.cost < best->cost) best = refined;
     }
     if (!best) {

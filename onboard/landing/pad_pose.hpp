@@ -2,7 +2,11 @@
 //   Default: IPPE's two planar PnP solutions from the left image, each refined with Ceres on
 //     the reprojection error in both rectified cameras (the baseline gives metric depth and
 //     settles the planar ambiguity), Huber loss; the better one kept, with the covariance of
-//     its 6 parameters (rotation vector, translation) scaled by the residuals.
+//     its 6 parameters (rotation vector, translation) scaled by the residuals. Where a view
+//     has the sub-pixel points along the T's edges, the error is their distance from the
+//     pad's projected edges instead of the corners': every edge point counts, and the pose
+//     ties the short edges' directions to the long ones' (a corner from two short edges is
+//     the least certain).
 //   Patent: the patent's linear solution exactly as it writes it, in the coplanar form the
 //     flat pad allows (Tsai's radial alignment: 5 unknowns p1, p2, tx, p4, p5 over ty, |ty|
 //     from the unit rows, the third row from orthonormality, tz from a second linear solve
@@ -18,6 +22,7 @@
 
 #include "common/geometry.hpp"
 #include "onboard/camera/stereo_camera.hpp"
+#include "onboard/landing/pad_detector.hpp"
 
 namespace stereomap::landing {
 
@@ -41,7 +46,16 @@ struct PadPose {
   explicit operator bool() const { return ok; }
 };
 
-// `right`: the same corners in the right image, when found there.
+// The pad in one image: its corners a..h and, if known, the edge points behind them.
+struct PadView {
+  std::array<cv::Point2d, 8> corners{};
+  PadEdgePoints edges;
+};
+
+// `right`: the pad in the right image, when found there.
+PadPose estimatePadPose(const PadView& left, const std::optional<PadView>& right,
+                        const camera::StereoCamera& camera, const PadPoseOptions& options = {});
+// Corners alone.
 PadPose estimatePadPose(const std::array<cv::Point2d, 8>& left,
                         const std::optional<std::array<cv::Point2d, 8>>& right,
                         const camera::StereoCamera& camera, const PadPoseOptions& options = {});

@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "common/time.hpp"
+#include "onboard/landing/deck_filter.hpp"
 #include "onboard/landing/pad_detector.hpp"
 
 namespace stereomap::sim {
@@ -64,11 +65,7 @@ Vec3 DeckMotion::angularRate(double t) const {
           -a.pitch_rate * std::sin(a.roll) + a.yaw_rate * std::cos(a.pitch) * std::cos(a.roll)};
 }
 
-Rigid3 DeckMotion::T_deck_pad() {
-  // Pad x along the deck's x, pad y and z along the deck's -y and -z; the pad's centre
-  // (1.5, 2) at the deck's origin.
-  return {Quat(Eigen::AngleAxisd(M_PI, Vec3::UnitX())), Vec3(-1.5, 2.0, 0.0)};
-}
+Rigid3 DeckMotion::T_deck_pad() { return landing::T_pad_deck().inverse(); }
 
 Rigid3 LandingFlight::T_world_body(double t) const {
   const double s = std::clamp(t / options_.duration_s, 0.0, 1.0);
@@ -89,24 +86,41 @@ Rigid3 LandingFlight::T_body_camera() {
           Vec3::Zero()};
 }
 
-Scene makeDeckScene(uint32_t seed) {
+Scene makeDeckScene(uint32_t seed, const DeckMarkings& markings) {
   std::vector<SceneBox> boxes = {
       {Vec3(-20, -8, -1), Vec3(20, 8, 0), 0.6f},         // the deck
       {Vec3(-300, -300, -6), Vec3(300, 300, -5), 0.3f},  // the sea
   };
   Scene scene(std::move(boxes), seed);
-  SceneMarking pad{.box = 0};
-  for (const Vec3& corner : landing::padModel()) {
-    const Vec3 p = DeckMotion::T_deck_pad() * corner;
-    pad.polygon.emplace_back(p.x(), p.y());
+  // Pad-frame outlines onto the deck's top (shifted along the pad's x by `dx` metres).
+  auto onDeck = [](const std::vector<Vec3>& outline, double dx, SceneMarking marking) {
+    for (const Vec3& corner : outline) {
+      const Vec3 p = DeckMotion::T_deck_pad() * (corner + Vec3(dx, 0, 0));
+      marking.polygon.emplace_back(p.x(), p.y());
+    }
+    return marking;
+  };
+  const auto& pad = landing::padModel();
+  if (markings.pad) scene.addMarking(onDeck({pad.begin(), pad.end()}, 0, {.box = 0}));
+  if (markings.distractor) {
+    const std::vector<Vec3> short_t = {Vec3(0, 0, 0), Vec3(3, 0, 0),   Vec3(3, 1, 0),
+                                       Vec3(2, 1, 0), Vec3(2, 2.5, 0), Vec3(1, 2.5, 0),
+                                       Vec3(1, 1, 0), Vec3(0, 1, 0)};
+    scene.addMarking(onDeck(short_t, 5.0, {.box = 0}));
   }
-  scene.addMarking(std::move(pad));
+  if (markings.shadow < 1.0) {
+    // Pad y from -6 to 2 (the bar and the stem's first metre), across the whole deck width.
+    const std::vector<Vec3> half = {Vec3(-30, -6, 0), Vec3(30, -6, 0), Vec3(30, 2, 0),
+                                    Vec3(-30, 2, 0)};
+    scene.addMarking(
+        onDeck(half, 0, {.box = 0, .albedo = static_cast<float>(markings.shadow), .shade = true}));
+  }
   return scene;
 }
 
 DeckSource::DeckSource(const DeckSourceOptions& options)
     : options_(options),
-      scene_(makeDeckScene(options.seed)),
+      scene_(makeDeckScene(options.seed, options.markings)),
       deck_(options.deck),
       flight_(deck_, options.flight),
       renderer_(scene_, camera_, options.render) {
@@ -121,7 +135,7 @@ DeckTruth DeckSource::truthAt(double t) const {
   truth.deck_angular_rate = deck_.angularRate(t);
   const Rigid3 T_world_camera = flight_.T_world_body(t) * LandingFlight::T_body_camera();
   truth.T_camera_pad = T_world_camera.inverse() * truth.T_world_deck * DeckMotion::T_deck_pad();
-  truth.distance_m = (truth.T_camera_pad * Vec3(1.5, 2.0, 0.0)).norm();
+  truth.distance_m = (truth.T_camera_pad * landing::padCentre()).norm();
   for (const Vec3& corner : landing::padModel()) {
     const auto uv = camera_.project(truth.T_camera_pad * corner);
     if (uv && uv->x() >= 0 && uv->y() >= 0 && uv->x() <= camera_.width - 1 &&

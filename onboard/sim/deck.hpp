@@ -69,9 +69,19 @@ class LandingFlight {
   LandingFlightOptions options_;
 };
 
+// What is painted on the deck, and the light on it.
+struct DeckMarkings {
+  bool pad = true;
+  // A second, T-like mark beside the pad (a T with a short stem: bar 3 x 1 m, stem 1 x 1.5 m).
+  bool distractor = false;
+  // A shadow over the half of the pad on the bar's side (and the deck around it), multiplying
+  // the light by this (1: none).
+  double shadow = 1.0;
+};
+
 // The deck scene in the deck frame: the deck (40 x 16 m, its top at z = 0) with the T painted
 // on it, and the sea below.
-Scene makeDeckScene(uint32_t seed);
+Scene makeDeckScene(uint32_t seed, const DeckMarkings& markings = {});
 
 struct DeckTruth {
   double t_s = 0;
@@ -89,6 +99,7 @@ struct DeckSourceOptions {
   uint64_t max_frames = 0;  // 0: the whole descent
   int64_t start_stamp_ns = 0;
   double start_s = 0;  // where in the descent to begin
+  DeckMarkings markings;
   RenderOptions render{.max_depth = 80.0, .noise_sigma = 2.0, .blur_sigma = 0.7, .supersample = 3};
   DeckMotionOptions deck;
   LandingFlightOptions flight;

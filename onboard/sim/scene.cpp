@@ -162,13 +162,18 @@ uint8_t Scene::textureAt(const Vec3& p, int box) const {
   // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away.
   const float fine = valueNoise(p * (1.0 / 0.06), seed);
   const float coarse = valueNoise(p * (1.0 / 0.25), seed ^ 0x5bd1e995u);
-  float albedo = boxes_[box].albedo;
+  float albedo = boxes_[box].albedo, shade = 1.0f;
   for (const auto& marking : markings_) {
     if (marking.box == box && p.z() >= boxes_[box].max.z() - 1e-9 &&
         insidePolygon(marking.polygon, p.x(), p.y())) {
-      albedo = marking.albedo;
+      if (marking.shade) {
+        shade *= marking.albedo;
+      } else {
+        albedo = marking.albedo;
+      }
     }
   }
+  albedo *= shade;
   const float value = albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
   return static_cast<uint8_t>(std::clamp(value * 255.0f, 0.0f, 255.0f));
 }

@@ -21,11 +21,13 @@ struct SceneBox {
 };
 
 // Paint on the top face of a box (a landing pad's T on a deck): a polygon in the face's x, y
-// (map frame), drawn at `albedo` with the box's texture still showing through.
+// (map frame), drawn at `albedo` with the box's texture still showing through; or, with
+// `shade`, a shadow that multiplies whatever is there by `albedo`.
 struct SceneMarking {
   int box = 0;
   std::vector<Eigen::Vector2d> polygon;
   float albedo = 0.08f;
+  bool shade = false;
 };
 
 struct RayHit {
