@@ -236,6 +236,75 @@ struct Topic<PoseCorrectionMsg> {
 };
 
 template <>
+struct Topic<LandingTargetMsg> {
+  using C = stereomap_msg_LandingTarget;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_LandingTarget_desc; }
+  static constexpr const char* kName = "stereomap_LandingTarget";
+  static dds_qos_t* qos() { return landingTargetQos(); }
+  static dds_qos_t* readerQos() { return landingTargetQos(); }
+
+  static Status toC(const LandingTargetMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    if (m.reason.size() > kMaxLandingReason) {
+      return makeError(ErrorCode::kTooLarge, "landing reason longer than " +
+                                                 std::to_string(kMaxLandingReason) + " bytes");
+    }
+    c.seq = m.seq;
+    c.stamp_ns = m.stamp_ns;
+    c.state = static_cast<stereomap_msg_LandingState>(m.state);
+    c.mode = static_cast<stereomap_msg_LandingMode>(m.mode);
+    std::memcpy(c.reason, m.reason.data(), m.reason.size());
+    c.reason[m.reason.size()] = '\0';
+    c.has_pose = m.has_pose;
+    std::copy(m.camera_position.begin(), m.camera_position.end(), c.camera_position);
+    std::copy(m.camera_orientation.begin(), m.camera_orientation.end(), c.camera_orientation);
+    std::copy(m.camera_covariance.begin(), m.camera_covariance.end(), c.camera_covariance);
+    std::copy(m.map_position.begin(), m.map_position.end(), c.map_position);
+    std::copy(m.map_orientation.begin(), m.map_orientation.end(), c.map_orientation);
+    std::copy(m.map_covariance.begin(), m.map_covariance.end(), c.map_covariance);
+    std::copy(m.deck_velocity.begin(), m.deck_velocity.end(), c.deck_velocity);
+    std::copy(m.deck_angular_rate.begin(), m.deck_angular_rate.end(), c.deck_angular_rate);
+    c.distance = m.distance;
+    c.bearing_deg = m.bearing_deg;
+    c.reprojection_px = m.reprojection_px;
+    return common::Ok{};
+  }
+  static Result<LandingTargetMsg> fromC(const C& c) {
+    if (static_cast<int>(c.state) < 0 || static_cast<int>(c.state) > 2 ||
+        static_cast<int>(c.mode) < 0 || static_cast<int>(c.mode) > 1) {
+      return makeError(ErrorCode::kInvalidArgument, "landing state or mode out of range");
+    }
+    LandingTargetMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.seq = c.seq;
+    m.stamp_ns = c.stamp_ns;
+    m.state = static_cast<LandingState>(c.state);
+    m.mode = static_cast<LandingMode>(c.mode);
+    m.reason.assign(c.reason, strnlen(c.reason, kMaxLandingReason));
+    m.has_pose = c.has_pose;
+    std::copy(std::begin(c.camera_position), std::end(c.camera_position),
+              m.camera_position.begin());
+    std::copy(std::begin(c.camera_orientation), std::end(c.camera_orientation),
+              m.camera_orientation.begin());
+    std::copy(std::begin(c.camera_covariance), std::end(c.camera_covariance),
+              m.camera_covariance.begin());
+    std::copy(std::begin(c.map_position), std::end(c.map_position), m.map_position.begin());
+    std::copy(std::begin(c.map_orientation), std::end(c.map_orientation),
+              m.map_orientation.begin());
+    std::copy(std::begin(c.map_covariance), std::end(c.map_covariance), m.map_covariance.begin());
+    std::copy(std::begin(c.deck_velocity), std::end(c.deck_velocity), m.deck_velocity.begin());
+    std::copy(std::begin(c.deck_angular_rate), std::end(c.deck_angular_rate),
+              m.deck_angular_rate.begin());
+    m.distance = c.distance;
+    m.bearing_deg = c.bearing_deg;
+    m.reprojection_px = c.reprojection_px;
+    return m;
+  }
+};
+
+template <>
 struct Topic<SessionEventMsg> {
   using C = stereomap_msg_SessionEvent;
   static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_SessionEvent_desc; }
@@ -483,10 +552,12 @@ template class Writer<PoseMsg>;
 template class Writer<CloudFrameMsg>;
 template class Writer<SessionEventMsg>;
 template class Writer<PoseCorrectionMsg>;
+template class Writer<LandingTargetMsg>;
 template class Reader<PoseMsg>;
 template class Reader<CloudFrameMsg>;
 template class Reader<SessionEventMsg>;
 template class Reader<PoseCorrectionMsg>;
+template class Reader<LandingTargetMsg>;
 
 const char* loopbackConfigXml() {
   return R"(<CycloneDDS><Domain Id="any"><General>

@@ -165,6 +165,48 @@ TEST(Dds, PoseCorrectionReachesALateJoiningReaderWithEveryKeyframe) {
   EXPECT_FALSE((*writer)->write(correction).ok());
 }
 
+TEST(Dds, LandingTargetRoundTripsEveryField) {
+  auto participant = makeParticipant();
+  auto reader = Reader<LandingTargetMsg>::create(participant);  // volatile: joins first
+  auto writer = Writer<LandingTargetMsg>::create(participant);
+  ASSERT_TRUE(reader.ok() && writer.ok());
+  LandingTargetMsg target;
+  target.vehicle_id = "uav-7";
+  target.session_id = "deck-1";
+  target.seq = 3;
+  target.stamp_ns = 123;
+  target.state = LandingState::kTracking;
+  target.mode = LandingMode::kPatent;
+  target.reason = "followed";
+  target.has_pose = true;
+  target.camera_position = {0.5, -1, 20};
+  target.map_orientation = {0, 0, 0.6, 0.8};
+  target.map_covariance[35] = 1e-4;
+  target.deck_velocity = {5, 0, -0.3};
+  target.distance = 20.1;
+  target.bearing_deg = -12;
+  target.reprojection_px = 0.2;
+  // A volatile writer sends only to readers it has met: write until one arrives.
+  std::vector<LandingTargetMsg> got;
+  for (int attempt = 0; attempt < 50 && got.empty(); ++attempt) {
+    ASSERT_TRUE((*writer)->write(target).ok());
+    (*reader)->take(got, std::chrono::milliseconds(100));
+  }
+  ASSERT_FALSE(got.empty());
+  EXPECT_EQ(got[0].reason, "followed");
+  EXPECT_EQ(got[0].state, LandingState::kTracking);
+  EXPECT_EQ(got[0].mode, LandingMode::kPatent);
+  EXPECT_TRUE(got[0].has_pose);
+  EXPECT_EQ(got[0].camera_position, target.camera_position);
+  EXPECT_EQ(got[0].map_orientation, target.map_orientation);
+  EXPECT_EQ(got[0].map_covariance, target.map_covariance);
+  EXPECT_EQ(got[0].deck_velocity, target.deck_velocity);
+  EXPECT_EQ(got[0].distance, 20.1);
+  EXPECT_EQ(got[0].bearing_deg, -12);
+  target.reason.assign(kMaxLandingReason + 1, 'x');
+  EXPECT_FALSE((*writer)->write(target).ok());
+}
+
 TEST(Dds, WakeReturnsABlockedTakeAtOnce) {
   auto participant = makeParticipant();
   auto reader = Reader<PoseMsg>::create(participant);

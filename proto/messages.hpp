@@ -18,6 +18,8 @@ enum class TrackingState : uint8_t { kInit, kOk, kDegraded, kLost };
 enum class PoseSource : uint8_t { kGroundTruth, kVisualOdometry, kExternal };
 enum class CloudEncoding : uint8_t { kDraco, kRawF32 };
 enum class SessionEventKind : uint8_t { kStarted, kEnded };
+enum class LandingState : uint8_t { kSearching, kTracking, kLost };
+enum class LandingMode : uint8_t { kDefault, kPatent };
 
 struct PoseMsg {
   std::string vehicle_id;
@@ -64,6 +66,31 @@ struct PoseCorrectionMsg {
 };
 
 inline constexpr size_t kMaxCorrectedKeyframes = 100000;  // the IDL bound
+
+inline constexpr size_t kMaxLandingReason = 200;  // the IDL bound
+
+// The landing pad as a vehicle sees it (see the IDL).
+struct LandingTargetMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t seq = 0;
+  int64_t stamp_ns = 0;
+  LandingState state = LandingState::kSearching;
+  LandingMode mode = LandingMode::kDefault;
+  std::string reason;
+  bool has_pose = false;
+  std::array<double, 3> camera_position{};
+  std::array<double, 4> camera_orientation{0, 0, 0, 1};  // T_camera_pad, x y z w
+  std::array<double, 36> camera_covariance{};
+  std::array<double, 3> map_position{};
+  std::array<double, 4> map_orientation{0, 0, 0, 1};  // T_map_pad
+  std::array<double, 36> map_covariance{};
+  std::array<double, 3> deck_velocity{};
+  std::array<double, 3> deck_angular_rate{};
+  double distance = 0;
+  double bearing_deg = 0;
+  double reprojection_px = 0;
+};
 
 struct SessionEventMsg {
   std::string vehicle_id;

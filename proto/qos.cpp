@@ -24,6 +24,13 @@ dds_qos_t* keepingAll(dds_qos_t* qos) {
 
 dds_qos_t* sessionEventQos() { return reliableWithHistory(4); }
 dds_qos_t* poseCorrectionQos() { return reliableWithHistory(1); }
+dds_qos_t* landingTargetQos() {
+  dds_qos_t* qos = dds_create_qos();
+  dds_qset_reliability(qos, DDS_RELIABILITY_RELIABLE, DDS_SECS(1));
+  dds_qset_history(qos, DDS_HISTORY_KEEP_LAST, 1);
+  dds_qset_durability(qos, DDS_DURABILITY_VOLATILE);
+  return qos;
+}
 dds_qos_t* poseQos() { return reliableWithHistory(kPoseHistory); }
 dds_qos_t* poseReaderQos() { return keepingAll(poseQos()); }
 dds_qos_t* cloudQos() { return reliableWithHistory(kCloudHistory); }

@@ -11,6 +11,9 @@ dds_qos_t* sessionEventQos();
 // Reliable, transient-local, keep-last 1 per session: each correction holds every keyframe,
 // so only the newest matters, and a late-joining server still gets it.
 dds_qos_t* poseCorrectionQos();
+// Reliable, volatile, keep-last 1 per vehicle: only the newest sighting of the pad matters,
+// and a stale one is worse than none to a late joiner.
+dds_qos_t* landingTargetQos();
 // Reliable, transient-local, keep-last kPoseHistory: a server restarted within a few seconds
 // gets the poses it missed, as it does the clouds.
 dds_qos_t* poseQos();

@@ -16,6 +16,7 @@
 #include "common/trajectory.hpp"
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/pipeline/pipeline.hpp"
+#include "onboard/sim/deck.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "proto/dds_cli.hpp"
 
@@ -49,8 +50,10 @@ int main(int argc, char** argv) {
   double wait_s = 3.0;
   double paper_resolution = 0;
   std::string calibration_file;
+  std::string landing_mode = "off";
   app.add_option("--source", source_spec,
-                 "Frame source: sim, kitti:DIR, euroc:DIR, folder:DIR or camera:LEFT,RIGHT")
+                 "Frame source: sim, sim:deck (a descent onto a moving ship's deck with the "
+                 "landing pad), kitti:DIR, euroc:DIR, folder:DIR or camera:LEFT,RIGHT")
       ->capture_default_str();
   app.add_option("--calib", calibration_file,
                  "Stereo calibration (ours, OpenCV stereo_calib, KITTI calib.txt); overrides "
@@ -111,6 +114,11 @@ int main(int argc, char** argv) {
                  "Skip disparities below the octree-mapping paper's d_min = ceil(sqrt(b*f*0.5/r)) "
                  "for map resolution r metres (0: off)")
       ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--landing", landing_mode,
+                 "Watch for the landing pad and publish it (LandingTarget): default (PnP refined "
+                 "on both images) or patent (the patent's linear solution); off: no watch")
+      ->check(CLI::IsMember({"off", "default", "patent"}))
+      ->capture_default_str();
   app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
       ->check(CLI::Range(0.0, 600.0))
       ->capture_default_str();
@@ -133,7 +141,21 @@ int main(int argc, char** argv) {
   options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
 
   std::unique_ptr<camera::FrameSource> source;
-  if (source_spec == "sim") {
+  if (source_spec == "sim:deck") {
+    sim::DeckSourceOptions deck{
+        .seed = seed, .rate_hz = rate_hz > 0 ? rate_hz : 10.0, .max_frames = frames};
+    if (app.count("--image-noise") > 0) deck.render.noise_sigma = noise_sigma;
+    if (app.count("--image-blur") > 0) deck.render.blur_sigma = blur_sigma;
+    source = std::make_unique<sim::DeckSource>(deck);
+    // Odometry would follow the deck (the scene moves with it); the sim's navigation stands
+    // in for the vehicle's GPS/INS, as the landing patent uses it.
+    if (app.count("--vo") == 0) {
+      vo = "gt";
+      spdlog::info(
+          "sim:deck: poses from the sim's navigation (stands in for GPS/INS; --vo to "
+          "change)");
+    }
+  } else if (source_spec == "sim") {
     source = std::make_unique<sim::SimSource>(
         sim::SimSourceOptions{.seed = seed,
                               .rate_hz = rate_hz > 0 ? rate_hz : 10.0,
@@ -163,6 +185,11 @@ int main(int argc, char** argv) {
       vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
   options.odometry.mode = vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
   options.depth = !no_publish;  // the clouds only matter to a server
+  if (landing_mode != "off") {
+    options.landing = landing::LandingWatchOptions{};
+    options.landing->pose.mode =
+        landing_mode == "patent" ? landing::PoseMode::kPatent : landing::PoseMode::kDefault;
+  }
 
   // Trajectory files, and a progress bar when running the odometry alone.
   // Kept only when asked for: a live vehicle runs until Ctrl-C.
@@ -249,6 +276,10 @@ int main(int argc, char** argv) {
       spdlog::info("stereo calibration check: right image offset {:+.2f} px",
                    summary.right_offset_px);
     }
+  }
+  if (options.landing) {
+    spdlog::info("landing pad: tracked in {} of {} frames, {} poses published",
+                 summary.landing_tracked, summary.frames, summary.landing_poses);
   }
   if (no_publish) return 0;
   spdlog::info(

@@ -32,8 +32,8 @@ std::vector<LandingFrameScore> runLanding(sim::DeckSource& source,
                                           const LandingRunOptions& options) {
   std::vector<LandingFrameScore> scores;
   const camera::StereoCamera& camera = source.camera();
-  landing::PadTracker left_tracker(options.tracker), right_tracker(options.tracker);
-  landing::DeckFilter deck;
+  landing::LandingWatch watch(camera, {.tracker = options.tracker});
+  const Vec3 centre = landing::padCentre();
   for (uint64_t n = 0;; ++n) {
     auto frame = source.next();
     if (!frame) break;
@@ -45,61 +45,52 @@ std::vector<LandingFrameScore> runLanding(sim::DeckSource& source,
     score.t_s = truth.t_s;
     score.distance_m = truth.distance_m;
     score.corners_in_view = truth.corners_in_view;
-    auto start = std::chrono::steady_clock::now();
-    const landing::PadTrack left = left_tracker.update(frame->left);
-    score.track_ms = msSince(start);
-    const landing::PadTrack& right = right_tracker.update(frame->right);
-    score.state = left.state;
-    score.detected = left.detected;
-    score.reason = left.reason;
+    // The body pose from the vehicle's navigation: the sim's truth stands in for GPS/INS, as
+    // in the patent.
+    const landing::LandingReport& seen =
+        watch.update(truth.t_s, frame->left, frame->right, *frame->T_map_body,
+                     *frame->T_body_camera);
+    score.track_ms = seen.track_ms;
+    score.state = seen.state;
+    score.detected = seen.left.detected;
+    score.reason = seen.reason;
+    score.right_found = seen.right_tracking;
     const bool scored = n % static_cast<uint64_t>(std::max(options.every, 1)) == 0;
     if (scored) {
-      start = std::chrono::steady_clock::now();
+      const auto start = std::chrono::steady_clock::now();
       (void)landing::detectPad(frame->left, options.tracker.detector);
       score.detect_ms = msSince(start);
     }
-    if (left.state == landing::TrackState::kTracking) {
-      score.corner_error_px = cornerError(left.corners, truth.T_camera_pad, camera);
-      score.right_found = right.state == landing::TrackState::kTracking;
-      const std::optional<landing::PadView> right_view =
-          score.right_found ? std::optional(landing::PadView{right.corners, right.edges})
-                            : std::nullopt;
-      for (int m = 0; m < 2; ++m) {
-        start = std::chrono::steady_clock::now();
-        const landing::PadPose pose = landing::estimatePadPose(
-            landing::PadView{left.corners, left.edges}, right_view, camera,
-            {.mode = m == 0 ? landing::PoseMode::kDefault : landing::PoseMode::kPatent});
-        score.pose_ms[m] = msSince(start);
-        auto& mode = score.modes[m];
-        mode.published = pose.ok;
-        mode.rms_px = pose.rms_px;
-        if (!pose.ok) {
-          if (m == 0) score.reason = pose.reason;
-          continue;
-        }
-        const Vec3 centre = landing::padCentre();
-        mode.position_pct = 100.0 *
-                            (pose.T_camera_pad * centre - truth.T_camera_pad * centre).norm() /
-                            truth.distance_m;
-        mode.attitude_deg =
-            pose.T_camera_pad.rotation.angularDistance(truth.T_camera_pad.rotation) * 180.0 / M_PI;
-        if (m != 0) continue;
-        // The deck's motion: the body pose from the vehicle's navigation (the sim's truth
-        // stands in for GPS/INS, as in the patent).
-        const Rigid3 T_map_camera = *frame->T_map_body * *frame->T_body_camera;
-        const auto& estimate = deck.update(
-            truth.t_s, T_map_camera * pose.T_camera_pad,
-            landing::padCovarianceInMap(T_map_camera, pose.T_camera_pad, pose.covariance));
-        score.deck_valid = true;
-        score.heave_rate_error = estimate.velocity.z() - truth.deck_velocity.z();
-        score.deck_attitude_error_deg =
-            estimate.T_map_deck.rotation.angularDistance(truth.T_world_deck.rotation) * 180.0 /
-            M_PI;
-      }
+    auto grade = [&](const landing::PadPose& pose, LandingFrameScore::Mode& mode) {
+      mode.published = pose.ok;
+      mode.rms_px = pose.rms_px;
+      if (!pose.ok) return;
+      mode.position_pct = 100.0 *
+                          (pose.T_camera_pad * centre - truth.T_camera_pad * centre).norm() /
+                          truth.distance_m;
+      mode.attitude_deg =
+          pose.T_camera_pad.rotation.angularDistance(truth.T_camera_pad.rotation) * 180.0 / M_PI;
+    };
+    if (seen.state == landing::TrackState::kTracking) {
+      score.corner_error_px = cornerError(seen.left.corners, truth.T_camera_pad, camera);
+      grade(seen.pose, score.modes[0]);
+      score.pose_ms[0] = seen.pose_ms;
+      const auto start = std::chrono::steady_clock::now();
+      const landing::PadPose patent = landing::estimatePadPose(
+          seen.left.corners, std::nullopt, camera, {.mode = landing::PoseMode::kPatent});
+      score.pose_ms[1] = msSince(start);
+      grade(patent, score.modes[1]);
+    }
+    if (seen.has_pose) {
+      score.deck_valid = true;
+      score.heave_rate_error = seen.deck.velocity.z() - truth.deck_velocity.z();
+      score.deck_attitude_error_deg =
+          seen.deck.T_map_deck.rotation.angularDistance(truth.T_world_deck.rotation) * 180.0 /
+          M_PI;
     }
     cv::setNumThreads(threads);
     if (!scored) continue;
-    if (options.on_frame) options.on_frame(*frame, score, left);
+    if (options.on_frame) options.on_frame(*frame, score, seen.left);
     scores.push_back(score);
   }
   return scores;

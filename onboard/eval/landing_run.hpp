@@ -1,15 +1,12 @@
-// Runs the landing chain over a simulated descent onto the moving deck and scores each frame
-// against the truth: the pad tracked in both images (PadTracker), its pose in both modes, the
-// deck's motion from the default mode's poses (DeckFilter, body pose from the vehicle's
-// navigation). What stereomap-landing-eval prints and the landing tests assert.
+// Runs the landing chain (LandingWatch, default mode) over a simulated descent onto the moving
+// deck and scores each frame against the truth, with the patent mode's pose from the same
+// corners beside it. What stereomap-landing-eval prints.
 #pragma once
 
 #include <functional>
 #include <vector>
 
-#include "onboard/landing/deck_filter.hpp"
-#include "onboard/landing/pad_pose.hpp"
-#include "onboard/landing/pad_tracker.hpp"
+#include "onboard/landing/landing_watch.hpp"
 #include "onboard/sim/deck.hpp"
 
 namespace stereomap::eval {

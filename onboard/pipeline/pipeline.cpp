@@ -50,10 +50,13 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   if (!clouds) return clouds.error();
   auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant);
   if (!corrections) return corrections.error();
+  auto landing = makeWriter<proto::LandingTargetMsg>(participant);
+  if (!landing) return landing.error();
   publisher->events_ = std::move(events).value();
   publisher->poses_ = std::move(poses).value();
   publisher->clouds_ = std::move(clouds).value();
   publisher->corrections_ = std::move(corrections).value();
+  publisher->landing_ = std::move(landing).value();
   return publisher;
 }
 
@@ -66,6 +69,9 @@ common::Status VehiclePublisher::publish(const proto::CloudFrameMsg& frame) {
 }
 common::Status VehiclePublisher::publish(const proto::PoseCorrectionMsg& correction) {
   return corrections_->write(correction);
+}
+common::Status VehiclePublisher::publish(const proto::LandingTargetMsg& target) {
+  return landing_->write(target);
 }
 bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);
@@ -124,6 +130,43 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
     }
   }
   return pose;
+}
+
+proto::LandingTargetMsg makeLandingTargetMsg(const PipelineOptions& options, uint64_t seq,
+                                             int64_t stamp_ns, const landing::LandingReport& seen,
+                                             landing::PoseMode mode) {
+  proto::LandingTargetMsg target;
+  target.vehicle_id = options.vehicle_id;
+  target.session_id = options.session_id;
+  target.seq = seq;
+  target.stamp_ns = stamp_ns;
+  target.state = seen.state == landing::TrackState::kTracking ? proto::LandingState::kTracking
+                 : seen.state == landing::TrackState::kLost   ? proto::LandingState::kLost
+                                                              : proto::LandingState::kSearching;
+  target.mode = mode == landing::PoseMode::kPatent ? proto::LandingMode::kPatent
+                                                   : proto::LandingMode::kDefault;
+  target.reason = seen.reason.substr(0, proto::kMaxLandingReason);
+  target.has_pose = seen.has_pose;
+  if (seen.has_pose) {
+    copyPose(seen.pose.T_camera_pad, target.camera_position, target.camera_orientation);
+    copyPose(seen.T_map_pad, target.map_position, target.map_orientation);
+    for (int r = 0; r < 6; ++r) {
+      for (int c = 0; c < 6; ++c) {
+        target.camera_covariance[static_cast<size_t>(r * 6 + c)] = seen.pose.covariance(r, c);
+        target.map_covariance[static_cast<size_t>(r * 6 + c)] = seen.map_covariance(r, c);
+      }
+    }
+    target.distance = seen.bearing.distance_m;
+    target.bearing_deg = seen.bearing.bearing_deg;
+    target.reprojection_px = seen.pose.rms_px;
+  }
+  if (seen.deck.valid) {
+    for (int i = 0; i < 3; ++i) {
+      target.deck_velocity[static_cast<size_t>(i)] = seen.deck.velocity[i];
+      target.deck_angular_rate[static_cast<size_t>(i)] = seen.deck.angular_rate[i];
+    }
+  }
+  return target;
 }
 
 proto::PoseCorrectionMsg makePoseCorrectionMsg(
@@ -210,6 +253,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   if (odometry && options.pose_graph) {
     graph.emplace(source.camera(), options.graph, /*background=*/true);
   }
+  std::optional<landing::LandingWatch> landing;
+  if (options.landing) landing.emplace(source.camera(), *options.landing);
   std::vector<common::Rigid3> T_body_cameras;  // per frame, for the corrected trajectory
   std::optional<common::Rigid3> anchor;        // T_map_camera of the odometry's world frame
   // The graph's newest keyframe poses not yet sent, and when the last were.
@@ -306,6 +351,17 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
     previous_pose = T_map_body;
     previous_stamp = frame->stamp_ns;
+    if (landing) {
+      const auto& seen = landing->update(common::nsToSeconds(frame->stamp_ns), frame->left,
+                                         frame->right, T_map_body, T_body_camera);
+      summary.landing_tracked += seen.state == landing::TrackState::kTracking;
+      summary.landing_poses += seen.has_pose;
+      if (publisher != nullptr) {
+        report(publisher->publish(makeLandingTargetMsg(options, summary.frames, frame->stamp_ns,
+                                                       seen, options.landing->pose.mode)),
+               "LandingTarget");
+      }
+    }
     // A lost frame's pose is a guess: it is published (so that operators see the state) but
     // its cloud is not, and nothing is computed that only feeds the map.
     const bool mapped =

@@ -14,6 +14,7 @@
 #include "common/result.hpp"
 #include "common/shutdown.hpp"
 #include "onboard/camera/frame_source.hpp"
+#include "onboard/landing/landing_watch.hpp"
 #include "onboard/odometry/odometry.hpp"
 #include "onboard/posegraph/graph_follower.hpp"
 #include "onboard/stereo/depth.hpp"
@@ -64,6 +65,10 @@ struct PipelineOptions {
   bool pose_graph = false;
   std::chrono::milliseconds correction_period{1000};
   posegraph::KeyframeGraphOptions graph;
+  // Watch for the landing pad (onboard/landing) in every frame and publish what is seen as a
+  // LandingTarget: the pad in the camera and the map (through the pose published), the
+  // deck's motion, distance and bearing.
+  std::optional<landing::LandingWatchOptions> landing;
   std::function<void(const FrameReport&)> on_frame;  // after every frame, if set
 };
 
@@ -86,6 +91,8 @@ struct PipelineSummary {
   std::vector<common::Rigid3> corrected_T_map_body;
   posegraph::FollowerStats graph;
   uint64_t corrections = 0;  // corrections the graph made (PoseCorrection samples, if publishing)
+  // With landing: frames the pad was tracked in, and those with a pose published.
+  uint64_t landing_tracked = 0, landing_poses = 0;
 };
 
 // The DDS side of the vehicle: one writer per topic.
@@ -97,6 +104,7 @@ class VehiclePublisher {
   common::Status publish(const proto::PoseMsg& pose);
   common::Status publish(const proto::CloudFrameMsg& frame);
   common::Status publish(const proto::PoseCorrectionMsg& correction);
+  common::Status publish(const proto::LandingTargetMsg& target);
   bool waitForServer(std::chrono::milliseconds timeout) const;
   // Waits until the server acknowledged everything published (the final SessionEvent
   // included), up to `timeout`; false when something is still unacknowledged.
@@ -107,6 +115,7 @@ class VehiclePublisher {
   std::unique_ptr<proto::Writer<proto::PoseMsg>> poses_;
   std::unique_ptr<proto::Writer<proto::CloudFrameMsg>> clouds_;
   std::unique_ptr<proto::Writer<proto::PoseCorrectionMsg>> corrections_;
+  std::unique_ptr<proto::Writer<proto::LandingTargetMsg>> landing_;
 };
 
 // Messages for one frame (exposed for tests).
@@ -123,6 +132,10 @@ proto::PoseCorrectionMsg makePoseCorrectionMsg(
     const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
     const std::vector<posegraph::KeyframePose>& keyframes, const common::Rigid3& anchor,
     const common::Rigid3& T_body_camera);
+// What the landing watch saw in one frame, as the server takes it.
+proto::LandingTargetMsg makeLandingTargetMsg(const PipelineOptions& options, uint64_t seq,
+                                             int64_t stamp_ns, const landing::LandingReport& seen,
+                                             landing::PoseMode mode);
 proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
                                         const camera::StereoCamera& camera,
                                         proto::SessionEventKind kind);

@@ -167,11 +167,13 @@ int main(int argc, char** argv) {
   auto poses = proto::Reader<proto::PoseMsg>::create(*participant);
   auto events = proto::Reader<proto::SessionEventMsg>::create(*participant);
   auto corrections = proto::Reader<proto::PoseCorrectionMsg>::create(*participant);
-  if (!clouds || !poses || !events || !corrections) {
-    spdlog::error("cannot create DDS readers: {}", !clouds   ? clouds.error().message
-                                                   : !poses  ? poses.error().message
-                                                   : !events ? events.error().message
-                                                             : corrections.error().message);
+  auto landing = proto::Reader<proto::LandingTargetMsg>::create(*participant);
+  if (!clouds || !poses || !events || !corrections || !landing) {
+    spdlog::error("cannot create DDS readers: {}", !clouds        ? clouds.error().message
+                                                   : !poses       ? poses.error().message
+                                                   : !events      ? events.error().message
+                                                   : !corrections ? corrections.error().message
+                                                                  : landing.error().message);
     return 1;
   }
 
@@ -212,12 +214,14 @@ int main(int argc, char** argv) {
     (*poses)->wake();
     (*events)->wake();
     (*corrections)->wake();
+    (*landing)->wake();
   });
   std::vector<std::thread> ingest;
   ingest.emplace_back([&] { pump(**clouds, server, shutdown); });
   ingest.emplace_back([&] { pump(**poses, server, shutdown); });
   ingest.emplace_back([&] { pump(**events, server, shutdown); });
   ingest.emplace_back([&] { pump(**corrections, server, shutdown); });
+  ingest.emplace_back([&] { pump(**landing, server, shutdown); });
 
   spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", dds.domain_id,
                options.resolution, store_dir);

@@ -36,6 +36,37 @@ json boundsJson(const common::Box3& bounds) {
           {"max", {bounds.max.x(), bounds.max.y(), bounds.max.z()}}};
 }
 
+// GET /api/sessions/{id}/landing: each vehicle's newest view of the landing pad.
+json landingJson(const std::string& id, const std::vector<proto::LandingTargetMsg>& targets) {
+  static const char* kStates[] = {"SEARCHING", "TRACKING", "LOST"};
+  json vehicles = json::array();
+  for (const auto& t : targets) {
+    json entry = {{"vehicle_id", t.vehicle_id},
+                  {"stamp_ns", t.stamp_ns},
+                  {"seq", t.seq},
+                  {"state", kStates[static_cast<int>(t.state)]},
+                  {"mode", t.mode == proto::LandingMode::kPatent ? "patent" : "default"},
+                  {"reason", t.reason},
+                  {"has_pose", t.has_pose}};
+    if (t.has_pose) {
+      entry["pad_in_camera"] = {{"position", t.camera_position},
+                                {"orientation", t.camera_orientation},
+                                {"covariance", t.camera_covariance}};
+      entry["pad_in_map"] = {{"position", t.map_position},
+                             {"orientation", t.map_orientation},
+                             {"covariance", t.map_covariance}};
+      entry["deck"] = {{"velocity", t.deck_velocity},
+                       {"heave_rate", t.deck_velocity[2]},
+                       {"angular_rate", t.deck_angular_rate}};
+      entry["distance_m"] = t.distance;
+      entry["bearing_deg"] = t.bearing_deg;
+      entry["reprojection_px"] = t.reprojection_px;
+    }
+    vehicles.push_back(std::move(entry));
+  }
+  return {{"session", id}, {"vehicles", std::move(vehicles)}};
+}
+
 json statusJson(const SessionStatus& s) {
   return {{"id", s.id},
           {"vehicle", s.vehicles.empty() ? "" : s.vehicles.front()},
@@ -205,6 +236,10 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
     return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
   }
   if (parts[3] == "tiles") return answerTiles(*session, parts, if_none_match);
+  if (parts.size() == 4 && parts[3] == "landing") {
+    return HttpAnswer{200, "application/json",
+                      landingJson(parts[2], session->landingTargets()).dump() + "\n", ""};
+  }
   // Resource -> export format; the height band and scale come from the query.
   static const std::map<std::string, std::string, std::less<>> kFormats = {
       {"trajectory.tum", "tum"},

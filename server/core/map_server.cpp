@@ -284,6 +284,20 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
   return true;
 }
 
+bool MapServer::ingest(const proto::LandingTargetMsg& target) {
+  auto rejection = validateLandingTarget(target);
+  if (!rejection && !find(target.session_id)) {
+    rejection = Rejection{"unknown_session", "no session '" + target.session_id +
+                                                 "': a landing target belongs to a live one"};
+  }
+  auto session =
+      admit("LandingTarget", target.vehicle_id, target.session_id, rejection, Origin::kLive);
+  if (!session) return false;
+  session->noteLive(common::nowNs());
+  session->setLandingTarget(target);
+  return true;
+}
+
 bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin) {
   std::vector<ValidPose> keyframes;
   auto rejection = validatePoseCorrection(correction, keyframes);

@@ -103,6 +103,10 @@ class MapServer {
   // the frames) do not. Refused (counted, reason "unknown_poses") when none of its keyframes
   // is a pose the vehicle sent.
   bool ingest(const proto::PoseCorrectionMsg& correction, Origin origin = Origin::kLive);
+  // A vehicle's view of the landing pad: kept as the newest per vehicle in its session, never
+  // journaled. Refused (reason "unknown_session") when the session does not exist: a
+  // landing target alone does not make one.
+  bool ingest(const proto::LandingTargetMsg& target);
 
   // Creates session `id` (recovery, or opening a stored session read-only) at its own
   // resolution; fails when it is already loaded or the session limit is reached.

@@ -496,6 +496,19 @@ uint64_t Session::trajectoryVersion() const {
   return trajectory_version_;
 }
 
+void Session::setLandingTarget(const proto::LandingTargetMsg& target) {
+  std::lock_guard state(state_mutex_);
+  auto& kept = landing_[target.vehicle_id];
+  if (target.stamp_ns >= kept.stamp_ns) kept = target;
+}
+
+std::vector<proto::LandingTargetMsg> Session::landingTargets() const {
+  std::lock_guard state(state_mutex_);
+  std::vector<proto::LandingTargetMsg> out;
+  for (const auto& [vehicle, target] : landing_) out.push_back(target);
+  return out;
+}
+
 std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
   std::vector<fusion::VoxelIndex> voxels;
   for (const auto& tile : tiles_.all()) {

@@ -31,6 +31,7 @@
 #include "common/point_cloud.hpp"
 #include "common/result.hpp"
 #include "common/worker_pool.hpp"
+#include "proto/messages.hpp"
 #include "server/core/pose_correction.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/tiles/tile_set.hpp"
@@ -161,6 +162,10 @@ class Session {
   SessionStatus status() const;
   // SessionStatus::trajectory_version alone (viewers poll it).
   uint64_t trajectoryVersion() const;
+  // The newest landing target per vehicle (kept in memory, not journaled: a sighting of the
+  // pad is only worth its moment). An older stamp than the one kept is ignored.
+  void setLandingTarget(const proto::LandingTargetMsg& target);
+  std::vector<proto::LandingTargetMsg> landingTargets() const;
   // The map as tiles: what viewers and tile requests read.
   const tiles::TileSet& tiles() const { return tiles_; }
   // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
@@ -250,6 +255,7 @@ class Session {
   double refusion_seconds_ = 0;
   std::string refusion_error_;  // the last re-fusion failed: why ("" once one succeeds)
   uint64_t trajectory_version_ = 0;
+  std::map<std::string, proto::LandingTargetMsg> landing_;  // by vehicle
 
   // Re-fusion. Under queue_mutex_: the map handed over for the swap and the frames the worker
   // fused since the re-fusion began (poses as sent; the oldest dropped beyond kMaxTail until

@@ -139,6 +139,46 @@ std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& 
   return std::nullopt;
 }
 
+std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& target) {
+  if (auto bad = checkIds(target.vehicle_id, target.session_id)) return bad;
+  if (target.reason.size() > proto::kMaxLandingReason) {
+    return Rejection{"oversize",
+                     "landing reason of " + std::to_string(target.reason.size()) + " bytes"};
+  }
+  for (const char c : target.reason) {
+    if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) {
+      return Rejection{"bad_text", "landing reason with a control character"};
+    }
+  }
+  common::Rigid3 unused;
+  if (auto bad =
+          checkPose(target.camera_position, target.camera_orientation, "pad in camera", unused)) {
+    return bad;
+  }
+  if (auto bad = checkPose(target.map_position, target.map_orientation, "pad in map", unused)) {
+    return bad;
+  }
+  for (const auto* covariance : {&target.camera_covariance, &target.map_covariance}) {
+    for (size_t i = 0; i < covariance->size(); ++i) {
+      const double v = (*covariance)[i];
+      if (!std::isfinite(v) || (i % 7 == 0 && v < 0)) {
+        return Rejection{"non_finite", "landing covariance: not finite or a negative variance"};
+      }
+    }
+  }
+  for (const auto* vector : {&target.deck_velocity, &target.deck_angular_rate}) {
+    for (const double v : *vector) {
+      if (!std::isfinite(v)) return Rejection{"non_finite", "deck motion is not finite"};
+    }
+  }
+  if (!std::isfinite(target.distance) || target.distance < 0 ||
+      !std::isfinite(target.bearing_deg) || std::abs(target.bearing_deg) > 360 ||
+      !std::isfinite(target.reprojection_px) || target.reprojection_px < 0) {
+    return Rejection{"non_finite", "landing distance, bearing or reprojection error out of range"};
+  }
+  return std::nullopt;
+}
+
 std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event) {
   if (auto bad = checkIds(event.vehicle_id, event.session_id)) return bad;
   for (double v : {event.fx, event.fy, event.cx, event.cy, event.baseline, event.resolution_hint}) {

@@ -49,4 +49,8 @@ std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& even
 std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& correction,
                                                 std::vector<ValidPose>& out);
 
+// A landing target: ids, a reason of printable characters, every number finite, unit
+// quaternions, covariances with a non-negative diagonal, a distance >= 0.
+std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& target);
+
 }  // namespace stereomap::core
