@@ -66,6 +66,11 @@ int main(int argc, char** argv) {
                  "Rays per pixel along each axis (anti-aliasing)")
       ->check(CLI::Range(1, 8))
       ->capture_default_str();
+  app.add_option("--start", source_options.start_s, "Seconds into the 60 s descent to begin")
+      ->check(CLI::Range(0.0, 60.0))
+      ->capture_default_str();
+  app.add_option("--frames", source_options.max_frames, "Frames to run (0: to the end)")
+      ->capture_default_str();
   app.add_option("--csv", csv_path, "Write every scored frame's figures to this CSV file");
   app.add_option("--save-frames", save_dir,
                  "Write every --save-every-th scored frame as a PNG here");
@@ -74,11 +79,10 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   if (!save_dir.empty()) {
     std::filesystem::create_directories(save_dir);
-    int count = 0;
-    const int every = std::max(save_every, 1);
-    run_options.on_frame = [&](const camera::SourceFrame& frame,
+    run_options.on_frame = [&save_dir, count = 0, every = std::max(save_every, 1)](
+                               const camera::SourceFrame& frame,
                                const eval::LandingFrameScore& score,
-                               const landing::PadTrack& track) {
+                               const landing::PadTrack& track) mutable {
       if (count++ % every == 0) saveFrame(save_dir, frame, score, track);
     };
   }

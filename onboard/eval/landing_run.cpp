@@ -47,9 +47,8 @@ std::vector<LandingFrameScore> runLanding(sim::DeckSource& source,
     score.corners_in_view = truth.corners_in_view;
     // The body pose from the vehicle's navigation: the sim's truth stands in for GPS/INS, as
     // in the patent.
-    const landing::LandingReport& seen =
-        watch.update(truth.t_s, frame->left, frame->right, *frame->T_map_body,
-                     *frame->T_body_camera);
+    const landing::LandingReport& seen = watch.update(truth.t_s, frame->left, frame->right,
+                                                      *frame->T_map_body, *frame->T_body_camera);
     score.track_ms = seen.track_ms;
     score.state = seen.state;
     score.detected = seen.left.detected;
@@ -85,8 +84,7 @@ std::vector<LandingFrameScore> runLanding(sim::DeckSource& source,
       score.deck_valid = true;
       score.heave_rate_error = seen.deck.velocity.z() - truth.deck_velocity.z();
       score.deck_attitude_error_deg =
-          seen.deck.T_map_deck.rotation.angularDistance(truth.T_world_deck.rotation) * 180.0 /
-          M_PI;
+          seen.deck.T_map_deck.rotation.angularDistance(truth.T_world_deck.rotation) * 180.0 / M_PI;
     }
     cv::setNumThreads(threads);
     if (!scored) continue;
