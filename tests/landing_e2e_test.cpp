@@ -34,7 +34,8 @@ TEST(LandingEndToEnd, WhatTheVehicleSeesOfThePadReachesTheApi) {
                         STEREOMAP_DDS_CONFIG, "--domain", std::to_string(kDescentDomain)},
                        server.logPath() + ".onboard");
   const auto code = onboard.waitExit(120s);
-  ASSERT_TRUE(code.has_value() && *code == 0) << "onboard failed: " << server.logPath() << ".onboard";
+  ASSERT_TRUE(code.has_value() && *code == 0)
+      << "onboard failed: " << server.logPath() << ".onboard";
   json landing;
   ASSERT_TRUE(waitUntil(20s,
                         [&] {
