@@ -391,14 +391,21 @@ std::array<cv::Point2d, 8> refineCorners(const cv::Mat& grey,
                                          PadEdgePoints* edges) {
   cv::Mat image;
   grey.convertTo(image, CV_32F);
-  // Twice: the profiles across each edge are centred on the first pass's lines, so the deck's
-  // and the paint's levels are read as far from the edge on both sides.
-  const auto first = refineOnce(image, corners, nullptr);
-  auto second = refineOnce(image, first, edges);
-  for (int k = 0; k < 8; ++k) {
-    if (cv::norm(second[k] - corners[k]) >= 3.0) second[k] = corners[k];
+  // Until it settles (at most 4 passes): each pass centres the profiles across each edge on
+  // the last pass's lines, so the deck's and the paint's levels are read as far from the
+  // edge on both sides (a polygon from a threshold can be a pixel or two off).
+  std::array<cv::Point2d, 8> refined = corners;
+  for (int pass = 0; pass < 4; ++pass) {
+    const auto next = refineOnce(image, refined, edges);  // the last pass's edges stay
+    double moved = 0;
+    for (int k = 0; k < 8; ++k) moved = std::max(moved, cv::norm(next[k] - refined[k]));
+    refined = next;
+    if (moved < 0.02) break;
   }
-  return second;
+  for (int k = 0; k < 8; ++k) {
+    if (cv::norm(refined[k] - corners[k]) >= 3.0) refined[k] = corners[k];
+  }
+  return refined;
 }
 
 PadDetection detectPad(const cv::Mat& grey, const DetectorOptions& options) {
