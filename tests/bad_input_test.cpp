@@ -38,11 +38,6 @@ proto::PoseMsg goodPose(uint64_t seq) {
   return pose;
 }
 
-double metric(const std::string& metrics, const std::string& series) {
-  const size_t at = metrics.find(series + " ");
-  return at == std::string::npos ? 0.0 : std::atof(metrics.c_str() + at + series.size() + 1);
-}
-
 TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   ServerProcess server(kDomain);
   auto participant =
@@ -79,24 +74,26 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   std::string metrics;
   const bool counted = waitUntil(30s, [&] {
     metrics = server.get("/metrics").body;
-    return metric(metrics, "stereomap_session_frames_fused{session=\"bad-input\"}") == 2 &&
-           metric(metrics,
-                  "stereomap_samples_rejected_total{topic=\"Pose\",reason=\"non_finite\"}") == 1 &&
-           metric(metrics, "stereomap_samples_accepted_total{topic=\"Pose\"}") == 2;
+    return seriesValue(metrics, "stereomap_session_frames_fused{session=\"bad-input\"}") == 2 &&
+           seriesValue(metrics,
+                       "stereomap_samples_rejected_total{topic=\"Pose\",reason=\"non_finite\"}") ==
+               1 &&
+           seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"Pose\"}") == 2;
   });
   ASSERT_TRUE(counted) << metrics << "\n" << server.log();
+  EXPECT_EQ(seriesValue(
+                metrics,
+                "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"decode_failed\"}"),
+            1);
   EXPECT_EQ(
-      metric(metrics,
-             "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"decode_failed\"}"),
+      seriesValue(metrics,
+                  "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"oversize\"}"),
       1);
-  EXPECT_EQ(
-      metric(metrics, "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"oversize\"}"),
-      1);
-  EXPECT_EQ(
-      metric(metrics,
-             "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"bad_quaternion\"}"),
-      1);
-  EXPECT_EQ(metric(metrics, "stereomap_samples_accepted_total{topic=\"CloudFrame\"}"), 2);
+  EXPECT_EQ(seriesValue(
+                metrics,
+                "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"bad_quaternion\"}"),
+            1);
+  EXPECT_EQ(seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"CloudFrame\"}"), 2);
 
   // The good frames are in the map: both walls, nothing of the rejected ones at x = 2.55.
   const auto session = nlohmann::json::parse(server.get("/api/sessions/" + kSession).body);
@@ -165,8 +162,9 @@ TEST(BadInput, HostileCorrectionsAreRefusedWithTheirReasons) {
   ASSERT_TRUE((*corrections)->write(far).ok());
 
   auto rejected = [](const std::string& metrics, const std::string& reason) {
-    return metric(metrics, "stereomap_samples_rejected_total{topic=\"PoseCorrection\",reason=\"" +
-                               reason + "\"}");
+    return seriesValue(
+        metrics,
+        "stereomap_samples_rejected_total{topic=\"PoseCorrection\",reason=\"" + reason + "\"}");
   };
   std::string metrics;
   const bool counted = waitUntil(30s, [&] {
@@ -174,7 +172,7 @@ TEST(BadInput, HostileCorrectionsAreRefusedWithTheirReasons) {
     return rejected(metrics, "bad_id") == 1 && rejected(metrics, "empty") == 1 &&
            rejected(metrics, "non_finite") == 1 && rejected(metrics, "bad_stamp") == 1 &&
            rejected(metrics, "unknown_poses") == 2 &&
-           metric(metrics, "stereomap_samples_accepted_total{topic=\"PoseCorrection\"}") == 1;
+           seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"PoseCorrection\"}") == 1;
   });
   EXPECT_TRUE(counted) << metrics << "\n" << server.log();
   nlohmann::json status;

@@ -19,11 +19,6 @@ using nlohmann::json;
 
 constexpr int kDescentDomain = 90, kHostileDomain = 92;
 
-double metric(const std::string& metrics, const std::string& series) {
-  const size_t at = metrics.find(series + " ");
-  return at == std::string::npos ? 0.0 : std::atof(metrics.c_str() + at + series.size() + 1);
-}
-
 TEST(LandingEndToEnd, WhatTheVehicleSeesOfThePadReachesTheApi) {
   ServerProcess server(kDescentDomain);
   constexpr int kFrames = 15;
@@ -113,8 +108,9 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
     ASSERT_TRUE((*targets)->write(*t).ok());
   }
   auto rejected = [](const std::string& metrics, const std::string& reason) {
-    return metric(metrics, "stereomap_samples_rejected_total{topic=\"LandingTarget\",reason=\"" +
-                               reason + "\"}");
+    return seriesValue(
+        metrics,
+        "stereomap_samples_rejected_total{topic=\"LandingTarget\",reason=\"" + reason + "\"}");
   };
   std::string metrics;
   EXPECT_TRUE(waitUntil(
@@ -124,7 +120,8 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
         return rejected(metrics, "unknown_session") == 1 && rejected(metrics, "bad_id") == 1 &&
                rejected(metrics, "non_finite") == 2 && rejected(metrics, "bad_quaternion") == 1 &&
                rejected(metrics, "bad_text") == 1 &&
-               metric(metrics, "stereomap_samples_accepted_total{topic=\"LandingTarget\"}") == 1;
+               seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"LandingTarget\"}") ==
+                   1;
       }))
       << metrics << "\n"
       << server.log();

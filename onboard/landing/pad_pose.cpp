@@ -16,74 +16,59 @@ using common::Vec3;
 
 namespace {
 
-// One corner seen by one of the two cameras: the pad point in the camera is
-// R q * P + t, shifted by the baseline for the right camera.
-struct CornerError {
-  CornerError(const cv::Point2d& seen, const Vec3& pad_point, double shift,
-              const camera::StereoCamera& camera)
-      : u(seen.x),
-        v(seen.y),
-        P(pad_point),
-        shift(shift),
-        fx(camera.fx),
-        fy(camera.fy),
-        cx(camera.cx),
-        cy(camera.cy) {}
+// One of the two cameras' view of pad points under (q, t): the point in the left camera is
+// R q * P + t, shifted by the baseline for the right one.
+struct PadProjector {
+  PadProjector(double shift, const camera::StereoCamera& camera)
+      : shift(shift), fx(camera.fx), fy(camera.fy), cx(camera.cx), cy(camera.cy) {}
 
   template <typename T>
-  bool operator()(const T* q, const T* t, T* residual) const {
+  bool operator()(const T* q, const T* t, const Vec3& P, Eigen::Matrix<T, 2, 1>& uv) const {
     const Eigen::Map<const Eigen::Quaternion<T>> Q(q);
     const Eigen::Map<const Eigen::Matrix<T, 3, 1>> translation(t);
     Eigen::Matrix<T, 3, 1> p = Q * P.cast<T>() + translation;
     p.x() -= T(shift);
     if (p.z() <= T(1e-6)) return false;
-    residual[0] = T(fx) * p.x() / p.z() + T(cx) - T(u);
-    residual[1] = T(fy) * p.y() / p.z() + T(cy) - T(v);
+    uv << T(fx) * p.x() / p.z() + T(cx), T(fy) * p.y() / p.z() + T(cy);
     return true;
   }
 
-  double u, v;
-  Vec3 P;
   double shift, fx, fy, cx, cy;
+};
+
+// One corner seen by one camera: its reprojection error (pixels).
+struct CornerError {
+  template <typename T>
+  bool operator()(const T* q, const T* t, T* residual) const {
+    Eigen::Matrix<T, 2, 1> uv;
+    if (!projector(q, t, P, uv)) return false;
+    residual[0] = uv.x() - T(seen.x);
+    residual[1] = uv.y() - T(seen.y);
+    return true;
+  }
+
+  cv::Point2d seen;
+  Vec3 P;
+  PadProjector projector;
 };
 
 // One sub-pixel point on edge k seen by one camera: its distance (pixels) from the line
 // through the projections of the edge's two pad corners.
 struct EdgeError {
-  EdgeError(const cv::Point2f& seen, const Vec3& from, const Vec3& to, double shift,
-            const camera::StereoCamera& camera)
-      : u(seen.x),
-        v(seen.y),
-        A(from),
-        B(to),
-        shift(shift),
-        fx(camera.fx),
-        fy(camera.fy),
-        cx(camera.cx),
-        cy(camera.cy) {}
-
   template <typename T>
   bool operator()(const T* q, const T* t, T* residual) const {
-    const Eigen::Map<const Eigen::Quaternion<T>> Q(q);
-    const Eigen::Map<const Eigen::Matrix<T, 3, 1>> translation(t);
-    Eigen::Matrix<T, 2, 1> ends[2];
-    const Vec3* points[2] = {&A, &B};
-    for (int i = 0; i < 2; ++i) {
-      Eigen::Matrix<T, 3, 1> p = Q * points[i]->cast<T>() + translation;
-      p.x() -= T(shift);
-      if (p.z() <= T(1e-6)) return false;
-      ends[i] << T(fx) * p.x() / p.z() + T(cx), T(fy) * p.y() / p.z() + T(cy);
-    }
-    const Eigen::Matrix<T, 2, 1> d = ends[1] - ends[0];
+    Eigen::Matrix<T, 2, 1> a, b;
+    if (!projector(q, t, A, a) || !projector(q, t, B, b)) return false;
+    const Eigen::Matrix<T, 2, 1> d = b - a;
     const T length = d.norm();
     if (length < T(1e-9)) return false;
-    residual[0] = (d.x() * (T(v) - ends[0].y()) - d.y() * (T(u) - ends[0].x())) / length;
+    residual[0] = (d.x() * (T(seen.y) - a.y()) - d.y() * (T(seen.x) - a.x())) / length;
     return true;
   }
 
-  double u, v;
+  cv::Point2f seen;
   Vec3 A, B;
-  double shift, fx, fy, cx, cy;
+  PadProjector projector;
 };
 
 double rmsOf(const Rigid3& T_camera_pad, const std::array<cv::Point2d, 8>& image,
@@ -118,7 +103,7 @@ Refined refine(const Rigid3& start, const PadView& left, const std::optional<Pad
       for (int k = 0; k < 8; ++k) {
         problem.AddResidualBlock(
             new ceres::AutoDiffCostFunction<CornerError, 2, 4, 3>(
-                new CornerError(view.corners[k], padModel()[k], shift, camera)),
+                new CornerError{view.corners[k], padModel()[k], {shift, camera}}),
             new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
         residuals += 2;
       }
@@ -126,10 +111,10 @@ Refined refine(const Rigid3& start, const PadView& left, const std::optional<Pad
     }
     for (int k = 0; k < 8; ++k) {
       for (const cv::Point2f& point : view.edges[k]) {
-        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<EdgeError, 1, 4, 3>(new EdgeError(
-                                     point, padModel()[k], padModel()[(k + 1) % 8], shift, camera)),
-                                 new ceres::HuberLoss(options.huber_px), q.coeffs().data(),
-                                 t.data());
+        problem.AddResidualBlock(
+            new ceres::AutoDiffCostFunction<EdgeError, 1, 4, 3>(
+                new EdgeError{point, padModel()[k], padModel()[(k + 1) % 8], {shift, camera}}),
+            new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
         ++residuals;
       }
     }

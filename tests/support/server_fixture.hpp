@@ -7,6 +7,7 @@
 // graph end to end, 90/92 landing end to end. A new test takes a free one and adds it here.
 #pragma once
 
+#include <cstdlib>
 #include <memory>
 #include <string>
 #include <vector>
@@ -42,6 +43,12 @@ class ServerProcess {
   int port_ = 0;
   std::unique_ptr<ChildProcess> process_;
 };
+
+// The value of one series in Prometheus text (`name{labels}`), 0 when absent.
+inline double seriesValue(const std::string& metrics, const std::string& series) {
+  const size_t at = metrics.find(series + " ");
+  return at == std::string::npos ? 0.0 : std::atof(metrics.c_str() + at + series.size() + 1);
+}
 
 // The onboard binary's argv for a sim flight on `domain`.
 std::vector<std::string> onboardArgs(int domain, const std::string& session, int frames,
