@@ -33,10 +33,12 @@ const std::array<common::Vec3, 8>& padModel();
 using PadEdgePoints = std::array<std::vector<cv::Point2f>, 8>;
 
 struct DetectorOptions {
-  double min_area_px = 120;  // the smallest pad looked for (about 40 m away at 640x480)
+  // Smaller dark regions are not looked at (the T, 6 m^2, covers about 900 px^2 at 40 m with
+  // f = 492 px).
+  double min_area_px = 120;
   // Largest distance of a corner from the template mapped by the best homography, as a
-  // fraction of the square root of the pad's image area (a true T: below 0.01 sharp, 0.02
-  // noisy; an L, a cross or a T of other proportions: 0.08 and more).
+  // fraction of the square root of the pad's image area (the sim's T at 11-28 m with noise:
+  // 0.006-0.031; its short-stemmed T-like mark is refused).
   double max_shape_error = 0.04;
   // Mean grey inside the T at least this much darker than a ring around it.
   double min_contrast = 25;
