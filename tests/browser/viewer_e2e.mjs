@@ -392,6 +392,28 @@ async function run(options, resources, progress) {
   console.log(`after the restart: ${back.seen}`);
   serverDown = false;
   pageHealthy();
+
+  // Last: the main page follows the newest session, and the deck's is one.
+  progress.step = 'a descent onto the moving deck with the landing watch on';
+  const deck = start('stereomap-onboard (deck)', path.join(binDir, 'stereomap-onboard'),
+    ['--source', 'sim:deck', '--landing', 'default', '--frames', '10', '--rate', '0', '--session', 'deck',
+      '--vehicle', 'uav-1', ...ddsArgs], ddsEnv);
+  resources.procs.push(deck);
+  await waitUntil('the deck descent to finish', 120_000, 250,
+    async () => ({ ok: deck.exit !== null, seen: 'it still running' }), () => expectRunningOrSuccess(deck, { mayExit: true }));
+  const deckPage = await resources.browser.newPage({ viewport: { width: 1280, height: 800 } });
+  deckPage.on('pageerror', (error) => pageErrors.push(`deck page uncaught: ${error.message}`));
+  await deckPage.goto(`${base}/?session=deck`);
+  const padSeen = await waitUntil('the deck page to outline the pad and say where it is', kPageCatchUpTimeoutMs, 250, async () => {
+    const pads = await deckPage.evaluate(() => window.__stereomap?.landingPads() ?? 0);
+    const status = await deckPage.textContent('#status');
+    return { ok: pads === 1 && /pad \d+\.\d m at [+-]?\d+° \(uav-1\)/.test(status), seen: `${pads} pads, status "${status}"` };
+  }, pageHealthy);
+  console.log(`deck page: ${padSeen.seen}`);
+  const deckShot = options.screenshot.replace(/\.png$/, '') + '_landing.png';
+  await deckPage.screenshot({ path: deckShot, timeout: 120000 });
+  console.log(`screenshot: ${deckShot}`);
+  await deckPage.close();
 }
 
 // Fraction of the screenshot's pixels, outside the overlay panels, that are clearly coloured

@@ -6,6 +6,7 @@
 
 import { rampCssGradient } from './core/colour_ramp.js';
 import { statusText } from './core/format.js';
+import { landingText, padOutline } from './core/landing.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
 import { ProtocolError, dropMessage, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
 import { TileFormatError, decodeTile } from './core/tile_codec.js';
@@ -125,6 +126,8 @@ function updateStatus() {
   if (live && store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
   if (session?.replayUntil != null) text += ` · replay at ${formatClock(session.replayUntil)} UTC`;
   if (subscribeError) text += ` · ${subscribeError}`;
+  const pad = landing.sessionId === id ? landingText(landing.vehicles) : null;
+  if (pad) text += ` · ${pad}`;
   elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
 }
@@ -306,7 +309,35 @@ window.addEventListener('keydown', (event) => {
 });
 
 elements['legend-bar'].style.background = rampCssGradient();
+// What the session's vehicles see of the landing pad (REST, once a second): outlined in the map
+// while tracked, and said on the status line.
+const landing = { sessionId: null, vehicles: [] };
+async function pollLanding() {
+  const id = displayedSessionId();
+  const live = store.subscribed?.id === id && store.subscribed?.status?.state === 'live';
+  // Once for each session shown, then only while it is live; never while the link is down (a
+  // fetch that finds no server is a console error, and the link's status says it already).
+  if (!link.connected || (id === landing.sessionId && !live)) return;
+  let vehicles = [];
+  if (id !== null) {
+    const token = new URLSearchParams(window.location.search).get('token');
+    const query = token ? `?token=${encodeURIComponent(token)}` : '';
+    try {
+      const reply = await fetch(`/api/sessions/${encodeURIComponent(id)}/landing${query}`);
+      if (reply.ok) vehicles = (await reply.json()).vehicles ?? [];
+    } catch {
+      return; // the server went away meanwhile: try again once the link is back
+    }
+  }
+  Object.assign(landing, { sessionId: id, vehicles });
+  view.landing.setOutlines(vehicles.filter((v) => v.state === 'TRACKING' && v.has_pose).map((v) => padOutline(v.pad_in_map)));
+  view.requestRender();
+}
+setInterval(pollLanding, 1000);
+
 window.__stereomap = {
+  // Landing pads outlined in the map.
+  landingPads: () => view.landing.count,
   get connected() {
     return link.connected;
   },

@@ -5,6 +5,7 @@
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
+import { LandingLayer } from './landing_layer.js';
 import { TrajectoryLayer } from './trajectory_layer.js';
 import { TileLayer } from './tile_layer.js';
 
@@ -36,6 +37,7 @@ export class MapView {
     this.grid = null;
     this.setGrid(new THREE.Vector3(), 20);
     this.tiles = new TileLayer(this.scene);
+    this.landing = new LandingLayer(this.scene);
     this.trajectories = new Map(); // vehicle → TrajectoryLayer
     this.markerScale = 0.3;
     this.following = false; // keep the latest vehicle at the centre of the view
