@@ -1,4 +1,5 @@
-// Wall-clock time as int64 nanoseconds since the Unix epoch (the stamp on every sample).
+// Wall-clock time as int64 nanoseconds since the Unix epoch (the stamp on every sample), and
+// elapsed time for timing work.
 #pragma once
 
 #include <chrono>
@@ -13,5 +14,11 @@ inline int64_t nowNs() {
 }
 
 inline double nsToSeconds(int64_t ns) { return static_cast<double>(ns) * 1e-9; }
+
+// Milliseconds elapsed on the monotonic clock since `start` (for timing work, not stamps).
+inline double msSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+      .count();
+}
 
 }  // namespace stereomap::common

@@ -4,17 +4,15 @@
 #include <cmath>
 #include <opencv2/core/utility.hpp>
 
+#include "common/time.hpp"
+
 namespace stereomap::eval {
 
+using common::msSince;
 using common::Rigid3;
 using common::Vec3;
 
 namespace {
-
-double msSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-      .count();
-}
 
 double cornerError(const std::array<cv::Point2d, 8>& corners, const Rigid3& T_camera_pad,
                    const camera::StereoCamera& camera) {

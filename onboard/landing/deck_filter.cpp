@@ -10,12 +10,6 @@ using common::Vec3;
 
 namespace {
 
-Vec3 eulerZyx(const Quat& q) {
-  const Eigen::Matrix3d R = q.toRotationMatrix();
-  return {std::atan2(R(2, 1), R(2, 2)), std::asin(std::clamp(-R(2, 0), -1.0, 1.0)),
-          std::atan2(R(1, 0), R(0, 0))};
-}
-
 Quat fromEulerZyx(const Vec3& e) {
   return Quat(Eigen::AngleAxisd(e.z(), Vec3::UnitZ())) *
          Quat(Eigen::AngleAxisd(e.y(), Vec3::UnitY())) *
@@ -31,6 +25,19 @@ Eigen::Matrix3d skew(const Vec3& v) {
 }  // namespace
 
 Vec3 padCentre() { return {1.5, 2.0, 0.0}; }
+
+Vec3 eulerZyx(const Quat& q) {
+  const Eigen::Matrix3d R = q.toRotationMatrix();
+  return {std::atan2(R(2, 1), R(2, 2)), std::asin(std::clamp(-R(2, 0), -1.0, 1.0)),
+          std::atan2(R(1, 0), R(0, 0))};
+}
+
+Vec3 bodyRatesFromEuler(const Vec3& euler, const Vec3& rate) {
+  const double roll = euler.x(), pitch = euler.y();
+  return {rate.x() - rate.z() * std::sin(pitch),
+          rate.y() * std::cos(roll) + rate.z() * std::cos(pitch) * std::sin(roll),
+          -rate.y() * std::sin(roll) + rate.z() * std::cos(pitch) * std::cos(roll)};
+}
 
 Rigid3 T_pad_deck() {
   // x along the bar, y and z turned over (the pad's z points into the deck).
@@ -85,12 +92,7 @@ const DeckEstimate& DeckFilter::update(double t_s, const Rigid3& T_map_pad,
     estimate_.T_map_deck.translation[i] = axes_[i + 3].x(0);
   }
   estimate_.T_map_deck.rotation = fromEulerZyx(estimate_.euler);
-  const double roll = estimate_.euler.x(), pitch = estimate_.euler.y();
-  const Vec3& rate = estimate_.euler_rate;
-  estimate_.angular_rate = {
-      rate.x() - rate.z() * std::sin(pitch),
-      rate.y() * std::cos(roll) + rate.z() * std::cos(pitch) * std::sin(roll),
-      -rate.y() * std::sin(roll) + rate.z() * std::cos(pitch) * std::cos(roll)};
+  estimate_.angular_rate = bodyRatesFromEuler(estimate_.euler, estimate_.euler_rate);
   estimate_.covariance.setZero();
   for (int i = 0; i < 6; ++i) estimate_.covariance(i, i) = axes_[i].P(0, 0);
   return estimate_;

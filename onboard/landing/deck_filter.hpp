@@ -74,4 +74,9 @@ PadBearing bearingFrom(const common::Rigid3& T_map_body, const common::Vec3& pad
 // The pad's centre in its own frame.
 common::Vec3 padCentre();
 
+// Z-Y-X Euler angles (roll, pitch, yaw; radians) of a rotation, and the body angular rate of
+// their rates.
+common::Vec3 eulerZyx(const common::Quat& q);
+common::Vec3 bodyRatesFromEuler(const common::Vec3& euler, const common::Vec3& euler_rate);
+
 }  // namespace stereomap::landing

@@ -35,7 +35,7 @@ Rigid3 randomView(std::mt19937& rng, double distance) {
                  Quat(Eigen::AngleAxisd(tilt(rng), Vec3::UnitY()));
   // The pad's centre ahead of the camera at `distance`.
   const Vec3 centre(lateral(rng), lateral(rng), distance);
-  return {q, centre - q * Vec3(1.5, 2.0, 0.0)};
+  return {q, centre - q * padCentre()};
 }
 
 // Without noise the patent's linear solution and the default solve are exact.
@@ -86,7 +86,7 @@ TEST(PadCorners, NamedByStructureAtAnyRotation) {
     ASSERT_TRUE(named);
     for (int k = 0; k < 8; ++k) EXPECT_LT(cv::norm((*named)[k] - truth[k]), 1e-9) << trial;
   }
-  const Rigid3 upright{Quat::Identity(), Vec3(-1.5, -2.0, 10.0)};
+  const Rigid3 upright{Quat::Identity(), Vec3(0, 0, 10.0) - padCentre()};
   const auto seen = project(upright, camera);
   std::vector<cv::Point2d> polygon(seen.begin(), seen.end());
   std::rotate(polygon.begin(), polygon.begin() + 3, polygon.end());

@@ -2,18 +2,12 @@
 
 #include <chrono>
 
+#include "common/time.hpp"
+
 namespace stereomap::landing {
 
+using common::msSince;
 using common::Rigid3;
-
-namespace {
-
-double msSince(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-      .count();
-}
-
-}  // namespace
 
 LandingWatch::LandingWatch(const camera::StereoCamera& camera, LandingWatchOptions options)
     : camera_(camera),

@@ -134,17 +134,23 @@ double shapeErrorOf(const std::array<cv::Point2d, 8>& corners) {
 double contrastOf(const cv::Mat& grey, const std::array<cv::Point2d, 8>& corners) {
   std::vector<cv::Point> polygon;
   for (const auto& c : corners) polygon.emplace_back(cvRound(c.x), cvRound(c.y));
-  cv::Mat inside = cv::Mat::zeros(grey.size(), CV_8UC1);
-  cv::fillPoly(inside, std::vector<std::vector<cv::Point>>{polygon}, 255);
   const cv::Rect box = cv::boundingRect(polygon);
   const int grow = std::max(3, std::min(box.width, box.height) / 6);
+  // Only the pad's neighbourhood: the ring reaches `grow` beyond it.
+  const cv::Rect roi = cv::Rect(box.x - grow - 2, box.y - grow - 2, box.width + 2 * grow + 4,
+                                box.height + 2 * grow + 4) &
+                       cv::Rect(0, 0, grey.cols, grey.rows);
+  const cv::Mat patch = grey(roi);
+  cv::Mat inside = cv::Mat::zeros(patch.size(), CV_8UC1);
+  for (auto& p : polygon) p -= roi.tl();
+  cv::fillPoly(inside, std::vector<std::vector<cv::Point>>{polygon}, 255);
   cv::Mat ring;
   cv::dilate(inside, ring, cv::getStructuringElement(cv::MORPH_RECT, {2 * grow + 1, 2 * grow + 1}));
   cv::Mat eroded;
   cv::erode(inside, eroded, cv::getStructuringElement(cv::MORPH_RECT, {3, 3}));
   ring -= inside;
   if (cv::countNonZero(ring) == 0 || cv::countNonZero(eroded) == 0) return 0;
-  return cv::mean(grey, ring)[0] - cv::mean(grey, eroded)[0];
+  return cv::mean(patch, ring)[0] - cv::mean(patch, eroded)[0];
 }
 
 // The region's outline again at a threshold of its own: midway between its median grey and

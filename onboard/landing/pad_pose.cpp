@@ -6,6 +6,7 @@
 #include <opencv2/calib3d.hpp>
 
 #include "onboard/camera/cv_pose.hpp"
+#include "onboard/landing/deck_filter.hpp"
 #include "onboard/landing/pad_detector.hpp"
 
 namespace stereomap::landing {
@@ -145,14 +146,6 @@ Refined refine(const Rigid3& start, const PadView& left, const std::optional<Pad
   return out;
 }
 
-Vec3 eulerDeg(const Quat& q) {
-  const Eigen::Matrix3d R = q.toRotationMatrix();
-  const double pitch = std::asin(std::clamp(-R(2, 0), -1.0, 1.0));
-  const double roll = std::atan2(R(2, 1), R(2, 2));
-  const double yaw = std::atan2(R(1, 0), R(0, 0));
-  return Vec3(roll, pitch, yaw) * 180.0 / M_PI;
-}
-
 }  // namespace
 
 std::optional<Rigid3> patentLinearPose(const std::array<cv::Point2d, 8>& image,
@@ -290,7 +283,7 @@ PadPose estimatePadPose(const PadView& left_view, const std::optional<PadView>& 
                                  std::pow(rmsOf(best->pose, *right, camera, camera.baseline), 2)))
               : rms_left;
   }
-  result.euler_deg = eulerDeg(result.T_camera_pad.rotation);
+  result.euler_deg = eulerZyx(result.T_camera_pad.rotation) * 180.0 / M_PI;
   if (!(result.rms_px <= options.max_rms_px)) {
     result.reason = "reprojection error " + std::to_string(result.rms_px).substr(0, 5) +
                     " px is above " + std::to_string(options.max_rms_px).substr(0, 4) + " px";

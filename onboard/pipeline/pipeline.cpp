@@ -13,6 +13,8 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
+using common::msSince;
+
 template <typename T>
 common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
     const std::shared_ptr<proto::Participant>& participant) {
@@ -24,10 +26,6 @@ double median(std::vector<double> values) {
   auto middle = values.begin() + values.size() / 2;
   std::nth_element(values.begin(), middle, values.end());
   return *middle;
-}
-
-double msSince(Clock::time_point start) {
-  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
 void copyPose(const common::Rigid3& T, std::array<double, 3>& position,

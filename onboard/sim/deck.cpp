@@ -58,11 +58,9 @@ Vec3 DeckMotion::velocity(double t) const {
 }
 
 Vec3 DeckMotion::angularRate(double t) const {
-  // Body rates of Z-Y-X (yaw, pitch, roll) angles.
   const Angles a = anglesAt(options_, t);
-  return {a.roll_rate - a.yaw_rate * std::sin(a.pitch),
-          a.pitch_rate * std::cos(a.roll) + a.yaw_rate * std::cos(a.pitch) * std::sin(a.roll),
-          -a.pitch_rate * std::sin(a.roll) + a.yaw_rate * std::cos(a.pitch) * std::cos(a.roll)};
+  return landing::bodyRatesFromEuler({a.roll, a.pitch, a.yaw},
+                                     {a.roll_rate, a.pitch_rate, a.yaw_rate});
 }
 
 Rigid3 DeckMotion::T_deck_pad() { return landing::T_pad_deck().inverse(); }

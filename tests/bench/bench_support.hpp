@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "common/time.hpp"
 #include "proto/messages.hpp"
 #include "server/core/map_server.hpp"
 
@@ -16,7 +17,7 @@ namespace stereomap::bench {
 
 using Clock = std::chrono::steady_clock;
 
-double msSince(Clock::time_point start);
+using common::msSince;
 // VmRSS of this process, MB.
 double residentMegabytes();
 // The sim vehicle's first `count` frames (ground-truth poses, fast matcher), Draco-encoded.
