@@ -99,12 +99,14 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
   quaternion.camera_orientation = {0, 0, 0, 2};
   auto control = target("d", session);
   control.reason = "line\nbreak";
+  auto bytes = target("f", session);  // not UTF-8: JSON could not carry it
+  bytes.reason = "caf\xe9 \xff";
   auto negative = target("e", session);
   negative.map_covariance[0] = -1;
   auto good = target("good", session);
   // A volatile topic: a sample written before the server matched this writer would be lost;
   // the readers were waited for above.
-  for (const auto* t : {&nowhere, &bad_id, &nan, &quaternion, &control, &negative, &good}) {
+  for (const auto* t : {&nowhere, &bad_id, &nan, &quaternion, &control, &bytes, &negative, &good}) {
     ASSERT_TRUE((*targets)->write(*t).ok());
   }
   auto rejected = [](const std::string& metrics, const std::string& reason) {
@@ -119,7 +121,7 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
         metrics = server.get("/metrics").body;
         return rejected(metrics, "unknown_session") == 1 && rejected(metrics, "bad_id") == 1 &&
                rejected(metrics, "non_finite") == 2 && rejected(metrics, "bad_quaternion") == 1 &&
-               rejected(metrics, "bad_text") == 1 &&
+               rejected(metrics, "bad_text") == 2 &&
                seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"LandingTarget\"}") ==
                    1;
       }))

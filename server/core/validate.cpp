@@ -145,9 +145,11 @@ std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& ta
     return Rejection{"oversize",
                      "landing reason of " + std::to_string(target.reason.size()) + " bytes"};
   }
+  // Printable ASCII only: it goes into JSON (which must be UTF-8) and onto operators' screens.
   for (const char c : target.reason) {
-    if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) {
-      return Rejection{"bad_text", "landing reason with a control character"};
+    const auto byte = static_cast<unsigned char>(c);
+    if (byte < 0x20 || byte > 0x7e) {
+      return Rejection{"bad_text", "landing reason with a byte that is not printable ASCII"};
     }
   }
   common::Rigid3 unused;

@@ -49,7 +49,7 @@ std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& even
 std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& correction,
                                                 std::vector<ValidPose>& out);
 
-// A landing target: ids, a reason of printable characters, every number finite, unit
+// A landing target: ids, a reason of printable ASCII, every number finite, unit
 // quaternions, covariances with a non-negative diagonal, a distance >= 0.
 std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& target);
 
