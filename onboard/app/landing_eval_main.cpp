@@ -4,7 +4,9 @@
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -38,7 +40,9 @@ void saveFrame(const std::filesystem::path& dir, const camera::SourceFrame& fram
               cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 255, 0}, 1, cv::LINE_AA);
   char name[64];
   std::snprintf(name, sizeof(name), "deck_%06.2fs_%04.1fm.png", score.t_s, score.distance_m);
-  cv::imwrite((dir / name).string(), picture);
+  if (!cv::imwrite((dir / name).string(), picture)) {
+    std::fprintf(stderr, "cannot write %s\n", (dir / name).c_str());
+  }
 }
 
 }  // namespace
@@ -77,8 +81,19 @@ int main(int argc, char** argv) {
   app.add_option("--save-every", save_every, "With --save-frames: one picture per this many")
       ->check(CLI::Range(1, 100000));
   CLI11_PARSE(app, argc, argv);
+  // Both outputs checked before the run (it takes minutes), not after.
+  std::FILE* csv = nullptr;
+  if (!csv_path.empty() && (csv = std::fopen(csv_path.c_str(), "w")) == nullptr) {
+    std::fprintf(stderr, "cannot write %s: %s\n", csv_path.c_str(), std::strerror(errno));
+    return 1;
+  }
   if (!save_dir.empty()) {
-    std::filesystem::create_directories(save_dir);
+    std::error_code error;
+    std::filesystem::create_directories(save_dir, error);
+    if (error) {
+      std::fprintf(stderr, "cannot create %s: %s\n", save_dir.c_str(), error.message().c_str());
+      return 1;
+    }
     run_options.on_frame = [&save_dir, count = 0, every = std::max(save_every, 1)](
                                const camera::SourceFrame& frame,
                                const eval::LandingFrameScore& score,
@@ -91,12 +106,7 @@ int main(int argc, char** argv) {
   std::printf("%s, every %d frame(s)\n", source.describe().c_str(), run_options.every);
   const auto scores = eval::runLanding(source, run_options);
 
-  if (!csv_path.empty()) {
-    std::FILE* csv = std::fopen(csv_path.c_str(), "w");
-    if (csv == nullptr) {
-      std::fprintf(stderr, "cannot write %s\n", csv_path.c_str());
-      return 1;
-    }
+  if (csv != nullptr) {
     std::fprintf(csv,
                  "t_s,distance_m,state,detected,corner_px,default_position_pct,default_attitude_"
                  "deg,patent_position_pct,patent_attitude_deg,heave_rate_error\n");
@@ -109,7 +119,10 @@ int main(int argc, char** argv) {
                    s.modes[1].published ? s.modes[1].attitude_deg : NAN,
                    s.deck_valid ? s.heave_rate_error : NAN);
     }
-    std::fclose(csv);
+    if (std::fclose(csv) != 0) {
+      std::fprintf(stderr, "cannot write %s: %s\n", csv_path.c_str(), std::strerror(errno));
+      return 1;
+    }
   }
   // Bins around 5, 10, 20 and 30 m (+-2.5 m).
   const double centres[] = {5, 10, 20, 30};
