@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <octomap/OcTree.h>
 
+#include <random>
 #include <set>
 #include <sstream>
 
@@ -134,6 +135,60 @@ TEST(FastInsertion, AgreesWithOctomapOnRealTumDepth) {
   }
   ASSERT_EQ(frames.size(), 6u);
   EXPECT_GE(agreementAfter(frames, 0.05, 3.0), 0.995);  // some rays longer than 3 m
+}
+
+// A ray that ends where two voxel borders cross can pass beside its end voxel and take one
+// step past it (OctoMap compares the voxel's exit with the ray's length in floating point, and
+// so do we). Walls on all six sides, their edges on borders that are also the edges of the
+// box the rays are cast in (multiples of 4 voxels), put such steps outside that box: the fast
+// path must mark them as OctoMap does, never outside its buffers (it wrote before its buffer,
+// found by AddressSanitizer in tiles_test).
+TEST(FastInsertion, RaysThatStepPastTheirEndAgreeWithOctomapAtTheEdgesOfTheirBox) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> jitter(-0.04, 0.04);
+  const common::Rigid3 pose{common::Quat::Identity(), Vec3(-60, 0, 0)};  // on voxel borders
+  OccupancyMap fast({.resolution = 0.1});
+  OccupancyMap stock({.resolution = 0.1, .insertion = OccupancyMap::Insertion::kOctomap});
+  for (const double distance : {8.0}) {
+    for (int axis = 0; axis < 3; ++axis) {
+      for (const double sign : {-1.0, 1.0}) {
+        common::PointCloud wall;  // one wall a cloud: its edges are the box's
+        for (double u = -8; u <= 8; u += 0.1) {
+          for (double v = -8; v <= 8; v += 0.1) {
+            Vec3 p;
+            p[axis] = sign * (distance + jitter(rng));
+            p[(axis + 1) % 3] = u;
+            p[(axis + 2) % 3] = v;
+            wall.points.push_back(p.cast<float>());
+          }
+        }
+        fast.insertCloud(wall, pose, 30.0);
+        stock.insertCloud(wall, pose, 30.0);
+      }
+    }
+  }
+  EXPECT_EQ(compareClassification(fast, stock).fraction(), 1.0);
+}
+
+// Space seen again and again saturates at the clamping bounds and is pruned into blocks; OctoMap
+// leaves a clamped block alone when an update cannot move it, and so must the fast path (it
+// skips such blocks instead of expanding and pruning them back each frame): the same tree,
+// log-odds and all, after frames that saturate free and occupied space.
+TEST(FastInsertion, ClampedSpaceSeenAgainGivesOctomapsTreeExactly) {
+  OccupancyMap fast({.resolution = 0.1});
+  OccupancyMap stock({.resolution = 0.1, .insertion = OccupancyMap::Insertion::kOctomap});
+  for (uint32_t i = 0; i < 16; ++i) {
+    const common::Rigid3 pose{common::Quat(Eigen::AngleAxisd(0.02 * (i % 4), Vec3::UnitZ())),
+                              Vec3(0.03 * (i % 3), 0.0, 0.02 * (i % 2))};
+    const auto cloud = frustumCloud(60, 45, i % 2);
+    fast.insertCloud(cloud, pose, 8.0);
+    stock.insertCloud(cloud, pose, 8.0);
+  }
+  std::ostringstream fast_bytes, stock_bytes;
+  ASSERT_TRUE(fast.writeFull(fast_bytes));
+  ASSERT_TRUE(stock.writeFull(stock_bytes));
+  EXPECT_GT(fast.occupiedCount(), 1000u);
+  EXPECT_TRUE(fast_bytes.str() == stock_bytes.str());
 }
 
 TEST(FastInsertion, ComparisonCanTellMapsApart) {

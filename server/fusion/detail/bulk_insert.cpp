@@ -103,6 +103,7 @@ class RayWalk {
       key_[i] = key_origin[i] - box.min[i];  // relative to the box from here on
       end_[i] = key_end[i] - box.min[i];
     }
+    for (unsigned i = 0; i < 3; ++i) limit_[i] = 4 * static_cast<unsigned>(box.bricks[i]);
     stride_x_ = static_cast<size_t>(box.bricks[1]) * box.bricks[2];
     stride_y_ = static_cast<size_t>(box.bricks[2]);
     t0_ = t_max[0], t1_ = t_max[1], t2_ = t_max[2];
@@ -126,7 +127,13 @@ class RayWalk {
     t1_ += y_next ? d1_ : 0.0;
     t2_ += z_next ? d2_ : 0.0;
     if (key_[0] == end_[0] && key_[1] == end_[1] && key_[2] == end_[2]) return false;
-    return !(std::min(std::min(t0_, t1_), t2_) > length_);
+    // The box has a voxel of margin for the one step a walk can take past its end. A walk
+    // that would leave it stops instead of writing outside: never seen, but this is the
+    // guard between a sample's numbers and memory.
+    const bool outside = (static_cast<unsigned>(key_[0]) >= limit_[0]) |
+                         (static_cast<unsigned>(key_[1]) >= limit_[1]) |
+                         (static_cast<unsigned>(key_[2]) >= limit_[2]);
+    return !outside && !(std::min(std::min(t0_, t1_), t2_) > length_);
   }
   void mark(uint64_t* words) const {
     const size_t word = static_cast<size_t>(key_[0] >> 2) * stride_x_ +
@@ -139,6 +146,7 @@ class RayWalk {
  private:
   double t0_, t1_, t2_, d0_, d1_, d2_;
   int key_[3], end_[3], step_[3];
+  unsigned limit_[3];  // keys (relative to the box) at or beyond these are outside it
   size_t stride_x_, stride_y_;
   float length_;
 };
@@ -311,6 +319,11 @@ bool BulkOcTree::openChild(OcTreeNode* node, bool node_just_created, unsigned ch
 // Mirrors OccupancyOcTreeBase::updateNodeRecurs for all keys below `node` at once.
 void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned depth,
                          const uint64_t* begin, const uint64_t* end) {
+  // OctoMap's updateNode() leaves a voxel alone when the node holding it (a leaf, or a pruned
+  // block) is already clamped in the update's direction. Below a clamped block whose updates
+  // are all of that kind nothing can move: expanding it and pruning it back, as the loop
+  // below would, is only allocation churn (every frame, in a mature map's saturated space).
+  if (!node_just_created && !nodeHasChildren(node) && clampedForAll(node, begin, end)) return;
   if (depth == tree_depth) {
     // Each key appears once: one hit or one miss, clamped as updateNode() does.
     const float before = node->getLogOdds();
@@ -341,6 +354,18 @@ void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned dept
     descend(getNodeChild(node, child), created, depth + 1, b, e);
   });
   if (!pruneNode(node)) node->updateOccupancyChildren();
+}
+
+bool BulkOcTree::clampedForAll(const OcTreeNode* node, const uint64_t* begin,
+                               const uint64_t* end) const {
+  const float log_odds = node->getLogOdds();
+  if (log_odds <= clamping_thres_min) {
+    return std::none_of(begin, end, [](uint64_t c) { return (c & 1) != 0; });
+  }
+  if (log_odds >= clamping_thres_max) {
+    return std::all_of(begin, end, [](uint64_t c) { return (c & 1) != 0; });
+  }
+  return false;
 }
 
 void BulkOcTree::noteChange(uint64_t code, unsigned depth, bool just_created, float before,
@@ -377,9 +402,12 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
       hi[a] = std::max<int>(hi[a], key[a]);
     }
   }
+  // One voxel of margin on every side: a ray's walk can step one voxel past its end voxel
+  // (the voxel's exit is compared with the ray's length in floating point, by OctoMap too,
+  // which marks that voxel free as well). Found as a write before the buffer by ASan.
   for (int a = 0; a < 3; ++a) {
-    box.min[a] = lo[a] & ~3;
-    box.bricks[a] = (hi[a] - box.min[a]) / 4 + 1;
+    box.min[a] = std::max(lo[a] - 1, 0) & ~3;
+    box.bricks[a] = (std::min(hi[a] + 1, 0xFFFF) - box.min[a]) / 4 + 1;
   }
   const size_t words = box.words();
   for (unsigned t = 0; t < threads; ++t) free_bits_[t].assign(words, 0);

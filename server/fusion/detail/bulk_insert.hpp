@@ -55,6 +55,10 @@ class BulkOcTree : public octomap::OcTree {
                const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks);
   void closeTop(octomap::OcTreeNode* node, unsigned depth, const uint64_t* begin,
                 const uint64_t* end);
+  // True when `node` is at the clamping bound that every update in [begin, end) pushes
+  // towards (all misses at the lower bound, or all hits at the upper): none can change it.
+  bool clampedForAll(const octomap::OcTreeNode* node, const uint64_t* begin,
+                     const uint64_t* end) const;
   // Records a node's update in changes_ when its class or quantised value moved.
   void noteChange(uint64_t code, unsigned depth, bool just_created, float before, float after);
 
