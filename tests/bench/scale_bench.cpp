@@ -49,15 +49,22 @@ struct Store {
 // not (one block of frames after the other measured B/A anywhere in 1.05-1.35).
 // `in_blocks`: every frame to the first session, then every frame to the next (the earlier
 // method, kept to compare).
-std::vector<double> feedInTurns(core::MapServer& server, const std::vector<std::string>& sessions,
-                                const std::vector<proto::CloudFrameMsg>& frames, bool in_blocks) {
-  std::vector<double> total_ms(sessions.size(), 0.0);
+struct FeedTimes {
+  double mean_ms = 0, max_ms = 0;
+};
+std::vector<FeedTimes> feedInTurns(core::MapServer& server,
+                                   const std::vector<std::string>& sessions,
+                                   const std::vector<proto::CloudFrameMsg>& frames,
+                                   bool in_blocks) {
+  std::vector<FeedTimes> times(sessions.size());
   auto feed = [&](size_t session, proto::CloudFrameMsg frame) {
     frame.session_id = sessions[session];
     const auto start = Clock::now();
     if (!server.ingest(frame)) throw std::runtime_error("a frame was refused");
     server.find(sessions[session])->waitUntilIdle();
-    total_ms[session] += msSince(start);
+    const double ms = msSince(start);
+    times[session].mean_ms += ms / static_cast<double>(frames.size());
+    times[session].max_ms = std::max(times[session].max_ms, ms);
   };
   if (in_blocks) {
     for (size_t i = 0; i < sessions.size(); ++i) {
@@ -68,8 +75,7 @@ std::vector<double> feedInTurns(core::MapServer& server, const std::vector<std::
       for (size_t i = 0; i < sessions.size(); ++i) feed(i, frame);
     }
   }
-  for (double& ms : total_ms) ms /= static_cast<double>(frames.size());
-  return total_ms;
+  return times;
 }
 
 }  // namespace
@@ -106,9 +112,9 @@ int main(int argc, char** argv) {
   for (int run = 0; run < runs; ++run) {
     Store store(root / ("ab-" + std::to_string(run)));
     campusSession(store.server, "campus", campus_ot);
-    const auto ms = feedInTurns(store.server, {"empty", "campus"}, frames, in_blocks);
-    empty_ms.push_back(ms[0]);
-    campus_ms.push_back(ms[1]);
+    const auto times = feedInTurns(store.server, {"empty", "campus"}, frames, in_blocks);
+    empty_ms.push_back(times[0].mean_ms);
+    campus_ms.push_back(times[1].mean_ms);
     // Memory freed by the set-up (the campus map loaded to make its snapshot) goes back first.
     ::malloc_trim(0);
     rss_mb = std::max(rss_mb, residentMegabytes());
@@ -119,8 +125,11 @@ int main(int argc, char** argv) {
       const auto status = store.server.find(id)->status();
       return 1000 * status.fusion_seconds / static_cast<double>(status.frames_fused);
     };
-    std::printf("run %d: empty %.2f ms/frame (fusion %.2f), campus %.2f ms/frame (fusion %.2f)\n",
-                run + 1, empty_ms.back(), fused_ms("empty"), campus_ms.back(), fused_ms("campus"));
+    std::printf(
+        "run %d: empty %.2f ms/frame (fusion %.2f, slowest frame %.1f), campus %.2f ms/frame "
+        "(fusion %.2f, slowest frame %.1f)\n",
+        run + 1, times[0].mean_ms, fused_ms("empty"), times[0].max_ms, times[1].mean_ms,
+        fused_ms("campus"), times[1].max_ms);
     std::fflush(stdout);
   }
 
