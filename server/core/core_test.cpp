@@ -308,7 +308,9 @@ TEST(Session, FramesArrivingDuringARefusionAreNotLost) {
       std::lock_guard lock(journal_mutex);
       journal.push_back(frame);
     }
-    ASSERT_TRUE(session.enqueue(std::move(frame)));
+    // Waits for room: a full queue drops frames by design (another test), and a slow build
+    // (AddressSanitizer) filled it here before the re-fusion ended.
+    ASSERT_TRUE(session.enqueue(std::move(frame), /*wait_for_room=*/true));
   };
   for (int i = 0; i < 20; ++i) send();
   session.waitUntilIdle();
