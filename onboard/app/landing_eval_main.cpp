@@ -60,12 +60,18 @@ int main(int argc, char** argv) {
   app.add_option("--every", run_options.every, "Score every n-th frame (10 Hz)")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
-  app.add_option("--noise", source_options.render.noise_sigma, "Image noise, grey levels (sigma)")
+  app.add_option("--noise", source_options.render.camera.noise_sigma,
+                 "Image noise, grey levels (sigma)")
       ->check(CLI::Range(0.0, 50.0))
       ->capture_default_str();
-  app.add_option("--blur", source_options.render.blur_sigma, "Image blur, pixels (sigma)")
+  app.add_option("--blur", source_options.render.camera.blur_sigma, "Image blur, pixels (sigma)")
       ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
+  std::string camera_preset;
+  app.add_option("--camera", camera_preset,
+                 "Camera model: clean, typical or poor (stereomap-onboard --help); --noise and "
+                 "--blur then set its read noise and defocus (default: noise 2, blur 0.7)")
+      ->check(CLI::IsMember({"clean", "typical", "poor"}));
   app.add_option("--supersample", source_options.render.supersample,
                  "Rays per pixel along each axis (anti-aliasing)")
       ->check(CLI::Range(1, 8))
@@ -81,6 +87,13 @@ int main(int argc, char** argv) {
   app.add_option("--save-every", save_every, "With --save-frames: one picture per this many")
       ->check(CLI::Range(1, 100000));
   CLI11_PARSE(app, argc, argv);
+  if (!camera_preset.empty()) {
+    sim::CameraModel& model = source_options.render.camera;
+    const double noise = model.noise_sigma, blur = model.blur_sigma;
+    model = *sim::CameraModel::preset(camera_preset);
+    if (app.count("--noise") > 0) model.noise_sigma = noise;
+    if (app.count("--blur") > 0) model.blur_sigma = blur;
+  }
   // Both outputs checked before the run (it takes minutes), not after.
   std::FILE* csv = nullptr;
   if (!csv_path.empty() && (csv = std::fopen(csv_path.c_str(), "w")) == nullptr) {

@@ -71,7 +71,7 @@ TEST(Pipeline, StopRequestEndsAPacedRun) {
 // corrections (what a vehicle sends the server), and the final trajectory beats the odometry.
 TEST(Pipeline, APoseGraphCorrectsThePoses) {
   sim::SimSourceOptions sim_options{.seed = 1, .max_frames = 520};
-  sim_options.render.noise_sigma = 2.0;
+  sim_options.render.camera.noise_sigma = 2.0;
   sim::SimSource source(sim_options);
   common::Shutdown shutdown;
   PipelineOptions options{.rate_hz = 0, .progress_every = 0, .depth = false, .pose_graph = true};

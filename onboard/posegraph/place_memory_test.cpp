@@ -19,7 +19,7 @@ struct SimView {
 // place from nearly the same pose.
 std::vector<SimView> simViews(const std::vector<uint64_t>& wanted) {
   sim::SimSourceOptions options{.seed = 3, .rate_hz = 10.0, .max_frames = wanted.back() + 1};
-  options.render.noise_sigma = 2.0;
+  options.render.camera.noise_sigma = 2.0;
   sim::SimSource source(options);
   std::vector<SimView> views;
   for (uint64_t i = 0; auto frame = source.next(); ++i) {

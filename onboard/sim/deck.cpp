@@ -155,9 +155,16 @@ std::optional<camera::SourceFrame> DeckSource::next() {
   frame.T_body_camera = LandingFlight::T_body_camera();
   truth_ = truthAt(t);
   // The scene is rigid in the deck's frame: render the camera's pose there.
+  const auto T_deck_camera_at = [&](double time) {
+    return truthAt(time).T_world_deck.inverse() * flight_.T_world_body(time) *
+           LandingFlight::T_body_camera();
+  };
+  const double half_exposure = 0.5 * options_.render.camera.exposure_s;
   const Rigid3 T_deck_camera =
       truth_.T_world_deck.inverse() * *frame.T_map_body * *frame.T_body_camera;
-  StereoFrame rendered = renderer_.render(T_deck_camera);
+  StereoFrame rendered = renderer_.render(
+      T_deck_camera,
+      Renderer::Exposure{T_deck_camera_at(t - half_exposure), T_deck_camera_at(t + half_exposure)});
   frame.left = std::move(rendered.left);
   frame.right = std::move(rendered.right);
   return frame;

@@ -100,7 +100,8 @@ struct DeckSourceOptions {
   int64_t start_stamp_ns = 0;
   double start_s = 0;  // where in the descent to begin
   DeckMarkings markings;
-  RenderOptions render{.max_depth = 80.0, .noise_sigma = 2.0, .blur_sigma = 0.7, .supersample = 3};
+  RenderOptions render{
+      .max_depth = 80.0, .camera = {.noise_sigma = 2.0, .blur_sigma = 0.7}, .supersample = 3};
   DeckMotionOptions deck;
   LandingFlightOptions flight;
 };

@@ -1,5 +1,7 @@
 #include "onboard/sim/renderer.hpp"
 
+#include <algorithm>
+#include <cmath>
 #include <functional>
 
 #include <opencv2/core/utility.hpp>
@@ -57,13 +59,10 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
     fine.cy = s * camera_.cy + (s - 1) / 2.0;
     RenderOptions fine_options = options_;
     fine_options.supersample = 1;
-    fine_options.noise_sigma = 0;
-    fine_options.blur_sigma = 0;
     cv::Mat sharp;
     Renderer(scene_, fine, fine_options).renderView(T_map_camera, &sharp, nullptr);
     cv::resize(sharp, *image, cv::Size(camera_.width, camera_.height), 0, 0, cv::INTER_AREA);
     if (depth != nullptr) renderView(T_map_camera, nullptr, depth);
-    finishImage(T_map_camera, *image);
     return;
   }
   if (image != nullptr) image->create(camera_.height, camera_.width, CV_8UC1);
@@ -105,12 +104,86 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
       }
     }
   });
-  if (image != nullptr) finishImage(T_map_camera, *image);
 }
 
-void Renderer::finishImage(const Rigid3& T_map_camera, cv::Mat& image) const {
-  if (options_.blur_sigma > 0) cv::GaussianBlur(image, image, cv::Size(), options_.blur_sigma);
-  if (options_.noise_sigma > 0) {
+CameraModel CameraModel::typical() {
+  return {.noise_sigma = 1.5,
+          .shot_noise = 0.014,
+          .blur_sigma = 0.5,
+          .exposure_s = 0.004,
+          .vignetting = 0.15,
+          .right_gain = 1.05,
+          .gamma = 1.1};
+}
+
+CameraModel CameraModel::poor() {
+  return {.noise_sigma = 3.0,
+          .shot_noise = 0.055,
+          .blur_sigma = 1.0,
+          .exposure_s = 0.010,
+          .vignetting = 0.30,
+          .right_gain = 1.10,
+          .gamma = 1.25};
+}
+
+std::optional<CameraModel> CameraModel::preset(const std::string& name) {
+  if (name == "clean") return clean();
+  if (name == "typical") return typical();
+  if (name == "poor") return poor();
+  return std::nullopt;
+}
+
+namespace {
+
+// A line kernel from -motion/2 to +motion/2 (pixels), summing to 1; empty when shorter than a
+// tenth of a pixel.
+cv::Mat motionKernel(const Eigen::Vector2d& motion) {
+  const double length = motion.norm();
+  if (!(length >= 0.1)) return {};
+  const int half = static_cast<int>(std::ceil(0.5 * length)) + 1;
+  cv::Mat kernel = cv::Mat::zeros(2 * half + 1, 2 * half + 1, CV_32F);
+  // Sampled finely along the segment with bilinear weights, so that a sub-pixel length blurs
+  // by that much.
+  const int samples = std::max(8, static_cast<int>(std::ceil(8 * length)));
+  for (int i = 0; i < samples; ++i) {
+    const Eigen::Vector2d p = motion * ((i + 0.5) / samples - 0.5);
+    const double x = p.x() + half, y = p.y() + half;
+    const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
+    const double fx = x - x0, fy = y - y0;
+    kernel.at<float>(y0, x0) += static_cast<float>((1 - fx) * (1 - fy));
+    kernel.at<float>(y0, x0 + 1) += static_cast<float>(fx * (1 - fy));
+    kernel.at<float>(y0 + 1, x0) += static_cast<float>((1 - fx) * fy);
+    kernel.at<float>(y0 + 1, x0 + 1) += static_cast<float>(fx * fy);
+  }
+  return kernel / cv::sum(kernel)[0];
+}
+
+}  // namespace
+
+void Renderer::finishImage(const Rigid3& T_map_camera, double gain, const cv::Mat& motion,
+                           cv::Mat& image) const {
+  const CameraModel& model = options_.camera;
+  if (model.vignetting > 0 || gain != 1.0) {
+    // Light falls off towards the corners (r^2 from the principal point, 1 at the farthest
+    // corner); the camera's gain scales it all.
+    cv::Mat light;
+    image.convertTo(light, CV_32F);
+    const double cx = camera_.cx, cy = camera_.cy;
+    const double corner2 = std::max(cx * cx, (camera_.width - cx) * (camera_.width - cx)) +
+                           std::max(cy * cy, (camera_.height - cy) * (camera_.height - cy));
+    for (int v = 0; v < light.rows; ++v) {
+      float* row = light.ptr<float>(v);
+      for (int u = 0; u < light.cols; ++u) {
+        const double r2 = ((u - cx) * (u - cx) + (v - cy) * (v - cy)) / corner2;
+        row[u] = static_cast<float>(row[u] * gain * (1.0 - model.vignetting * r2));
+      }
+    }
+    light.convertTo(image, CV_8U);
+  }
+  if (model.blur_sigma > 0) cv::GaussianBlur(image, image, cv::Size(), model.blur_sigma);
+  if (!motion.empty())
+    cv::filter2D(image, image, -1, motion, cv::Point(-1, -1), 0, cv::BORDER_REFLECT);
+  if (model.noise_sigma > 0 || model.shot_noise > 0) {
     // A fresh pattern per image (one seed for all would be fixed-pattern noise that stereo
     // and tracking lock onto), reproducible from the seed and the pose.
     uint64_t seed = options_.noise_seed;
@@ -119,22 +192,66 @@ void Renderer::finishImage(const Rigid3& T_map_camera, cv::Mat& image) const {
           T_map_camera.rotation.w(), T_map_camera.rotation.x(), T_map_camera.rotation.y()}) {
       seed = seed * 0x9E3779B97F4A7C15ull ^ std::hash<double>{}(v);
     }
-    cv::Mat noise(image.size(), CV_16SC1);
     cv::RNG rng(seed);
-    rng.fill(noise, cv::RNG::NORMAL, 0, options_.noise_sigma);
-    cv::Mat noisy;
-    image.convertTo(noisy, CV_16SC1);
-    noisy += noise;
-    noisy.convertTo(image, CV_8UC1);
+    if (model.shot_noise > 0) {
+      // sigma^2 = read^2 + shot * level, per pixel.
+      cv::Mat level, unit(image.size(), CV_32F);
+      image.convertTo(level, CV_32F);
+      rng.fill(unit, cv::RNG::NORMAL, 0, 1);
+      cv::Mat sigma;
+      cv::sqrt(level * model.shot_noise + model.noise_sigma * model.noise_sigma, sigma);
+      level += unit.mul(sigma);
+      level.convertTo(image, CV_8U);
+    } else {
+      cv::Mat noise(image.size(), CV_16SC1);
+      rng.fill(noise, cv::RNG::NORMAL, 0, model.noise_sigma);
+      cv::Mat noisy;
+      image.convertTo(noisy, CV_16SC1);
+      noisy += noise;
+      noisy.convertTo(image, CV_8UC1);
+    }
+  }
+  if (model.gamma != 1.0) {
+    cv::Mat table(1, 256, CV_8U);
+    for (int i = 0; i < 256; ++i) {
+      table.at<uint8_t>(i) =
+          cv::saturate_cast<uint8_t>(255.0 * std::pow(i / 255.0, 1.0 / model.gamma));
+    }
+    cv::LUT(image, table, image);
   }
 }
 
-StereoFrame Renderer::render(const Rigid3& T_map_camera) const {
+StereoFrame Renderer::render(const Rigid3& T_map_camera,
+                             const std::optional<Exposure>& exposure) const {
   StereoFrame frame;
   frame.T_map_camera = T_map_camera;
   renderView(T_map_camera, &frame.left, &frame.depth);
   const Rigid3 T_left_right{common::Quat::Identity(), Vec3(camera_.baseline, 0, 0)};
-  renderView(T_map_camera * T_left_right, &frame.right, nullptr);
+  const Rigid3 T_map_right = T_map_camera * T_left_right;
+  renderView(T_map_right, &frame.right, nullptr);
+  cv::Mat motion;
+  if (exposure && options_.camera.exposure_s > 0) {
+    // The scene point seen at the image centre, at the median depth of the view, moves this
+    // far in the image while the shutter is open (one kernel for the whole image: rotation
+    // blurs alike everywhere; for translation it is right at the median depth).
+    std::vector<float> depths;
+    for (int v = 0; v < frame.depth.rows; ++v) {
+      const float* row = frame.depth.ptr<float>(v);
+      for (int u = 0; u < frame.depth.cols; ++u) {
+        if (row[u] > 0) depths.push_back(row[u]);
+      }
+    }
+    if (!depths.empty()) {
+      std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+      const double z = depths[depths.size() / 2];
+      const Vec3 p_map = T_map_camera * Vec3(0, 0, z);
+      const auto open = camera_.project(exposure->T_map_camera_open.inverse() * p_map);
+      const auto close = camera_.project(exposure->T_map_camera_close.inverse() * p_map);
+      if (open && close) motion = motionKernel(*close - *open);
+    }
+  }
+  finishImage(T_map_camera, 1.0, motion, frame.left);
+  finishImage(T_map_right, options_.camera.right_gain, motion, frame.right);
   return frame;
 }
 

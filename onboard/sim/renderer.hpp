@@ -2,6 +2,9 @@
 // left camera's true depth (z, metres; 0 where the ray hits nothing). Uses both cores.
 #pragma once
 
+#include <optional>
+#include <string>
+
 #include <opencv2/core.hpp>
 
 #include "common/geometry.hpp"
@@ -17,13 +20,40 @@ struct StereoFrame {
   common::Rigid3 T_map_camera;  // left camera
 };
 
+// What a real stereo rig does to the exact images; every field at its default leaves them
+// exact. Applied in the order light meets them: vignetting and the right camera's gain, lens
+// defocus and motion blur, the sensor's noise (shot and read), the response curve (gamma),
+// 8 bits. Presets by name: clean, typical, poor (preset()).
+struct CameraModel {
+  // Read noise: Gaussian, grey levels, the same at every level. Drawn afresh for every image,
+  // as a sensor's, reproducibly from RenderOptions::noise_seed and the camera's pose.
+  double noise_sigma = 0.0;
+  // Shot (photon) noise: the variance grows by this much per grey level of the pixel.
+  double shot_noise = 0.0;
+  double blur_sigma = 0.0;  // defocus: Gaussian blur, pixels
+  // Motion blur: the shutter is open this long, centred on the frame's pose; the image is
+  // smeared along the motion of the image centre's scene point (at the median depth) over
+  // that time. Needs the poses at the exposure's start and end (Renderer::render).
+  double exposure_s = 0.0;
+  double vignetting = 0.0;  // light lost in the image's corners (fraction), falling as r^2
+  double right_gain = 1.0;  // the right camera's gain over the left's (exposure mismatch)
+  double gamma = 1.0;       // response curve: out = 255 (in / 255)^(1 / gamma)
+
+  // clean: exact images. typical (a good rig in daylight): noise sigma 2 at mid grey (read
+  // 1.5, shot 0.014), 5 % gain mismatch, defocus 0.5 px, 4 ms exposure, 15 % vignetting,
+  // gamma 1.1. poor (a cheap rig, dim light): sigma 4 at mid grey (read 3, shot 0.055),
+  // 10 % mismatch, defocus 1 px, 10 ms, 30 % vignetting, gamma 1.25.
+  static CameraModel clean() { return {}; }
+  static CameraModel typical();
+  static CameraModel poor();
+  // The preset of that name, or nullopt.
+  static std::optional<CameraModel> preset(const std::string& name);
+};
+
 struct RenderOptions {
   double max_depth = 40.0;  // metres; farther surfaces are not rendered
-  // Gaussian image noise, grey levels (0 = exact images): drawn afresh for every image, as a
-  // sensor's, reproducibly from the seed and the camera's pose.
-  double noise_sigma = 0.0;
+  CameraModel camera;
   uint32_t noise_seed = 1;
-  double blur_sigma = 0.0;  // Gaussian blur (defocus, motion), pixels; 0 = sharp
   // Rays per pixel along each axis, averaged (anti-aliasing: a sharp painted edge then lands
   // between pixels as a real lens and sensor put it, which sub-pixel corners rely on).
   int supersample = 1;
@@ -32,16 +62,24 @@ struct RenderOptions {
 class Renderer {
  public:
   Renderer(const Scene& scene, camera::StereoCamera camera, RenderOptions options = {});
-  StereoFrame render(const common::Rigid3& T_map_camera) const;
+  // `exposure`: the left camera's poses when the shutter opens and closes (motion blur, with
+  // CameraModel::exposure_s > 0); without it the images have none.
+  struct Exposure {
+    common::Rigid3 T_map_camera_open, T_map_camera_close;
+  };
+  StereoFrame render(const common::Rigid3& T_map_camera,
+                     const std::optional<Exposure>& exposure = std::nullopt) const;
   // Only the left camera's true depth (CV_32FC1), e.g. for ground-truth coverage.
   cv::Mat renderDepth(const common::Rigid3& T_map_camera) const;
   const camera::StereoCamera& camera() const { return camera_; }
 
  private:
-  // Renders one camera: grey image and (if depth != nullptr) its depth.
+  // Renders one camera: the exact grey image and (if depth != nullptr) its depth.
   void renderView(const common::Rigid3& T_map_camera, cv::Mat* image, cv::Mat* depth) const;
-  // Blur, then noise drawn afresh for this pose.
-  void finishImage(const common::Rigid3& T_map_camera, cv::Mat& image) const;
+  // The camera model on an exact image: `gain` for this camera, `motion` the blur's kernel
+  // (empty: none); noise drawn afresh for this pose.
+  void finishImage(const common::Rigid3& T_map_camera, double gain, const cv::Mat& motion,
+                   cv::Mat& image) const;
 
   const Scene& scene_;
   camera::StereoCamera camera_;

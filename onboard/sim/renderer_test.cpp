@@ -2,6 +2,10 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+
+#include <opencv2/imgproc.hpp>
+
 #include "onboard/sim/flight.hpp"
 
 namespace stereomap::sim {
@@ -66,6 +70,116 @@ TEST(Renderer, IsDeterministicForASeed) {
   const auto pose = flight.T_map_camera(3.0);
   EXPECT_EQ(cv::norm(ra.render(pose).left, rb.render(pose).left, cv::NORM_INF), 0.0);
   EXPECT_GT(cv::norm(ra.render(pose).left, rc.render(pose).left, cv::NORM_L1), 0.0);
+}
+
+// The camera model, one effect at a time, against the exact images of the same view.
+StereoFrame renderWith(const Scene& scene, const CameraModel& model,
+                       const std::optional<Renderer::Exposure>& exposure = std::nullopt) {
+  return Renderer(scene, camera::StereoCamera{}, {.camera = model})
+      .render(Rigid3::identity(), exposure);
+}
+
+TEST(CameraModel, PresetsByNameAndCleanIsExact) {
+  const Scene scene = wallAt(3.0);
+  ASSERT_TRUE(CameraModel::preset("clean"));
+  ASSERT_TRUE(CameraModel::preset("typical"));
+  ASSERT_TRUE(CameraModel::preset("poor"));
+  EXPECT_FALSE(CameraModel::preset("Typical"));
+  EXPECT_EQ(CameraModel::preset("poor")->right_gain, 1.10);
+  const auto exact = renderWith(scene, {});
+  const auto clean = renderWith(scene, *CameraModel::preset("clean"));
+  EXPECT_EQ(cv::norm(exact.left, clean.left, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(exact.right, clean.right, cv::NORM_INF), 0.0);
+  const auto typical = renderWith(scene, CameraModel::typical());
+  EXPECT_GT(cv::norm(exact.left, typical.left, cv::NORM_L1), 0.0);
+}
+
+TEST(CameraModel, TheRightCamerasGainScalesItsImageAndOnlyIts) {
+  const Scene scene = wallAt(3.0);
+  const auto exact = renderWith(scene, {});
+  const auto brighter = renderWith(scene, {.right_gain = 1.10});
+  EXPECT_EQ(cv::norm(exact.left, brighter.left, cv::NORM_INF), 0.0);
+  EXPECT_NEAR(cv::sum(brighter.right)[0] / cv::sum(exact.right)[0], 1.10, 0.01);
+}
+
+TEST(CameraModel, VignettingDarkensTheCornersByItsFraction) {
+  const Scene scene = wallAt(3.0);
+  const auto exact = renderWith(scene, {});
+  const auto vignetted = renderWith(scene, {.vignetting = 0.3});
+  auto ratio = [&](const cv::Rect& box) {
+    return cv::sum(vignetted.left(box))[0] / cv::sum(exact.left(box))[0];
+  };
+  EXPECT_NEAR(ratio(cv::Rect(310, 230, 20, 20)), 1.0, 0.01);  // at the principal point
+  EXPECT_NEAR(ratio(cv::Rect(0, 0, 6, 6)), 0.7, 0.02);        // the farthest corner
+  EXPECT_NEAR(ratio(cv::Rect(634, 474, 6, 6)), 0.7, 0.03);
+}
+
+TEST(CameraModel, ShotNoiseGrowsWithTheLevelAndReadNoiseDoesNot) {
+  // The wall's texture spans dark and bright levels: noise measured on each.
+  const Scene scene = wallAt(3.0);
+  const auto exact = renderWith(scene, {});
+  const auto noisy = renderWith(scene, {.noise_sigma = 2.0, .shot_noise = 0.05});
+  cv::Mat exact_f, noisy_f;
+  exact.left.convertTo(exact_f, CV_64F);
+  noisy.left.convertTo(noisy_f, CV_64F);
+  const cv::Mat difference = noisy_f - exact_f;
+  // Variance against the expected 4 + 0.05 * level, level by level (the texture spans many).
+  double dark_sum = 0, dark_expected = 0, bright_sum = 0, bright_expected = 0;
+  int dark_n = 0, bright_n = 0;
+  for (int v = 0; v < difference.rows; ++v) {
+    for (int u = 0; u < difference.cols; ++u) {
+      const double level = exact_f.at<double>(v, u), d = difference.at<double>(v, u);
+      if (level < 20 || level > 235) continue;  // clipped at 0 or 255
+      if (level < 100) {
+        dark_sum += d * d, dark_expected += 4 + 0.05 * level, ++dark_n;
+      } else if (level > 150) {
+        bright_sum += d * d, bright_expected += 4 + 0.05 * level, ++bright_n;
+      }
+    }
+  }
+  ASSERT_GT(dark_n, 1000);
+  ASSERT_GT(bright_n, 1000);
+  // Measured variance within 10 % of the model's (+1/12 for rounding to whole grey levels).
+  EXPECT_NEAR(dark_sum / dark_n, dark_expected / dark_n + 1.0 / 12, 0.1 * dark_expected / dark_n);
+  EXPECT_NEAR(bright_sum / bright_n, bright_expected / bright_n + 1.0 / 12,
+              0.1 * bright_expected / bright_n);
+  EXPECT_GT(bright_sum / bright_n, dark_sum / dark_n + 2.0);
+}
+
+TEST(CameraModel, MotionBlurSmearsAlongTheImageMotionOnly) {
+  // The camera turns about its y axis while the shutter is open: the image moves sideways
+  // by f * angle (6 px here): the image is smeared along that line and no other way.
+  const Scene scene = wallAt(3.0);
+  const camera::StereoCamera camera;
+  const double angle = 6.0 / camera.fx;
+  const Renderer::Exposure turning{
+      {common::Quat(Eigen::AngleAxisd(-angle / 2, Vec3::UnitY())), Vec3::Zero()},
+      {common::Quat(Eigen::AngleAxisd(angle / 2, Vec3::UnitY())), Vec3::Zero()}};
+  const auto sharp = renderWith(scene, {.exposure_s = 0.01});  // no poses: no blur
+  const auto blurred = renderWith(scene, {.exposure_s = 0.01}, turning);
+  const auto still = renderWith(scene, {}, turning);  // no exposure time: no blur
+  EXPECT_EQ(cv::norm(sharp.left, still.left, cv::NORM_INF), 0.0);
+  // The same as smearing the sharp image along a horizontal line of 6 px.
+  const cv::Mat line = (cv::Mat_<float>(1, 7) << 0.5f, 1, 1, 1, 1, 1, 0.5f) / 6.0f;
+  cv::Mat smeared;
+  cv::filter2D(sharp.left, smeared, -1, line, cv::Point(-1, -1), 0, cv::BORDER_REFLECT);
+  const cv::Rect inner(10, 10, 620, 460);
+  const double from_sharp = cv::norm(blurred.left(inner), sharp.left(inner), cv::NORM_L1);
+  const double from_smeared = cv::norm(blurred.left(inner), smeared(inner), cv::NORM_L1);
+  EXPECT_GT(from_sharp, 0.0);
+  EXPECT_LT(from_smeared, 0.2 * from_sharp);  // measured 0.05
+}
+
+TEST(CameraModel, GammaIsTheResponseCurve) {
+  const Scene scene = wallAt(3.0);
+  const auto exact = renderWith(scene, {});
+  const auto curved = renderWith(scene, {.gamma = 1.25});
+  for (int v = 0; v < 480; v += 37) {
+    for (int u = 0; u < 640; u += 41) {
+      const double in = exact.left.at<uint8_t>(v, u);
+      EXPECT_NEAR(curved.left.at<uint8_t>(v, u), 255.0 * std::pow(in / 255.0, 1 / 1.25), 0.5);
+    }
+  }
 }
 
 TEST(Flight, StaysInsideTheRoomAndClearOfObstacles) {

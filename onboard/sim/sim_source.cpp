@@ -23,7 +23,11 @@ std::optional<camera::SourceFrame> SimSource::next() {
   frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t_s * 1e9));
   frame.T_map_body = flight_.T_map_body(t_s);
   frame.T_body_camera = flight_.T_body_camera();
-  StereoFrame rendered = renderer_.render(*frame.T_map_body * *frame.T_body_camera);
+  const double half_exposure = 0.5 * options_.render.camera.exposure_s;
+  StereoFrame rendered =
+      renderer_.render(*frame.T_map_body * *frame.T_body_camera,
+                       Renderer::Exposure{flight_.T_map_camera(t_s - half_exposure),
+                                          flight_.T_map_camera(t_s + half_exposure)});
   frame.left = std::move(rendered.left);
   frame.right = std::move(rendered.right);
   return frame;

@@ -8,8 +8,8 @@ namespace stereomap::testing {
 
 inline sim::SimSourceOptions noisyFlight(uint32_t seed) {
   sim::SimSourceOptions options{.seed = seed, .rate_hz = 10.0, .max_frames = 300};
-  options.render.noise_sigma = 2.0;
-  options.render.blur_sigma = 1.0;
+  options.render.camera.noise_sigma = 2.0;
+  options.render.camera.blur_sigma = 1.0;
   return options;
 }
 
