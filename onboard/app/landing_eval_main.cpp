@@ -70,7 +70,7 @@ int main(int argc, char** argv) {
   std::string camera_preset;
   app.add_option("--camera", camera_preset,
                  "Camera model: clean, typical or poor (stereomap-onboard --help); --noise and "
-                 "--blur then set its read noise and defocus (default: noise 2, blur 0.7)")
+                 "--blur then set its read noise and defocus (default: typical)")
       ->check(CLI::IsMember({"clean", "typical", "poor"}));
   app.add_option("--supersample", source_options.render.supersample,
                  "Rays per pixel along each axis (anti-aliasing)")

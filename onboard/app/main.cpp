@@ -85,7 +85,7 @@ int main(int argc, char** argv) {
                  "Sim: the camera model: clean (exact images; the room's default), typical "
                  "(noise sigma 2 at mid grey, 5 % left/right gain mismatch, defocus, motion "
                  "blur, vignetting, gamma) or poor (sigma 4, 10 %, stronger blur); the deck's "
-                 "default is its own (noise 2, blur 0.7). --image-noise and --image-blur "
+                 "default is typical. --image-noise and --image-blur "
                  "override its read noise and defocus")
       ->check(CLI::IsMember({"clean", "typical", "poor"}));
   app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")

@@ -4,7 +4,7 @@
 // camera. The scene is rigid in the deck's frame, so it is rendered there: exact images, and
 // exact truth of the pad's pose in the camera and of the deck's motion.
 //
-//   DeckSource source({.seed = 1});             // 640x480 at 10 Hz, noise and blur on
+//   DeckSource source({.seed = 1});             // 640x480 at 10 Hz, the typical camera
 //   while (auto frame = source.next()) { const DeckTruth& truth = source.truth(); ... }
 #pragma once
 
@@ -100,8 +100,8 @@ struct DeckSourceOptions {
   int64_t start_stamp_ns = 0;
   double start_s = 0;  // where in the descent to begin
   DeckMarkings markings;
-  RenderOptions render{
-      .max_depth = 80.0, .camera = {.noise_sigma = 2.0, .blur_sigma = 0.7}, .supersample = 3};
+  // The typical camera (issue 19: noise and blur on, the camera presets where they exist).
+  RenderOptions render{.max_depth = 80.0, .camera = CameraModel::typical(), .supersample = 3};
   DeckMotionOptions deck;
   LandingFlightOptions flight;
 };
