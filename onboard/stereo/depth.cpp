@@ -137,6 +137,13 @@ cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const 
     cv::resize(left, l, small, 0, 0, cv::INTER_AREA);
     cv::resize(right, r, small, 0, 0, cv::INTER_AREA);
   }
+  if (o.smooth_sigma_px > 0) {
+    cv::Mat smoothed_left, smoothed_right;
+    cv::GaussianBlur(l, smoothed_left, cv::Size(), o.smooth_sigma_px);
+    cv::GaussianBlur(r, smoothed_right, cv::Size(), o.smooth_sigma_px);
+    l = smoothed_left;
+    r = smoothed_right;
+  }
   if (o.prefilter == Prefilter::kLoG) {
     l = laplacianOfGaussian(l, o.log_sigma_px);
     r = laplacianOfGaussian(r, o.log_sigma_px);
@@ -181,9 +188,8 @@ cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const 
   return disparity;
 }
 
-common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& left,
-                                      const camera::StereoCamera& camera,
-                                      const CloudOptions& options) {
+BlockDisparity blockDisparity(const cv::Mat& disparity, const cv::Mat& left,
+                              const camera::StereoCamera& camera, const CloudOptions& options) {
   CV_Assert(disparity.type() == CV_32FC1);
   CV_Assert(!options.with_intensity || (left.type() == CV_8UC1 && left.size() == disparity.size()));
   CV_Assert(options.block_cols >= 1 && options.block_rows >= 1);
@@ -194,10 +200,14 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
   const int grid_rows = disparity.rows / options.block_rows;
   const int grid_cols = disparity.cols / options.block_cols;
 
-  // Pass 1: each block's median disparity (x16, fixed point as OpenCV's speckle filter wants;
+  // Each block's median disparity (x16, fixed point as OpenCV's speckle filter wants;
   // -16 = no point) and mean intensity.
   cv::Mat block_disparity(grid_rows, grid_cols, CV_16SC1, cv::Scalar(-16));
-  cv::Mat block_intensity(grid_rows, grid_cols, CV_8UC1, cv::Scalar(0));
+  BlockDisparity blocks{.disparity = cv::Mat(),
+                        .intensity = cv::Mat(grid_rows, grid_cols, CV_8UC1, cv::Scalar(0)),
+                        .block_cols = options.block_cols,
+                        .block_rows = options.block_rows};
+  cv::Mat& block_intensity = blocks.intensity;
   std::vector<float> valid(static_cast<size_t>(block_pixels));
   for (int by = 0; by < grid_rows; ++by) {
     const int v0 = by * options.block_rows;
@@ -241,25 +251,38 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
     cv::filterSpeckles(block_disparity, -16, options.speckle_blocks,
                        static_cast<double>(options.speckle_range_px * 16));
   }
+  block_disparity.convertTo(blocks.disparity, CV_32FC1, 1.0 / 16);
+  return blocks;
+}
 
-  // Pass 2: one point per surviving block, on the ray through the block's centre.
+common::PointCloud cloudFromBlocks(const BlockDisparity& blocks, const camera::StereoCamera& camera,
+                                   const CloudOptions& options) {
+  CV_Assert(blocks.disparity.type() == CV_32FC1 &&
+            (!options.with_intensity || blocks.intensity.size() == blocks.disparity.size()));
+  const int grid_rows = blocks.disparity.rows, grid_cols = blocks.disparity.cols;
   common::PointCloud cloud;
   cloud.points.reserve(static_cast<size_t>(grid_rows) * grid_cols);
   if (options.with_intensity) cloud.intensity.reserve(cloud.points.capacity());
-  const double baseline_fx_16 = camera.baseline * camera.fx * 16.0;  // z = B f / (d16 / 16)
+  const double baseline_fx = camera.baseline * camera.fx;  // z = B f / d
   for (int by = 0; by < grid_rows; ++by) {
-    const double v_centre = by * options.block_rows + (options.block_rows - 1) / 2.0;
-    const int16_t* d16 = block_disparity.ptr<int16_t>(by);
-    const uint8_t* grey = block_intensity.ptr<uint8_t>(by);
+    const double v_centre = blocks.vCentre(by);
+    const float* d = blocks.disparity.ptr<float>(by);
+    const uint8_t* grey = blocks.intensity.ptr<uint8_t>(by);
     for (int bx = 0; bx < grid_cols; ++bx) {
-      if (d16[bx] <= 0) continue;
-      const double depth = baseline_fx_16 / d16[bx];
-      const double u_centre = bx * options.block_cols + (options.block_cols - 1) / 2.0;
-      cloud.points.push_back((camera.rayThrough(u_centre, v_centre) * depth).cast<float>());
+      if (d[bx] <= 0) continue;
+      const double depth = baseline_fx / d[bx];
+      cloud.points.push_back(
+          (camera.rayThrough(blocks.uCentre(bx), v_centre) * depth).cast<float>());
       if (options.with_intensity) cloud.intensity.push_back(grey[bx]);
     }
   }
   return options.voxel_m > 0 ? voxelGridDownsample(cloud, options.voxel_m) : cloud;
+}
+
+common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& left,
+                                      const camera::StereoCamera& camera,
+                                      const CloudOptions& options) {
+  return cloudFromBlocks(blockDisparity(disparity, left, camera, options), camera, options);
 }
 
 float farthestPoint(const common::PointCloud& cloud, float at_least) {

@@ -47,6 +47,9 @@ struct MatcherOptions {
   int downscale = 1;
   Prefilter prefilter = Prefilter::kNone;
   double log_sigma_px = 1.0;
+  // Gaussian smoothing of both images before anything else, pixels (0: off). Image noise is
+  // white and the matching cost's Sobel amplifies it; most scene texture is coarser.
+  double smooth_sigma_px = 0;
   // Edge-aware filling of the disparity with OpenCV contrib's WLS filter (ximgproc), using
   // a right-view matcher for confidence; 0 disables. Dense but measured less accurate on
   // Middlebury than the accurate preset (docs/BENCHMARKS.md), so off by default.
@@ -106,13 +109,30 @@ struct CloudOptions {
   double disparity_offset_px = 0;
 };
 
-// One point per block_cols x block_rows block: the mean valid disparity of the block (the
-// median when the values span more than 1 px and max_block_span_px allows it), placed on
-// the ray through the block's centre (disparity quantised to 1/16 px, as the matchers').
-// Blocks with fewer than half of their pixels valid or spanning more than
-// max_block_span_px, and speckles of blocks, give no point; invalid disparities never
-// become points. Points are kept by depth (z <= max_range_m), so rays to the image's
-// corners are longer than max_range_m.
+// The disparity image reduced to one value per block_cols x block_rows block: the mean valid
+// disparity of the block (the median when the values span more than 1 px and
+// max_block_span_px allows it), quantised to 1/16 px as the matchers' (CV_32FC1, pixels,
+// <= 0: no point), with the block's mean intensity (CV_8UC1). Blocks with fewer than half of their
+// pixels valid or spanning more than max_block_span_px, and speckles of blocks, give no point;
+// invalid disparities never count.
+struct BlockDisparity {
+  cv::Mat disparity;
+  cv::Mat intensity;
+  int block_cols = 5, block_rows = 2;
+  // The pixel at a block's centre, where its point's ray goes through.
+  double uCentre(int bx) const { return bx * block_cols + (block_cols - 1) / 2.0; }
+  double vCentre(int by) const { return by * block_rows + (block_rows - 1) / 2.0; }
+};
+BlockDisparity blockDisparity(const cv::Mat& disparity, const cv::Mat& left,
+                              const camera::StereoCamera& camera, const CloudOptions& options = {});
+
+// One point per block with a disparity, on the ray through the block's centre, then
+// options.voxel_m's thinning. Points are kept by depth (z <= max_range_m), so rays to the
+// image's corners are longer than max_range_m.
+common::PointCloud cloudFromBlocks(const BlockDisparity& blocks, const camera::StereoCamera& camera,
+                                   const CloudOptions& options = {});
+
+// blockDisparity() then cloudFromBlocks().
 common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& left,
                                       const camera::StereoCamera& camera,
                                       const CloudOptions& options = {});

@@ -1,0 +1,126 @@
+// stereomap-bench-map: how right the map is under each simulated camera (issue 16). Flies the
+// scripted flight through sim rooms 1-3 with the camera presets clean, typical and poor, makes
+// the clouds as the vehicle does, fuses them at 0.05 m on the true poses, and scores the map
+// against the rooms' geometry (the same definitions as fusion_accuracy_test).
+//   stereomap-bench-map [--cameras clean,typical,poor] [--rooms 1,2,3] [--frames 60]
+// Ends with one line per camera preset:
+//   map accuracy <preset>: precision <P> recall <R> free <F>
+#include <CLI/CLI.hpp>
+#include <opencv2/core/utility.hpp>
+
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "tests/support/sim_map_accuracy.hpp"
+
+int main(int argc, char** argv) {
+  using namespace stereomap;
+  CLI::App app{"stereomap-bench-map: map accuracy on sim rooms under each camera preset"};
+  std::vector<std::string> cameras = {"clean", "typical", "poor"};
+  std::vector<uint32_t> rooms = {1, 2, 3};
+  int frames = 60;
+  double resolution = 0.05;
+  std::string stereo_preset = "fast";
+  app.add_option("--cameras", cameras, "Camera presets to fly")
+      ->delimiter(',')
+      ->check(CLI::IsMember({"clean", "typical", "poor"}))
+      ->capture_default_str();
+  app.add_option("--rooms", rooms, "Sim rooms (seeds)")->delimiter(',')->capture_default_str();
+  app.add_option("--frames", frames, "Frames of each flight (10 Hz)")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  app.add_option("--resolution", resolution, "Map resolution, metres")
+      ->check(CLI::Range(0.01, 1.0))
+      ->capture_default_str();
+  app.add_option("--stereo", stereo_preset, "Matcher preset: fast (the vehicle's) or accurate")
+      ->check(CLI::IsMember({"fast", "accurate"}))
+      ->capture_default_str();
+  // Knobs for ablations and trials: each replaces the product's default when given.
+  double smooth = -1, max_range = -1, span = -1, hit = -1, miss = -1, occupied = -1;
+  int block = -1, downscale = -1;
+  app.add_option("--downscale", downscale, "Matcher: match at 1/N resolution");
+  app.add_option("--smooth", smooth, "Matcher: Gaussian smoothing of the images, px");
+  app.add_option("--block", block, "Matcher: block size (odd)");
+  app.add_option("--max-range", max_range, "Cloud: depth limit, m");
+  double min_range = -1;
+  app.add_option("--min-range", min_range, "Cloud: nearest depth, m");
+  app.add_option("--span", span, "Cloud: largest disparity span of a block, px");
+  app.add_option("--hit", hit, "Map: hit probability");
+  app.add_option("--miss", miss, "Map: miss probability");
+  app.add_option("--occupied", occupied, "Map: occupancy threshold");
+  double noise = -1, shot = -1, defocus = -1, exposure = -1, right_gain = -1, vignetting = -1,
+         gamma = -1;
+  app.add_option("--noise", noise, "Camera: read noise, grey levels");
+  app.add_option("--shot", shot, "Camera: shot noise, variance per grey level");
+  app.add_option("--defocus", defocus, "Camera: defocus, px");
+  app.add_option("--exposure", exposure, "Camera: exposure, s (motion blur)");
+  app.add_option("--right-gain", right_gain, "Camera: the right camera's gain");
+  app.add_option("--vignetting", vignetting, "Camera: vignetting");
+  app.add_option("--gamma", gamma, "Camera: gamma");
+  int temporal_min = -1, temporal_max = -1;
+  double gate = -1;
+  app.add_option("--temporal", temporal_min, "Depth over frames: frames to confirm (0: off)");
+  app.add_option("--temporal-max", temporal_max, "Depth over frames: memory in frames");
+  app.add_option("--gate", gate, "Depth over frames: agreement gate, px");
+  CLI11_PARSE(app, argc, argv);
+  cv::setNumThreads(1);  // the depth step's time on one core, as the vehicle budgets it
+
+  struct Total {
+    double precision = 0, recall = 0, free_space = 0;
+  };
+  std::vector<std::pair<std::string, Total>> totals;
+  std::printf(
+      "| camera | room | precision | recall | free | within 1 / 2 voxels | occupied voxels | "
+      "depth ms |\n");
+  std::printf("|---|---|---|---|---|---|---|---|\n");
+  for (const auto& name : cameras) {
+    Total total;
+    for (const uint32_t room : rooms) {
+      testing::SimMapSetup setup{.room = room, .frames = frames};
+      setup.camera = *sim::CameraModel::preset(name);
+      setup.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
+                                                  : stereo::MatcherOptions::fast();
+      setup.map = fusion::OccupancyMap::Options::octomapPreset(resolution);
+      if (temporal_min > 0) {
+        setup.temporal = stereo::TemporalFilterOptions{};
+        setup.temporal->min_frames = temporal_min;
+        if (temporal_max > 0) setup.temporal->max_frames = temporal_max;
+        if (gate > 0) setup.temporal->gate_px = gate;
+      } else if (temporal_min == 0) {
+        setup.temporal.reset();
+      }
+      if (noise >= 0) setup.camera.noise_sigma = noise;
+      if (shot >= 0) setup.camera.shot_noise = shot;
+      if (defocus >= 0) setup.camera.blur_sigma = defocus;
+      if (exposure >= 0) setup.camera.exposure_s = exposure;
+      if (right_gain > 0) setup.camera.right_gain = right_gain;
+      if (vignetting >= 0) setup.camera.vignetting = vignetting;
+      if (gamma > 0) setup.camera.gamma = gamma;
+      if (smooth >= 0) setup.matcher.smooth_sigma_px = smooth;
+      if (block > 0) setup.matcher.block_size = block;
+      if (downscale > 0) setup.matcher.downscale = downscale;
+      if (max_range > 0) setup.cloud.max_range_m = max_range;
+      if (min_range > 0) setup.cloud.min_range_m = min_range;
+      if (span >= 0) setup.cloud.max_block_span_px = span;
+      if (hit > 0) setup.map.prob_hit = hit;
+      if (miss > 0) setup.map.prob_miss = miss;
+      if (occupied > 0) setup.map.occupancy_threshold = occupied;
+      const auto a = testing::measureSimMap(setup);
+      std::printf("| %s | %u | %.4f | %.4f | %.4f | %.4f / %.4f | %zu | %.2f |\n", name.c_str(),
+                  room, a.precision, a.recall, a.free_space, a.precision_1, a.precision_2,
+                  a.occupied, a.depth_ms);
+      std::fflush(stdout);
+      total.precision += a.precision / rooms.size();
+      total.recall += a.recall / rooms.size();
+      total.free_space += a.free_space / rooms.size();
+    }
+    totals.emplace_back(name, total);
+  }
+  std::printf("\n");
+  for (const auto& [name, t] : totals) {
+    std::printf("map accuracy %s: precision %.3f recall %.3f free %.3f\n", name.c_str(),
+                t.precision, t.recall, t.free_space);
+  }
+  return 0;
+}

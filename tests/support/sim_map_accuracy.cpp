@@ -1,0 +1,121 @@
+#include "tests/support/sim_map_accuracy.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <set>
+#include <tuple>
+#include <vector>
+
+#include "onboard/sim/sim_source.hpp"
+
+namespace stereomap::testing {
+
+using common::Vec3;
+using fusion::Occupancy;
+using fusion::OccupancyMap;
+
+SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
+  sim::SimSourceOptions source_options{
+      .seed = setup.room, .rate_hz = 10.0, .max_frames = static_cast<uint64_t>(setup.frames)};
+  source_options.render.camera = setup.camera;
+  sim::SimSource source(source_options);
+  const auto& scene = source.scene();
+  const camera::StereoCamera& camera = source.camera();
+  const stereo::StereoMatcher matcher(setup.matcher);
+  const double resolution = setup.map.resolution;
+  const double max_range = setup.cloud.max_range_m;
+  const double seen_range = setup.seen_range_m;
+  OccupancyMap map(setup.map);
+  std::optional<stereo::TemporalFilter> temporal;
+  if (setup.temporal) temporal.emplace(camera, *setup.temporal);
+  std::vector<common::Rigid3> poses;
+  std::vector<double> depth_ms;
+  while (auto frame = source.next()) {
+    const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
+    const auto start = std::chrono::steady_clock::now();
+    auto blocks = stereo::blockDisparity(matcher.compute(frame->left, frame->right), frame->left,
+                                         camera, setup.cloud);
+    if (temporal) temporal->apply(blocks, T_map_camera);
+    const auto cloud = stereo::cloudFromBlocks(blocks, camera, setup.cloud);
+    depth_ms.push_back(
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+            .count());
+    // As the onboard client sends it: rays as long as the farthest point (corners exceed z).
+    map.insertCloud(cloud, T_map_camera,
+                    stereo::farthestPoint(cloud, static_cast<float>(max_range)) * 1.001);
+    poses.push_back(T_map_camera);
+  }
+
+  SimMapAccuracy result;
+  if (!depth_ms.empty()) {
+    std::nth_element(depth_ms.begin(), depth_ms.begin() + depth_ms.size() / 2, depth_ms.end());
+    result.depth_ms = depth_ms[depth_ms.size() / 2];
+  }
+  const auto occupied = map.occupiedVoxels();
+  const double half_diagonal = resolution * std::sqrt(3.0) / 2;
+  size_t correct = 0, within_1 = 0, within_2 = 0;
+  for (const auto& v : occupied) {
+    const double distance = scene.distanceToSurface(map.voxelCentre(v));
+    correct += distance <= half_diagonal;
+    within_1 += distance <= half_diagonal + resolution;
+    within_2 += distance <= half_diagonal + 2 * resolution;
+  }
+
+  using Key = std::tuple<int, int, int>;
+  auto keyOf = [resolution](const Vec3& p) {
+    return Key{static_cast<int>(std::floor(p.x() / resolution)),
+               static_cast<int>(std::floor(p.y() / resolution)),
+               static_cast<int>(std::floor(p.z() / resolution))};
+  };
+  std::set<Key> occupied_keys;
+  for (const auto& v : occupied) occupied_keys.insert({v.x, v.y, v.z});
+  const sim::Renderer renderer(scene, camera);
+  std::map<Key, std::set<Key>> seen;  // voxel -> the voxels sharing a face the point is on
+  size_t free_correct = 0;
+  for (const auto& T_map_camera : poses) {
+    const cv::Mat depth = renderer.renderDepth(T_map_camera);
+    for (int v = 0; v < depth.rows; v += 2) {
+      for (int u = 0; u < depth.cols; u += 2) {
+        const float z = depth.at<float>(v, u);
+        if (z <= 0 || z > seen_range || u < camera.disparityFromDepth(z)) continue;
+        const Vec3 ray = camera.rayThrough(u, v);
+        const Vec3 point = T_map_camera * (ray * z);
+        auto& sides = seen[keyOf(point)];
+        for (int axis = 0; axis < 3; ++axis) {
+          for (const double nudge : {-1e-6, 1e-6}) {
+            Vec3 moved = point;
+            moved[axis] += nudge;
+            if (keyOf(moved) != keyOf(point)) sides.insert(keyOf(moved));
+          }
+        }
+        if (u % 16 != 0 || v % 16 != 0) continue;
+        const double length = ray.norm() * z;
+        for (double s = resolution; s < length - 2 * resolution; s += resolution) {
+          ++result.free_samples;
+          free_correct += map.query(T_map_camera * (ray * (s / ray.norm()))) == Occupancy::kFree;
+        }
+      }
+    }
+  }
+  size_t recalled = 0;
+  for (const auto& [key, sides] : seen) {
+    bool hit = occupied_keys.count(key) > 0;
+    for (const auto& side : sides) hit = hit || occupied_keys.count(side) > 0;
+    recalled += hit;
+  }
+  result.occupied = occupied.size();
+  result.seen = seen.size();
+  if (result.occupied > 0) {
+    result.precision = static_cast<double>(correct) / result.occupied;
+    result.precision_1 = static_cast<double>(within_1) / result.occupied;
+    result.precision_2 = static_cast<double>(within_2) / result.occupied;
+  }
+  if (result.seen > 0) result.recall = static_cast<double>(recalled) / result.seen;
+  if (result.free_samples > 0)
+    result.free_space = static_cast<double>(free_correct) / result.free_samples;
+  return result;
+}
+
+}  // namespace stereomap::testing
