@@ -8,6 +8,7 @@
 #include <CLI/CLI.hpp>
 #include <opencv2/core/utility.hpp>
 
+#include <algorithm>
 #include <cstdio>
 #include <string>
 #include <vector>
@@ -26,7 +27,10 @@ int main(int argc, char** argv) {
       ->delimiter(',')
       ->check(CLI::IsMember({"clean", "typical", "poor"}))
       ->capture_default_str();
-  app.add_option("--rooms", rooms, "Sim rooms (seeds)")->delimiter(',')->capture_default_str();
+  app.add_option("--rooms", rooms, "Sim rooms (seeds)")
+      ->delimiter(',')
+      ->check(CLI::Range(1u, 1000000u))
+      ->capture_default_str();
   app.add_option("--frames", frames, "Frames of each flight (10 Hz)")
       ->check(CLI::Range(1, 100000))
       ->capture_default_str();
@@ -39,31 +43,51 @@ int main(int argc, char** argv) {
   // Knobs for ablations and trials: each replaces the product's default when given.
   double smooth = -1, max_range = -1, span = -1, hit = -1, miss = -1, occupied = -1;
   int block = -1, downscale = -1;
-  app.add_option("--downscale", downscale, "Matcher: match at 1/N resolution");
-  app.add_option("--smooth", smooth, "Matcher: Gaussian smoothing of the images, px");
-  app.add_option("--block", block, "Matcher: block size (odd)");
-  app.add_option("--max-range", max_range, "Cloud: depth limit, m");
+  app.add_option("--downscale", downscale, "Matcher: match at 1/N resolution")
+      ->check(CLI::Range(1, 8));
+  app.add_option("--smooth", smooth, "Matcher: Gaussian smoothing of the images, px")
+      ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--block", block, "Matcher: block size (odd)")
+      ->check(CLI::Range(5, 255) & CLI::Validator(
+                                       [](std::string& v) {
+                                         return std::stoi(v) % 2 == 1 ? std::string()
+                                                                      : std::string("must be odd");
+                                       },
+                                       "ODD"));
+  app.add_option("--max-range", max_range, "Cloud: depth limit, m")->check(CLI::Range(0.5, 100.0));
   double min_range = -1;
-  app.add_option("--min-range", min_range, "Cloud: nearest depth, m");
-  app.add_option("--span", span, "Cloud: largest disparity span of a block, px");
-  app.add_option("--hit", hit, "Map: hit probability");
-  app.add_option("--miss", miss, "Map: miss probability");
-  app.add_option("--occupied", occupied, "Map: occupancy threshold");
+  app.add_option("--min-range", min_range, "Cloud: nearest depth, m")
+      ->check(CLI::Range(0.05, 100.0));
+  app.add_option("--span", span, "Cloud: largest disparity span of a block, px")
+      ->check(CLI::Range(0.0, 100.0));
+  app.add_option("--hit", hit, "Map: hit probability")->check(CLI::Range(0.5, 1.0));
+  app.add_option("--miss", miss, "Map: miss probability")->check(CLI::Range(0.0, 0.5));
+  app.add_option("--occupied", occupied, "Map: occupancy threshold")->check(CLI::Range(0.0, 1.0));
   double noise = -1, shot = -1, defocus = -1, exposure = -1, right_gain = -1, vignetting = -1,
          gamma = -1;
-  app.add_option("--noise", noise, "Camera: read noise, grey levels");
-  app.add_option("--shot", shot, "Camera: shot noise, variance per grey level");
-  app.add_option("--defocus", defocus, "Camera: defocus, px");
-  app.add_option("--exposure", exposure, "Camera: exposure, s (motion blur)");
-  app.add_option("--right-gain", right_gain, "Camera: the right camera's gain");
-  app.add_option("--vignetting", vignetting, "Camera: vignetting");
-  app.add_option("--gamma", gamma, "Camera: gamma");
+  app.add_option("--noise", noise, "Camera: read noise, grey levels")->check(CLI::Range(0.0, 50.0));
+  app.add_option("--shot", shot, "Camera: shot noise, variance per grey level")
+      ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--defocus", defocus, "Camera: defocus, px")->check(CLI::Range(0.0, 10.0));
+  app.add_option("--exposure", exposure, "Camera: exposure, s (motion blur)")
+      ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--right-gain", right_gain, "Camera: the right camera's gain")
+      ->check(CLI::Range(0.1, 10.0));
+  app.add_option("--vignetting", vignetting, "Camera: vignetting")->check(CLI::Range(0.0, 0.9));
+  app.add_option("--gamma", gamma, "Camera: gamma")->check(CLI::Range(0.1, 10.0));
   int temporal_min = -1, temporal_max = -1;
   double gate = -1;
-  app.add_option("--temporal", temporal_min, "Depth over frames: frames to confirm (0: off)");
-  app.add_option("--temporal-max", temporal_max, "Depth over frames: memory in frames");
-  app.add_option("--gate", gate, "Depth over frames: agreement gate, px");
+  app.add_option("--temporal", temporal_min, "Depth over frames: frames to confirm (0: off)")
+      ->check(CLI::Range(0, 100));
+  app.add_option("--temporal-max", temporal_max, "Depth over frames: memory in frames")
+      ->check(CLI::Range(1, 1000));
+  app.add_option("--gate", gate, "Depth over frames: agreement gate, px")
+      ->check(CLI::Range(0.01, 100.0));
   CLI11_PARSE(app, argc, argv);
+  if (temporal_max > 0 && temporal_max < std::max(temporal_min, 2)) {
+    std::fprintf(stderr, "--temporal-max must be at least --temporal (default 2)\n");
+    return 2;
+  }
   cv::setNumThreads(1);  // the depth step's time on one core, as the vehicle budgets it
 
   struct Total {
