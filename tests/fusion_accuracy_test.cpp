@@ -4,20 +4,23 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
+#include <string>
 
 #include "tests/support/sim_map_accuracy.hpp"
 
 namespace stereomap::testing {
 namespace {
 
-SimMapAccuracy measure(uint32_t room) {
-  const SimMapSetup setup{.room = room};  // the fast preset, clean images, 0.05 m
+SimMapAccuracy measure(uint32_t room, const std::string& camera = "clean") {
+  SimMapSetup setup;  // the fast preset and the vehicle's depth step, 0.05 m
+  setup.room = room;
+  setup.camera = *sim::CameraModel::preset(camera);
   const SimMapAccuracy result = measureSimMap(setup);
   std::printf(
-      "room %u, fusion accuracy at %.2f m: precision %.4f (%zu voxels), recall %.4f (%zu seen), "
-      "free space %.4f (%zu samples)\n",
-      room, setup.map.resolution, result.precision, result.occupied, result.recall, result.seen,
-      result.free_space, result.free_samples);
+      "room %u, %s camera, fusion accuracy at %.2f m: precision %.4f (%zu voxels), recall %.4f "
+      "(%zu seen), free space %.4f (%zu samples), image noise %.2f (level %d)\n",
+      room, camera.c_str(), setup.map.resolution, result.precision, result.occupied, result.recall,
+      result.seen, result.free_space, result.free_samples, result.noise_sigma, result.level);
   return result;
 }
 
@@ -36,6 +39,32 @@ TEST_P(FusionAccuracy, SimFlightAtFiveCentimetres) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Rooms, FusionAccuracy, ::testing::Values(1u, 2u, 3u));
+
+// Issue 16: noise kept out of the map under the typical and poor cameras (the depth step finds
+// them noisy by itself). Measured per room (stereomap-bench-map, docs/BENCHMARKS.md): typical
+// precision 0.951-0.960, recall 0.894-0.912, free 0.993-0.994; poor precision 0.903-0.916,
+// recall 0.874-0.888, free 0.992-0.993 (means 0.957 / 0.903 and 0.910 / 0.882 against the
+// goals 0.95 / 0.90 and 0.90 / 0.80). Without the noise handling: typical precision 0.67, poor
+// 0.54.
+TEST(FusionAccuracy, TypicalCameraNoiseStaysOutOfTheMap) {
+  for (const uint32_t room : {1u, 2u, 3u}) {
+    const SimMapAccuracy a = measure(room, "typical");
+    EXPECT_EQ(a.level, 0);
+    EXPECT_GE(a.precision, 0.945);
+    EXPECT_GE(a.recall, 0.885);
+    EXPECT_GE(a.free_space, 0.99);
+  }
+}
+
+TEST(FusionAccuracy, PoorCameraNoiseStaysOutOfTheMap) {
+  for (const uint32_t room : {1u, 2u, 3u}) {
+    const SimMapAccuracy a = measure(room, "poor");
+    EXPECT_EQ(a.level, 1);
+    EXPECT_GE(a.precision, 0.895);
+    EXPECT_GE(a.recall, 0.865);
+    EXPECT_GE(a.free_space, 0.99);
+  }
+}
 
 }  // namespace
 }  // namespace stereomap::testing

@@ -14,20 +14,22 @@ namespace {
 using namespace std::chrono_literals;
 using common::Vec3;
 
-constexpr int kDomain = 71;
 constexpr int kFrames = 100;
 constexpr double kResolution = 0.1;
 constexpr double kMaxRange = 6.0;  // the onboard default
 
-TEST(MapAccuracy, SimFlightMapMatchesTheRoomOverRealDds) {
-  ServerProcess server(kDomain, {"--resolution", std::to_string(kResolution)});
-  ChildProcess onboard(onboardArgs(kDomain, "accuracy", kFrames, {"--rate", "0", "--seed", "1"}),
+// Flies sim room 1 with a camera model on the odometry's poses, streams it to a server and
+// scores the server's map.
+MapScore flyAndScore(int domain, const std::string& camera, const std::string& vo = "fast") {
+  ServerProcess server(domain, {"--resolution", std::to_string(kResolution)});
+  ChildProcess onboard(onboardArgs(domain, "accuracy", kFrames,
+                                   {"--rate", "0", "--seed", "1", "--camera", camera, "--vo", vo}),
                        server.logPath() + ".onboard");
   const auto code = onboard.waitExit(180s);
-  ASSERT_TRUE(code.has_value()) << "onboard did not finish";
-  ASSERT_EQ(*code, 0) << "onboard failed";
+  EXPECT_TRUE(code.has_value()) << "onboard did not finish";
+  EXPECT_EQ(code.value_or(-1), 0) << "onboard failed";
 
-  ASSERT_TRUE(waitUntil(60s,
+  EXPECT_TRUE(waitUntil(60s,
                         [&] {
                           const auto reply = server.get("/api/sessions/accuracy");
                           if (reply.status != 200) return false;
@@ -38,22 +40,39 @@ TEST(MapAccuracy, SimFlightMapMatchesTheRoomOverRealDds) {
       << server.log();
 
   const auto map_reply = server.get("/api/sessions/accuracy/map.bt");
-  ASSERT_EQ(map_reply.status, 200);
+  EXPECT_EQ(map_reply.status, 200);
+  if (map_reply.status != 200) return {};
   // The same room and flight as the onboard run (seed 1, 10 Hz simulated time).
   const sim::SimSource truth({.seed = 1, .rate_hz = 10.0, .max_frames = kFrames});
   const auto score = scoreMap(map_reply.body, kResolution, truth, kFrames, kMaxRange);
-  const double precision = score.precision, coverage = score.coverage;
   std::printf(
-      "map accuracy: %zu occupied voxels, precision %.4f (surface in the voxel), "
+      "map accuracy, %s camera: %zu occupied voxels, precision %.4f (surface in the voxel), "
       "%.4f (within one voxel); coverage %.4f of %zu seen surface voxels\n",
-      score.occupied, precision, score.precision_1, coverage, score.seen);
-  RecordProperty("precision", std::to_string(precision));
-  RecordProperty("coverage", std::to_string(coverage));
+      camera.c_str(), score.occupied, score.precision, score.precision_1, score.coverage,
+      score.seen);
+  ::testing::Test::RecordProperty("precision", std::to_string(score.precision));
+  ::testing::Test::RecordProperty("coverage", std::to_string(score.coverage));
+  return score;
+}
+
+TEST(MapAccuracy, SimFlightMapMatchesTheRoomOverRealDds) {
+  const auto score = flyAndScore(71, "clean");
   // The issue asks for precision >= 0.90 and coverage >= 0.50; measured 0.977 and 0.923
   // flying on the odometry (docs/BENCHMARKS.md; the run is deterministic), so the bar sits
   // just below those.
-  EXPECT_GE(precision, 0.97);
-  EXPECT_GE(coverage, 0.90);
+  EXPECT_GE(score.precision, 0.97);
+  EXPECT_GE(score.coverage, 0.90);
+}
+
+TEST(MapAccuracy, TypicalCameraNoiseStaysOutOfTheMapOnTruePoses) {
+  const auto score = flyAndScore(93, "typical", "gt");
+  // Issue 16 asks for precision >= 0.95 and coverage >= 0.85 with the typical camera on the
+  // odometry's poses. On the sim's true poses (what this test holds) the map measured 0.978
+  // and 0.831; on the odometry's, 0.62 and 0.50: the odometry's right-image matching is
+  // biased by the left/right gain mismatch (a false 0.64 px calibration offset, 4.3 deg
+  // attitude error over the flight), not yet fixed (docs/BENCHMARKS.md).
+  EXPECT_GE(score.precision, 0.97);
+  EXPECT_GE(score.coverage, 0.82);
 }
 
 }  // namespace

@@ -74,7 +74,15 @@ int main(int argc, char** argv) {
                  "Stereo configuration: fast (real time) or accurate (docs/BENCHMARKS.md)")
       ->check(CLI::IsMember({"fast", "accurate"}))
       ->capture_default_str();
-  app.add_option("--max-range", options.cloud.max_range_m, "Cloud range limit, metres")
+  std::string noise_handling = "auto";
+  app.add_option("--noise-handling", noise_handling,
+                 "Image noise in the depth step: auto (estimated from the images; noisy "
+                 "images are matched smoothed with larger blocks and their depth averaged over "
+                 "frames, docs/BENCHMARKS.md), on (always so) or off (frame by frame, as for "
+                 "clean images)")
+      ->check(CLI::IsMember({"auto", "on", "off"}))
+      ->capture_default_str();
+  app.add_option("--max-range", options.stereo.cloud.max_range_m, "Cloud range limit, metres")
       ->check(CLI::Range(0.5, 100.0))
       ->capture_default_str();
   app.add_option("--quantization-bits", options.codec.quantization_bits,
@@ -114,7 +122,7 @@ int main(int argc, char** argv) {
                  "Write the left camera's poses relative to the first frame, KITTI format");
   app.add_flag("--no-publish", no_publish,
                "No DDS: run the odometry alone (with a progress bar and a summary)");
-  app.add_option("--voxel-downsample", options.cloud.voxel_m,
+  app.add_option("--voxel-downsample", options.stereo.cloud.voxel_m,
                  "Keep one point per voxel of this edge, metres (0: off; the 5x2 blocks stay)")
       ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
@@ -144,8 +152,11 @@ int main(int argc, char** argv) {
     return 2;
   }
   options.rate_hz = rate_hz;
-  options.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
-                                                : stereo::MatcherOptions::fast();
+  options.stereo.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
+                                                       : stereo::MatcherOptions::fast();
+  options.stereo.noise = noise_handling == "on"    ? stereo::NoiseHandling::kOn
+                         : noise_handling == "off" ? stereo::NoiseHandling::kOff
+                                                   : stereo::NoiseHandling::kAuto;
   options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
 
   // --camera replaces the source's camera model; --image-noise and --image-blur then set its
@@ -187,11 +198,11 @@ int main(int argc, char** argv) {
 
   if (paper_resolution > 0) {
     const auto& camera = source->camera();
-    options.matcher.min_disparity =
+    options.stereo.matcher.min_disparity =
         stereo::minimumDisparity(camera.baseline, camera.fx, paper_resolution);
     spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels",
-                 options.matcher.min_disparity,
-                 camera.depthFromDisparity(options.matcher.min_disparity), paper_resolution);
+                 options.stereo.matcher.min_disparity,
+                 camera.depthFromDisparity(options.stereo.matcher.min_disparity), paper_resolution);
   }
 
   options.pose_source =
@@ -297,11 +308,13 @@ int main(int argc, char** argv) {
   if (no_publish) return 0;
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), {:.1f} KiB per frame, depth {:.1f} ms, "
-      "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors",
+      "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors; images {} "
+      "(noise sigma {:.1f} grey levels)",
       summary.frames, summary.stopped ? " (stopped)" : "", summary.points,
       summary.frames ? static_cast<double>(summary.points) / summary.frames : 0.0,
       summary.frames ? summary.payload_bytes / 1024.0 / summary.frames : 0.0,
       summary.median_depth_ms, summary.median_encode_ms, summary.median_frame_ms,
-      summary.late_frames, summary.publish_errors);
+      summary.late_frames, summary.publish_errors, summary.noisy_images ? "noisy" : "clean",
+      summary.image_noise_sigma);
   return summary.publish_errors == 0 ? 0 : 1;
 }

@@ -194,7 +194,8 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
   address(frame, options, seq, stamp_ns);
   copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
   frame.max_range =
-      stereo::farthestPoint(cloud_camera, static_cast<float>(options.cloud.max_range_m)) * 1.001f;
+      stereo::farthestPoint(cloud_camera, static_cast<float>(options.stereo.cloud.max_range_m)) *
+      1.001f;
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());
   frame.encoding = proto::CloudEncoding::kDraco;
   frame.quantization_bits = static_cast<uint8_t>(options.codec.quantization_bits);
@@ -224,7 +225,7 @@ proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
 PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publisher,
                             const PipelineOptions& options, const common::Shutdown& shutdown) {
   PipelineSummary summary;
-  const stereo::StereoMatcher matcher(options.matcher);
+  stereo::DepthStep depth_step(source.camera(), options.stereo);
   auto report = [&](const common::Status& status, const char* what) {
     if (status.ok()) return;
     ++summary.publish_errors;
@@ -365,6 +366,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     const bool mapped =
         options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
     if (!mapped) {
+      depth_step.reset();  // no pose to carry depth along
       if (publisher != nullptr) {
         report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
                                               velocity, estimate ? &*estimate : nullptr)),
@@ -377,13 +379,22 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       continue;
     }
     const auto depth_start = Clock::now();
-    const cv::Mat disparity = matcher.compute(frame->left, frame->right);
-    stereo::CloudOptions cloud_options = options.cloud;
-    if (estimate)
-      cloud_options.disparity_offset_px = estimate->right_offset_px;  // see odometry.hpp
+    const int was_level = depth_step.level();
     const auto cloud =
-        stereo::cloudFromDisparity(disparity, frame->left, source.camera(), cloud_options);
+        depth_step.compute(frame->left, frame->right, report_frame.T_map_camera,
+                           estimate ? estimate->right_offset_px : 0.0);  // see odometry.hpp
     depth_ms.push_back(msSince(depth_start));
+    if (depth_step.level() != was_level || summary.frames == 0) {
+      if (depth_step.noisy()) {
+        spdlog::info(
+            "images are noisy (noise sigma {:.1f} grey levels, level {}): depth from smoothed "
+            "images, averaged over frames",
+            depth_step.noiseSigma(), depth_step.level());
+      } else {
+        spdlog::info("images are clean (noise sigma {:.1f} grey levels): depth frame by frame",
+                     depth_step.noiseSigma());
+      }
+    }
 
     const auto encode_start = Clock::now();
     auto cloud_msg = makeCloudFrameMsg(options, summary.frames, frame->stamp_ns,
@@ -432,6 +443,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
   }
   summary.median_depth_ms = median(depth_ms);
+  summary.image_noise_sigma = depth_step.noiseSigma();
+  summary.noisy_images = depth_step.noisy();
   summary.median_encode_ms = median(encode_ms);
   summary.median_frame_ms = median(frame_ms);
   summary.median_odometry_ms = median(odometry_ms);

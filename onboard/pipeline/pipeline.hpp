@@ -17,7 +17,7 @@
 #include "onboard/landing/landing_watch.hpp"
 #include "onboard/odometry/odometry.hpp"
 #include "onboard/posegraph/graph_follower.hpp"
-#include "onboard/stereo/depth.hpp"
+#include "onboard/stereo/depth_step.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
 #include "proto/messages.hpp"
@@ -43,8 +43,8 @@ struct PipelineOptions {
   std::string vehicle_id = "sim-1";
   std::string session_id = "session";
   double rate_hz = 10.0;  // frames are paced to this rate; 0 = as fast as possible
-  stereo::MatcherOptions matcher = stereo::MatcherOptions::fast();
-  stereo::CloudOptions cloud;
+  // Disparity and cloud, with noisy images' noise kept out (stereo::DepthStep).
+  stereo::DepthOptions stereo;
   proto::CloudCodecOptions codec;
   // How long to wait for a server's readers before the first frame (frames are kept by
   // DDS's durable history either way; this only avoids a silent start).
@@ -77,8 +77,10 @@ struct PipelineSummary {
   uint64_t points = 0;
   uint64_t payload_bytes = 0;
   uint64_t publish_errors = 0;
-  uint64_t late_frames = 0;    // frames that started after their slot (the rate was not kept)
-  double median_depth_ms = 0;  // disparity + cloud
+  uint64_t late_frames = 0;      // frames that started after their slot (the rate was not kept)
+  double median_depth_ms = 0;    // disparity + cloud
+  double image_noise_sigma = 0;  // the depth step's last image noise estimate, grey levels
+  bool noisy_images = false;     // whether it treated the images as noisy
   double median_encode_ms = 0;
   double median_frame_ms = 0;  // whole frame, source included
   bool stopped = false;        // ended by a stop request rather than the end of the source

@@ -19,7 +19,7 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
   const PipelineOptions options{.vehicle_id = "uav", .session_id = "s1"};
   const stereo::StereoMatcher matcher;
   const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
-                                                frame->left, source.camera(), options.cloud);
+                                                frame->left, source.camera(), options.stereo.cloud);
   ASSERT_GT(cloud.size(), 5000u);
   const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
   auto msg = makeCloudFrameMsg(options, 4, frame->stamp_ns, T_map_camera, cloud);

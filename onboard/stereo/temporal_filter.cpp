@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
+#include <utility>
 
 namespace stereomap::stereo {
 
@@ -14,83 +16,128 @@ TemporalFilter::TemporalFilter(const camera::StereoCamera& camera,
 
 void TemporalFilter::reset() { has_previous_ = false; }
 
+float TemporalFilter::disparityAt(const Frame& frame, int x, int y, double gx, double gy) const {
+  const int rows = frame.disparity.rows, cols = frame.disparity.cols;
+  if (x < 0 || y < 0 || x >= cols || y >= rows) return 0;
+  const float d = frame.disparity.at<float>(y, x);
+  if (d <= 0) return 0;
+  // The slope from the neighbours on the same surface, central where both are.
+  auto slope = [&](int dx, int dy) {
+    auto at = [&](int xi, int yi) {
+      if (xi < 0 || yi < 0 || xi >= cols || yi >= rows) return 0.0f;
+      const float v = frame.disparity.at<float>(yi, xi);
+      return v > 0 && std::abs(v - d) <= options_.gate_px ? v : 0.0f;
+    };
+    const float before = at(x - dx, y - dy), after = at(x + dx, y + dy);
+    if (before > 0 && after > 0) return (after - before) / 2;
+    if (after > 0) return after - d;
+    if (before > 0) return d - before;
+    return 0.0f;
+  };
+  return d + static_cast<float>(slope(1, 0) * (gx - x) + slope(0, 1) * (gy - y));
+}
+
+bool TemporalFilter::carry(const Frame& frame, const Transforms& transforms,
+                           const common::Vec3& point, float measured, const BlockDisparity& blocks,
+                           float& carried, int& count) const {
+  const double fb = camera_.baseline * camera_.fx;
+  const auto pixel = camera_.project(transforms.T_frame_current * point);
+  if (!pixel) return false;
+  // Position on the frame's block grid (block centres at integers) and the nearest block.
+  const double gx = (pixel->x() - blocks.uCentre(0)) / blocks.block_cols;
+  const double gy = (pixel->y() - blocks.vCentre(0)) / blocks.block_rows;
+  const int x = static_cast<int>(std::lround(gx)), y = static_cast<int>(std::lround(gy));
+  const common::Vec3 ray = camera_.rayThrough(pixel->x(), pixel->y());
+  // The nearest block, moved from its centre to the pixel along the disparity's slope: exact
+  // on a plane, where disparity is linear in the image, and right up to the image's edges.
+  // (Trying its neighbours too when it holds another surface confirms more blocks at depth
+  // edges, but those are where mismatches are: clean precision 0.984 -> 0.965 for recall
+  // 0.917 -> 0.926, measured with stereomap-bench-map.)
+  const float d = disparityAt(frame, x, y, gx, gy);
+  if (d <= 0) return false;
+  const common::Vec3 seen = transforms.T_current_frame * (ray * (fb / d));
+  if (seen.z() <= 0) return false;
+  carried = static_cast<float>(fb / seen.z());
+  if (std::abs(measured - carried) > options_.gate_px) return false;
+  count = frame.count.at<int>(y, x);
+  return true;
+}
+
 void TemporalFilter::apply(BlockDisparity& blocks, const common::Rigid3& T_world_camera) {
   cv::Mat& measured = blocks.disparity;
   CV_Assert(measured.type() == CV_32FC1);
   const int rows = measured.rows, cols = measured.cols;
   const double fb = camera_.baseline * camera_.fx;
-
-  // What earlier frames saw, carried into this camera: per block the nearest carried point's
-  // disparity, its count and where in the block it landed.
-  cv::Mat carried(rows, cols, CV_32FC1, cv::Scalar(0));
-  cv::Mat carried_count(rows, cols, CV_32SC1, cv::Scalar(0));
-  cv::Mat offset(rows, cols, CV_32FC2, cv::Scalar(0, 0));
-  if (has_previous_ && previous_disparity_.size() == measured.size() &&
-      block_cols_ == blocks.block_cols && block_rows_ == blocks.block_rows) {
-    const common::Rigid3 T_current_previous = T_world_camera.inverse() * T_world_previous_;
-    for (int by = 0; by < rows; ++by) {
-      const float* d = previous_disparity_.ptr<float>(by);
-      const int* n = previous_count_.ptr<int>(by);
-      for (int bx = 0; bx < cols; ++bx) {
-        if (d[bx] <= 0) continue;
-        const common::Vec3 p =
-            T_current_previous *
-            (camera_.rayThrough(blocks.uCentre(bx), blocks.vCentre(by)) * (fb / d[bx]));
-        const auto pixel = camera_.project(p);
-        if (!pixel) continue;
-        const int nbx = static_cast<int>(std::floor((pixel->x() + 0.5) / blocks.block_cols));
-        const int nby = static_cast<int>(std::floor((pixel->y() + 0.5) / blocks.block_rows));
-        if (nbx < 0 || nby < 0 || nbx >= cols || nby >= rows) continue;
-        const auto disparity = static_cast<float>(fb / p.z());
-        float& slot = carried.at<float>(nby, nbx);
-        if (disparity <= slot) continue;  // the nearer surface hides the farther one
-        slot = disparity;
-        carried_count.at<int>(nby, nbx) = n[bx];
-        offset.at<cv::Vec2f>(nby, nbx) =
-            cv::Vec2f(static_cast<float>(pixel->x() - blocks.uCentre(nbx)),
-                      static_cast<float>(pixel->y() - blocks.vCentre(nby)));
-      }
-    }
-  }
-
-  // The measured disparity's slope across the blocks (pixels of disparity per pixel), from
-  // both neighbours when both were measured, to move a carried value to the block's centre.
-  auto slope = [&](int by, int bx, int dy, int dx, int pixels) {
-    const int y0 = by - dy, x0 = bx - dx, y1 = by + dy, x1 = bx + dx;
-    if (y0 < 0 || x0 < 0 || y1 >= rows || x1 >= cols) return 0.0f;
-    const float a = measured.at<float>(y0, x0), b = measured.at<float>(y1, x1);
-    return a > 0 && b > 0 ? (b - a) / static_cast<float>(2 * pixels) : 0.0f;
+  const bool carrying = has_previous_ && previous_.disparity.size() == measured.size() &&
+                        previous_.block_cols == blocks.block_cols &&
+                        previous_.block_rows == blocks.block_rows;
+  // This camera seen from the previous one, and back.
+  const common::Rigid3 T_previous_current = previous_.T_world_camera.inverse() * T_world_camera;
+  auto matrix = [](const common::Rigid3& T) {
+    Eigen::Isometry3d m = Eigen::Isometry3d::Identity();
+    m.linear() = T.rotation.toRotationMatrix();
+    m.translation() = T.translation;
+    return m;
   };
-  cv::Mat next_disparity(rows, cols, CV_32FC1, cv::Scalar(0));
-  cv::Mat next_count(rows, cols, CV_32SC1, cv::Scalar(0));
-  cv::Mat output = measured.clone();
+  const Transforms transforms{matrix(T_previous_current), matrix(T_previous_current.inverse())};
+
+  // The buffers of the frame before the previous one are reused: no allocation per frame.
+  Frame& next = spare_;
+  next.disparity.create(rows, cols, CV_32FC1);
+  next.count.create(rows, cols, CV_32SC1);
+  next.T_world_camera = T_world_camera;
+  next.block_cols = blocks.block_cols;
+  next.block_rows = blocks.block_rows;
   for (int by = 0; by < rows; ++by) {
+    float* m_row = measured.ptr<float>(by);
+    float* next_d = next.disparity.ptr<float>(by);
+    int* next_n = next.count.ptr<int>(by);
     for (int bx = 0; bx < cols; ++bx) {
-      const float m = measured.at<float>(by, bx);
+      const float m = m_row[bx];
+      next_d[bx] = 0;
+      next_n[bx] = 0;
       if (m <= 0) continue;
       float value = m;
       int count = 1;
-      const float c = carried.at<float>(by, bx);
-      if (c > 0) {
-        const cv::Vec2f o = offset.at<cv::Vec2f>(by, bx);
-        const float centred = c - slope(by, bx, 0, 1, blocks.block_cols) * o[0] -
-                              slope(by, bx, 1, 0, blocks.block_rows) * o[1];
-        if (std::abs(m - centred) <= options_.gate_px) {
-          count = std::min(carried_count.at<int>(by, bx) + 1, options_.max_frames);
-          value = centred + (m - centred) / static_cast<float>(count);
-        }
+      // Where this block's point was in the previous frame, and what that frame saw there,
+      // carried back into this camera. Looking each measured block up (rather than pushing the
+      // previous blocks forward) leaves no block without a candidate when the view expands.
+      const common::Vec3 point =
+          camera_.rayThrough(blocks.uCentre(bx), blocks.vCentre(by)) * (fb / m);
+      float carried = 0;
+      int previous_count = 0;
+      if (carrying && carry(previous_, transforms, point, m, blocks, carried, previous_count)) {
+        count = std::min(previous_count + 1, options_.max_frames);
+        value = carried + (m - carried) / static_cast<float>(count);
       }
-      next_disparity.at<float>(by, bx) = value;
-      next_count.at<int>(by, bx) = count;
-      output.at<float>(by, bx) = count >= options_.min_frames ? value : 0.0f;
+      next_d[bx] = value;
+      next_n[bx] = count;
+      m_row[bx] = count >= options_.min_frames ? value : 0.0f;
     }
   }
-  measured = output;
-  previous_disparity_ = next_disparity;
-  previous_count_ = next_count;
-  T_world_previous_ = T_world_camera;
-  block_cols_ = blocks.block_cols;
-  block_rows_ = blocks.block_rows;
+  if (options_.interior_px > 0) {
+    // A block seen once inside a smooth surface (all eight neighbours measured, within
+    // interior_px of it) gives its point at once: mismatches gather at depth edges and in
+    // islands, while surfaces seen only briefly (entering or leaving the view) are real.
+    const cv::Mat& values = next.disparity;
+    const auto limit = static_cast<float>(options_.interior_px);
+    for (int by = 1; by + 1 < rows; ++by) {
+      float* m_row = measured.ptr<float>(by);
+      for (int bx = 1; bx + 1 < cols; ++bx) {
+        const float v = values.at<float>(by, bx);
+        if (m_row[bx] > 0 || v <= 0) continue;
+        bool interior = true;
+        for (int dy = -1; dy <= 1 && interior; ++dy) {
+          for (int dx = -1; dx <= 1 && interior; ++dx) {
+            const float n = values.at<float>(by + dy, bx + dx);
+            interior = n > 0 && std::abs(n - v) <= limit;
+          }
+        }
+        if (interior) m_row[bx] = v;
+      }
+    }
+  }
+  std::swap(previous_, spare_);
   has_previous_ = true;
 }
 

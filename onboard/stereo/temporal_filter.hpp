@@ -2,10 +2,10 @@
 // row, and one frame's disparity noise (a fifth of a pixel with a typical camera's image
 // noise) spreads its points over several voxels in depth at 4-6 m, which the map keeps as a
 // surface two voxels thick. Each block's disparity is carried to the next frame with the
-// camera's motion (its 3D point moved into the new camera, projected, corrected to the new
-// block's centre by the local disparity gradient) and averaged with the new measurement when
-// the two agree; a block that has not been seen consistently in min_frames frames gives no
-// point (one-frame mismatches never reach the map).
+// camera's motion (each new block's point is moved into the previous camera, the previous
+// disparity read there, moved along its surface's slope, and that point brought back) and averaged
+// with the new measurement when the two agree; a block that has not been seen consistently in
+// min_frames frames gives no point (one-frame mismatches never reach the map).
 //
 //   TemporalFilter filter(camera, {});
 //   BlockDisparity blocks = blockDisparity(disparity, left, camera, cloud_options);
@@ -23,6 +23,9 @@ struct TemporalFilterOptions {
   int min_frames = 2;    // a block gives a point once seen consistently this many times
   int max_frames = 8;    // the running mean's memory (then exponential, weight 1 / max)
   double gate_px = 1.0;  // a measurement this far from the carried disparity starts afresh
+  // Unconfirmed blocks inside a smooth surface (all 8 neighbours within this many pixels)
+  // give their point at once; 0: off.
+  double interior_px = 0;
 };
 
 class TemporalFilter {
@@ -36,13 +39,27 @@ class TemporalFilter {
   void reset();
 
  private:
+  struct Frame {
+    cv::Mat disparity;  // CV_32FC1, averaged, every measured block (confirmed or not)
+    cv::Mat count;      // CV_32SC1, frames averaged
+    common::Rigid3 T_world_camera;
+    int block_cols = 0, block_rows = 0;
+  };
+  struct Transforms {  // as matrices: a point per block goes through each
+    Eigen::Isometry3d T_frame_current, T_current_frame;
+  };
+  // The previous frame's view of a point of this camera (its disparity there, brought into this
+  // camera) when within the gate of the measured disparity, with that frame's count.
+  bool carry(const Frame& frame, const Transforms& transforms, const common::Vec3& point,
+             float measured, const BlockDisparity& blocks, float& carried, int& count) const;
+  // Block (x, y)'s disparity moved to grid position (gx, gy) along its surface; 0: none.
+  float disparityAt(const Frame& frame, int x, int y, double gx, double gy) const;
+
   camera::StereoCamera camera_;
   TemporalFilterOptions options_;
   bool has_previous_ = false;
-  common::Rigid3 T_world_previous_;
-  cv::Mat previous_disparity_;  // CV_32FC1, averaged, every measured block (confirmed or not)
-  cv::Mat previous_count_;      // CV_32SC1, frames averaged
-  int block_cols_ = 0, block_rows_ = 0;
+  Frame previous_;
+  Frame spare_;  // the one before, its buffers reused for the next frame
 };
 
 }  // namespace stereomap::stereo

@@ -23,11 +23,12 @@ double residentMegabytes() {
 std::vector<proto::CloudFrameMsg> simFrames(size_t count) {
   sim::SimSource source({.seed = 1, .rate_hz = 10.0, .max_frames = count, .start_stamp_ns = 1});
   pipeline::PipelineOptions options;
-  const stereo::StereoMatcher matcher(options.matcher);
+  const stereo::StereoMatcher matcher(options.stereo.matcher);
   std::vector<proto::CloudFrameMsg> frames;
   while (auto frame = source.next()) {
-    const auto cloud = stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right),
-                                                  frame->left, source.camera(), options.cloud);
+    const auto cloud =
+        stereo::cloudFromDisparity(matcher.compute(frame->left, frame->right), frame->left,
+                                   source.camera(), options.stereo.cloud);
     const common::Rigid3 T_map_camera =
         frame->T_map_body.value() * frame->T_body_camera.value_or(common::Rigid3{});
     frames.push_back(

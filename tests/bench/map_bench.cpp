@@ -40,14 +40,21 @@ int main(int argc, char** argv) {
   app.add_option("--stereo", stereo_preset, "Matcher preset: fast (the vehicle's) or accurate")
       ->check(CLI::IsMember({"fast", "accurate"}))
       ->capture_default_str();
+  std::string handling = "auto";
+  app.add_option("--noise-handling", handling,
+                 "Depth step: auto (by the image noise, the vehicle's default), off (always the "
+                 "clean way) or on (always the noisy way)")
+      ->check(CLI::IsMember({"auto", "off", "on"}))
+      ->capture_default_str();
   // Knobs for ablations and trials: each replaces the product's default when given.
   double smooth = -1, max_range = -1, span = -1, hit = -1, miss = -1, occupied = -1;
   int block = -1, downscale = -1;
   app.add_option("--downscale", downscale, "Matcher: match at 1/N resolution")
       ->check(CLI::Range(1, 8));
-  app.add_option("--smooth", smooth, "Matcher: Gaussian smoothing of the images, px")
+  app.add_option("--smooth", smooth,
+                 "Noisy images: the matcher's Gaussian smoothing at every level, px")
       ->check(CLI::Range(0.0, 10.0));
-  app.add_option("--block", block, "Matcher: block size (odd)")
+  app.add_option("--block", block, "Noisy images: the matcher's block size at every level (odd)")
       ->check(CLI::Range(5, 255) & CLI::Validator(
                                        [](std::string& v) {
                                          return std::stoi(v) % 2 == 1 ? std::string()
@@ -76,13 +83,17 @@ int main(int argc, char** argv) {
   app.add_option("--vignetting", vignetting, "Camera: vignetting")->check(CLI::Range(0.0, 0.9));
   app.add_option("--gamma", gamma, "Camera: gamma")->check(CLI::Range(0.1, 10.0));
   int temporal_min = -1, temporal_max = -1;
-  double gate = -1;
-  app.add_option("--temporal", temporal_min, "Depth over frames: frames to confirm (0: off)")
+  double gate = -1, interior = -1;
+  app.add_option("--temporal", temporal_min,
+                 "Noisy images: frames to confirm a block (0: no averaging over frames)")
       ->check(CLI::Range(0, 100));
-  app.add_option("--temporal-max", temporal_max, "Depth over frames: memory in frames")
+  app.add_option("--temporal-max", temporal_max, "Noisy images: frames averaged at most")
       ->check(CLI::Range(1, 1000));
-  app.add_option("--gate", gate, "Depth over frames: agreement gate, px")
+  app.add_option("--gate", gate, "Noisy images: agreement over frames, px")
       ->check(CLI::Range(0.01, 100.0));
+  app.add_option("--interior", interior,
+                 "Noisy images: unconfirmed blocks inside a surface this smooth pass, px (0: none)")
+      ->check(CLI::Range(0.0, 100.0));
   CLI11_PARSE(app, argc, argv);
   if (temporal_max > 0 && temporal_max < std::max(temporal_min, 2)) {
     std::fprintf(stderr, "--temporal-max must be at least --temporal (default 2)\n");
@@ -96,24 +107,28 @@ int main(int argc, char** argv) {
   std::vector<std::pair<std::string, Total>> totals;
   std::printf(
       "| camera | room | precision | recall | free | within 1 / 2 voxels | occupied voxels | "
-      "depth ms |\n");
-  std::printf("|---|---|---|---|---|---|---|---|\n");
+      "depth ms | image noise (handling) |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|\n");
   for (const auto& name : cameras) {
     Total total;
     for (const uint32_t room : rooms) {
-      testing::SimMapSetup setup{.room = room, .frames = frames};
+      testing::SimMapSetup setup;
+      setup.room = room;
+      setup.frames = frames;
       setup.camera = *sim::CameraModel::preset(name);
-      setup.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
+      stereo::DepthOptions& depth = setup.depth;
+      depth.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
                                                   : stereo::MatcherOptions::fast();
+      depth.noise = handling == "off"  ? stereo::NoiseHandling::kOff
+                    : handling == "on" ? stereo::NoiseHandling::kOn
+                                       : stereo::NoiseHandling::kAuto;
       setup.map = fusion::OccupancyMap::Options::octomapPreset(resolution);
-      if (temporal_min > 0) {
-        setup.temporal = stereo::TemporalFilterOptions{};
-        setup.temporal->min_frames = temporal_min;
-        if (temporal_max > 0) setup.temporal->max_frames = temporal_max;
-        if (gate > 0) setup.temporal->gate_px = gate;
-      } else if (temporal_min == 0) {
-        setup.temporal.reset();
-      }
+      auto& temporal = depth.temporal;
+      if (temporal_min == 0) temporal.reset();
+      if (temporal && temporal_min > 0) temporal->min_frames = temporal_min;
+      if (temporal && temporal_max > 0) temporal->max_frames = temporal_max;
+      if (temporal && gate > 0) temporal->gate_px = gate;
+
       if (noise >= 0) setup.camera.noise_sigma = noise;
       if (shot >= 0) setup.camera.shot_noise = shot;
       if (defocus >= 0) setup.camera.blur_sigma = defocus;
@@ -121,19 +136,23 @@ int main(int argc, char** argv) {
       if (right_gain > 0) setup.camera.right_gain = right_gain;
       if (vignetting >= 0) setup.camera.vignetting = vignetting;
       if (gamma > 0) setup.camera.gamma = gamma;
-      if (smooth >= 0) setup.matcher.smooth_sigma_px = smooth;
-      if (block > 0) setup.matcher.block_size = block;
-      if (downscale > 0) setup.matcher.downscale = downscale;
-      if (max_range > 0) setup.cloud.max_range_m = max_range;
-      if (min_range > 0) setup.cloud.min_range_m = min_range;
-      if (span >= 0) setup.cloud.max_block_span_px = span;
+      for (auto& level : depth.levels) {
+        if (smooth >= 0) level.smooth_sigma_px = smooth;
+        if (block > 0) level.block_size = block;
+        if (interior >= 0) level.interior_px = interior;
+      }
+      if (downscale > 0) depth.matcher.downscale = downscale;
+      if (max_range > 0) depth.cloud.max_range_m = max_range;
+      if (min_range > 0) depth.cloud.min_range_m = min_range;
+      if (span >= 0) depth.cloud.max_block_span_px = span;
       if (hit > 0) setup.map.prob_hit = hit;
       if (miss > 0) setup.map.prob_miss = miss;
       if (occupied > 0) setup.map.occupancy_threshold = occupied;
       const auto a = testing::measureSimMap(setup);
-      std::printf("| %s | %u | %.4f | %.4f | %.4f | %.4f / %.4f | %zu | %.2f |\n", name.c_str(),
-                  room, a.precision, a.recall, a.free_space, a.precision_1, a.precision_2,
-                  a.occupied, a.depth_ms);
+      std::printf("| %s | %u | %.4f | %.4f | %.4f | %.4f / %.4f | %zu | %.2f | %.2f (%s) |\n",
+                  name.c_str(), room, a.precision, a.recall, a.free_space, a.precision_1,
+                  a.precision_2, a.occupied, a.depth_ms, a.noise_sigma,
+                  a.level < 0 ? "clean" : ("level " + std::to_string(a.level)).c_str());
       std::fflush(stdout);
       total.precision += a.precision / rooms.size();
       total.recall += a.recall / rooms.size();

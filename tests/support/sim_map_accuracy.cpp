@@ -23,22 +23,17 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
   sim::SimSource source(source_options);
   const auto& scene = source.scene();
   const camera::StereoCamera& camera = source.camera();
-  const stereo::StereoMatcher matcher(setup.matcher);
   const double resolution = setup.map.resolution;
-  const double max_range = setup.cloud.max_range_m;
+  const double max_range = setup.depth.cloud.max_range_m;
   const double seen_range = setup.seen_range_m;
   OccupancyMap map(setup.map);
-  std::optional<stereo::TemporalFilter> temporal;
-  if (setup.temporal) temporal.emplace(camera, *setup.temporal);
+  stereo::DepthStep depth(camera, setup.depth);
   std::vector<common::Rigid3> poses;
   std::vector<double> depth_ms;
   while (auto frame = source.next()) {
     const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
     const auto start = std::chrono::steady_clock::now();
-    auto blocks = stereo::blockDisparity(matcher.compute(frame->left, frame->right), frame->left,
-                                         camera, setup.cloud);
-    if (temporal) temporal->apply(blocks, T_map_camera);
-    const auto cloud = stereo::cloudFromBlocks(blocks, camera, setup.cloud);
+    const auto cloud = depth.compute(frame->left, frame->right, T_map_camera);
     depth_ms.push_back(
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
             .count());
@@ -49,6 +44,8 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
   }
 
   SimMapAccuracy result;
+  result.noise_sigma = depth.noiseSigma();
+  result.level = depth.level();
   if (!depth_ms.empty()) {
     std::nth_element(depth_ms.begin(), depth_ms.begin() + depth_ms.size() / 2, depth_ms.end());
     result.depth_ms = depth_ms[depth_ms.size() / 2];

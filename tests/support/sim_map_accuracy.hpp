@@ -14,8 +14,7 @@
 #include <optional>
 
 #include "onboard/sim/renderer.hpp"
-#include "onboard/stereo/depth.hpp"
-#include "onboard/stereo/temporal_filter.hpp"
+#include "onboard/stereo/depth_step.hpp"
 #include "server/fusion/occupancy_map.hpp"
 
 namespace stereomap::testing {
@@ -24,10 +23,8 @@ struct SimMapSetup {
   uint32_t room = 1;  // the room's seed
   int frames = 60;    // of the scripted flight at 10 Hz
   sim::CameraModel camera = sim::CameraModel::clean();
-  stereo::MatcherOptions matcher = stereo::MatcherOptions::fast();
-  stereo::CloudOptions cloud;
-  // Depth averaged over frames (on the true poses here; the vehicle uses its odometry's).
-  std::optional<stereo::TemporalFilterOptions> temporal;
+  // The vehicle's depth step (on the true poses here; the vehicle uses its odometry's).
+  stereo::DepthOptions depth;
   // True surface points up to this depth count for recall, whatever the cloud's range (the
   // vehicle's default range).
   double seen_range_m = 6.0;
@@ -39,7 +36,9 @@ struct SimMapAccuracy {
   // Share of the occupied voxels within one and within two voxels of a true surface.
   double precision_1 = 0, precision_2 = 0;
   size_t occupied = 0, seen = 0, free_samples = 0;
-  double depth_ms = 0;  // median of the onboard depth step (disparity and cloud) per frame
+  double depth_ms = 0;     // median of the onboard depth step (disparity and cloud) per frame
+  double noise_sigma = 0;  // the depth step's last image noise estimate, grey levels
+  int level = -1;          // the noise level it chose at the end (-1: clean images)
 };
 
 SimMapAccuracy measureSimMap(const SimMapSetup& setup);

@@ -1,0 +1,80 @@
+#include "onboard/stereo/depth_step.hpp"
+
+#include "onboard/stereo/image_noise.hpp"
+
+namespace stereomap::stereo {
+
+DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& options)
+    : camera_(camera), options_(options), matchers_(options.levels.size() + 1) {
+  CV_Assert(options.noise_every >= 1);
+  for (size_t i = 0; i < options.levels.size(); ++i) {
+    CV_Assert(options.levels[i].from_sigma > 0 && options.levels[i].block_size % 2 == 1 &&
+              (i == 0 || options.levels[i].from_sigma > options.levels[i - 1].from_sigma));
+  }
+  if (options.noise == NoiseHandling::kOn) setLevel(0);
+}
+
+void DepthStep::setLevel(int level) {
+  if (level == level_ && (filter_ || !options_.temporal)) return;
+  level_ = level;
+  // Other blocks, other noise: averaging starts afresh.
+  filter_.reset();
+  if (level >= 0 && options_.temporal) {
+    TemporalFilterOptions temporal = *options_.temporal;
+    temporal.interior_px = options_.levels[static_cast<size_t>(level)].interior_px;
+    filter_.emplace(camera_, temporal);
+  }
+}
+
+DepthStep::~DepthStep() = default;
+
+void DepthStep::reset() {
+  if (filter_) filter_->reset();
+}
+
+int DepthStep::levelFor(double sigma) const {
+  int level = -1;
+  for (int i = 0; i < static_cast<int>(options_.levels.size()); ++i) {
+    // The current level and those below it hold down to 0.8 of their start.
+    const double from = options_.levels[static_cast<size_t>(i)].from_sigma;
+    if (sigma >= (i <= level_ ? 0.8 * from : from)) level = i;
+  }
+  return level;
+}
+
+StereoMatcher& DepthStep::matcher() {
+  auto& slot = matchers_[static_cast<size_t>(level_ + 1)];
+  if (!slot) {
+    MatcherOptions matcher = options_.matcher;
+    if (level_ >= 0) {
+      const NoiseLevel& level = options_.levels[static_cast<size_t>(level_)];
+      matcher.smooth_sigma_px = level.smooth_sigma_px;
+      matcher.block_size = level.block_size;
+    }
+    slot = std::make_unique<StereoMatcher>(matcher);
+  }
+  return *slot;
+}
+
+common::PointCloud DepthStep::compute(const cv::Mat& left, const cv::Mat& right,
+                                      const std::optional<common::Rigid3>& T_world_camera,
+                                      double disparity_offset_px) {
+  if (options_.noise == NoiseHandling::kAuto && frames_ % options_.noise_every == 0) {
+    noise_sigma_ = imageNoiseSigma(left);
+    setLevel(levelFor(noise_sigma_));
+  }
+  ++frames_;
+  CloudOptions cloud = options_.cloud;
+  cloud.disparity_offset_px = disparity_offset_px;
+  const cv::Mat disparity = matcher().compute(left, right);
+  if (level_ < 0) return cloudFromDisparity(disparity, left, camera_, cloud);
+  auto blocks = blockDisparity(disparity, left, camera_, cloud);
+  if (filter_ && T_world_camera) {
+    filter_->apply(blocks, *T_world_camera);
+  } else {
+    reset();
+  }
+  return cloudFromBlocks(blocks, camera_, cloud);
+}
+
+}  // namespace stereomap::stereo

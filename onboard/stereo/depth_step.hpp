@@ -1,0 +1,96 @@
+// The vehicle's depth step, image pair to cloud, with noise kept out of the map: the images'
+// noise is estimated as they come (imageNoiseSigma), and noisy images are matched smoothed,
+// with larger blocks, and their block disparities averaged over frames along the camera's
+// motion (TemporalFilter) so that one frame's noise and mismatches do not reach the map.
+// Clean images go the fast way unchanged (the filter would only cost them recall).
+//
+//   DepthStep depth(camera, {});                   // noise handling chosen by the images
+//   PointCloud cloud = depth.compute(left, right, T_world_camera);
+//   depth.reset();                                 // tracking lost: forget the past frames
+#pragma once
+
+#include <array>
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+#include "onboard/camera/stereo_camera.hpp"
+#include "onboard/stereo/depth.hpp"
+#include "onboard/stereo/temporal_filter.hpp"
+
+namespace stereomap::stereo {
+
+enum class NoiseHandling {
+  kAuto,  // by the estimated image noise (noisy from noisy_from_sigma grey levels)
+  kOff,   // always the clean way
+  kOn,    // always the noisy way
+};
+
+// How the depth step matches images from a noise level on (measured with
+// stereomap-bench-map, docs/BENCHMARKS.md: the typical camera's precision 0.67 -> 0.96 at
+// recall 0.90, the poor camera's 0.54 -> 0.91).
+struct NoiseLevel {
+  double from_sigma = 1.0;       // image noise, grey levels (imageNoiseSigma)
+  double smooth_sigma_px = 1.5;  // the matcher's Gaussian smoothing (MatcherOptions)
+  int block_size = 21;           // the matcher's block (odd; above 21 OpenCV's SGBM takes
+                                 // twice as long, measured)
+  double interior_px = 0.5;      // TemporalFilterOptions::interior_px at this level
+};
+
+struct DepthOptions {
+  MatcherOptions matcher = MatcherOptions::fast();
+  CloudOptions cloud;
+  NoiseHandling noise = NoiseHandling::kAuto;
+  // Noisy images: the levels by rising noise (kOn uses the first). Images count as noisy from
+  // the first level's from_sigma, and each level holds down to 0.8 of it, so that a camera
+  // near a line does not flap.
+  // At the second level one frame's depth is too noisy to pass unconfirmed even inside a
+  // smooth surface (poor camera: precision 0.893 with, 0.910 without).
+  std::array<NoiseLevel, 2> levels = {{
+      {.from_sigma = 1.0, .smooth_sigma_px = 1.5, .block_size = 21, .interior_px = 0.5},
+      {.from_sigma = 3.0, .smooth_sigma_px = 2.0, .block_size = 21, .interior_px = 0},
+  }};
+  // Noisy images' block disparities averaged over frames (interior_px comes from the level);
+  // nullopt: off.
+  std::optional<TemporalFilterOptions> temporal = TemporalFilterOptions{};
+  int noise_every = 10;  // frames between noise estimates (the first frame always)
+};
+
+class DepthStep {
+ public:
+  DepthStep(const camera::StereoCamera& camera, const DepthOptions& options = {});
+  ~DepthStep();
+
+  // The cloud of one rectified pair (CV_8UC1), in the left camera's frame. T_world_camera is
+  // the left camera's pose (any fixed world frame); without it nothing is carried between
+  // frames. disparity_offset_px: see CloudOptions.
+  common::PointCloud compute(const cv::Mat& left, const cv::Mat& right,
+                             const std::optional<common::Rigid3>& T_world_camera,
+                             double disparity_offset_px = 0);
+  // Forgets earlier frames (tracking lost, a jump in the poses).
+  void reset();
+
+  // The latest image noise estimate (grey levels), whether images count as noisy and at which
+  // level (index into DepthOptions::levels; -1: clean).
+  double noiseSigma() const { return noise_sigma_; }
+  bool noisy() const { return level_ >= 0; }
+  int level() const { return level_; }
+
+ private:
+  int levelFor(double sigma) const;
+  void setLevel(int level);
+  StereoMatcher& matcher();  // the current level's
+
+  camera::StereoCamera camera_;
+  DepthOptions options_;
+  // The clean matcher, then one per level; each made when first needed.
+  std::vector<std::unique_ptr<StereoMatcher>> matchers_;
+  std::optional<TemporalFilter> filter_;
+  double noise_sigma_ = 0;
+  int level_ = -1;
+  uint64_t frames_ = 0;
+};
+
+}  // namespace stereomap::stereo

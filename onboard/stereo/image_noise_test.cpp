@@ -1,0 +1,41 @@
+#include "onboard/stereo/image_noise.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+namespace stereomap::stereo {
+namespace {
+
+// A textured scene (smooth waves and a hard edge, as texture and edges in real images) with
+// white noise of `sigma` grey levels.
+cv::Mat scene(double sigma) {
+  cv::Mat image(480, 640, CV_32FC1);
+  for (int v = 0; v < image.rows; ++v) {
+    for (int u = 0; u < image.cols; ++u) {
+      image.at<float>(v, u) = static_cast<float>(
+          110 + 40 * std::sin(u * 0.05) * std::cos(v * 0.07) + (u > 320 ? 30 : 0));
+    }
+  }
+  cv::Mat noise(image.size(), CV_32FC1);
+  cv::setRNGSeed(3);
+  cv::randn(noise, 0.0, sigma);
+  cv::Mat grey;
+  cv::Mat noisy = image + noise;
+  noisy.convertTo(grey, CV_8UC1);
+  return grey;
+}
+
+TEST(ImageNoise, EstimatesWhiteNoiseThroughTexture) {
+  EXPECT_LT(imageNoiseSigma(scene(0)), 0.5);  // 8-bit rounding alone: about 0.3
+  for (const double sigma : {2.0, 4.0, 8.0}) {
+    EXPECT_NEAR(imageNoiseSigma(scene(sigma)), sigma, 0.1 * sigma) << "sigma " << sigma;
+  }
+}
+
+TEST(ImageNoise, TinyImagesGiveZero) {
+  EXPECT_EQ(imageNoiseSigma(cv::Mat(2, 2, CV_8UC1, cv::Scalar(7))), 0.0);
+}
+
+}  // namespace
+}  // namespace stereomap::stereo
