@@ -109,7 +109,9 @@ TEST(PoseGraphEndToEnd, CorrectionsReachTheServerAndTheTrajectoryImproves) {
 }
 
 // Clean images: the map. Measured precision 0.764 -> 0.868 (ground-truth poses: 0.943),
-// coverage 0.748 -> 0.820; asserted at about half the gain.
+// coverage 0.935 -> 0.946; asserted at about half the gain. (Coverage read 0.748 -> 0.820 while
+// a wall on a voxel face counted for one side only, by floating-point rounding: a misaligned
+// map that occupied the other side was missing it; seen_voxels.hpp.)
 TEST(PoseGraphEndToEnd, OnCleanImagesTheCorrectedMapIsMorePrecise) {
   ServerProcess server(kCleanDomain, {"--resolution", std::to_string(kResolution)});
   const Flown odometry =
@@ -119,7 +121,7 @@ TEST(PoseGraphEndToEnd, OnCleanImagesTheCorrectedMapIsMorePrecise) {
   RecordProperty("precision_odometry", std::to_string(odometry.map.precision));
   RecordProperty("precision_graph", std::to_string(graph.map.precision));
   EXPECT_GE(graph.map.precision, odometry.map.precision + 0.05);
-  EXPECT_GE(graph.map.coverage, odometry.map.coverage + 0.03);
+  EXPECT_GE(graph.map.coverage, odometry.map.coverage + 0.005);
   EXPECT_LE(graph.ate_m, 0.5 * odometry.ate_m);
 }
 

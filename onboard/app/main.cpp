@@ -297,8 +297,9 @@ int main(int argc, char** argv) {
           "which corrects for it); the stereo calibration needs redoing",
           summary.right_offset_px);
     } else if (options.odometry.mode == odometry::VoMode::kFast) {
-      spdlog::info("stereo calibration check: right image offset {:+.2f} px",
-                   summary.right_offset_px);
+      spdlog::info(
+          "stereo calibration check: right image offset {:+.2f} px, right camera gain {:.3f}",
+          summary.right_offset_px, summary.right_gain);
     }
   }
   if (options.landing) {

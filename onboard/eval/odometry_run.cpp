@@ -28,6 +28,8 @@ OdometryRun run(camera::FrameSource& source, const odometry::VoOptions& options,
     run.degraded += e.state == odometry::TrackingState::kDegraded;
     run.keyframes += e.keyframe;
     run.right_offset_px = e.right_offset_px;
+    run.right_gain = e.right_gain;
+
     const common::Rigid3 truth = frame->T_map_body.value_or(common::Rigid3{}) *
                                  frame->T_body_camera.value_or(common::Rigid3{});
     if (!anchor) anchor = truth;

@@ -23,6 +23,7 @@ struct OdometryRun {
   std::vector<double> milliseconds;  // per frame
   int lost = 0, degraded = 0, keyframes = 0;
   double right_offset_px = 0;  // the odometry's estimate after the last frame
+  double right_gain = 1.0;     // likewise
   double medianMilliseconds() const;
 };
 

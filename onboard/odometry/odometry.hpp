@@ -77,6 +77,9 @@ struct VoEstimate {
   // Estimated horizontal offset of the right image against its calibration, pixels (fast
   // mode). Disparities are corrected by it; far from 0 means the rig needs recalibrating.
   double right_offset_px = 0;
+  // Estimated gain of the right camera against the left (fast mode; the right image is
+  // levelled by it before stereo matching).
+  double right_gain = 1.0;
 };
 
 class StereoOdometry {

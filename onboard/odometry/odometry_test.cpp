@@ -34,8 +34,8 @@ TEST(Odometry, KittiExcerptRotationAndShape) {
   EXPECT_EQ(run.lost, 0);
   const auto drift = eval::kittiDrift(run.truth, run.estimate, {20});
   const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSim3);
-  std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m\n",
-              drift.at(0).rotation_deg_per_100m, ate.translation.rmse);
+  std::printf("KITTI fast: rotation %.2f deg/100 m (20 m), Sim3 ATE %.3f m, right gain %.3f\n",
+              drift.at(0).rotation_deg_per_100m, ate.translation.rmse, run.right_gain);
   // Measured 2.62 deg/100 m and 0.055 m. The issue asks <= 2.0 deg/100 m and <= 0.20 m; the
   // rotation bar sits below what this excerpt's images and ground truth allow (a rotation-only
   // estimate from 1000+ tracks per frame gets 2.51: docs/BENCHMARKS.md).
@@ -72,6 +72,35 @@ TEST_P(SimFlight, WithNoiseAndBlurStaysOnTrack) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Rooms, SimFlight, ::testing::Values(1u, 2u, 3u));
+
+// The typical and poor cameras' right image is 5 and 10 % brighter than the left (with
+// vignetting, gamma, blur and shot noise). Before the odometry levelled the right image by its
+// estimated gain, Lucas-Kanade's stereo matches were biased by it: room 1, 200 frames, offset
+// +0.626 / +1.180 px, ATE 0.98 / 1.96 % of the path, attitude 1.13 / 3.85 deg (typical /
+// poor). Measured with it: gain 1.0447 / 1.0780 (the true gains through the cameras' gamma:
+// 1.0454 / 1.0792), offset +0.044 / +0.071 px, ATE 0.11 / 0.28 %, attitude 0.165 / 0.289 deg.
+class GainMismatch : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(GainMismatch, IsEstimatedAndLevelledOut) {
+  sim::SimSourceOptions options{.seed = 1, .rate_hz = 10.0, .max_frames = 200};
+  options.render.camera = *sim::CameraModel::preset(GetParam());
+  sim::SimSource source(options);
+  const auto run = eval::runOdometry(source, {});
+  const auto ate = eval::absoluteError(run.truth, run.estimate, eval::Alignment::kSe3);
+  const double path = eval::pathLength(run.truth);
+  std::printf(
+      "%s camera: right gain %.4f (true %.2f), offset %+.3f px, ATE %.4f m (%.2f%%), attitude "
+      "%.3f deg, %d lost\n",
+      GetParam().c_str(), run.right_gain, options.render.camera.right_gain, run.right_offset_px,
+      ate.translation.rmse, 100 * ate.translation.rmse / path, ate.rotation.rmse, run.lost);
+  const auto& model = options.render.camera;
+  EXPECT_NEAR(run.right_gain, std::pow(model.right_gain, 1.0 / model.gamma), 0.005);
+  EXPECT_LE(std::abs(run.right_offset_px), 0.15);
+  EXPECT_LE(ate.translation.rmse, 0.005 * path);  // the issue's bar for sim flights
+  EXPECT_LE(ate.rotation.rmse, 0.4);
+}
+
+INSTANTIATE_TEST_SUITE_P(Cameras, GainMismatch, ::testing::Values("typical", "poor"));
 
 // A sim source whose right images sit `shift` whole pixels to the right (negative: left) of
 // their calibration.

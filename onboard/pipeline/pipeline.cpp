@@ -330,6 +330,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       summary.lost_frames += estimate->state == odometry::TrackingState::kLost;
       summary.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
       summary.right_offset_px = estimate->right_offset_px;
+      summary.right_gain = estimate->right_gain;
     } else if (frame->T_map_body) {
       T_map_body = *frame->T_map_body;
       report_frame.T_map_body_odometry = T_map_body;

@@ -89,6 +89,7 @@ struct PipelineSummary {
   double median_odometry_ms = 0;
   // The odometry's last estimate of the right image's offset against its calibration (px).
   double right_offset_px = 0;
+  double right_gain = 1.0;  // and of the right camera's gain against the left
   // With pose_graph: T_map_body of every frame through the final graph, and what it found.
   std::vector<common::Rigid3> corrected_T_map_body;
   posegraph::FollowerStats graph;

@@ -20,8 +20,7 @@ double imageNoiseSigma(const cv::Mat& grey, int step) {
     const uint8_t* below = grey.ptr<uint8_t>(v + 1);
     for (int u = 1; u + 1 < grey.cols; ++u) {
       const int response = above[u - 1] - 2 * above[u] + above[u + 1] - 2 * row[u - 1] +
-                           4 * row[u] - 2 * row[u + 1] + below[u - 1] - 2 * below[u] +
-                           below[u + 1];
+                           4 * row[u] - 2 * row[u + 1] + below[u - 1] - 2 * below[u] + below[u + 1];
       ++counts[static_cast<size_t>(std::abs(response))];
       ++total;
     }

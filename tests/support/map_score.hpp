@@ -4,7 +4,7 @@
 //   precision: share of occupied voxels a true surface passes through (within one voxel:
 //              precision_1);
 //   coverage:  share of the true surface voxels the left camera saw within range that are
-//              occupied.
+//              occupied (a surface on a voxel face: either side; seen_voxels.hpp).
 #pragma once
 
 #include <octomap/OcTree.h>
@@ -16,6 +16,7 @@
 #include <tuple>
 
 #include "onboard/sim/sim_source.hpp"
+#include "tests/support/seen_voxels.hpp"
 
 namespace stereomap::testing {
 
@@ -28,17 +29,12 @@ struct MapScore {
 // `frames` frames at 10 Hz); `max_range`: the onboard cloud range.
 inline MapScore scoreMap(const std::string& bt, double resolution, const sim::SimSource& truth,
                          int frames, double max_range) {
-  using Key = std::tuple<int, int, int>;
-  auto keyOf = [resolution](const common::Vec3& p) {
-    return Key{static_cast<int>(std::floor(p.x() / resolution)),
-               static_cast<int>(std::floor(p.y() / resolution)),
-               static_cast<int>(std::floor(p.z() / resolution))};
-  };
+  auto keyOf = [resolution](const common::Vec3& p) { return voxelKeyOf(p, resolution); };
   std::istringstream in(bt);
   octomap::OcTree map(resolution);
   MapScore score;
   if (!map.readBinary(in)) return score;
-  std::set<Key> occupied;
+  std::set<VoxelKey> occupied;
   for (auto it = map.begin_leafs(); it != map.end_leafs(); ++it) {
     if (!map.isNodeOccupied(*it)) continue;
     // A pruned leaf stands for all the finest voxels inside it.
@@ -64,21 +60,11 @@ inline MapScore scoreMap(const std::string& bt, double resolution, const sim::Si
     correct += distance <= half_diagonal;
     within_one_voxel += distance <= half_diagonal + resolution;
   }
-  const sim::Renderer renderer(scene, truth.camera());
-  std::set<Key> seen;
-  for (int i = 0; i < frames; ++i) {
-    const auto T_map_camera = truth.flight().T_map_camera(i / 10.0);
-    const cv::Mat depth = renderer.renderDepth(T_map_camera);
-    for (int v = 0; v < depth.rows; v += 2) {
-      for (int u = 0; u < depth.cols; u += 2) {
-        const float z = depth.at<float>(v, u);
-        if (z <= 0 || z > max_range) continue;
-        seen.insert(keyOf(T_map_camera * (truth.camera().rayThrough(u, v) * z)));
-      }
-    }
-  }
-  size_t covered = 0;
-  for (const auto& key : seen) covered += occupied.count(key);
+  std::vector<common::Rigid3> poses;
+  for (int i = 0; i < frames; ++i) poses.push_back(truth.flight().T_map_camera(i / 10.0));
+  const auto seen = seenSurfaceVoxels(sim::Renderer(scene, truth.camera()), truth.camera(), poses,
+                                      resolution, max_range, /*in_both_images=*/false);
+  score.coverage = coverageOf(seen, occupied);
   score.occupied = occupied.size();
   score.seen = seen.size();
   if (!occupied.empty()) {
@@ -86,8 +72,6 @@ inline MapScore scoreMap(const std::string& bt, double resolution, const sim::Si
     score.precision_1 =
         static_cast<double>(within_one_voxel) / static_cast<double>(occupied.size());
   }
-  if (!seen.empty())
-    score.coverage = static_cast<double>(covered) / static_cast<double>(seen.size());
   return score;
 }
 

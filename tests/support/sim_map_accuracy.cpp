@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "onboard/sim/sim_source.hpp"
+#include "tests/support/seen_voxels.hpp"
 
 namespace stereomap::testing {
 
@@ -60,34 +61,21 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
     within_2 += distance <= half_diagonal + 2 * resolution;
   }
 
-  using Key = std::tuple<int, int, int>;
-  auto keyOf = [resolution](const Vec3& p) {
-    return Key{static_cast<int>(std::floor(p.x() / resolution)),
-               static_cast<int>(std::floor(p.y() / resolution)),
-               static_cast<int>(std::floor(p.z() / resolution))};
-  };
-  std::set<Key> occupied_keys;
+  std::set<VoxelKey> occupied_keys;
   for (const auto& v : occupied) occupied_keys.insert({v.x, v.y, v.z});
   const sim::Renderer renderer(scene, camera);
-  std::map<Key, std::set<Key>> seen;  // voxel -> the voxels sharing a face the point is on
+  const auto seen =
+      seenSurfaceVoxels(renderer, camera, poses, resolution, seen_range, /*in_both_images=*/true);
+  result.recall = coverageOf(seen, occupied_keys);
+  // Free space: samples along every 16th pixel's true ray, up to two voxels before the surface.
   size_t free_correct = 0;
   for (const auto& T_map_camera : poses) {
     const cv::Mat depth = renderer.renderDepth(T_map_camera);
-    for (int v = 0; v < depth.rows; v += 2) {
-      for (int u = 0; u < depth.cols; u += 2) {
+    for (int v = 0; v < depth.rows; v += 16) {
+      for (int u = 0; u < depth.cols; u += 16) {
         const float z = depth.at<float>(v, u);
         if (z <= 0 || z > seen_range || u < camera.disparityFromDepth(z)) continue;
         const Vec3 ray = camera.rayThrough(u, v);
-        const Vec3 point = T_map_camera * (ray * z);
-        auto& sides = seen[keyOf(point)];
-        for (int axis = 0; axis < 3; ++axis) {
-          for (const double nudge : {-1e-6, 1e-6}) {
-            Vec3 moved = point;
-            moved[axis] += nudge;
-            if (keyOf(moved) != keyOf(point)) sides.insert(keyOf(moved));
-          }
-        }
-        if (u % 16 != 0 || v % 16 != 0) continue;
         const double length = ray.norm() * z;
         for (double s = resolution; s < length - 2 * resolution; s += resolution) {
           ++result.free_samples;
@@ -96,12 +84,6 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
       }
     }
   }
-  size_t recalled = 0;
-  for (const auto& [key, sides] : seen) {
-    bool hit = occupied_keys.count(key) > 0;
-    for (const auto& side : sides) hit = hit || occupied_keys.count(side) > 0;
-    recalled += hit;
-  }
   result.occupied = occupied.size();
   result.seen = seen.size();
   if (result.occupied > 0) {
@@ -109,7 +91,6 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
     result.precision_1 = static_cast<double>(within_1) / result.occupied;
     result.precision_2 = static_cast<double>(within_2) / result.occupied;
   }
-  if (result.seen > 0) result.recall = static_cast<double>(recalled) / result.seen;
   if (result.free_samples > 0)
     result.free_space = static_cast<double>(free_correct) / result.free_samples;
   return result;

@@ -57,6 +57,11 @@ class FastTracker {
   void adjustWindow(common::Rigid3& T_world_current);
   // The window begins again at the current frame (start, or a lost frame).
   void restartWindow(const common::Rigid3& T_world_current);
+  // The right gain's estimate moved by what the matches of this frame still see.
+  void updateRightGain(const cv::Mat& left, const cv::Mat& right,
+                       const std::vector<cv::Point2f>& left_points,
+                       const std::vector<cv::Point2f>& right_points,
+                       const std::vector<cv::Point2f>& matches);
   // A left pixel and its disparity as a point in the camera frame.
   common::Vec3 stereoPoint(double u, double v, double disparity) const {
     return camera_.rayThrough(u, v) * camera_.depthFromDisparity(disparity);
@@ -76,6 +81,13 @@ class FastTracker {
   // Estimated horizontal offset of the right image against its calibration (pixels, raw
   // column minus calibrated column); every disparity is corrected by it.
   double right_offset_ = 0;
+  // The right camera's gain against the left, from the matched patches (matchRight, a running
+  // mean): Lucas-Kanade assumes equal brightness, and a 5 % mismatch biased every stereo match
+  // by over half a pixel on the sim's typical camera. The right image is levelled by it before
+  // matching when it is more than kLevelledFromGain from 1 (see track()).
+  double right_gain_ = 1.0;
+  static constexpr double kLevelledFromGain = 0.03;
+  double levelled_by_ = 1.0;  // the gain this frame's right image was levelled by
   Keyframe keyframe_;
   std::vector<cv::Point2f> tracks_;  // each keyframe point in the previous frame
   std::vector<bool> alive_;
