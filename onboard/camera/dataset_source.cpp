@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <opencv2/videoio.hpp>
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <sstream>
 
 #include "common/time.hpp"
+#include "onboard/camera/image_noise.hpp"
 #include "onboard/camera/rectifier.hpp"
 
 namespace stereomap::camera {
@@ -20,6 +22,17 @@ using common::Result;
 using common::Rigid3;
 
 namespace {
+
+// The raw left image's noise on every 10th frame (the depth step's estimate is that sparse
+// too), for 8-bit grey or colour images; nullopt otherwise.
+std::optional<double> rawNoise(const cv::Mat& left, uint64_t index) {
+  if (index % 10 != 0) return std::nullopt;
+  if (left.type() == CV_8UC1) return imageNoiseSigma(left);
+  if (left.type() != CV_8UC3) return std::nullopt;
+  cv::Mat grey;
+  cv::cvtColor(left, grey, cv::COLOR_BGR2GRAY);
+  return imageNoiseSigma(grey);
+}
 
 // One recorded frame: file paths, stamp, and ground truth when known.
 struct FrameFiles {
@@ -54,6 +67,7 @@ class RecordedSource : public FrameSource {
       SourceFrame frame;
       frame.index = next_ - 1;
       frame.stamp_ns = files.stamp_ns;
+      frame.raw_noise_sigma = rawNoise(left, frame.index);
       if (auto status = rectifier_.rectify(left, right, frame.left, frame.right); !status) {
         spdlog::warn("frame {}: {}; skipped", frame.index, status.error().message);
         continue;
@@ -96,6 +110,7 @@ class VideoSource : public FrameSource {
       SourceFrame frame;
       frame.index = index_++;
       frame.stamp_ns = common::nowNs();
+      frame.raw_noise_sigma = rawNoise(left, frame.index);
       if (auto status = rectifier_.rectify(left, right, frame.left, frame.right); !status) {
         spdlog::warn("camera frame {}: {}", frame.index, status.error().message);
         continue;

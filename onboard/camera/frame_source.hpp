@@ -20,6 +20,9 @@ struct SourceFrame {
   cv::Mat right;                                // CV_8UC1, rectified
   std::optional<common::Rigid3> T_map_body;     // ground truth, when the source knows it
   std::optional<common::Rigid3> T_body_camera;  // the left camera's mount on the body
+  // The left image's noise (imageNoiseSigma, grey levels) measured before rectification, on
+  // some frames of sources that rectify: interpolation hides most of it afterwards.
+  std::optional<double> raw_noise_sigma;
 };
 
 class FrameSource {

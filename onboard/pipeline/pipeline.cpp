@@ -383,7 +383,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     const int was_level = depth_step.level();
     const auto cloud =
         depth_step.compute(frame->left, frame->right, report_frame.T_map_camera,
-                           estimate ? estimate->right_offset_px : 0.0);  // see odometry.hpp
+                           estimate ? estimate->right_offset_px : 0.0,  // see odometry.hpp
+                           frame->raw_noise_sigma);
     depth_ms.push_back(msSince(depth_start));
     if (depth_step.level() != was_level || summary.frames == 0) {
       if (depth_step.noisy()) {

@@ -1,6 +1,6 @@
 #include "onboard/stereo/depth_step.hpp"
 
-#include "onboard/stereo/image_noise.hpp"
+#include "onboard/camera/image_noise.hpp"
 
 namespace stereomap::stereo {
 
@@ -58,10 +58,17 @@ StereoMatcher& DepthStep::matcher() {
 
 common::PointCloud DepthStep::compute(const cv::Mat& left, const cv::Mat& right,
                                       const std::optional<common::Rigid3>& T_world_camera,
-                                      double disparity_offset_px) {
-  if (options_.noise == NoiseHandling::kAuto && frames_ % options_.noise_every == 0) {
-    noise_sigma_ = imageNoiseSigma(left);
-    setLevel(levelFor(noise_sigma_));
+                                      double disparity_offset_px,
+                                      std::optional<double> raw_noise_sigma) {
+  if (options_.noise == NoiseHandling::kAuto) {
+    if (raw_noise_sigma) {
+      raw_noise_ = true;
+      noise_sigma_ = *raw_noise_sigma;
+      setLevel(levelFor(noise_sigma_));
+    } else if (!raw_noise_ && frames_ % options_.noise_every == 0) {
+      noise_sigma_ = camera::imageNoiseSigma(left);
+      setLevel(levelFor(noise_sigma_));
+    }
   }
   ++frames_;
   CloudOptions cloud = options_.cloud;

@@ -65,10 +65,14 @@ class DepthStep {
 
   // The cloud of one rectified pair (CV_8UC1), in the left camera's frame. T_world_camera is
   // the left camera's pose (any fixed world frame); without it nothing is carried between
-  // frames. disparity_offset_px: see CloudOptions.
+  // frames. disparity_offset_px: see CloudOptions. raw_noise_sigma: the image noise measured
+  // before rectification (SourceFrame::raw_noise_sigma); once a source has given one, the
+  // depth step goes by those, otherwise it estimates on the rectified left image, where
+  // interpolation hides most noise (sigma 2 read 0.8 after a slight remap).
   common::PointCloud compute(const cv::Mat& left, const cv::Mat& right,
                              const std::optional<common::Rigid3>& T_world_camera,
-                             double disparity_offset_px = 0);
+                             double disparity_offset_px = 0,
+                             std::optional<double> raw_noise_sigma = std::nullopt);
   // Forgets earlier frames (tracking lost, a jump in the poses).
   void reset();
 
@@ -90,6 +94,7 @@ class DepthStep {
   std::optional<TemporalFilter> filter_;
   double noise_sigma_ = 0;
   int level_ = -1;
+  bool raw_noise_ = false;  // a source gave the noise before rectification
   uint64_t frames_ = 0;
 };
 

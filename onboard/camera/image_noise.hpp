@@ -7,11 +7,11 @@
 
 #include <opencv2/core.hpp>
 
-namespace stereomap::stereo {
+namespace stereomap::camera {
 
 // Immerkær's operator (the difference of two Laplacians, which cancels smooth image content)
 // with a median instead of a mean, so that texture and edges in the minority of pixels do not
 // count as noise. CV_8UC1; images smaller than 3x3 give 0. Samples every `step`-th row.
 double imageNoiseSigma(const cv::Mat& grey, int step = 2);
 
-}  // namespace stereomap::stereo
+}  // namespace stereomap::camera

@@ -1,10 +1,10 @@
-#include "onboard/stereo/image_noise.hpp"
+#include "onboard/camera/image_noise.hpp"
 
 #include <gtest/gtest.h>
 
 #include <cmath>
 
-namespace stereomap::stereo {
+namespace stereomap::camera {
 namespace {
 
 // A textured scene (smooth waves and a hard edge, as texture and edges in real images) with
@@ -38,4 +38,4 @@ TEST(ImageNoise, TinyImagesGiveZero) {
 }
 
 }  // namespace
-}  // namespace stereomap::stereo
+}  // namespace stereomap::camera

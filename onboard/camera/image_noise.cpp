@@ -1,10 +1,10 @@
-#include "onboard/stereo/image_noise.hpp"
+#include "onboard/camera/image_noise.hpp"
 
 #include <algorithm>
 #include <array>
 #include <cstdlib>
 
-namespace stereomap::stereo {
+namespace stereomap::camera {
 
 double imageNoiseSigma(const cv::Mat& grey, int step) {
   CV_Assert(grey.type() == CV_8UC1 && step >= 1);
@@ -41,4 +41,4 @@ double imageNoiseSigma(const cv::Mat& grey, int step) {
   return median / (0.6745 * 6.0);
 }
 
-}  // namespace stereomap::stereo
+}  // namespace stereomap::camera
