@@ -38,16 +38,19 @@ float TemporalFilter::disparityAt(const Frame& frame, int x, int y, double gx, d
 }
 
 bool TemporalFilter::carry(const Frame& frame, const Transforms& transforms,
-                           const common::Vec3& point, float measured, const BlockDisparity& blocks,
+                           const Eigen::Vector3f& ray, float measured, const BlockDisparity& blocks,
                            float& carried, int& count) const {
-  const double fb = camera_.baseline * camera_.fx;
-  const auto pixel = camera_.project(transforms.T_frame_current * point);
-  if (!pixel) return false;
+  // The block's point (ray * fb / measured) in the previous camera, scaled by measured / fb
+  // (projection does not care), and where it appears there.
+  const Eigen::Vector3f q =
+      transforms.R_previous_current * ray + transforms.t_previous_current_fb * measured;
+  if (q.z() <= 1e-6f) return false;
+  const float ax = q.x() / q.z(), ay = q.y() / q.z();  // the previous camera's ray through it
+  const double u = camera_.fx * ax + camera_.cx, v = camera_.fy * ay + camera_.cy;
   // Position on the frame's block grid (block centres at integers) and the nearest block.
-  const double gx = (pixel->x() - blocks.uCentre(0)) / blocks.block_cols;
-  const double gy = (pixel->y() - blocks.vCentre(0)) / blocks.block_rows;
+  const double gx = (u - blocks.uCentre(0)) / blocks.block_cols;
+  const double gy = (v - blocks.vCentre(0)) / blocks.block_rows;
   const int x = static_cast<int>(std::lround(gx)), y = static_cast<int>(std::lround(gy));
-  const common::Vec3 ray = camera_.rayThrough(pixel->x(), pixel->y());
   // The nearest block, moved from its centre to the pixel along the disparity's slope: exact
   // on a plane, where disparity is linear in the image, and right up to the image's edges.
   // (Trying its neighbours too when it holds another surface confirms more blocks at depth
@@ -55,9 +58,12 @@ bool TemporalFilter::carry(const Frame& frame, const Transforms& transforms,
   // 0.917 -> 0.926, measured with stereomap-bench-map.)
   const float d = disparityAt(frame, x, y, gx, gy);
   if (d <= 0) return false;
-  const common::Vec3 seen = transforms.T_current_frame * (ray * (fb / d));
-  if (seen.z() <= 0) return false;
-  carried = static_cast<float>(fb / seen.z());
+  // That point (ray (ax, ay, 1) * fb / d) back in this camera: its disparity fb / z, written so
+  // that fb cancels.
+  const Eigen::Vector3f& r = transforms.current_previous_z_row;
+  const float denominator = r.x() * ax + r.y() * ay + r.z() + transforms.current_previous_z_fb * d;
+  if (denominator <= 0) return false;
+  carried = d / denominator;
   if (std::abs(measured - carried) > options_.gate_px) return false;
   count = frame.count.at<int>(y, x);
   return true;
@@ -73,13 +79,13 @@ void TemporalFilter::apply(BlockDisparity& blocks, const common::Rigid3& T_world
                         previous_.block_rows == blocks.block_rows;
   // This camera seen from the previous one, and back.
   const common::Rigid3 T_previous_current = previous_.T_world_camera.inverse() * T_world_camera;
-  auto matrix = [](const common::Rigid3& T) {
-    Eigen::Isometry3d m = Eigen::Isometry3d::Identity();
-    m.linear() = T.rotation.toRotationMatrix();
-    m.translation() = T.translation;
-    return m;
-  };
-  const Transforms transforms{matrix(T_previous_current), matrix(T_previous_current.inverse())};
+  const common::Rigid3 T_current_previous = T_previous_current.inverse();
+  const Transforms transforms{
+      .R_previous_current = T_previous_current.rotation.toRotationMatrix().cast<float>(),
+      .t_previous_current_fb = (T_previous_current.translation / fb).cast<float>(),
+      .current_previous_z_row =
+          T_current_previous.rotation.toRotationMatrix().row(2).transpose().cast<float>(),
+      .current_previous_z_fb = static_cast<float>(T_current_previous.translation.z() / fb)};
 
   // The buffers of the frame before the previous one are reused: no allocation per frame.
   Frame& next = spare_;
@@ -102,11 +108,12 @@ void TemporalFilter::apply(BlockDisparity& blocks, const common::Rigid3& T_world
       // Where this block's point was in the previous frame, and what that frame saw there,
       // carried back into this camera. Looking each measured block up (rather than pushing the
       // previous blocks forward) leaves no block without a candidate when the view expands.
-      const common::Vec3 point =
-          camera_.rayThrough(blocks.uCentre(bx), blocks.vCentre(by)) * (fb / m);
+      const Eigen::Vector3f ray(static_cast<float>((blocks.uCentre(bx) - camera_.cx) / camera_.fx),
+                                static_cast<float>((blocks.vCentre(by) - camera_.cy) / camera_.fy),
+                                1.0f);
       float carried = 0;
       int previous_count = 0;
-      if (carrying && carry(previous_, transforms, point, m, blocks, carried, previous_count)) {
+      if (carrying && carry(previous_, transforms, ray, m, blocks, carried, previous_count)) {
         count = std::min(previous_count + 1, options_.max_frames);
         value = carried + (m - carried) / static_cast<float>(count);
       }

@@ -45,12 +45,18 @@ class TemporalFilter {
     common::Rigid3 T_world_camera;
     int block_cols = 0, block_rows = 0;
   };
-  struct Transforms {  // as matrices: a point per block goes through each
-    Eigen::Isometry3d T_frame_current, T_current_frame;
+  // The pose change between the frames as the per-block arithmetic uses it (float; translations
+  // divided by baseline * fx, so that a block's point needs no depth).
+  struct Transforms {
+    Eigen::Matrix3f R_previous_current;
+    Eigen::Vector3f t_previous_current_fb;
+    Eigen::Vector3f current_previous_z_row;  // the third row of R_current_previous
+    float current_previous_z_fb = 0;
   };
-  // The previous frame's view of a point of this camera (its disparity there, brought into this
-  // camera) when within the gate of the measured disparity, with that frame's count.
-  bool carry(const Frame& frame, const Transforms& transforms, const common::Vec3& point,
+  // The previous frame's view of a block's point (on `ray`, z = 1, at the measured disparity):
+  // its disparity there, brought into this camera, when within the gate of the measured one,
+  // with that frame's count.
+  bool carry(const Frame& frame, const Transforms& transforms, const Eigen::Vector3f& ray,
              float measured, const BlockDisparity& blocks, float& carried, int& count) const;
   // Block (x, y)'s disparity moved to grid position (gx, gy) along its surface; 0: none.
   float disparityAt(const Frame& frame, int x, int y, double gx, double gy) const;
