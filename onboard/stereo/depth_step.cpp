@@ -15,7 +15,7 @@ DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& opt
 }
 
 void DepthStep::setLevel(int level) {
-  if (level == level_ && (filter_ || !options_.temporal)) return;
+  if (level == level_) return;
   level_ = level;
   // Other blocks, other noise: averaging starts afresh.
   filter_.reset();

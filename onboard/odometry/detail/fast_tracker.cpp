@@ -221,7 +221,7 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   const cv::Size window(options_.klt_window, options_.klt_window);
   cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
   std::vector<cv::Mat> right_pyramid;  // for every stereo match of this frame
-  cv::Mat levelled = right;
+  const cv::Mat* levelled = &right;
   // Levelled only beyond 3 %: KITTI's rig reads 0.98-0.99, and levelling by that (from 2 %, or
   // always) moved its excerpt's rotation drift from 2.62 to 2.68-2.85 deg/100 m and its shape
   // (Sim3 ATE) from 0.055 to 0.06-0.11 m (a gain-and-black-level model did worse still): the
@@ -229,8 +229,11 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
   // cameras. The sim's typical and poor cameras (1.045 and 1.08 through their gamma) are
   // levelled.
   levelled_by_ = std::abs(right_gain_ - 1.0) > kLevelledFromGain ? right_gain_ : 1.0;
-  if (levelled_by_ != 1.0) right.convertTo(levelled, -1, 1.0 / levelled_by_);
-  cv::buildOpticalFlowPyramid(levelled, right_pyramid, window, options_.klt_levels + 1);
+  if (levelled_by_ != 1.0) {
+    right.convertTo(levelled_right_, -1, 1.0 / levelled_by_);  // the buffer lives on
+    levelled = &levelled_right_;
+  }
+  cv::buildOpticalFlowPyramid(*levelled, right_pyramid, window, options_.klt_levels + 1);
   ++frame_;
   if (!initialised_) {
     restartWindow(Rigid3::identity());

@@ -88,6 +88,7 @@ class FastTracker {
   double right_gain_ = 1.0;
   static constexpr double kLevelledFromGain = 0.03;
   double levelled_by_ = 1.0;  // the gain this frame's right image was levelled by
+  cv::Mat levelled_right_;    // reused: a fresh image per frame costs page faults
   Keyframe keyframe_;
   std::vector<cv::Point2f> tracks_;  // each keyframe point in the previous frame
   std::vector<bool> alive_;
