@@ -42,14 +42,15 @@ INSTANTIATE_TEST_SUITE_P(Rooms, FusionAccuracy, ::testing::Values(1u, 2u, 3u));
 
 // Issue 16: noise kept out of the map under the typical and poor cameras (the depth step finds
 // them noisy by itself). Measured per room (stereomap-bench-map, docs/BENCHMARKS.md): typical
-// precision 0.951-0.960, recall 0.894-0.912, free 0.993-0.994; poor precision 0.903-0.916,
-// recall 0.874-0.888, free 0.992-0.993 (means 0.957 / 0.903 and 0.910 / 0.882 against the
+// precision 0.949-0.957, recall 0.896-0.911, free 0.992-0.993; poor precision 0.922-0.936,
+// recall 0.850-0.863, free 0.987-0.988 (means 0.952 / 0.904 and 0.928 / 0.858 against the
 // goals 0.95 / 0.90 and 0.90 / 0.80). Without the noise handling: typical precision 0.67, poor
-// 0.54.
+// 0.54. The poor camera's free space was 0.992 with full rows (16 ms per frame): matching rows
+// in pairs costs it 0.004 for 8 ms and +0.018 precision.
 struct NoisyCamera {
   const char* camera;
   int level;  // the depth step's noise level expected
-  double precision, recall;
+  double precision, recall, free_space;
 };
 
 class NoiseStaysOutOfTheMap : public ::testing::TestWithParam<NoisyCamera> {};
@@ -61,13 +62,13 @@ TEST_P(NoiseStaysOutOfTheMap, OnEveryRoom) {
     EXPECT_EQ(a.level, expected.level);
     EXPECT_GE(a.precision, expected.precision);
     EXPECT_GE(a.recall, expected.recall);
-    EXPECT_GE(a.free_space, 0.99);
+    EXPECT_GE(a.free_space, expected.free_space);
   }
 }
 
 INSTANTIATE_TEST_SUITE_P(Cameras, NoiseStaysOutOfTheMap,
-                         ::testing::Values(NoisyCamera{"typical", 0, 0.945, 0.885},
-                                           NoisyCamera{"poor", 1, 0.895, 0.865}),
+                         ::testing::Values(NoisyCamera{"typical", 0, 0.945, 0.89, 0.99},
+                                           NoisyCamera{"poor", 1, 0.915, 0.845, 0.985}),
                          [](const auto& info) { return std::string(info.param.camera); });
 
 }  // namespace

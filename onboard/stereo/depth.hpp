@@ -45,10 +45,18 @@ struct MatcherOptions {
   bool pad_left = true;
   // Match at 1/downscale resolution and scale the disparity back (speed for large images).
   int downscale = 1;
+  // Match on images whose rows are averaged in groups of this many (after downscale), and
+  // give each row of a group the group's disparity. Rectified epipolar lines are rows, so
+  // the disparity keeps its full horizontal resolution while matching costs 1/row_groups,
+  // and averaging two rows halves the noise's variance. The cloud's blocks
+  // (CloudOptions::block_rows) should be a multiple of it; the block_size window then spans
+  // block_size * row_groups image rows.
+  int row_groups = 1;
   Prefilter prefilter = Prefilter::kNone;
   double log_sigma_px = 1.0;
-  // Gaussian smoothing of both images before anything else, pixels (0: off). Image noise is
-  // white and the matching cost's Sobel amplifies it; most scene texture is coarser.
+  // Gaussian smoothing of both images before matching, pixels (0: off); along the rows only
+  // when rows are grouped. Image noise is white and the matching cost's Sobel amplifies it;
+  // most scene texture is coarser.
   double smooth_sigma_px = 0;
   // Edge-aware filling of the disparity with OpenCV contrib's WLS filter (ximgproc), using
   // a right-view matcher for confidence; 0 disables. Dense but measured less accurate on
@@ -68,6 +76,13 @@ int disparitiesFor(int max_disparity_px);
 // disparity step spans more than a voxel of resolution r, so such points are not worth
 // matching. dd is the disparity uncertainty (0.5 px in the paper).
 int minimumDisparity(double baseline_m, double fx_px, double resolution_m, double dd_px = 0.5);
+
+// The matcher's search window moved to what the cloud keeps: it starts at the disparity of
+// max_range_m (rounded down; farther matches would be dropped anyway) unless min_disparity
+// already starts nearer, and keeps its width, so the nearest depth seen is
+// baseline * fx / (min_disparity + num_disparities).
+MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& camera,
+                          double max_range_m);
 
 class StereoMatcher {
  public:

@@ -4,9 +4,19 @@
 
 namespace stereomap::stereo {
 
+MatcherOptions levelMatcher(const MatcherOptions& base, const NoiseLevel& level) {
+  MatcherOptions matcher = base;
+  matcher.smooth_sigma_px = level.smooth_sigma_px;
+  matcher.block_size = level.block_size;
+  matcher.uniqueness_ratio = level.uniqueness_ratio;
+  matcher.row_groups = level.row_groups;
+  return matcher;
+}
+
 DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& options)
     : camera_(camera), options_(options), matchers_(options.levels.size() + 1) {
   CV_Assert(options.noise_every >= 1);
+  options_.matcher = fitToRange(options.matcher, camera, options.cloud.max_range_m);
   for (size_t i = 0; i < options.levels.size(); ++i) {
     CV_Assert(options.levels[i].from_sigma > 0 && options.levels[i].block_size % 2 == 1 &&
               (i == 0 || options.levels[i].from_sigma > options.levels[i - 1].from_sigma));
@@ -45,13 +55,9 @@ int DepthStep::levelFor(double sigma) const {
 StereoMatcher& DepthStep::matcher() {
   auto& slot = matchers_[static_cast<size_t>(level_ + 1)];
   if (!slot) {
-    MatcherOptions matcher = options_.matcher;
-    if (level_ >= 0) {
-      const NoiseLevel& level = options_.levels[static_cast<size_t>(level_)];
-      matcher.smooth_sigma_px = level.smooth_sigma_px;
-      matcher.block_size = level.block_size;
-    }
-    slot = std::make_unique<StereoMatcher>(matcher);
+    slot = std::make_unique<StereoMatcher>(
+        level_ < 0 ? options_.matcher
+                   : levelMatcher(options_.matcher, options_.levels[static_cast<size_t>(level_)]));
   }
   return *slot;
 }

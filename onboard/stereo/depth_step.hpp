@@ -29,14 +29,18 @@ enum class NoiseHandling {
 };
 
 // How the depth step matches images from a noise level on (measured with
-// stereomap-bench-map, docs/BENCHMARKS.md: the typical camera's precision 0.67 -> 0.96 at
-// recall 0.90, the poor camera's 0.54 -> 0.91).
+// stereomap-bench-map, docs/BENCHMARKS.md: the typical camera's precision 0.67 -> 0.95 at
+// recall 0.90, the poor camera's 0.54 -> 0.93). Rows are matched in pairs, which pays for
+// the frame averaging: 9 ms instead of 14 per frame.
 struct NoiseLevel {
-  double from_sigma = 1.0;       // image noise, grey levels (imageNoiseSigma)
-  double smooth_sigma_px = 1.5;  // the matcher's Gaussian smoothing (MatcherOptions)
-  int block_size = 21;           // the matcher's block (odd; above 21 OpenCV's SGBM takes
-                                 // twice as long, measured)
-  double interior_px = 0.5;      // TemporalFilterOptions::interior_px at this level
+  double from_sigma = 1.0;  // image noise, grey levels (imageNoiseSigma)
+  // The matcher's (MatcherOptions) smoothing along rows, block (odd; above 21 OpenCV's BM
+  // takes twice as long, measured), uniqueness and row grouping.
+  double smooth_sigma_px = 1.75;
+  int block_size = 13;
+  int uniqueness_ratio = 30;
+  int row_groups = 2;
+  double interior_px = 0.5;  // TemporalFilterOptions::interior_px at this level
 };
 
 struct DepthOptions {
@@ -49,14 +53,28 @@ struct DepthOptions {
   // At the second level one frame's depth is too noisy to pass unconfirmed even inside a
   // smooth surface (poor camera: precision 0.893 with, 0.910 without).
   std::array<NoiseLevel, 2> levels = {{
-      {.from_sigma = 1.0, .smooth_sigma_px = 1.5, .block_size = 21, .interior_px = 0.5},
-      {.from_sigma = 3.0, .smooth_sigma_px = 2.0, .block_size = 21, .interior_px = 0},
+      {.from_sigma = 1.0,
+       .smooth_sigma_px = 1.75,
+       .block_size = 13,
+       .uniqueness_ratio = 30,
+       .row_groups = 2,
+       .interior_px = 0.5},
+      {.from_sigma = 3.0,
+       .smooth_sigma_px = 2.0,
+       .block_size = 17,
+       .uniqueness_ratio = 30,
+       .row_groups = 2,
+       .interior_px = 0},
   }};
   // Noisy images' block disparities averaged over frames (interior_px comes from the level);
   // nullopt: off.
   std::optional<TemporalFilterOptions> temporal = TemporalFilterOptions{};
   int noise_every = 10;  // frames between noise estimates (the first frame always)
 };
+
+// The matcher a noise level uses: `base` with the level's smoothing, block, uniqueness and
+// row grouping.
+MatcherOptions levelMatcher(const MatcherOptions& base, const NoiseLevel& level);
 
 class DepthStep {
  public:

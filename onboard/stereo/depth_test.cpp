@@ -129,8 +129,9 @@ TEST(CloudFromDisparity, InvalidAndOutOfRangeDisparitiesNeverBecomePoints) {
   EXPECT_GT(cloudFromDisparity(disparity, left, kCamera).size(), 0u);
 }
 
-// Measured on sim seed 2, t = 5 s (docs/BENCHMARKS.md): within 1 px fast 0.980, accurate
-// 0.991; density fast 0.950, accurate 0.994. Thresholds sit a little below the measurement.
+// Measured on sim seed 2, t = 5 s (docs/BENCHMARKS.md): within 1 px fast 0.980, with rows in
+// pairs 0.982, accurate 0.991; density fast 0.944, in pairs 0.922, accurate 0.994. Thresholds
+// sit a little below the measurement.
 TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
   const sim::Scene room = sim::Scene::makeRoom({.seed = 2});
   const sim::Renderer renderer(room, kCamera);
@@ -140,10 +141,16 @@ TEST(StereoMatcher, MatchersRecoverTheSimDisparity) {
     MatcherOptions options;
     double min_accuracy, min_density;
   };
-  for (const auto& expected : {Expected{"fast", MatcherOptions::fast(), 0.97, 0.88},
-                               Expected{"accurate", MatcherOptions::accurate(), 0.97, 0.95}}) {
+  // The fast preset as the depth step runs it: from the cloud's range on.
+  const MatcherOptions fast = fitToRange(MatcherOptions::fast(), kCamera, 6.0);
+  MatcherOptions pairs = fast;
+  pairs.row_groups = 2;
+  for (const auto& expected :
+       {Expected{"fast", fast, 0.97, 0.88}, Expected{"fast, rows in pairs", pairs, 0.97, 0.90},
+        Expected{"accurate", MatcherOptions::accurate(), 0.97, 0.95}}) {
     const StereoMatcher matcher(expected.options);
     const cv::Mat disparity = matcher.compute(frame.left, frame.right);
+    ASSERT_EQ(disparity.size(), frame.left.size());
     size_t valid = 0, good = 0, surface = 0;
     for (int v = 0; v < kCamera.height; ++v) {
       for (int u = 100; u < kCamera.width; ++u) {  // left columns have no match in BM
@@ -211,6 +218,32 @@ TEST(DisparityIo, PngRoundTripKeepsSubPixelAndInvalid) {
   EXPECT_LT(back->at<float>(1, 2), 0.0f);
   EXPECT_FLOAT_EQ(back->at<float>(2, 3), 200.5f);
   std::filesystem::remove(path);
+}
+
+TEST(StereoMatcher, GroupedRowsShareTheirGroupsDisparity) {
+  const sim::Scene room = sim::Scene::makeRoom({.seed = 2});
+  const auto frame = sim::Renderer(room, kCamera).render(sim::Flight().T_map_camera(5.0));
+  MatcherOptions options = fitToRange(MatcherOptions::fast(), kCamera, 6.0);
+  options.row_groups = 2;
+  options.smooth_sigma_px = 1.5;  // along the rows only
+  const cv::Mat disparity = StereoMatcher(options).compute(frame.left, frame.right);
+  ASSERT_EQ(disparity.size(), frame.left.size());
+  for (int v = 0; v < disparity.rows; v += 2) {
+    ASSERT_EQ(cv::norm(disparity.row(v), disparity.row(v + 1), cv::NORM_INF), 0.0) << "row " << v;
+  }
+}
+
+TEST(FitToRange, TheSearchStartsAtTheCloudsRange) {
+  // The sim camera: b f = 59.1 px m, so 6 m is 9.85 px and the window of 48 reaches 1.04 m.
+  const MatcherOptions fitted = fitToRange(MatcherOptions::fast(), kCamera, 6.0);
+  EXPECT_EQ(fitted.min_disparity, 9);
+  EXPECT_EQ(fitted.num_disparities, MatcherOptions::fast().num_disparities);
+  EXPECT_NEAR(kCamera.depthFromDisparity(fitted.min_disparity + fitted.num_disparities), 1.04,
+              0.01);
+  // A start already nearer (the paper's rule) is kept.
+  MatcherOptions paper = MatcherOptions::fast();
+  paper.min_disparity = 20;
+  EXPECT_EQ(fitToRange(paper, kCamera, 6.0).min_disparity, 20);
 }
 
 TEST(MinimumDisparity, FollowsThePapersRule) {

@@ -48,7 +48,23 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   // Knobs for ablations and trials: each replaces the product's default when given.
   double smooth = -1, max_range = -1, span = -1, hit = -1, miss = -1, occupied = -1;
-  int block = -1, downscale = -1;
+  int block = -1, downscale = -1, row_groups = -1, uniqueness = -1, block_rows = -1,
+      disparities = -1;
+  app.add_option("--disparities", disparities,
+                 "Matcher: width of the disparity search (multiple of 16)")
+      ->check(CLI::Range(16, 256) & CLI::Validator(
+                                        [](std::string& v) {
+                                          return std::stoi(v) % 16 == 0
+                                                     ? std::string()
+                                                     : std::string("must be a multiple of 16");
+                                        },
+                                        "MULTIPLE OF 16"));
+  app.add_option("--block-rows", block_rows, "Cloud: image rows of a point's block")
+      ->check(CLI::Range(1, 16));
+  app.add_option("--uniqueness", uniqueness, "Noisy images: the matcher's uniqueness ratio, %")
+      ->check(CLI::Range(0, 100));
+  app.add_option("--row-groups", row_groups, "Noisy images: match rows averaged in groups of N")
+      ->check(CLI::Range(1, 8));
   app.add_option("--downscale", downscale, "Matcher: match at 1/N resolution")
       ->check(CLI::Range(1, 8));
   app.add_option("--smooth", smooth,
@@ -140,8 +156,12 @@ int main(int argc, char** argv) {
         if (smooth >= 0) level.smooth_sigma_px = smooth;
         if (block > 0) level.block_size = block;
         if (interior >= 0) level.interior_px = interior;
+        if (row_groups > 0) level.row_groups = row_groups;
+        if (uniqueness >= 0) level.uniqueness_ratio = uniqueness;
       }
       if (downscale > 0) depth.matcher.downscale = downscale;
+      if (block_rows > 0) depth.cloud.block_rows = block_rows;
+      if (disparities > 0) depth.matcher.num_disparities = disparities;
       if (max_range > 0) depth.cloud.max_range_m = max_range;
       if (min_range > 0) depth.cloud.min_range_m = min_range;
       if (span >= 0) depth.cloud.max_block_span_px = span;

@@ -43,7 +43,7 @@ void BM_Disparity(benchmark::State& state) {
   const auto& f = fixture();
   const stereo::StereoMatcher matcher(state.range(0) == 0 ? stereo::MatcherOptions::fast()
                                                           : stereo::MatcherOptions::accurate());
-  state.SetLabel(state.range(0) == 0 ? "fast (BM, 64 disparities)"
+  state.SetLabel(state.range(0) == 0 ? "fast (BM, 48 disparities)"
                                      : "accurate (SGBM 3-way, 80 disparities)");
   for (auto _ : state) benchmark::DoNotOptimize(matcher.compute(f.frame.left, f.frame.right));
 }

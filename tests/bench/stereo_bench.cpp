@@ -59,6 +59,18 @@ int main(int argc, char** argv) {
     return options;
   };
   auto alternatives = ours;
+  // The vehicle's matcher on noisy images (its noise level 0; the Middlebury pairs read 1.0-1.7
+  // grey levels, so a vehicle would match them so), with rows in pairs and as it was before.
+  const stereo::DepthOptions depth;
+  stereo::NoiseLevel full_rows = depth.levels[0];
+  full_rows.row_groups = 1;
+  full_rows.block_size = 21;
+  full_rows.smooth_sigma_px = 1.5;
+  full_rows.uniqueness_ratio = 15;
+  alternatives.emplace_back("noisy level 0 (rows in pairs)",
+                            stereo::levelMatcher(depth.matcher, depth.levels[0]));
+  alternatives.emplace_back("noisy level 0, full rows (block 21, before)",
+                            stereo::levelMatcher(depth.matcher, full_rows));
   alternatives.emplace_back("accurate + LoG prefilter (sigma 1)",
                             variant([](auto& o) { o.prefilter = stereo::Prefilter::kLoG; }));
   alternatives.emplace_back("accurate + WLS (lambda 8000, sigma 1.5)",
