@@ -23,7 +23,9 @@ constexpr double kMaxRange = 6.0;  // the onboard default
 MapScore flyAndScore(int domain, const std::string& camera, const std::string& vo = "fast") {
   ServerProcess server(domain, {"--resolution", std::to_string(kResolution)});
   ChildProcess onboard(onboardArgs(domain, "accuracy", kFrames,
-                                   {"--rate", "0", "--seed", "1", "--camera", camera, "--vo", vo}),
+                                   {"--rate", "0", "--seed", "1", "--camera", camera, "--vo", vo,
+                                    // thinned to the server's voxels, as vehicles send
+                                    "--map-resolution", std::to_string(kResolution)}),
                        server.logPath() + ".onboard");
   const auto code = onboard.waitExit(180s);
   EXPECT_TRUE(code.has_value()) << "onboard did not finish";

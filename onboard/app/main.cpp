@@ -15,10 +15,12 @@
 #include "common/shutdown.hpp"
 #include "common/trajectory.hpp"
 #include "onboard/camera/dataset_source.hpp"
+#include "onboard/link/cloud_link.hpp"
 #include "onboard/pipeline/pipeline.hpp"
 #include "onboard/sim/deck.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "proto/dds_cli.hpp"
+#include "proto/wire_size.hpp"
 
 namespace {
 
@@ -135,6 +137,23 @@ int main(int argc, char** argv) {
                  "on both images) or patent (the patent's linear solution); off: no watch")
       ->check(CLI::IsMember({"off", "default", "patent"}))
       ->capture_default_str();
+  std::string link_budget = "off";
+  app.add_option("--link-budget", link_budget,
+                 "Keep the stream under this rate on the radio link (1Mbit, 500kbit, ...; off): "
+                 "clouds are sent less often, poses keep their rate")
+      ->capture_default_str();
+  auto& link = *options.link;
+  app.add_option("--map-resolution", link.map_resolution_m,
+                 "The server's map resolution: clouds are thinned to one point per voxel of it "
+                 "(0: sent whole)")
+      ->check(CLI::Range(0.0, 10.0))
+      ->capture_default_str();
+  app.add_option("--min-new", link.min_new_share,
+                 "Send a cloud when this share of its voxels was not sent in the last 2 s, or "
+                 "after 1 s without one (0: every cloud)")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  app.set_config("--config", "", "Read these options from a TOML or INI file (name = value)");
   app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
       ->check(CLI::Range(0.0, 600.0))
       ->capture_default_str();
@@ -150,6 +169,24 @@ int main(int argc, char** argv) {
     spdlog::error("--session '{}' must be 1-64 letters, digits, '.', '_' or '-'",
                   options.session_id);
     return 2;
+  }
+  if (auto budget = link::parseBitRate(link_budget); !budget) {
+    spdlog::error("--link-budget: {}", budget.error().message);
+    return 2;
+  } else if (*budget > 0) {
+    // Poses go first and are not counted against the clouds; a tenth is left for DDS's own
+    // traffic (acknowledgements, heartbeats, resends on a lossy link).
+    proto::PoseMsg pose;
+    pose.vehicle_id = options.vehicle_id;
+    pose.session_id = options.session_id;
+    const double poses =
+        static_cast<double>(proto::wireBytes(pose)) * 8 * (rate_hz > 0 ? rate_hz : 30.0);
+    link.budget_bits_per_s = 0.9 * *budget - poses;
+    if (link.budget_bits_per_s <= 0) {
+      spdlog::error("--link-budget {}: the poses alone need {:.0f} kbit/s", link_budget,
+                    poses / 1000);
+      return 2;
+    }
   }
   options.rate_hz = rate_hz;
   options.stereo.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
@@ -308,14 +345,21 @@ int main(int argc, char** argv) {
   }
   if (no_publish) return 0;
   spdlog::info(
-      "done: {} frames{}, {} points ({:.0f} per frame), {:.1f} KiB per frame, depth {:.1f} ms, "
-      "encode {:.1f} ms, frame {:.1f} ms (medians), {} late, {} publish errors; images {} "
-      "(noise sigma {:.1f} grey levels)",
+      "done: {} frames{}, {} points ({:.0f} per frame), depth {:.1f} ms, encode {:.1f} ms, frame "
+      "{:.1f} ms (medians), {} late, {} publish errors; images {} (noise sigma {:.1f} grey "
+      "levels)",
       summary.frames, summary.stopped ? " (stopped)" : "", summary.points,
       summary.frames ? static_cast<double>(summary.points) / summary.frames : 0.0,
-      summary.frames ? summary.payload_bytes / 1024.0 / summary.frames : 0.0,
       summary.median_depth_ms, summary.median_encode_ms, summary.median_frame_ms,
       summary.late_frames, summary.publish_errors, summary.noisy_images ? "noisy" : "clean",
       summary.image_noise_sigma);
+  const auto& sent = summary.link;
+  spdlog::info(
+      "link: sent {:.0f} kbit/s (clouds and poses), {} of {} clouds ({} skipped with nothing new, "
+      "{} over the budget), {:.0f} points and {:.1f} KiB per cloud sent",
+      summary.stream_seconds > 0 ? summary.wire_bytes * 8 / summary.stream_seconds / 1000 : 0.0,
+      sent.sent, sent.offered, sent.skipped_known, sent.skipped_budget,
+      sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
+      sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
   return summary.publish_errors == 0 ? 0 : 1;
 }

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "common/time.hpp"
+#include "proto/wire_size.hpp"
 
 namespace stereomap::pipeline {
 
@@ -219,6 +220,8 @@ proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
   event.cx = camera.cx;
   event.cy = camera.cy;
   event.baseline = camera.baseline;
+  // The voxel the clouds are thinned to: a server mapping finer than that gets too few points.
+  event.resolution_hint = options.link ? options.link->map_resolution_m : 0;
   return event;
 }
 
@@ -281,6 +284,10 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     unsent_correction.clear();
     last_correction = Clock::now();
   };
+  std::optional<link::CloudLink> cloud_link;
+  if (options.link) cloud_link.emplace(*options.link);
+  uint64_t clouds_sent = 0;  // the clouds' seq: +1 per cloud sent
+  std::optional<int64_t> first_stamp;
   std::optional<common::Rigid3> last_T_body_camera;
   int64_t last_stamp = 0;
   std::optional<common::Rigid3> previous_pose;
@@ -366,13 +373,15 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     // its cloud is not, and nothing is computed that only feeds the map.
     const bool mapped =
         options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
+    // The pose goes first, whatever becomes of the cloud.
+    const auto pose_msg = makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
+                                      velocity, estimate ? &*estimate : nullptr);
+    if (publisher != nullptr) report(publisher->publish(pose_msg), "Pose");
+    summary.wire_bytes += proto::wireBytes(pose_msg);
+    if (!first_stamp) first_stamp = frame->stamp_ns;
+    summary.stream_seconds = common::nsToSeconds(frame->stamp_ns - *first_stamp);
     if (!mapped) {
       depth_step.reset();  // no pose to carry depth along
-      if (publisher != nullptr) {
-        report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
-                                              velocity, estimate ? &*estimate : nullptr)),
-               "Pose");
-      }
       ++summary.frames;
       report_frame.frame_ms = msSince(frame_start);
       frame_ms.push_back(report_frame.frame_ms);
@@ -398,32 +407,39 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       }
     }
 
+    // What of the cloud the link takes (thinned, or nothing when it brings nothing new).
     const auto encode_start = Clock::now();
-    auto cloud_msg = makeCloudFrameMsg(options, summary.frames, frame->stamp_ns,
-                                       report_frame.T_map_camera, cloud);
-    encode_ms.push_back(msSince(encode_start));
-    if (!cloud_msg) {
-      spdlog::error("frame {}: cannot encode the cloud: {}", frame->index,
-                    cloud_msg.error().message);
-      continue;
-    }
-    if (publisher != nullptr) {
-      report(publisher->publish(makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
-                                            velocity, estimate ? &*estimate : nullptr)),
-             "Pose");
-      report(publisher->publish(*cloud_msg), "CloudFrame");
+    std::optional<common::PointCloud> thinned;
+    if (cloud_link)
+      thinned = cloud_link->prepare(cloud, report_frame.T_map_camera, frame->stamp_ns);
+    const common::PointCloud* to_send = cloud_link ? (thinned ? &*thinned : nullptr) : &cloud;
+    double payload_kib = 0;
+    if (to_send != nullptr) {
+      auto cloud_msg = makeCloudFrameMsg(options, clouds_sent, frame->stamp_ns,
+                                         report_frame.T_map_camera, *to_send);
+      encode_ms.push_back(msSince(encode_start));
+      if (!cloud_msg) {
+        spdlog::error("frame {}: cannot encode the cloud: {}", frame->index,
+                      cloud_msg.error().message);
+      } else {
+        if (publisher != nullptr) report(publisher->publish(*cloud_msg), "CloudFrame");
+        const size_t bytes = proto::wireBytes(*cloud_msg);
+        if (cloud_link) cloud_link->sent(frame->stamp_ns, bytes);
+        ++clouds_sent;
+        summary.wire_bytes += bytes;
+        summary.payload_bytes += cloud_msg->payload.size();
+        payload_kib = cloud_msg->payload.size() / 1024.0;
+      }
     }
     ++summary.frames;
     summary.points += cloud.size();
-    summary.payload_bytes += cloud_msg->payload.size();
     report_frame.frame_ms = msSince(frame_start);
     frame_ms.push_back(report_frame.frame_ms);
     if (options.on_frame) options.on_frame(report_frame);
 
     if (options.progress_every != 0 && summary.frames % options.progress_every == 0) {
-      spdlog::info("frame {}: {} points, {:.1f} KiB, depth {:.1f} ms, encode {:.1f} ms",
-                   summary.frames, cloud.size(), cloud_msg->payload.size() / 1024.0,
-                   depth_ms.back(), encode_ms.back());
+      spdlog::info("frame {}: {} points, {:.1f} KiB sent, depth {:.1f} ms", summary.frames,
+                   cloud.size(), payload_kib, depth_ms.back());
     }
   }
 
@@ -444,6 +460,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
           options.flush_timeout.count());
     }
   }
+  if (cloud_link) summary.link = cloud_link->stats();
   summary.median_depth_ms = median(depth_ms);
   summary.image_noise_sigma = depth_step.noiseSigma();
   summary.noisy_images = depth_step.noisy();

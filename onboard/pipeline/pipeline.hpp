@@ -15,6 +15,7 @@
 #include "common/shutdown.hpp"
 #include "onboard/camera/frame_source.hpp"
 #include "onboard/landing/landing_watch.hpp"
+#include "onboard/link/cloud_link.hpp"
 #include "onboard/odometry/odometry.hpp"
 #include "onboard/posegraph/graph_follower.hpp"
 #include "onboard/stereo/depth_step.hpp"
@@ -46,6 +47,9 @@ struct PipelineOptions {
   // Disparity and cloud, with noisy images' noise kept out (stereo::DepthStep).
   stereo::DepthOptions stereo;
   proto::CloudCodecOptions codec;
+  // What of each cloud is sent (onboard/link): thinned to the map's voxels, clouds that bring
+  // the map nothing new skipped, a byte budget. nullopt: every cloud whole.
+  std::optional<link::CloudLinkOptions> link = link::CloudLinkOptions{};
   // How long to wait for a server's readers before the first frame (frames are kept by
   // DDS's durable history either way; this only avoids a silent start).
   std::chrono::milliseconds wait_for_server{3000};
@@ -74,8 +78,13 @@ struct PipelineOptions {
 
 struct PipelineSummary {
   uint64_t frames = 0;
-  uint64_t points = 0;
-  uint64_t payload_bytes = 0;
+  uint64_t points = 0;         // made by the depth step
+  uint64_t payload_bytes = 0;  // of the clouds sent
+  // What went on the link (proto::wireBytes: clouds, poses and the rest) over how long (the
+  // frames' stamps), and what of the clouds.
+  uint64_t wire_bytes = 0;
+  double stream_seconds = 0;
+  link::CloudLinkStats link;
   uint64_t publish_errors = 0;
   uint64_t late_frames = 0;      // frames that started after their slot (the rate was not kept)
   double median_depth_ms = 0;    // disparity + cloud

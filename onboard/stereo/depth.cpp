@@ -312,21 +312,25 @@ float farthestPoint(const common::PointCloud& cloud, float at_least) {
   return longest;
 }
 
-common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m) {
+uint64_t gridKey(const common::Vec3& p, double voxel_m) {
+  auto index = [voxel_m](double x) {
+    return static_cast<uint64_t>(static_cast<int64_t>(std::floor(x / voxel_m)) + (1 << 20)) &
+           0x1FFFFF;
+  };
+  return index(p.x()) | index(p.y()) << 21 | index(p.z()) << 42;
+}
+
+common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m,
+                                       const common::Rigid3& T_grid_cloud) {
   CV_Assert(voxel_m > 0);
   struct Cell {
     Eigen::Vector3d sum = Eigen::Vector3d::Zero();
     uint32_t intensity_sum = 0;
     uint32_t count = 0;
   };
-  // Key: voxel indices packed into 64 bits (21 bits each, +-1e6 voxels around the camera).
-  auto key = [voxel_m](const common::Vec3f& p) {
-    auto index = [voxel_m](float x) {
-      return static_cast<uint64_t>(static_cast<int64_t>(std::floor(x / voxel_m)) + (1 << 20)) &
-             0x1FFFFF;
-    };
-    return index(p.x()) | index(p.y()) << 21 | index(p.z()) << 42;
-  };
+  const Eigen::Matrix3d R = T_grid_cloud.rotation.toRotationMatrix();
+  const common::Vec3 t = T_grid_cloud.translation;
+  auto key = [&](const common::Vec3f& p) { return gridKey(R * p.cast<double>() + t, voxel_m); };
   std::unordered_map<uint64_t, uint32_t> slot;
   std::vector<Cell> cells;
   slot.reserve(cloud.size());

@@ -11,6 +11,7 @@
 
 #include <opencv2/core.hpp>
 
+#include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
 #include "onboard/camera/stereo_camera.hpp"
 
@@ -159,6 +160,13 @@ common::PointCloud cloudFromDisparity(const cv::Mat& disparity, const cv::Mat& l
 // range limit alone would cut them.
 float farthestPoint(const common::PointCloud& cloud, float at_least);
 
-common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m);
+// A voxel of edge voxel_m (floor(x / voxel_m) per axis, as OctoMap keys its voxels) packed
+// into 64 bits: 21 bits per axis, +-1e6 voxels around the grid's origin.
+uint64_t gridKey(const common::Vec3& p, double voxel_m);
+
+// The grid may lie in another frame: T_grid_cloud takes the cloud's points into it (the map's
+// voxels, for a cloud in the camera frame); the points kept stay in the cloud's frame.
+common::PointCloud voxelGridDownsample(const common::PointCloud& cloud, double voxel_m,
+                                       const common::Rigid3& T_grid_cloud = {});
 
 }  // namespace stereomap::stereo

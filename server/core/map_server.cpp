@@ -277,6 +277,16 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
   auto session = admit("SessionEvent", event.vehicle_id, event.session_id,
                        validateSessionEvent(event), origin);
   if (!session || !record("SessionEvent", event, *session, origin)) return false;
+  if (const double mapped = session->status().resolution;
+      event.kind == proto::SessionEventKind::kStarted && origin == Origin::kLive &&
+      event.resolution_hint > mapped * 1.001) {
+    // The vehicle thins its clouds to coarser voxels than this map's: most of its voxels
+    // would get no point (stereomap-onboard --map-resolution).
+    spdlog::warn(
+        "session '{}': vehicle '{}' thins its clouds to {} m voxels, coarser than this map's {} "
+        "m: the map will have holes (start it with --map-resolution {})",
+        event.session_id, event.vehicle_id, event.resolution_hint, mapped, mapped);
+  }
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);

@@ -1,5 +1,6 @@
 #include "tests/support/server_fixture.hpp"
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -66,6 +67,13 @@ std::vector<std::string> onboardArgs(int domain, const std::string& session, int
                                    STEREOMAP_DDS_CONFIG,
                                    "--domain",
                                    std::to_string(domain)};
+  // Every cloud is sent whole, so that tests can count frames and fill disks at any map
+  // resolution; the tests of the link choose.
+  for (const char* flag : {"--min-new", "--map-resolution"}) {
+    if (std::find(extra.begin(), extra.end(), flag) == extra.end()) {
+      argv.insert(argv.end(), {flag, "0"});
+    }
+  }
   argv.insert(argv.end(), extra.begin(), extra.end());
   return argv;
 }

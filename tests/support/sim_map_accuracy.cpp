@@ -34,14 +34,15 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
   while (auto frame = source.next()) {
     const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
     const auto start = std::chrono::steady_clock::now();
-    const auto cloud = depth.compute(frame->left, frame->right, T_map_camera);
+    auto cloud = depth.compute(frame->left, frame->right, T_map_camera);
     depth_ms.push_back(
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
             .count());
+    poses.push_back(T_map_camera);
+    if (setup.send && !setup.send(cloud, T_map_camera, frame->stamp_ns)) continue;
     // As the onboard client sends it: rays as long as the farthest point (corners exceed z).
     map.insertCloud(cloud, T_map_camera,
                     stereo::farthestPoint(cloud, static_cast<float>(max_range)) * 1.001);
-    poses.push_back(T_map_camera);
   }
 
   SimMapAccuracy result;

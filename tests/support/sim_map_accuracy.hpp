@@ -11,6 +11,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 
 #include "onboard/sim/renderer.hpp"
@@ -29,6 +30,11 @@ struct SimMapSetup {
   // vehicle's default range).
   double seen_range_m = 6.0;
   fusion::OccupancyMap::Options map = fusion::OccupancyMap::Options::octomapPreset(0.05);
+  // What of each frame's cloud reaches the map (a radio link in between, say): may change the
+  // cloud (in the camera frame); false: the frame's cloud is not fused. Unset: every cloud.
+  std::function<bool(common::PointCloud& cloud, const common::Rigid3& T_map_camera,
+                     int64_t stamp_ns)>
+      send;
 };
 
 struct SimMapAccuracy {

@@ -1,0 +1,122 @@
+#include "onboard/link/cloud_link.hpp"
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <stdexcept>
+
+#include "onboard/stereo/depth.hpp"
+
+namespace stereomap::link {
+
+namespace {
+constexpr double kNsPerS = 1e9;
+}  // namespace
+
+common::Result<double> parseBitRate(const std::string& text) {
+  auto bad = [&] {
+    return common::makeError(common::ErrorCode::kInvalidArgument,
+                             "'" + text + "' is not a bit rate (say 1Mbit, 500kbit or 64000)");
+  };
+  if (text == "off" || text == "0") return 0.0;
+  size_t used = 0;
+  double value = 0;
+  try {
+    value = std::stod(text, &used);
+  } catch (const std::exception&) {
+    return bad();
+  }
+  if (!std::isfinite(value) || value < 0) return bad();
+  std::string unit = text.substr(used);
+  for (char& c : unit) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  double scale = 1;
+  if (!unit.empty() && (unit[0] == 'k' || unit[0] == 'm' || unit[0] == 'g')) {
+    scale = unit[0] == 'k' ? 1e3 : unit[0] == 'm' ? 1e6 : 1e9;
+    unit.erase(0, 1);
+  }
+  // Not "bps" or "b": tc reads "mbps" as megabytes per second.
+  if (!unit.empty() && unit != "bit" && unit != "bit/s") return bad();
+  return value * scale;
+}
+
+CloudLink::CloudLink(const CloudLinkOptions& options) : options_(options) {
+  if (options.map_resolution_m < 0 || options.min_new_share < 0 || options.min_new_share > 1 ||
+      options.refresh_s <= 0 || options.max_interval_s <= 0 || options.budget_bits_per_s < 0) {
+    throw std::invalid_argument("CloudLinkOptions out of range");
+  }
+}
+
+std::optional<common::PointCloud> CloudLink::prepare(const common::PointCloud& cloud_camera,
+                                                     const common::Rigid3& T_map_camera,
+                                                     int64_t stamp_ns) {
+  ++stats_.offered;
+  stats_.points_in += cloud_camera.size();
+  common::PointCloud cloud =
+      options_.map_resolution_m > 0
+          ? stereo::voxelGridDownsample(cloud_camera, options_.map_resolution_m, T_map_camera)
+          : cloud_camera;
+
+  // What the map has not had from this vehicle lately.
+  pending_.clear();
+  size_t fresh = 0;
+  const double voxel = options_.map_resolution_m > 0 ? options_.map_resolution_m : 0.1;
+  const auto refresh_ns = static_cast<int64_t>(options_.refresh_s * kNsPerS);
+  for (const auto& p : cloud.points) {
+    const uint64_t key = stereo::gridKey(T_map_camera * p.cast<double>(), voxel);
+    pending_.push_back(key);
+    const auto it = sent_at_.find(key);
+    fresh += it == sent_at_.end() || stamp_ns - it->second >= refresh_ns;
+  }
+  const bool due = !last_sent_ns_ || static_cast<double>(stamp_ns - *last_sent_ns_) >=
+                                         options_.max_interval_s * kNsPerS;
+  const bool news =
+      static_cast<double>(fresh) >= options_.min_new_share * static_cast<double>(cloud.size());
+  if (!due && !news) {
+    ++stats_.skipped_known;
+    return std::nullopt;
+  }
+
+  if (options_.budget_bits_per_s > 0) {
+    // One second's worth of bytes at most is saved up (the link's queue stays short).
+    const double rate = options_.budget_bits_per_s / 8;
+    if (filled_ns_) {
+      tokens_ += rate * static_cast<double>(std::max<int64_t>(stamp_ns - *filled_ns_, 0)) / kNsPerS;
+    } else {
+      tokens_ = rate;
+    }
+    tokens_ = std::min(tokens_, rate);
+    filled_ns_ = stamp_ns;
+    // A cloud larger than a second's worth waits for a full bucket and leaves it in debt:
+    // the rate still holds on average.
+    const double expected = bytes_per_point_ * static_cast<double>(cloud.size());
+    if (tokens_ < std::min(expected, rate)) {
+      ++stats_.skipped_budget;
+      return std::nullopt;
+    }
+  }
+  pending_points_ = cloud.size();
+  return cloud;
+}
+
+void CloudLink::sent(int64_t stamp_ns, uint64_t bytes) {
+  ++stats_.sent;
+  stats_.points_out += pending_points_;
+  stats_.bytes += bytes;
+  tokens_ -= static_cast<double>(bytes);
+  if (pending_points_ > 0) {
+    bytes_per_point_ = static_cast<double>(bytes) / static_cast<double>(pending_points_);
+  }
+  for (const uint64_t key : pending_) sent_at_[key] = stamp_ns;
+  pending_.clear();
+  last_sent_ns_ = stamp_ns;
+  // Forget what is older than the refresh time once the memory has doubled since the last
+  // sweep: memory stays proportional to what the vehicle sees in refresh_s.
+  if (sent_at_.size() > 2 * swept_size_ + 1024) {
+    const auto refresh_ns = static_cast<int64_t>(options_.refresh_s * kNsPerS);
+    std::erase_if(sent_at_,
+                  [&](const auto& entry) { return stamp_ns - entry.second >= refresh_ns; });
+    swept_size_ = sent_at_.size();
+  }
+}
+
+}  // namespace stereomap::link

@@ -1,0 +1,86 @@
+// What a vehicle sends of its clouds over a thin radio link: what the server's map needs, not
+// every pixel. Each cloud is thinned to one point per voxel of the map's grid (the centroid of
+// the cloud's points in that voxel, so every ray still ends in the voxel it hit, and the
+// map's hits are the same), and a cloud is sent only when it brings the map something: a
+// share of voxels not sent recently, or the newest view after a while. A byte budget then
+// holds the clouds under the link's rate (poses and events travel apart and never wait).
+//
+//   CloudLink link({.map_resolution_m = 0.1, .budget_bits_per_s = 1e6});
+//   if (auto cloud = link.prepare(cloud_camera, T_map_camera, stamp_ns)) {
+//     ... encode and publish *cloud ...
+//     link.sent(stamp_ns, payload_bytes);
+//   }
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+#include "common/result.hpp"
+
+namespace stereomap::link {
+
+struct CloudLinkOptions {
+  // The server's map resolution: clouds are thinned to one point per voxel of it (0: sent
+  // whole).
+  double map_resolution_m = 0.1;
+  // A cloud is sent when at least this share of its voxels was not sent in the last
+  // refresh_s seconds (0: every cloud is sent)...
+  double min_new_share = 0.1;
+  double refresh_s = 2.0;
+  // ... or when no cloud was sent for this long (the map keeps being confirmed and cleared).
+  double max_interval_s = 1.0;
+  // Cloud bytes per second on the link, payload and message (0: no budget). A cloud that
+  // would overdraw it is skipped.
+  double budget_bits_per_s = 0;
+};
+
+struct CloudLinkStats {
+  uint64_t offered = 0;         // clouds given to prepare()
+  uint64_t sent = 0;            // clouds sent
+  uint64_t skipped_known = 0;   // skipped: nothing new for the map
+  uint64_t skipped_budget = 0;  // skipped: over the byte budget
+  uint64_t points_in = 0, points_out = 0;
+  uint64_t bytes = 0;  // as reported by sent()
+};
+
+// A link rate as operators write it: "1Mbit", "500kbit", "250k", "2M", "64000" (bits per
+// second; k, M and G are powers of 1000, case aside; an optional "bit" or "bit/s", never
+// "bps", which tc reads as bytes).
+// "0" or "off": no budget (0). Anything else is an error naming the text.
+common::Result<double> parseBitRate(const std::string& text);
+
+class CloudLink {
+ public:
+  explicit CloudLink(const CloudLinkOptions& options = {});
+
+  // The cloud to send for this frame (thinned), or nullopt when this frame's cloud is better
+  // not sent. T_map_camera: the camera's pose as sent with the cloud.
+  std::optional<common::PointCloud> prepare(const common::PointCloud& cloud_camera,
+                                            const common::Rigid3& T_map_camera, int64_t stamp_ns);
+  // The cloud prepare() gave was sent, `bytes` on the link.
+  void sent(int64_t stamp_ns, uint64_t bytes);
+
+  const CloudLinkStats& stats() const { return stats_; }
+  size_t memorySize() const { return sent_at_.size(); }  // voxels remembered as sent
+
+ private:
+  CloudLinkOptions options_;
+  CloudLinkStats stats_;
+  // Voxel key -> when a cloud holding it was last sent.
+  std::unordered_map<uint64_t, int64_t> sent_at_;
+  std::optional<int64_t> last_sent_ns_;
+  // Token bucket of the budget, in bytes, and when it was last filled.
+  double tokens_ = 0;
+  std::optional<int64_t> filled_ns_;
+  double bytes_per_point_ = 0;     // of the clouds sent so far: a cloud's expected size
+  std::vector<uint64_t> pending_;  // the prepared cloud's voxel keys, until sent()
+  size_t pending_points_ = 0;
+  size_t swept_size_ = 0;  // entries after the last sweep of old ones
+};
+
+}  // namespace stereomap::link

@@ -1,0 +1,137 @@
+#include "onboard/link/cloud_link.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <set>
+#include <stdexcept>
+
+#include "onboard/stereo/depth.hpp"
+
+namespace stereomap::link {
+namespace {
+
+using common::PointCloud;
+using common::Rigid3;
+using common::Vec3;
+using common::Vec3f;
+
+constexpr int64_t kFrameNs = 100'000'000;  // 10 Hz
+
+// A wall 2-4 m ahead of the camera (z), a point every 2 cm: many points per 0.1 m voxel.
+PointCloud wall(double offset_x = 0) {
+  PointCloud cloud;
+  for (double x = -1; x <= 1; x += 0.02) {
+    for (double y = -0.5; y <= 0.5; y += 0.02) {
+      cloud.points.emplace_back(static_cast<float>(x + offset_x), static_cast<float>(y),
+                                static_cast<float>(3 + 0.5 * x));
+      cloud.intensity.push_back(static_cast<uint8_t>(100 + 50 * x));
+    }
+  }
+  return cloud;
+}
+
+// A camera pose off the map's axes, so the map's voxels are not the camera's.
+Rigid3 pose(double x = 0) {
+  return {common::Quat(Eigen::AngleAxisd(0.3, Vec3::UnitY())) *
+              common::Quat(Eigen::AngleAxisd(-0.2, Vec3::UnitX())),
+          Vec3(1.234 + x, -0.567, 0.89)};
+}
+
+std::set<uint64_t> mapVoxels(const PointCloud& cloud, const Rigid3& T_map_camera) {
+  std::set<uint64_t> keys;
+  for (const auto& p : cloud.points)
+    keys.insert(stereo::gridKey(T_map_camera * p.cast<double>(), 0.1));
+  return keys;
+}
+
+TEST(CloudLink, ThinsToOnePointPerMapVoxelWithEveryRayEndingInItsVoxel) {
+  CloudLink link({.map_resolution_m = 0.1});
+  const PointCloud cloud = wall();
+  const auto thinned = link.prepare(cloud, pose(), 0);
+  ASSERT_TRUE(thinned);
+  const auto voxels = mapVoxels(cloud, pose());
+  EXPECT_EQ(thinned->size(), voxels.size());
+  EXPECT_LT(thinned->size(), cloud.size() / 10);
+  // The same voxels: the map gets the same hits.
+  EXPECT_EQ(mapVoxels(*thinned, pose()), voxels);
+  EXPECT_EQ(thinned->intensity.size(), thinned->size());
+}
+
+TEST(CloudLink, AHoveringVehicleSendsOnlyOncePerMaxInterval) {
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0.1, .max_interval_s = 1.0});
+  const PointCloud cloud = wall();
+  int sent = 0;
+  for (int i = 0; i < 30; ++i) {  // 3 s over the same wall
+    const int64_t stamp = i * kFrameNs;
+    if (auto thinned = link.prepare(cloud, pose(), stamp)) {
+      link.sent(stamp, 1000);
+      ++sent;
+    }
+  }
+  EXPECT_EQ(sent, 3);  // at 0, 1 and 2 s
+  EXPECT_EQ(link.stats().skipped_known, 27u);
+  EXPECT_EQ(link.stats().offered, 30u);
+}
+
+TEST(CloudLink, NewCoverageIsSentAtOnce) {
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0.1, .max_interval_s = 10.0});
+  int sent = 0;
+  for (int i = 0; i < 10; ++i) {  // sliding 0.5 m along the wall each frame: half of it new
+    const int64_t stamp = i * kFrameNs;
+    if (link.prepare(wall(), pose(0.5 * i), stamp)) {
+      link.sent(stamp, 1000);
+      ++sent;
+    }
+  }
+  EXPECT_EQ(sent, 10);
+}
+
+TEST(CloudLink, TheBudgetHoldsTheBytesSentPerSecond) {
+  // Every cloud is new (min_new_share 0) and costs 20 kB; 80 kbit/s allows half a cloud a
+  // second: over 20 s, at most 10 s worth plus the one second saved up at the start.
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0, .budget_bits_per_s = 80'000});
+  double bytes = 0;
+  for (int i = 0; i < 200; ++i) {
+    const int64_t stamp = i * kFrameNs;
+    if (link.prepare(wall(), pose(), stamp)) {
+      link.sent(stamp, 20'000);
+      bytes += 20'000;
+    }
+  }
+  EXPECT_LE(bytes, 80'000 / 8 * 21.0);
+  EXPECT_GE(bytes, 80'000 / 8 * 15.0);  // and uses most of it
+  EXPECT_GT(link.stats().skipped_budget, 150u);
+}
+
+TEST(CloudLink, MemoryOfSentVoxelsStaysBounded) {
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0.1, .refresh_s = 2.0});
+  for (int i = 0; i < 1000; ++i) {  // 100 s flying along an endless wall
+    const int64_t stamp = i * kFrameNs;
+    if (link.prepare(wall(), pose(0.2 * i), stamp)) link.sent(stamp, 1000);
+  }
+  // What 2 s of flight sees, swept once it doubles: a few thousand voxels, not 100 s worth.
+  EXPECT_LT(link.memorySize(), 10'000u);
+}
+
+TEST(ParseBitRate, ReadsWhatOperatorsWrite) {
+  EXPECT_DOUBLE_EQ(*parseBitRate("1Mbit"), 1e6);
+  EXPECT_DOUBLE_EQ(*parseBitRate("1mbit"), 1e6);
+  EXPECT_DOUBLE_EQ(*parseBitRate("500kbit"), 5e5);
+  EXPECT_DOUBLE_EQ(*parseBitRate("2.5M"), 2.5e6);
+  EXPECT_DOUBLE_EQ(*parseBitRate("64000"), 64000);
+  EXPECT_DOUBLE_EQ(*parseBitRate("250kbit/s"), 2.5e5);
+  EXPECT_DOUBLE_EQ(*parseBitRate("off"), 0);
+  for (const char* bad : {"", "fast", "1Mbps", "1MB", "-5k", "1 Mbit", "1Tbit", "nan", "1e999"}) {
+    EXPECT_FALSE(parseBitRate(bad).ok()) << bad;
+  }
+}
+
+TEST(CloudLink, RejectsOptionsOutOfRange) {
+  EXPECT_THROW(CloudLink({.map_resolution_m = -1}), std::invalid_argument);
+  EXPECT_THROW(CloudLink({.min_new_share = 1.5}), std::invalid_argument);
+  EXPECT_THROW(CloudLink({.max_interval_s = 0}), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace stereomap::link
