@@ -4,7 +4,9 @@
 #include <draco/compression/encode.h>
 #include <draco/point_cloud/point_cloud_builder.h>
 
+#include <algorithm>
 #include <cmath>
+#include <limits>
 #include <string>
 
 namespace stereomap::proto {
@@ -112,7 +114,11 @@ double maxPositionError(const PointCloud& cloud, int quantization_bits) {
     hi = hi.cwiseMax(p);
   }
   const double range = (hi - lo).maxCoeff();
-  return range / ((1 << quantization_bits) - 1) / 2.0;
+  // Draco quantises and restores in float: besides half a step, two units in the last place
+  // of the largest coordinate (2.2 um beyond half a step were seen on KITTI clouds, 80 m out).
+  const double largest = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
+  return range / ((1 << quantization_bits) - 1) / 2.0 +
+         2.0 * largest * std::numeric_limits<float>::epsilon();
 }
 
 }  // namespace stereomap::proto

@@ -3,7 +3,8 @@
 // everything it reads and returns an Error for a truncated or corrupt payload.
 //
 // Quantisation bound: every coordinate comes back within range / (2^bits - 1) / 2 of its
-// original, where range is the largest side of the cloud's bounding box (maxPositionError).
+// original, where range is the largest side of the cloud's bounding box, plus float rounding
+// (maxPositionError).
 #pragma once
 
 #include <cstdint>
