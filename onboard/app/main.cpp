@@ -154,6 +154,7 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
   app.set_config("--config", "", "Read these options from a TOML or INI file (name = value)");
+  app.allow_config_extras(CLI::config_extras_mode::error);  // a typo in the file is an error
   app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
       ->check(CLI::Range(0.0, 600.0))
       ->capture_default_str();

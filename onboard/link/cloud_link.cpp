@@ -15,8 +15,10 @@ constexpr double kNsPerS = 1e9;
 
 common::Result<double> parseBitRate(const std::string& text) {
   auto bad = [&] {
+    // Quoted at most 40 characters long: the text comes from a command line or a file.
+    const std::string shown = text.size() > 40 ? text.substr(0, 40) + "..." : text;
     return common::makeError(common::ErrorCode::kInvalidArgument,
-                             "'" + text + "' is not a bit rate (say 1Mbit, 500kbit or 64000)");
+                             "'" + shown + "' is not a bit rate (say 1Mbit, 500kbit or 64000)");
   };
   if (text == "off" || text == "0") return 0.0;
   size_t used = 0;
@@ -36,6 +38,7 @@ common::Result<double> parseBitRate(const std::string& text) {
   }
   // Not "bps" or "b": tc reads "mbps" as megabytes per second.
   if (!unit.empty() && unit != "bit" && unit != "bit/s") return bad();
+  if (!std::isfinite(value * scale)) return bad();  // 1e308M
   return value * scale;
 }
 

@@ -125,6 +125,10 @@ TEST(ParseBitRate, ReadsWhatOperatorsWrite) {
   for (const char* bad : {"", "fast", "1Mbps", "1MB", "-5k", "1 Mbit", "1Tbit", "nan", "1e999"}) {
     EXPECT_FALSE(parseBitRate(bad).ok()) << bad;
   }
+  EXPECT_FALSE(parseBitRate("1e308M").ok());  // finite, until scaled
+  const auto long_text = parseBitRate(std::string(5000, 'k'));
+  ASSERT_FALSE(long_text.ok());
+  EXPECT_LT(long_text.error().message.size(), 120u);
 }
 
 TEST(CloudLink, RejectsOptionsOutOfRange) {
