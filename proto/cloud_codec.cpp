@@ -1,13 +1,13 @@
 #include "proto/cloud_codec.hpp"
 
-#include <draco/compression/decode.h>
-#include <draco/compression/encode.h>
-#include <draco/point_cloud/point_cloud_builder.h>
-
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <string>
+
+#include "proto/detail/codecs.hpp"
 
 namespace stereomap::proto {
 
@@ -16,109 +16,132 @@ using common::makeError;
 using common::PointCloud;
 using common::Result;
 
+namespace {
+
+constexpr std::array<std::pair<CloudEncoding, std::string_view>, 3> kNames = {{
+    {CloudEncoding::kDraco, "draco"},
+    {CloudEncoding::kQuantZstd, "zstd"},
+    {CloudEncoding::kRawF32, "raw"},
+}};
+
+std::vector<uint8_t> encodeRaw(const PointCloud& cloud) {
+  const size_t n = cloud.size();
+  std::vector<uint8_t> payload(n * 12 + (cloud.hasIntensity() ? n : 0));
+  if (n > 0) std::memcpy(payload.data(), cloud.points.data(), n * 12);
+  if (cloud.hasIntensity())
+    std::copy(cloud.intensity.begin(), cloud.intensity.end(), payload.begin() + n * 12);
+  return payload;
+}
+
+Result<PointCloud> decodeRaw(std::span<const uint8_t> payload, const CloudPayloadInfo& info) {
+  const size_t n = info.point_count;
+  const size_t expected = n * 12 + (info.has_intensity ? n : 0);
+  if (payload.size() != expected) {
+    return makeError(ErrorCode::kCorrupt, "raw payload of " + std::to_string(payload.size()) +
+                                              " bytes, expected " + std::to_string(expected));
+  }
+  PointCloud cloud;
+  cloud.points.resize(n);
+  if (n > 0) std::memcpy(cloud.points.data(), payload.data(), n * 12);
+  if (info.has_intensity) cloud.intensity.assign(payload.begin() + n * 12, payload.end());
+  for (const auto& p : cloud.points) {
+    if (!p.allFinite()) return makeError(ErrorCode::kCorrupt, "raw payload has a non-finite point");
+  }
+  return cloud;
+}
+
+struct Bounds {
+  common::Vec3f lo, hi;
+  double range() const { return (hi - lo).maxCoeff(); }
+};
+Bounds boundsOf(const PointCloud& cloud) {
+  Bounds b{cloud.points.front(), cloud.points.front()};
+  for (const auto& p : cloud.points) {
+    b.lo = b.lo.cwiseMin(p);
+    b.hi = b.hi.cwiseMax(p);
+  }
+  return b;
+}
+
+}  // namespace
+
 Result<std::vector<uint8_t>> encodeCloud(const PointCloud& cloud,
                                          const CloudCodecOptions& options) {
   if (options.quantization_bits < 1 || options.quantization_bits > 30) {
     return makeError(ErrorCode::kInvalidArgument, "quantization_bits must be in 1..30, got " +
                                                       std::to_string(options.quantization_bits));
   }
+  if (options.draco_speed < 0 || options.draco_speed > 10) {
+    return makeError(ErrorCode::kInvalidArgument, "Draco speed must be in 0..10");
+  }
+  if (options.zstd_level < 1 || options.zstd_level > 19) {
+    return makeError(ErrorCode::kInvalidArgument, "zstd level must be in 1..19");
+  }
   if (cloud.hasIntensity() && cloud.intensity.size() != cloud.size()) {
     return makeError(ErrorCode::kInvalidArgument, "intensity count differs from point count");
+  }
+  if (cloud.size() > std::numeric_limits<uint32_t>::max()) {
+    return makeError(ErrorCode::kInvalidArgument, "more points than a CloudFrame can count");
   }
   for (const auto& p : cloud.points) {
     if (!p.allFinite())
       return makeError(ErrorCode::kInvalidArgument, "cloud has a non-finite point");
   }
-
-  draco::PointCloudBuilder builder;
-  builder.Start(static_cast<draco::PointIndex::ValueType>(cloud.size()));
-  const int position =
-      builder.AddAttribute(draco::GeometryAttribute::POSITION, 3, draco::DT_FLOAT32);
-  if (!cloud.points.empty()) {
-    builder.SetAttributeValuesForAllPoints(position, cloud.points.data(), sizeof(common::Vec3f));
+  switch (options.encoding) {
+    case CloudEncoding::kDraco:
+      return detail::encodeDraco(cloud, options);
+    case CloudEncoding::kQuantZstd:
+      return detail::encodeQuantZstd(cloud, options);
+    case CloudEncoding::kRawF32:
+      return encodeRaw(cloud);
   }
-  if (cloud.hasIntensity()) {
-    const int intensity =
-        builder.AddAttribute(draco::GeometryAttribute::GENERIC, 1, draco::DT_UINT8);
-    builder.SetAttributeValuesForAllPoints(intensity, cloud.intensity.data(), 1);
-  }
-  std::unique_ptr<draco::PointCloud> draco_cloud = builder.Finalize(false);
-  if (!draco_cloud)
-    return makeError(ErrorCode::kInvalidArgument, "Draco could not build the cloud");
-
-  draco::Encoder encoder;
-  encoder.SetAttributeQuantization(draco::GeometryAttribute::POSITION, options.quantization_bits);
-  encoder.SetSpeedOptions(options.speed, options.speed);
-  // The kd-tree coder is ~30% smaller; it reorders points (attributes stay paired).
-  encoder.SetEncodingMethod(draco::POINT_CLOUD_KD_TREE_ENCODING);
-  draco::EncoderBuffer buffer;
-  if (cloud.size() > 0) {
-    const draco::Status status = encoder.EncodePointCloudToBuffer(*draco_cloud, &buffer);
-    if (!status.ok()) {
-      return makeError(ErrorCode::kInvalidArgument,
-                       std::string("Draco encoding failed: ") + status.error_msg());
-    }
-  }
-  return std::vector<uint8_t>(buffer.data(), buffer.data() + buffer.size());
+  return makeError(ErrorCode::kInvalidArgument, "unknown cloud encoding");
 }
 
-Result<PointCloud> decodeCloud(std::span<const uint8_t> payload) {
-  PointCloud cloud;
-  if (payload.empty()) return cloud;  // an empty cloud is encoded as an empty payload
-  draco::DecoderBuffer buffer;
-  buffer.Init(reinterpret_cast<const char*>(payload.data()), payload.size());
-  draco::Decoder decoder;
-  auto decoded = decoder.DecodePointCloudFromBuffer(&buffer);
-  if (!decoded.ok()) {
-    return makeError(ErrorCode::kCorrupt,
-                     std::string("Draco payload does not decode: ") + decoded.status().error_msg());
+Result<PointCloud> decodeCloud(std::span<const uint8_t> payload, const CloudPayloadInfo& info) {
+  switch (info.encoding) {
+    case CloudEncoding::kDraco:
+      return detail::decodeDraco(payload, info);
+    case CloudEncoding::kQuantZstd:
+      return detail::decodeQuantZstd(payload, info);
+    case CloudEncoding::kRawF32:
+      return decodeRaw(payload, info);
   }
-  const std::unique_ptr<draco::PointCloud> draco_cloud = std::move(decoded).value();
-  const draco::PointAttribute* position =
-      draco_cloud->GetNamedAttribute(draco::GeometryAttribute::POSITION);
-  if (position == nullptr || position->num_components() != 3) {
-    return makeError(ErrorCode::kCorrupt, "Draco payload has no 3D position attribute");
-  }
-  const draco::PointAttribute* intensity =
-      draco_cloud->GetNamedAttribute(draco::GeometryAttribute::GENERIC);
-  if (intensity != nullptr && intensity->num_components() != 1) {
-    return makeError(ErrorCode::kCorrupt, "Draco payload's intensity is not one component");
-  }
+  return makeError(ErrorCode::kCorrupt, "unknown cloud encoding");
+}
 
-  const uint32_t n = draco_cloud->num_points();
-  cloud.points.resize(n);
-  if (intensity != nullptr) cloud.intensity.resize(n);
-  for (draco::PointIndex i(0); i < n; ++i) {
-    float xyz[3];
-    if (!position->ConvertValue<float, 3>(position->mapped_index(i), xyz)) {
-      return makeError(ErrorCode::kCorrupt, "Draco position value cannot be read");
-    }
-    if (!std::isfinite(xyz[0]) || !std::isfinite(xyz[1]) || !std::isfinite(xyz[2])) {
-      return makeError(ErrorCode::kCorrupt, "Draco payload decodes to a non-finite point");
-    }
-    cloud.points[i.value()] = common::Vec3f(xyz[0], xyz[1], xyz[2]);
-    if (intensity != nullptr) {
-      uint8_t value = 0;
-      intensity->ConvertValue<uint8_t, 1>(intensity->mapped_index(i), &value);
-      cloud.intensity[i.value()] = value;
-    }
+int quantizationBitsFor(const PointCloud& cloud, double max_error_m, int max_bits) {
+  if (cloud.points.empty() || !(max_error_m > 0)) return max_bits;
+  const double range = boundsOf(cloud).range();
+  for (int bits = 1; bits < max_bits; ++bits) {
+    if (range / ((1 << bits) - 1) / 2.0 <= max_error_m) return bits;
   }
-  return cloud;
+  return max_bits;
 }
 
 double maxPositionError(const PointCloud& cloud, int quantization_bits) {
   if (cloud.points.empty()) return 0.0;
-  common::Vec3f lo = cloud.points.front(), hi = cloud.points.front();
-  for (const auto& p : cloud.points) {
-    lo = lo.cwiseMin(p);
-    hi = hi.cwiseMax(p);
-  }
+  const auto [lo, hi] = boundsOf(cloud);
   const double range = (hi - lo).maxCoeff();
   // Draco quantises and restores in float: besides half a step, two units in the last place
   // of the largest coordinate (2.2 um beyond half a step were seen on KITTI clouds, 80 m out).
   const double largest = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
   return range / ((1 << quantization_bits) - 1) / 2.0 +
          2.0 * largest * std::numeric_limits<float>::epsilon();
+}
+
+std::string_view encodingName(CloudEncoding encoding) {
+  for (const auto& [value, name] : kNames) {
+    if (value == encoding) return name;
+  }
+  return "unknown";
+}
+
+std::optional<CloudEncoding> parseEncoding(std::string_view name) {
+  for (const auto& [value, known] : kNames) {
+    if (known == name) return value;
+  }
+  return std::nullopt;
 }
 
 }  // namespace stereomap::proto

@@ -175,7 +175,7 @@ struct Topic<CloudFrameMsg> {
               m.sensor_orientation.begin());
     m.max_range = c.max_range;
     m.point_count = c.point_count;
-    auto encoding = checkedEnum<CloudEncoding>(c.encoding, 2, "encoding");
+    auto encoding = checkedEnum<CloudEncoding>(c.encoding, 3, "encoding");
     if (!encoding) return encoding.error();
     m.encoding = *encoding;
     m.quantization_bits = c.quantization_bits;

@@ -16,7 +16,7 @@ inline constexpr size_t kMaxPayloadBytes = 8u << 20;
 
 enum class TrackingState : uint8_t { kInit, kOk, kDegraded, kLost };
 enum class PoseSource : uint8_t { kGroundTruth, kVisualOdometry, kExternal };
-enum class CloudEncoding : uint8_t { kDraco, kRawF32 };
+enum class CloudEncoding : uint8_t { kDraco, kRawF32, kQuantZstd };
 enum class SessionEventKind : uint8_t { kStarted, kEnded };
 enum class LandingState : uint8_t { kSearching, kTracking, kLost };
 enum class LandingMode : uint8_t { kDefault, kPatent };

@@ -44,4 +44,29 @@ inline size_t wireBytes(const CloudFrameMsg& m) {
   return withHeaders(n);
 }
 
+inline size_t wireBytes(const SessionEventMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 8 + 4 + 4 + 4;  // stamp, kind, width, height
+  n = align(n, 8) + 6 * 8;          // the camera model and the resolution hint
+  return withHeaders(n);
+}
+
+inline size_t wireBytes(const PoseCorrectionMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 2 * 8 + 4;                   // seq, stamp, the keyframes' count
+  n = align(n, 8) + m.keyframes.size() * 8 * 8;  // stamp and 7 doubles each
+  return withHeaders(n);
+}
+
+inline size_t wireBytes(const LandingTargetMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 2 * 8 + 4 + 4;  // seq, stamp, state, mode
+  n = string(n, m.reason) + 1;      // and has_pose
+  n = align(n, 8) + (3 + 4 + 36 + 3 + 4 + 36 + 3 + 3 + 3) * 8;
+  return withHeaders(n);
+}
+
 }  // namespace stereomap::proto

@@ -43,7 +43,7 @@ std::vector<proto::CloudFrameMsg> journaledFrames(const std::string& store) {
 std::string referenceMapBinary(const std::vector<proto::CloudFrameMsg>& frames) {
   fusion::OccupancyMap reference({.resolution = 0.1});
   for (const auto& frame : frames) {
-    auto cloud = proto::decodeCloud(frame.payload);
+    auto cloud = proto::decodeCloud(frame.payload, proto::payloadInfo(frame));
     EXPECT_TRUE(cloud.ok());
     if (!cloud.ok()) continue;
     const common::Quat q(frame.sensor_orientation[3], frame.sensor_orientation[0],

@@ -87,8 +87,16 @@ int main(int argc, char** argv) {
   app.add_option("--max-range", options.stereo.cloud.max_range_m, "Cloud range limit, metres")
       ->check(CLI::Range(0.5, 100.0))
       ->capture_default_str();
+  std::string codec = "auto";
+  app.add_option("--codec", codec,
+                 "Cloud encoding: auto (the smallest, docs/BENCHMARKS.md: draco for clouds "
+                 "thinned to the map's voxels, zstd for whole ones), draco (kd-tree), zstd "
+                 "(quantised, delta coded, zstd) or raw (floats)")
+      ->check(CLI::IsMember({"auto", "draco", "zstd", "raw"}))
+      ->capture_default_str();
   app.add_option("--quantization-bits", options.codec.quantization_bits,
-                 "Draco position quantisation bits")
+                 "Position quantisation bits (draco and zstd); thinned clouds use fewer when "
+                 "1/64 of a voxel allows")
       ->check(CLI::Range(6, 20))
       ->capture_default_str();
   app.add_option("--camera", camera_preset,
@@ -189,6 +197,8 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
+  options.codec.encoding =
+      codec == "auto" ? link::bestEncoding(link) : *proto::parseEncoding(codec);  // IsMember
   options.rate_hz = rate_hz;
   options.stereo.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
                                                        : stereo::MatcherOptions::fast();

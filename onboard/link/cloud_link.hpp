@@ -1,7 +1,8 @@
 // What a vehicle sends of its clouds over a thin radio link: what the server's map needs, not
 // every pixel. Each cloud is thinned to one point per voxel of the map's grid (the centroid of
 // the cloud's points in that voxel, so every ray still ends in the voxel it hit, and the
-// map's hits are the same), and a cloud is sent only when it brings the map something: a
+// map's hits are the same; no intensity, which the map does not use), quantised no finer
+// than the voxel needs, and a cloud is sent only when it brings the map something: a
 // share of voxels not sent recently, or the newest view after a while. A byte budget then
 // holds the clouds under the link's rate (poses and events travel apart and never wait).
 //
@@ -21,6 +22,7 @@
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
 #include "common/result.hpp"
+#include "proto/messages.hpp"
 
 namespace stereomap::link {
 
@@ -54,6 +56,12 @@ struct CloudLinkStats {
 // "0" or "off": no budget (0). Anything else is an error naming the text.
 common::Result<double> parseBitRate(const std::string& text);
 
+// The encoding that sends the link's clouds in the fewest bytes (stereomap-bench-link, sim
+// rooms, docs/BENCHMARKS.md): Draco's kd-tree for thinned clouds (about a quarter smaller than
+// quantised + zstd: one point per voxel is what an octree-like coder is for), quantised + zstd
+// for whole clouds (as small as Draco there, and five times faster to encode).
+proto::CloudEncoding bestEncoding(const CloudLinkOptions& options);
+
 class CloudLink {
  public:
   explicit CloudLink(const CloudLinkOptions& options = {});
@@ -62,6 +70,10 @@ class CloudLink {
   // not sent. T_map_camera: the camera's pose as sent with the cloud.
   std::optional<common::PointCloud> prepare(const common::PointCloud& cloud_camera,
                                             const common::Rigid3& T_map_camera, int64_t stamp_ns);
+  // The quantisation bits for a cloud prepare() gave: the fewest (at most max_bits) that keep
+  // each point within 1/64 of a voxel of where it was, so its voxel is the same or it was
+  // within that of the face (max_bits when clouds are not thinned).
+  int quantizationBits(const common::PointCloud& prepared, int max_bits) const;
   // The cloud prepare() gave was sent, `bytes` on the link.
   void sent(int64_t stamp_ns, uint64_t bytes);
 

@@ -55,7 +55,25 @@ TEST(CloudLink, ThinsToOnePointPerMapVoxelWithEveryRayEndingInItsVoxel) {
   EXPECT_LT(thinned->size(), cloud.size() / 10);
   // The same voxels: the map gets the same hits.
   EXPECT_EQ(mapVoxels(*thinned, pose()), voxels);
-  EXPECT_EQ(thinned->intensity.size(), thinned->size());
+  // The map does not use intensity: a thinned cloud goes without it.
+  ASSERT_TRUE(cloud.hasIntensity());
+  EXPECT_FALSE(thinned->hasIntensity());
+  // Whole clouds keep it.
+  CloudLink whole({.map_resolution_m = 0});
+  EXPECT_TRUE(whole.prepare(cloud, pose(), 0)->hasIntensity());
+}
+
+// Thinned clouds are quantised no finer than a 64th of a voxel; whole ones as asked.
+TEST(CloudLink, QuantisesThinnedCloudsToAFractionOfAVoxel) {
+  PointCloud cloud;
+  cloud.points = {{0, 0, 1}, {10.f, 0, 1}};  // a 10 m cube
+  CloudLink link({.map_resolution_m = 0.1});
+  // 10 m / (2^b - 1) / 2 <= 0.1 / 64: b = 12 (11 bits leave 2.4 mm).
+  EXPECT_EQ(link.quantizationBits(cloud, 14), 12);
+  EXPECT_EQ(link.quantizationBits(cloud, 10), 10);
+  EXPECT_EQ(CloudLink({.map_resolution_m = 0}).quantizationBits(cloud, 14), 14);
+  EXPECT_EQ(bestEncoding({.map_resolution_m = 0.1}), proto::CloudEncoding::kDraco);
+  EXPECT_EQ(bestEncoding({.map_resolution_m = 0}), proto::CloudEncoding::kQuantZstd);
 }
 
 TEST(CloudLink, AHoveringVehicleSendsOnlyOncePerMaxInterval) {

@@ -185,11 +185,12 @@ proto::PoseCorrectionMsg makePoseCorrectionMsg(
   return correction;
 }
 
-common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
-                                                       int64_t stamp_ns,
+common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options,
+                                                       const proto::CloudCodecOptions& codec,
+                                                       uint64_t seq, int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
                                                        const common::PointCloud& cloud_camera) {
-  auto payload = proto::encodeCloud(cloud_camera, options.codec);
+  auto payload = proto::encodeCloud(cloud_camera, codec);
   if (!payload) return payload.error();
   proto::CloudFrameMsg frame;
   address(frame, options, seq, stamp_ns);
@@ -198,8 +199,8 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
       stereo::farthestPoint(cloud_camera, static_cast<float>(options.stereo.cloud.max_range_m)) *
       1.001f;
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());
-  frame.encoding = proto::CloudEncoding::kDraco;
-  frame.quantization_bits = static_cast<uint8_t>(options.codec.quantization_bits);
+  frame.encoding = codec.encoding;
+  frame.quantization_bits = static_cast<uint8_t>(codec.quantization_bits);
   frame.has_intensity = cloud_camera.hasIntensity();
   frame.payload = std::move(payload).value();
   return frame;
@@ -415,7 +416,10 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     const common::PointCloud* to_send = cloud_link ? (thinned ? &*thinned : nullptr) : &cloud;
     double payload_kib = 0;
     if (to_send != nullptr) {
-      auto cloud_msg = makeCloudFrameMsg(options, clouds_sent, frame->stamp_ns,
+      proto::CloudCodecOptions codec = options.codec;
+      if (cloud_link)
+        codec.quantization_bits = cloud_link->quantizationBits(*to_send, codec.quantization_bits);
+      auto cloud_msg = makeCloudFrameMsg(options, codec, clouds_sent, frame->stamp_ns,
                                          report_frame.T_map_camera, *to_send);
       encode_ms.push_back(msSince(encode_start));
       if (!cloud_msg) {

@@ -134,8 +134,9 @@ class VehiclePublisher {
 proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t stamp_ns,
                            const common::Rigid3& T_map_body, const common::Vec3& velocity,
                            const odometry::VoEstimate* estimate = nullptr);
-common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options, uint64_t seq,
-                                                       int64_t stamp_ns,
+common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& options,
+                                                       const proto::CloudCodecOptions& codec,
+                                                       uint64_t seq, int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
                                                        const common::PointCloud& cloud_camera);
 // The pose graph's keyframe poses (odometry world frame, left camera) as the server takes

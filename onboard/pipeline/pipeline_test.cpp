@@ -22,7 +22,7 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
                                                 frame->left, source.camera(), options.stereo.cloud);
   ASSERT_GT(cloud.size(), 5000u);
   const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
-  auto msg = makeCloudFrameMsg(options, 4, frame->stamp_ns, T_map_camera, cloud);
+  auto msg = makeCloudFrameMsg(options, options.codec, 4, frame->stamp_ns, T_map_camera, cloud);
   ASSERT_TRUE(msg.ok());
   EXPECT_EQ(msg->point_count, cloud.size());
   EXPECT_EQ(msg->seq, 4u);
@@ -36,7 +36,7 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
   const common::Quat q(msg->sensor_orientation[3], msg->sensor_orientation[0],
                        msg->sensor_orientation[1], msg->sensor_orientation[2]);
   EXPECT_NEAR(q.angularDistance(T_map_camera.rotation), 0.0, 1e-9);
-  auto decoded = proto::decodeCloud(msg->payload);
+  auto decoded = proto::decodeCloud(msg->payload, proto::payloadInfo(*msg));
   ASSERT_TRUE(decoded.ok());
   EXPECT_EQ(decoded->size(), cloud.size());
   // About 4 bytes per point at 14 bits (Draco kd-tree): the link budget of a vehicle.

@@ -6,6 +6,7 @@
 #include <set>
 
 #include "proto/cloud_codec.hpp"
+#include "proto/wire_size.hpp"
 #include "server/core/api.hpp"
 #include "server/core/map_server.hpp"
 #include "tests/support/synthetic.hpp"
@@ -118,6 +119,38 @@ TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
             1.0);
   EXPECT_NE(server.metricsText().find("stereomap_session_occupied_voxels{session=\"a\"}"),
             std::string::npos);
+}
+
+// What each vehicle's accepted samples took on the link, as the vehicle counts it.
+TEST(MapServer, CountsEachVehiclesBytes) {
+  MapServer server({.resolution = 0.1});
+  const auto frame = cloudFrame("a", 2.05);
+  ASSERT_TRUE(server.ingest(frame));
+  auto second = pose("a", 0.5, 1'000'000'000);
+  ASSERT_TRUE(server.ingest(second));
+  second.vehicle_id = "v2";
+  ASSERT_TRUE(server.ingest(second));
+  auto bad = frame;
+  bad.payload.resize(10);
+  EXPECT_FALSE(server.ingest(bad));  // rejected: not counted
+  auto bytes = [&](const std::string& vehicle, const std::string& topic) {
+    return server.metrics().get("stereomap_vehicle_received_bytes_total",
+                                {{"session", "a"}, {"vehicle", vehicle}, {"topic", topic}});
+  };
+  EXPECT_EQ(bytes("v1", "CloudFrame"), static_cast<double>(proto::wireBytes(frame)));
+  EXPECT_GT(bytes("v1", "CloudFrame"), static_cast<double>(frame.payload.size()));
+  EXPECT_EQ(bytes("v1", "Pose"), static_cast<double>(proto::wireBytes(second)));
+  EXPECT_EQ(bytes("v2", "Pose"), static_cast<double>(proto::wireBytes(second)));
+  // Any id is a valid vehicle: past 1024 series (two taken above) they share one.
+  for (int i = 0; i < 1100; ++i) {
+    char id[16];
+    std::snprintf(id, sizeof id, "w%d", i);  // ("w" + to_string: a false gcc 12 -Wrestrict)
+    second.vehicle_id = id;
+    second.seq = 1;
+    ASSERT_TRUE(server.ingest(second));
+  }
+  EXPECT_EQ(bytes("_other", "Pose"), static_cast<double>(78 * proto::wireBytes(second)));
+  EXPECT_EQ(bytes("w1099", "Pose"), 0.0);
 }
 
 TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {

@@ -7,6 +7,7 @@
 #include <algorithm>
 
 #include "common/time.hpp"
+#include "proto/wire_size.hpp"
 
 namespace stereomap::core {
 
@@ -18,6 +19,11 @@ constexpr const char* kDropped = "stereomap_fusion_dropped_frames_total";
 constexpr const char* kDuplicates = "stereomap_samples_duplicate_total";
 constexpr const char* kStoreHealthy = "stereomap_store_healthy";
 constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
+constexpr const char* kVehicleBytes = "stereomap_vehicle_received_bytes_total";
+constexpr const char* kPoseLatency = "stereomap_vehicle_pose_latency_seconds";
+constexpr size_t kMaxVehicleLinks = 1024;
+constexpr size_t kLatencyWindow = 100;  // poses: 10 s at 10 Hz
+constexpr double kMaxPlausibleLatencyS = 30.0;
 }  // namespace
 
 MapServer::MapServer(const MapServerOptions& options)
@@ -34,6 +40,14 @@ MapServer::MapServer(const MapServerOptions& options)
                     "1 when the store can be written, 0 when degraded (a full or failing disk)");
   metrics_.describe(kStoreErrors, "counter", "Failed writes to the store's journals, by topic");
   metrics_.set(kStoreHealthy, {}, 1);
+  metrics_.describe(kVehicleBytes, "counter",
+                    "Bytes a vehicle's accepted samples took on the link (CDR and packet "
+                    "headers, proto/wire_size.hpp), by session, vehicle and topic; vehicles "
+                    "past the 1024th share vehicle=\"_other\"");
+  metrics_.describe(kPoseLatency, "gauge",
+                    "Age of a vehicle's poses on arrival (now - stamp), median and 95th "
+                    "percentile of the last 100, by session and vehicle; needs the vehicle's "
+                    "clock in step with the server's (one host, NTP or PTP)");
   metrics_.describe("stereomap_sessions", "gauge", "Sessions known to this server");
   metrics_.describe("stereomap_session_frames_fused", "gauge", "Frames fused, by session");
   metrics_.describe("stereomap_session_occupied_voxels", "gauge", "Occupied voxels, by session");
@@ -149,9 +163,42 @@ void MapServer::forget(const std::string& id) {
   closed_.erase(id);
 }
 
-std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& vehicle_id,
-                                          const std::string& session_id,
+void MapServer::noteTraffic(const char* topic, const std::string& session_id,
+                            const std::string& vehicle_id, size_t bytes,
+                            std::optional<int64_t> pose_stamp_ns) {
+  std::string vehicle = vehicle_id;
+  {
+    std::lock_guard lock(mutex_);
+    auto found = links_.find({session_id, vehicle_id});
+    if (found == links_.end() && links_.size() < kMaxVehicleLinks) {
+      found = links_.try_emplace({session_id, vehicle_id}).first;
+    }
+    if (found == links_.end()) {
+      vehicle = "_other";  // not a valid id: no vehicle can be taken for it
+    } else if (pose_stamp_ns) {
+      // Only stamps from a clock in step with ours tell the link's delay; a vehicle on its
+      // own time base (a data set's stamps) or history delivered again is not counted.
+      const double age_s = static_cast<double>(common::nowNs() - *pose_stamp_ns) * 1e-9;
+      if (age_s > -1.0 && age_s < kMaxPlausibleLatencyS) {
+        auto& ring = found->second;
+        if (ring.pose_latency_s.size() < kLatencyWindow) {
+          ring.pose_latency_s.push_back(age_s);
+        } else {
+          ring.pose_latency_s[ring.next] = age_s;
+          ring.next = (ring.next + 1) % kLatencyWindow;
+        }
+      }
+    }
+  }
+  metrics_.add(kVehicleBytes, {{"session", session_id}, {"vehicle", vehicle}, {"topic", topic}},
+               static_cast<double>(bytes));
+}
+
+template <typename Message>
+std::shared_ptr<Session> MapServer::admit(const char* topic, const Message& message,
                                           std::optional<Rejection> rejection, Origin origin) {
+  const std::string& vehicle_id = message.vehicle_id;
+  const std::string& session_id = message.session_id;
   metrics_.add(kReceived, {{"topic", topic}});
   std::shared_ptr<Session> session;
   if (!rejection) session = sessionFor(session_id, topic, rejection);
@@ -164,6 +211,11 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const std::string& 
     return nullptr;
   }
   metrics_.add(kAccepted, {{"topic", topic}});
+  if (origin == Origin::kLive) {
+    std::optional<int64_t> pose_stamp_ns;
+    if constexpr (std::is_same_v<Message, proto::PoseMsg>) pose_stamp_ns = message.stamp_ns;
+    noteTraffic(topic, session_id, vehicle_id, proto::wireBytes(message), pose_stamp_ns);
+  }
   return session;
 }
 
@@ -246,7 +298,7 @@ std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
 bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
   FusionJob job;
   const auto rejection = fusionJobFrom(frame, options_.limits, journal_number, job);
-  auto session = admit("CloudFrame", frame.vehicle_id, frame.session_id, rejection, origin);
+  auto session = admit("CloudFrame", frame, rejection, origin);
   if (!session) return false;
   const auto logged = record("CloudFrame", frame, *session, origin);
   if (!logged) return false;
@@ -267,15 +319,14 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_
 bool MapServer::ingest(const proto::PoseMsg& pose, Origin origin) {
   ValidPose valid;
   const auto rejection = validatePose(pose, valid);
-  auto session = admit("Pose", pose.vehicle_id, pose.session_id, rejection, origin);
+  auto session = admit("Pose", pose, rejection, origin);
   if (!session || !record("Pose", pose, *session, origin)) return false;
   session->addPose({pose.vehicle_id, valid.stamp_ns, valid.T_map_body});
   return true;
 }
 
 bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
-  auto session = admit("SessionEvent", event.vehicle_id, event.session_id,
-                       validateSessionEvent(event), origin);
+  auto session = admit("SessionEvent", event, validateSessionEvent(event), origin);
   if (!session || !record("SessionEvent", event, *session, origin)) return false;
   if (const double mapped = session->status().resolution;
       event.kind == proto::SessionEventKind::kStarted && origin == Origin::kLive &&
@@ -300,8 +351,7 @@ bool MapServer::ingest(const proto::LandingTargetMsg& target) {
     rejection = Rejection{"unknown_session", "no session '" + target.session_id +
                                                  "': a landing target belongs to a live one"};
   }
-  auto session =
-      admit("LandingTarget", target.vehicle_id, target.session_id, rejection, Origin::kLive);
+  auto session = admit("LandingTarget", target, rejection, Origin::kLive);
   if (!session) return false;
   session->noteLive(common::nowNs());
   session->setLandingTarget(target);
@@ -331,8 +381,7 @@ bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin
       rejection = Rejection{"unknown_poses", built.error().message};
     }
   }
-  auto session =
-      admit("PoseCorrection", correction.vehicle_id, correction.session_id, rejection, origin);
+  auto session = admit("PoseCorrection", correction, rejection, origin);
   if (!session) return false;
   const bool live = origin == Origin::kLive;
   // Announced before it is journaled: no snapshot numbered after it may miss it.
@@ -386,6 +435,20 @@ std::string MapServer::metricsText() const {
                  static_cast<double>(status.occupied_voxels));
     metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));
     metrics_.set("stereomap_session_fusion_seconds", labels, status.fusion_seconds);
+  }
+  std::lock_guard lock(mutex_);
+  for (const auto& [key, link] : links_) {
+    if (link.pose_latency_s.empty()) continue;
+    for (const double quantile : {0.5, 0.95}) {
+      auto ages = link.pose_latency_s;
+      const auto at = ages.begin() + static_cast<std::ptrdiff_t>(quantile * (ages.size() - 1));
+      std::nth_element(ages.begin(), at, ages.end());
+      metrics_.set(kPoseLatency,
+                   {{"session", key.first},
+                    {"vehicle", key.second},
+                    {"quantile", quantile == 0.5 ? "0.5" : "0.95"}},
+                   *at);
+    }
   }
   return metrics_.render();
 }

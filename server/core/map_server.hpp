@@ -141,10 +141,14 @@ class MapServer {
   std::shared_ptr<Session> sessionFor(const std::string& id, const char* topic,
                                       std::optional<Rejection>& refusal);
   Session::Options sessionOptions(const std::string& id, double resolution, bool read_only) const;
-  // Counts the sample and returns its session, or nullptr (counted, logged) when rejected.
-  std::shared_ptr<Session> admit(const char* topic, const std::string& vehicle_id,
-                                 const std::string& session_id, std::optional<Rejection> rejection,
-                                 Origin origin);
+  // Counts the sample (and a live one's bytes, by vehicle) and returns its session, or
+  // nullptr (counted, logged) when rejected.
+  template <typename Message>
+  std::shared_ptr<Session> admit(const char* topic, const Message& message,
+                                 std::optional<Rejection> rejection, Origin origin);
+  // A live sample's bytes and, for a pose, its age on arrival.
+  void noteTraffic(const char* topic, const std::string& session_id, const std::string& vehicle_id,
+                   size_t bytes, std::optional<int64_t> pose_stamp_ns);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
   // Skips duplicates and journals live samples: the journal record number (0 when nothing
   // was journaled), or nullopt when the sample must go no further.
@@ -161,8 +165,16 @@ class MapServer {
   std::vector<std::string> order_;
   std::set<std::string> closed_;
   std::map<std::string, uint64_t> rejections_by_reason_;  // for rate-limited logging
-  std::atomic<bool> store_ok_{true};                      // fast path of reportStoreOk()
-  StoreHealth store_health_;                              // under mutex_
+  // What each vehicle's link delivers (session, vehicle): its poses' ages on arrival, the
+  // last ones. Any vehicle id is valid, so the number of vehicles with series of their own is
+  // bounded; later ones share one bytes series and have no latency.
+  struct VehicleLink {
+    std::vector<double> pose_latency_s;  // a ring of the newest
+    size_t next = 0;
+  };
+  std::map<std::pair<std::string, std::string>, VehicleLink> links_;  // under mutex_
+  std::atomic<bool> store_ok_{true};  // fast path of reportStoreOk()
+  StoreHealth store_health_;          // under mutex_
 };
 
 }  // namespace stereomap::core

@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 
 #include "proto/cloud_codec.hpp"
 
@@ -70,28 +69,12 @@ std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
           checkPose(frame.sensor_position, frame.sensor_orientation, "sensor", out.T_map_camera)) {
     return bad;
   }
-  if (frame.encoding == proto::CloudEncoding::kDraco) {
-    auto cloud = proto::decodeCloud(frame.payload);
-    if (!cloud) return Rejection{"decode_failed", cloud.error().message};
-    out.cloud_camera = std::move(cloud).value();
-  } else {
-    // RAW_F32: x y z float triples, then one intensity byte per point when has_intensity.
-    const size_t n = frame.point_count;
-    const size_t expected = n * 12 + (frame.has_intensity ? n : 0);
-    if (frame.payload.size() != expected) {
-      return Rejection{"decode_failed", "RAW_F32 payload of " +
-                                            std::to_string(frame.payload.size()) +
-                                            " bytes, expected " + std::to_string(expected)};
-    }
-    out.cloud_camera.points.resize(n);
-    std::memcpy(out.cloud_camera.points.data(), frame.payload.data(), n * 12);
-    if (frame.has_intensity) {
-      out.cloud_camera.intensity.assign(frame.payload.begin() + n * 12, frame.payload.end());
-    }
-    for (const auto& p : out.cloud_camera.points) {
-      if (!p.allFinite()) return Rejection{"non_finite", "RAW_F32 payload has a non-finite point"};
-    }
+  auto cloud = proto::decodeCloud(frame.payload, proto::payloadInfo(frame));
+  if (!cloud) {
+    const bool miscounted = cloud.error().code == common::ErrorCode::kConflict;
+    return Rejection{miscounted ? "point_count_mismatch" : "decode_failed", cloud.error().message};
   }
+  out.cloud_camera = std::move(cloud).value();
   if (out.cloud_camera.size() != frame.point_count) {
     return Rejection{"point_count_mismatch",
                      "payload holds " + std::to_string(out.cloud_camera.size()) +

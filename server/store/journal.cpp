@@ -162,7 +162,9 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     getArray(r, f.sensor_orientation);
     f.max_range = r.get<float>();
     f.point_count = r.get<uint32_t>();
-    f.encoding = static_cast<proto::CloudEncoding>(r.get<uint8_t>() & 1);
+    const uint8_t encoding = r.get<uint8_t>();
+    if (encoding > static_cast<uint8_t>(proto::CloudEncoding::kQuantZstd)) return false;
+    f.encoding = static_cast<proto::CloudEncoding>(encoding);
     f.quantization_bits = r.get<uint8_t>();
     f.has_intensity = r.get<uint8_t>() != 0;
     f.payload = r.getBytes();

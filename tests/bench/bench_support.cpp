@@ -31,9 +31,9 @@ std::vector<proto::CloudFrameMsg> simFrames(size_t count) {
                                    source.camera(), options.stereo.cloud);
     const common::Rigid3 T_map_camera =
         frame->T_map_body.value() * frame->T_body_camera.value_or(common::Rigid3{});
-    frames.push_back(
-        pipeline::makeCloudFrameMsg(options, frames.size(), frame->stamp_ns, T_map_camera, cloud)
-            .value());
+    frames.push_back(pipeline::makeCloudFrameMsg(options, options.codec, frames.size(),
+                                                 frame->stamp_ns, T_map_camera, cloud)
+                         .value());
   }
   return frames;
 }

@@ -28,8 +28,12 @@ namespace {
 using namespace stereomap;
 
 // The messages as the vehicle sends them, for their size on the wire.
-proto::CloudFrameMsg cloudMessage(std::vector<uint8_t> payload) {
+proto::CloudFrameMsg cloudMessage(const common::PointCloud& cloud, proto::CloudEncoding encoding,
+                                  std::vector<uint8_t> payload) {
   proto::CloudFrameMsg message;
+  message.point_count = static_cast<uint32_t>(cloud.size());
+  message.encoding = encoding;
+  message.has_intensity = cloud.hasIntensity();
   message.vehicle_id = "sim-1";
   message.session_id = "sim-20261127-120000";
   message.payload = std::move(payload);
@@ -101,8 +105,17 @@ int main(int argc, char** argv) {
   app.add_option("--bits", codec.quantization_bits, "Codec: quantisation bits")
       ->check(CLI::Range(8, 20))
       ->capture_default_str();
-  app.add_option("--speed", codec.speed, "Draco speed (0 smallest .. 10 fastest)")
+  std::string encoding = "auto";
+  app.add_option("--codec", encoding,
+                 "Cloud encoding (auto: as stereomap-onboard chooses, link::bestEncoding)")
+      ->check(CLI::IsMember({"auto", "zstd", "draco", "raw"}))
+      ->capture_default_str();
+  app.add_option("--speed", codec.draco_speed, "Draco speed (0 smallest .. 10 fastest)")
       ->check(CLI::Range(0, 10))
+      ->capture_default_str();
+  app.add_flag("!--draco-sequential", codec.draco_kd_tree, "Draco's sequential coder");
+  app.add_option("--zstd-level", codec.zstd_level, "zstd level")
+      ->check(CLI::Range(1, 19))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   cv::setNumThreads(1);
@@ -116,7 +129,12 @@ int main(int argc, char** argv) {
     setup.frames = frames;
     setup.camera = *sim::CameraModel::preset(camera);
     setup.map = fusion::OccupancyMap::Options::octomapPreset(resolution);
-    link::CloudLink cloud_link(link_options);
+    link::CloudLinkOptions options = link_options;
+    if (!through_link) options.map_resolution_m = 0;
+    link::CloudLink cloud_link(options);
+    proto::CloudCodecOptions cloud_codec = codec;
+    cloud_codec.encoding =
+        encoding == "auto" ? link::bestEncoding(options) : *proto::parseEncoding(encoding);
     setup.send = [&](common::PointCloud& cloud, const common::Rigid3& T_map_camera,
                      int64_t stamp_ns) {
       const auto start = std::chrono::steady_clock::now();
@@ -125,7 +143,8 @@ int main(int argc, char** argv) {
         if (!prepared) return false;
         cloud = std::move(*prepared);
       }
-      auto payload = proto::encodeCloud(cloud, codec);
+      cloud_codec.quantization_bits = cloud_link.quantizationBits(cloud, codec.quantization_bits);
+      auto payload = proto::encodeCloud(cloud, cloud_codec);
       if (!payload) {
         std::fprintf(stderr, "encoding failed: %s\n", payload.error().message.c_str());
         std::exit(1);
@@ -135,11 +154,11 @@ int main(int argc, char** argv) {
               .count());
       run.payload_bytes += static_cast<double>(payload->size());
       run.points += static_cast<double>(cloud.size());
-      const auto message = cloudMessage(std::move(*payload));
+      const auto message = cloudMessage(cloud, cloud_codec.encoding, std::move(*payload));
       const size_t bytes = proto::wireBytes(message);
       run.bytes += static_cast<double>(bytes);
       if (through_link) cloud_link.sent(stamp_ns, bytes);
-      auto decoded = proto::decodeCloud(message.payload);
+      auto decoded = proto::decodeCloud(message.payload, proto::payloadInfo(message));
       if (!decoded) {
         std::fprintf(stderr, "decoding failed: %s\n", decoded.error().message.c_str());
         std::exit(1);

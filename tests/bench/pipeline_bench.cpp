@@ -1,8 +1,10 @@
 // stereomap-bench-pipeline: the time of each step of the walking skeleton's data path, on
-// the simulated 640x480 camera: render a stereo pair, disparity (BM, SGBM), cloud, Draco
-// encode/decode, and one frame's OctoMap fusion at 0.1 m. Figures: docs/BENCHMARKS.md.
+// the simulated 640x480 camera: render a stereo pair, disparity (BM, SGBM), cloud, encode and
+// decode (Draco, quantised + zstd), and one frame's OctoMap fusion at 0.1 m. Figures:
+// docs/BENCHMARKS.md.
 #include <benchmark/benchmark.h>
 #include <opencv2/core/utility.hpp>
+#include <string>
 
 #include "onboard/sim/sim_source.hpp"
 #include "onboard/stereo/depth.hpp"
@@ -22,7 +24,6 @@ struct Fixture {
   sim::StereoFrame frame = renderer.render(flight.T_map_camera(5.0));
   cv::Mat disparity = stereo::StereoMatcher().compute(frame.left, frame.right);
   common::PointCloud cloud = stereo::cloudFromDisparity(disparity, frame.left, camera);
-  std::vector<uint8_t> payload = proto::encodeCloud(cloud).value();
 };
 
 const Fixture& fixture() {
@@ -58,19 +59,32 @@ void BM_CloudFromDisparity(benchmark::State& state) {
 }
 BENCHMARK(BM_CloudFromDisparity)->Unit(benchmark::kMillisecond);
 
-void BM_DracoEncode(benchmark::State& state) {
-  const auto& f = fixture();
-  for (auto _ : state) benchmark::DoNotOptimize(proto::encodeCloud(f.cloud));
-  state.counters["bytes_per_point"] =
-      static_cast<double>(f.payload.size()) / static_cast<double>(f.cloud.size());
+// state.range(0): the encoding (proto::CloudEncoding: 0 Draco, 2 quantised + zstd), 14 bits.
+proto::CloudCodecOptions codecOptions(const benchmark::State& state) {
+  return {.encoding = static_cast<proto::CloudEncoding>(state.range(0))};
 }
-BENCHMARK(BM_DracoEncode)->Unit(benchmark::kMillisecond);
 
-void BM_DracoDecode(benchmark::State& state) {
+void BM_CloudEncode(benchmark::State& state) {
   const auto& f = fixture();
-  for (auto _ : state) benchmark::DoNotOptimize(proto::decodeCloud(f.payload));
+  const auto options = codecOptions(state);
+  const auto payload = proto::encodeCloud(f.cloud, options).value();
+  state.SetLabel(std::string(proto::encodingName(options.encoding)));
+  for (auto _ : state) benchmark::DoNotOptimize(proto::encodeCloud(f.cloud, options));
+  state.counters["bytes_per_point"] =
+      static_cast<double>(payload.size()) / static_cast<double>(f.cloud.size());
 }
-BENCHMARK(BM_DracoDecode)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_CloudEncode)->Arg(0)->Arg(2)->Unit(benchmark::kMillisecond);
+
+void BM_CloudDecode(benchmark::State& state) {
+  const auto& f = fixture();
+  const auto options = codecOptions(state);
+  const auto payload = proto::encodeCloud(f.cloud, options).value();
+  const proto::CloudPayloadInfo info{options.encoding, static_cast<uint32_t>(f.cloud.size()),
+                                     f.cloud.hasIntensity()};
+  state.SetLabel(std::string(proto::encodingName(options.encoding)));
+  for (auto _ : state) benchmark::DoNotOptimize(proto::decodeCloud(payload, info));
+}
+BENCHMARK(BM_CloudDecode)->Arg(0)->Arg(2)->Unit(benchmark::kMillisecond);
 
 // Stock OctoMap insertion (discretised) of one sim frame into an empty 0.1 m map.
 void BM_FusionOneSimFrame(benchmark::State& state) {

@@ -10,6 +10,17 @@ namespace stereomap::testing {
 
 using namespace std::chrono_literals;
 
+namespace {
+
+// The loopback DDS configuration, unless the test chose one.
+void withLoopbackDds(std::vector<std::string>& argv, const std::vector<std::string>& extra) {
+  if (std::find(extra.begin(), extra.end(), "--dds-config") == extra.end()) {
+    argv.insert(argv.end(), {"--dds-config", STEREOMAP_DDS_CONFIG});
+  }
+}
+
+}  // namespace
+
 ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_args,
                              const std::string& store, bool require_healthy) {
   owns_store_ = store.empty();
@@ -20,10 +31,9 @@ ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_a
                                    "127.0.0.1:0",
                                    "--store",
                                    store_,
-                                   "--dds-config",
-                                   STEREOMAP_DDS_CONFIG,
                                    "--domain",
                                    std::to_string(domain)};
+  withLoopbackDds(argv, extra_args);
   argv.insert(argv.end(), extra_args.begin(), extra_args.end());
   process_ = std::make_unique<ChildProcess>(argv, log_);
   // The server logs "viewer: http://127.0.0.1:PORT/" once it listens.
@@ -63,10 +73,9 @@ std::vector<std::string> onboardArgs(int domain, const std::string& session, int
                                    session,
                                    "--frames",
                                    std::to_string(frames),
-                                   "--dds-config",
-                                   STEREOMAP_DDS_CONFIG,
                                    "--domain",
                                    std::to_string(domain)};
+  withLoopbackDds(argv, extra);
   // Every cloud is sent whole, so that tests can count frames and fill disks at any map
   // resolution; the tests of the link choose.
   for (const char* flag : {"--min-new", "--map-resolution"}) {
