@@ -121,9 +121,7 @@ DeckSource::DeckSource(const DeckSourceOptions& options)
       scene_(makeDeckScene(options.seed, options.markings)),
       deck_(options.deck),
       flight_(deck_, options.flight),
-      renderer_(scene_, camera_, options.render) {
-  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
-}
+      renderer_(scene_, camera_, options.render) {}
 
 DeckTruth DeckSource::truthAt(double t) const {
   DeckTruth truth;
@@ -148,6 +146,8 @@ std::optional<camera::SourceFrame> DeckSource::next() {
   if (options_.max_frames != 0 && index_ >= options_.max_frames) return std::nullopt;
   const double t = options_.start_s + static_cast<double>(index_) / options_.rate_hz;
   if (t > flight_.options().duration_s) return std::nullopt;
+  // The clock starts with the first frame taken (see SimSource::next).
+  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
   camera::SourceFrame frame;
   frame.index = index_++;
   frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t * 1e9));

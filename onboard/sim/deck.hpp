@@ -96,9 +96,9 @@ struct DeckTruth {
 struct DeckSourceOptions {
   uint32_t seed = 1;
   double rate_hz = 10.0;
-  uint64_t max_frames = 0;  // 0: the whole descent
-  int64_t start_stamp_ns = 0;
-  double start_s = 0;  // where in the descent to begin
+  uint64_t max_frames = 0;     // 0: the whole descent
+  int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = when frame 0 is taken
+  double start_s = 0;          // where in the descent to begin
   DeckMarkings markings;
   // The typical camera (issue 19: noise and blur on, the camera presets where they exist).
   RenderOptions render{.max_depth = 80.0, .camera = CameraModel::typical(), .supersample = 3};

@@ -11,12 +11,13 @@ SimSource::SimSource(const SimSourceOptions& options)
     : options_(options),
       scene_(Scene::makeRoom({.seed = options.seed})),
       flight_(options.flight),
-      renderer_(scene_, camera_, options.render) {
-  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
-}
+      renderer_(scene_, camera_, options.render) {}
 
 std::optional<camera::SourceFrame> SimSource::next() {
   if (options_.max_frames != 0 && index_ >= options_.max_frames) return std::nullopt;
+  // The clock starts with the first frame taken, as a camera's does: a vehicle that first
+  // waits for its server must not stamp its frames as that much older.
+  if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
   const double t_s = static_cast<double>(index_) / options_.rate_hz;
   camera::SourceFrame frame;
   frame.index = index_++;

@@ -13,7 +13,7 @@ struct SimSourceOptions {
   uint32_t seed = 1;
   double rate_hz = 10.0;       // simulated time between frames is 1 / rate_hz
   uint64_t max_frames = 0;     // 0: unlimited (the flight loops)
-  int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = now
+  int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = when frame 0 is taken
   RenderOptions render;
   FlightOptions flight;
 };

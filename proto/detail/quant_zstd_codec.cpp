@@ -56,10 +56,9 @@ void putHeader(const Header& h, uint8_t* out) {
 }
 
 struct ZstdContexts {
-  std::unique_ptr<ZSTD_CCtx, decltype(&ZSTD_freeCCtx)> compress{ZSTD_createCCtx(),
-                                                                 &ZSTD_freeCCtx};
+  std::unique_ptr<ZSTD_CCtx, decltype(&ZSTD_freeCCtx)> compress{ZSTD_createCCtx(), &ZSTD_freeCCtx};
   std::unique_ptr<ZSTD_DCtx, decltype(&ZSTD_freeDCtx)> decompress{ZSTD_createDCtx(),
-                                                                   &ZSTD_freeDCtx};
+                                                                  &ZSTD_freeDCtx};
 };
 // One pair per thread: a context holds ~1 MiB of tables, too much to make per cloud.
 ZstdContexts& contexts() {
@@ -95,8 +94,8 @@ Result<std::vector<uint8_t>> encodeQuantZstd(const PointCloud& cloud,
     uint8_t* out = raw.data() + c * planes * n;
     int64_t previous = 0;
     for (size_t i = 0; i < n; ++i) {
-      const double offset = (static_cast<double>(cloud.points[i][c]) - header.origin[c]) /
-                            header.step;
+      const double offset =
+          (static_cast<double>(cloud.points[i][c]) - header.origin[c]) / header.step;
       const auto q = std::clamp<int64_t>(std::llround(offset), 0, max_q);
       const uint32_t z = zigzag(q - previous);
       previous = q;
@@ -125,8 +124,7 @@ Result<std::vector<uint8_t>> encodeQuantZstd(const PointCloud& cloud,
   return payload;
 }
 
-Result<PointCloud> decodeQuantZstd(std::span<const uint8_t> payload,
-                                   const CloudPayloadInfo& info) {
+Result<PointCloud> decodeQuantZstd(std::span<const uint8_t> payload, const CloudPayloadInfo& info) {
   auto corrupt = [](const std::string& what) {
     return makeError(ErrorCode::kCorrupt, "zstd cloud payload: " + what);
   };
@@ -141,10 +139,9 @@ Result<PointCloud> decodeQuantZstd(std::span<const uint8_t> payload,
   std::memcpy(header.origin, payload.data() + 8, 12);
   std::memcpy(&header.step, payload.data() + 20, 8);
   if (header.count != info.point_count) {
-    return makeError(ErrorCode::kConflict, "zstd cloud payload holds " +
-                                               std::to_string(header.count) +
-                                               " points, point_count says " +
-                                               std::to_string(info.point_count));
+    return makeError(ErrorCode::kConflict,
+                     "zstd cloud payload holds " + std::to_string(header.count) +
+                         " points, point_count says " + std::to_string(info.point_count));
   }
   if (header.intensity != info.has_intensity) return corrupt("intensity differs from the message");
   const uint32_t max_q = (uint32_t{1} << header.bits) - 1;

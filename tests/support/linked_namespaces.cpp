@@ -57,8 +57,8 @@ std::optional<std::string> LinkedNamespaces::unavailable() {
 LinkedNamespaces::LinkedNamespaces(const std::string& tag, int subnet) {
   const std::string id = tag.substr(0, 4) + std::to_string(::getpid() % 100000);
   const std::string net = "10.213." + std::to_string(subnet % 256) + ".";
-  server_ = {"sms-" + id, "vs-" + id, net + "1", net + "2"};
-  vehicle_ = {"smv-" + id, "vv-" + id, net + "2", net + "1"};
+  server_ = {"sms-" + id, "vs-" + id, net + "1", net + "2", ""};
+  vehicle_ = {"smv-" + id, "vv-" + id, net + "2", net + "1", ""};
   dir_ = makeTempDir("stereomap-netns");
   try {
     for (const Side* side : {&server_, &vehicle_}) mustRun({kIp, "netns", "add", side->ns});
@@ -77,6 +77,7 @@ LinkedNamespaces::LinkedNamespaces(const std::string& tag, int subnet) {
 }
 
 LinkedNamespaces::~LinkedNamespaces() {
+  relay_.reset();
   // Deleting a namespace deletes the veth end in it, and with it the other end.
   for (const Side* side : {&server_, &vehicle_}) run({kIp, "netns", "del", side->ns});
   std::error_code ec;
@@ -100,6 +101,21 @@ void LinkedNamespaces::shape(const LinkShape& shape) {
   }
 }
 
+void LinkedNamespaces::delayToServer(std::chrono::milliseconds delay, int dds_domain) {
+  // An address in the vehicle's namespace (its loopback device), outside the veth's /30.
+  const std::string relay = server_.address.substr(0, server_.address.rfind('.') + 1) + "5";
+  mustRun({kIp, "-n", vehicle_.ns, "addr", "add", relay + "/32", "dev", "lo"});
+  std::vector<int> ports;
+  const int base = 7400 + 250 * dds_domain;  // Cyclone's port mapping: unicast discovery
+  for (int index = 0; index < 4; ++index) {  // base + 10 + 2i, unicast data base + 11 + 2i
+    ports.push_back(base + 10 + 2 * index);
+    ports.push_back(base + 11 + 2 * index);
+  }
+  relay_ = std::make_unique<UdpDelayRelay>(vehicle_.ns, relay, server_.address, ports, delay);
+  server_.dds_external = relay;
+  vehicle_.dds_peer = relay;
+}
+
 LinkedNamespaces::Entered::Entered(const Side& side) {
   previous_ = ::open("/proc/thread-self/ns/net", O_RDONLY | O_CLOEXEC);
   const int target = ::open(("/run/netns/" + side.ns).c_str(), O_RDONLY | O_CLOEXEC);
@@ -110,14 +126,21 @@ LinkedNamespaces::Entered::Entered(const Side& side) {
     throw std::runtime_error("cannot enter network namespace " + side.ns);
   }
   ::setenv("STEREOMAP_DDS_INTERFACE", side.address.c_str(), 1);
-  ::setenv("STEREOMAP_DDS_PEER", side.peer_address.c_str(), 1);
+  ::setenv("STEREOMAP_DDS_PEER", side.dds_peer.c_str(), 1);
+  if (side.dds_external.empty()) {
+    ::unsetenv("STEREOMAP_DDS_EXTERNAL_ADDRESS");
+  } else {
+    ::setenv("STEREOMAP_DDS_EXTERNAL_ADDRESS", side.dds_external.c_str(), 1);
+  }
 }
 
 LinkedNamespaces::Entered::~Entered() {
   ::setns(previous_, CLONE_NEWNET);
   ::close(previous_);
-  ::unsetenv("STEREOMAP_DDS_INTERFACE");
-  ::unsetenv("STEREOMAP_DDS_PEER");
+  for (const char* name :
+       {"STEREOMAP_DDS_INTERFACE", "STEREOMAP_DDS_PEER", "STEREOMAP_DDS_EXTERNAL_ADDRESS"}) {
+    ::unsetenv(name);
+  }
 }
 
 LinkedNamespaces::QueueStats LinkedNamespaces::queue(const Side& side) const {

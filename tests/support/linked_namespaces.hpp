@@ -9,20 +9,26 @@
 //   { auto in = link.enter(link.server()); ServerProcess server(...); }  // starts in it
 #pragma once
 
+#include <chrono>
+#include <memory>
 #include <optional>
 #include <string>
+
+#include "tests/support/udp_delay_relay.hpp"
 
 namespace stereomap::testing {
 
 struct LinkShape {
-  std::string rate;       // tc's notation, "1mbit"; "" leaves the rate alone
-  int loss_percent = 0;   // random drops of outgoing packets, each direction
+  std::string rate;      // tc's notation, "1mbit"; "" leaves the rate alone
+  int loss_percent = 0;  // random drops of outgoing packets, each direction
 };
 
 class LinkedNamespaces {
  public:
   struct Side {
-    std::string ns, dev, address, peer_address;
+    std::string ns, dev, address;
+    std::string dds_peer;      // where its DDS finds the other side
+    std::string dds_external;  // the address its DDS advertises, when not its own ("")
   };
 
   // Why namespaces cannot be made here (not root, no ip, tc or nft), or nullopt when they can.
@@ -40,9 +46,15 @@ class LinkedNamespaces {
   // tbf at `rate` (a 400 ms queue) and random loss on both sides' outgoing packets.
   void shape(const LinkShape& shape);
 
+  // Delays what the vehicle sends the server by `delay`: a UdpDelayRelay in the vehicle's
+  // namespace, on an address of its own, forwards the server's DDS ports (`dds_domain`,
+  // participant indexes 0-3); the server advertises that address, the vehicle peers with it.
+  // Before the processes start.
+  void delayToServer(std::chrono::milliseconds delay, int dds_domain);
+
   // While alive, the calling thread is in `side`'s namespace: its sockets, and processes it
-  // starts, are there; and STEREOMAP_DDS_INTERFACE / STEREOMAP_DDS_PEER name the side's
-  // address and the other end's, for config/cyclonedds-radio.xml. Back where it was after.
+  // starts, are there; and STEREOMAP_DDS_INTERFACE, _PEER and _EXTERNAL_ADDRESS are set as
+  // config/cyclonedds-radio.xml wants them for that side. Back where it was after.
   class Entered {
    public:
     explicit Entered(const Side& side);
@@ -54,6 +66,7 @@ class LinkedNamespaces {
     int previous_ = -1;
   };
   Entered enter(const Side& side) const { return Entered(side); }
+  uint64_t relayed() const { return relay_ ? relay_->forwarded() : 0; }
 
   // Bytes waiting in `side`'s queue and packets it dropped (tc -s qdisc), and packets the
   // random loss dropped (nft's counter).
@@ -67,6 +80,7 @@ class LinkedNamespaces {
  private:
   Side server_, vehicle_;
   std::string dir_;
+  std::unique_ptr<UdpDelayRelay> relay_;
 };
 
 }  // namespace stereomap::testing
