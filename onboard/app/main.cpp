@@ -367,9 +367,9 @@ int main(int argc, char** argv) {
   const auto& sent = summary.link;
   spdlog::info(
       "link: sent {:.0f} kbit/s (clouds and poses), {} of {} clouds ({} skipped with nothing new, "
-      "{} over the budget), {:.0f} points and {:.1f} KiB per cloud sent",
+      "{} over the budget, {} thinner for it), {:.0f} points and {:.1f} KiB per cloud sent",
       summary.stream_seconds > 0 ? summary.wire_bytes * 8 / summary.stream_seconds / 1000 : 0.0,
-      sent.sent, sent.offered, sent.skipped_known, sent.skipped_budget,
+      sent.sent, sent.offered, sent.skipped_known, sent.skipped_budget, sent.thinned_budget,
       sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
       sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
   return summary.publish_errors == 0 ? 0 : 1;

@@ -11,7 +11,17 @@
 namespace stereomap::link {
 
 namespace {
+
 constexpr double kNsPerS = 1e9;
+constexpr uint32_t kShareSlots = 1024;
+
+// A voxel's slot in 0..kShareSlots-1, spread evenly over space (splitmix64's finaliser).
+uint32_t slotOf(uint64_t key) {
+  key = (key ^ (key >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  key = (key ^ (key >> 27)) * 0x94d049bb133111ebULL;
+  return static_cast<uint32_t>((key ^ (key >> 31)) % kShareSlots);
+}
+
 }  // namespace
 
 common::Result<double> parseBitRate(const std::string& text) {
@@ -68,6 +78,7 @@ std::optional<common::PointCloud> CloudLink::prepare(const common::PointCloud& c
 
   // What the map has not had from this vehicle lately.
   pending_.clear();
+  pending_slots_ = 0;
   size_t fresh = 0;
   const double voxel = options_.map_resolution_m > 0 ? options_.map_resolution_m : 0.1;
   const auto refresh_ns = static_cast<int64_t>(options_.refresh_s * kNsPerS);
@@ -96,9 +107,28 @@ std::optional<common::PointCloud> CloudLink::prepare(const common::PointCloud& c
     }
     tokens_ = std::min(tokens_, rate);
     filled_ns_ = stamp_ns;
+    // Thinner clouds rather than rarer ones once a whole cloud per max_interval_s would not
+    // fit: the map keeps being updated everywhere in view, at a lower density. Voxels are
+    // taken by slot, and the next cloud starts where this one ended.
+    const double whole = message_bytes_ + bytes_per_point_ * static_cast<double>(cloud.size());
+    const double allowed = rate * options_.max_interval_s;
+    if (whole > allowed && options_.map_resolution_m > 0 && options_.thinner_under_budget) {
+      const double share = (allowed - message_bytes_) / (whole - message_bytes_);
+      const auto slots = static_cast<uint32_t>(
+          std::clamp(std::floor(kShareSlots * share), 1.0, 1.0 * kShareSlots));
+      size_t kept = 0;
+      for (size_t i = 0; i < cloud.size(); ++i) {
+        if ((slotOf(pending_[i]) + kShareSlots - share_phase_) % kShareSlots >= slots) continue;
+        cloud.points[kept] = cloud.points[i];
+        pending_[kept++] = pending_[i];
+      }
+      cloud.points.resize(kept);
+      pending_.resize(kept);
+      pending_slots_ = slots;
+    }
     // A cloud larger than a second's worth waits for a full bucket and leaves it in debt:
     // the rate still holds on average.
-    const double expected = bytes_per_point_ * static_cast<double>(cloud.size());
+    const double expected = message_bytes_ + bytes_per_point_ * static_cast<double>(cloud.size());
     if (tokens_ < std::min(expected, rate)) {
       ++stats_.skipped_budget;
       return std::nullopt;
@@ -113,14 +143,19 @@ int CloudLink::quantizationBits(const common::PointCloud& prepared, int max_bits
   return proto::quantizationBitsFor(prepared, options_.map_resolution_m / 64, max_bits);
 }
 
-void CloudLink::sent(int64_t stamp_ns, uint64_t bytes) {
+void CloudLink::sent(int64_t stamp_ns, uint64_t bytes, uint64_t payload_bytes) {
   ++stats_.sent;
+  if (pending_slots_ > 0) {
+    share_phase_ = (share_phase_ + pending_slots_) % kShareSlots;
+    ++stats_.thinned_budget;
+  }
   stats_.points_out += pending_points_;
   stats_.bytes += bytes;
   tokens_ -= static_cast<double>(bytes);
   if (pending_points_ > 0) {
-    bytes_per_point_ = static_cast<double>(bytes) / static_cast<double>(pending_points_);
+    bytes_per_point_ = static_cast<double>(payload_bytes) / static_cast<double>(pending_points_);
   }
+  message_bytes_ = static_cast<double>(bytes - std::min(bytes, payload_bytes));
   for (const uint64_t key : pending_) sent_at_[key] = stamp_ns;
   pending_.clear();
   last_sent_ns_ = stamp_ns;

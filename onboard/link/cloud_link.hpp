@@ -9,7 +9,7 @@
 //   CloudLink link({.map_resolution_m = 0.1, .budget_bits_per_s = 1e6});
 //   if (auto cloud = link.prepare(cloud_camera, T_map_camera, stamp_ns)) {
 //     ... encode and publish *cloud ...
-//     link.sent(stamp_ns, payload_bytes);
+//     link.sent(stamp_ns, message_bytes, payload_bytes);
 //   }
 #pragma once
 
@@ -36,9 +36,12 @@ struct CloudLinkOptions {
   double refresh_s = 2.0;
   // ... or when no cloud was sent for this long (the map keeps being confirmed and cleared).
   double max_interval_s = 1.0;
-  // Cloud bytes per second on the link, payload and message (0: no budget). A cloud that
-  // would overdraw it is skipped.
+  // Cloud bytes per second on the link, payload and message (0: no budget). Where a whole
+  // cloud every max_interval_s would overdraw it, clouds go out thinner (a share of their
+  // voxels, a different share each time, so that a few clouds together cover the view);
+  // a cloud that would still overdraw it is skipped.
   double budget_bits_per_s = 0;
+  bool thinner_under_budget = true;  // false: rarer whole clouds only (for comparison)
 };
 
 struct CloudLinkStats {
@@ -46,6 +49,7 @@ struct CloudLinkStats {
   uint64_t sent = 0;            // clouds sent
   uint64_t skipped_known = 0;   // skipped: nothing new for the map
   uint64_t skipped_budget = 0;  // skipped: over the byte budget
+  uint64_t thinned_budget = 0;  // sent with a share of their voxels, for the budget
   uint64_t points_in = 0, points_out = 0;
   uint64_t bytes = 0;  // as reported by sent()
 };
@@ -74,8 +78,9 @@ class CloudLink {
   // each point within 1/64 of a voxel of where it was, so its voxel is the same or it was
   // within that of the face (max_bits when clouds are not thinned).
   int quantizationBits(const common::PointCloud& prepared, int max_bits) const;
-  // The cloud prepare() gave was sent, `bytes` on the link.
-  void sent(int64_t stamp_ns, uint64_t bytes);
+  // The cloud prepare() gave was sent, `bytes` on the link of which `payload_bytes` were its
+  // points (the rest: the message's fields and headers).
+  void sent(int64_t stamp_ns, uint64_t bytes, uint64_t payload_bytes);
 
   const CloudLinkStats& stats() const { return stats_; }
   size_t memorySize() const { return sent_at_.size(); }  // voxels remembered as sent
@@ -89,10 +94,14 @@ class CloudLink {
   // Token bucket of the budget, in bytes, and when it was last filled.
   double tokens_ = 0;
   std::optional<int64_t> filled_ns_;
-  double bytes_per_point_ = 0;     // of the clouds sent so far: a cloud's expected size
+  // A cloud's expected cost, from the last one sent: per point, and for its message.
+  double bytes_per_point_ = 0;
+  double message_bytes_ = 0;
   std::vector<uint64_t> pending_;  // the prepared cloud's voxel keys, until sent()
   size_t pending_points_ = 0;
-  size_t swept_size_ = 0;  // entries after the last sweep of old ones
+  uint32_t share_phase_ = 0;    // where the next budget share of voxels starts (of 1024 slots)
+  uint32_t pending_slots_ = 0;  // the prepared cloud's share, in slots (0: whole)
+  size_t swept_size_ = 0;       // entries after the last sweep of old ones
 };
 
 }  // namespace stereomap::link

@@ -83,7 +83,7 @@ TEST(CloudLink, AHoveringVehicleSendsOnlyOncePerMaxInterval) {
   for (int i = 0; i < 30; ++i) {  // 3 s over the same wall
     const int64_t stamp = i * kFrameNs;
     if (auto thinned = link.prepare(cloud, pose(), stamp)) {
-      link.sent(stamp, 1000);
+      link.sent(stamp, 1000, 800);
       ++sent;
     }
   }
@@ -98,35 +98,82 @@ TEST(CloudLink, NewCoverageIsSentAtOnce) {
   for (int i = 0; i < 10; ++i) {  // sliding 0.5 m along the wall each frame: half of it new
     const int64_t stamp = i * kFrameNs;
     if (link.prepare(wall(), pose(0.5 * i), stamp)) {
-      link.sent(stamp, 1000);
+      link.sent(stamp, 1000, 800);
       ++sent;
     }
   }
   EXPECT_EQ(sent, 10);
 }
 
+// What a cloud costs on the link in these tests: 3 bytes a point and 200 of message.
+uint64_t bytesOf(const PointCloud& cloud) { return 3 * cloud.size() + 200; }
+
 TEST(CloudLink, TheBudgetHoldsTheBytesSentPerSecond) {
-  // Every cloud is new (min_new_share 0) and costs 20 kB; 80 kbit/s allows half a cloud a
-  // second: over 20 s, at most 10 s worth plus the one second saved up at the start.
-  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0, .budget_bits_per_s = 80'000});
+  // Every cloud is new (min_new_share 0); the budget allows a tenth of every cloud whole:
+  // over 20 s, at most 20 s worth plus the one second saved up at the start.
+  CloudLink probe({.map_resolution_m = 0.1});
+  const double whole = static_cast<double>(bytesOf(*probe.prepare(wall(), pose(), 0)));
+  const double budget_bytes = whole;  // a whole cloud a second: 10 frames a second offered
+  CloudLink link(
+      {.map_resolution_m = 0.1, .min_new_share = 0, .budget_bits_per_s = 8 * budget_bytes});
   double bytes = 0;
   for (int i = 0; i < 200; ++i) {
     const int64_t stamp = i * kFrameNs;
-    if (link.prepare(wall(), pose(), stamp)) {
-      link.sent(stamp, 20'000);
-      bytes += 20'000;
+    if (auto cloud = link.prepare(wall(), pose(), stamp)) {
+      link.sent(stamp, bytesOf(*cloud), 3 * cloud->size());
+      bytes += static_cast<double>(bytesOf(*cloud));
     }
   }
-  EXPECT_LE(bytes, 80'000 / 8 * 21.0);
-  EXPECT_GE(bytes, 80'000 / 8 * 15.0);  // and uses most of it
+  EXPECT_LE(bytes, budget_bytes * 21.0);
+  EXPECT_GE(bytes, budget_bytes * 15.0);  // and uses most of it
   EXPECT_GT(link.stats().skipped_budget, 150u);
+  EXPECT_EQ(link.stats().thinned_budget, 0u);  // a whole cloud a second fits: none thinned
+}
+
+// Below a whole cloud per max_interval, clouds go out thinner, each with other voxels: the
+// whole view is refreshed every few clouds, and the bytes stay within the budget.
+TEST(CloudLink, ATightBudgetThinsCloudsAndCoversTheViewInTurn) {
+  CloudLink probe({.map_resolution_m = 0.1});
+  const auto whole_cloud = *probe.prepare(wall(), pose(), 0);
+  const auto all_voxels = mapVoxels(whole_cloud, pose());
+  // A second's budget holds a message and a quarter of the points.
+  const double budget_bytes = 200 + 3.0 * static_cast<double>(whole_cloud.size()) / 4;
+  CloudLink link({.map_resolution_m = 0.1,
+                  .min_new_share = 0,
+                  .max_interval_s = 1.0,
+                  .budget_bits_per_s = 8 * budget_bytes});
+  double bytes = 0;
+  std::vector<size_t> sizes;
+  std::set<uint64_t> covered;
+  for (int i = 0; i < 100; ++i) {  // 10 s over the same wall
+    const int64_t stamp = i * kFrameNs;
+    if (auto cloud = link.prepare(wall(), pose(), stamp)) {
+      link.sent(stamp, bytesOf(*cloud), 3 * cloud->size());
+      bytes += static_cast<double>(bytesOf(*cloud));
+      sizes.push_back(cloud->size());
+      if (sizes.size() >= 2 && sizes.size() <= 6) {  // five thinned clouds
+        const auto voxels = mapVoxels(*cloud, pose());
+        covered.insert(voxels.begin(), voxels.end());
+      }
+    }
+  }
+  // The first cloud goes whole (nothing is known yet of what a point costs) and leaves the
+  // bucket three seconds in debt; then about a cloud a second.
+  EXPECT_LE(bytes, budget_bytes * 11.0);
+  EXPECT_GE(sizes.size(), 6u);
+  EXPECT_EQ(link.stats().thinned_budget, sizes.size() - 1);
+  // After the first (whole: nothing known of the link's cost yet), about a quarter each.
+  EXPECT_LT(sizes.back(), whole_cloud.size() / 3);
+  EXPECT_GT(sizes.back(), whole_cloud.size() / 8);
+  // Five thinned clouds together cover the wall: other voxels each time.
+  EXPECT_GE(covered.size(), all_voxels.size() * 95 / 100);
 }
 
 TEST(CloudLink, MemoryOfSentVoxelsStaysBounded) {
   CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0.1, .refresh_s = 2.0});
   for (int i = 0; i < 1000; ++i) {  // 100 s flying along an endless wall
     const int64_t stamp = i * kFrameNs;
-    if (link.prepare(wall(), pose(0.2 * i), stamp)) link.sent(stamp, 1000);
+    if (link.prepare(wall(), pose(0.2 * i), stamp)) link.sent(stamp, 1000, 800);
   }
   // What 2 s of flight sees, swept once it doubles: a few thousand voxels, not 100 s worth.
   EXPECT_LT(link.memorySize(), 10'000u);

@@ -428,7 +428,7 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       } else {
         if (publisher != nullptr) report(publisher->publish(*cloud_msg), "CloudFrame");
         const size_t bytes = proto::wireBytes(*cloud_msg);
-        if (cloud_link) cloud_link->sent(frame->stamp_ns, bytes);
+        if (cloud_link) cloud_link->sent(frame->stamp_ns, bytes, cloud_msg->payload.size());
         ++clouds_sent;
         summary.wire_bytes += bytes;
         summary.payload_bytes += cloud_msg->payload.size();

@@ -101,6 +101,8 @@ int main(int argc, char** argv) {
   app.add_option("--budget", budget_kbit, "Cloud budget, kbit/s (0: none)")
       ->check(CLI::Range(0.0, 1e6))
       ->capture_default_str();
+  app.add_flag("!--no-thinner", link_options.thinner_under_budget,
+               "Under a tight budget, send rarer whole clouds instead of thinner ones");
   proto::CloudCodecOptions codec;
   app.add_option("--bits", codec.quantization_bits, "Codec: quantisation bits")
       ->check(CLI::Range(8, 20))
@@ -157,7 +159,7 @@ int main(int argc, char** argv) {
       const auto message = cloudMessage(cloud, cloud_codec.encoding, std::move(*payload));
       const size_t bytes = proto::wireBytes(message);
       run.bytes += static_cast<double>(bytes);
-      if (through_link) cloud_link.sent(stamp_ns, bytes);
+      if (through_link) cloud_link.sent(stamp_ns, bytes, message.payload.size());
       auto decoded = proto::decodeCloud(message.payload, proto::payloadInfo(message));
       if (!decoded) {
         std::fprintf(stderr, "decoding failed: %s\n", decoded.error().message.c_str());
