@@ -182,6 +182,28 @@ TEST(QuantZstd, RejectsHeadersThatDisagreeWithTheMessage) {
   EXPECT_FALSE(decodeCloud(counted, {CloudEncoding::kQuantZstd, 100 + (0x10u << 24), false}).ok());
 }
 
+// Draco sizes a buffer per attribute (points x components) before it reads a point: only
+// positions and the message's intensity get that far. A 130-byte payload of 20 attributes of
+// 255 floats would otherwise ask for 40 GB at the server's point limit.
+TEST(DracoPayload, HoldsOnlyPositionsAndTheMessagesIntensity) {
+  const auto cloud = randomCloud(100, true, 8);
+  auto payload = encodeCloud(cloud, {.encoding = CloudEncoding::kDraco});
+  ASSERT_TRUE(payload.ok());
+  const CloudPayloadInfo info{CloudEncoding::kDraco, 100, true};
+  ASSERT_TRUE(decodeCloud(*payload, info).ok());
+  EXPECT_FALSE(decodeCloud(*payload, {CloudEncoding::kDraco, 100, false}).ok());
+  auto edited = [&](size_t at, uint8_t value) {
+    auto copy = *payload;
+    copy[at] = value;
+    return decodeCloud(copy, info);
+  };
+  EXPECT_FALSE(edited(15, 2).ok());    // two attribute decoders
+  EXPECT_FALSE(edited(16, 20).ok());   // twenty attributes
+  EXPECT_FALSE(edited(18, 10).ok());   // positions as 64-bit floats
+  EXPECT_FALSE(edited(19, 255).ok());  // 255 components
+  EXPECT_FALSE(edited(24, 3).ok());    // intensity in three components
+}
+
 TEST(QuantZstd, KeepsThePointsOrder) {
   const auto cloud = randomCloud(500, true, 4);
   auto decoded = roundTrip(cloud, {.encoding = CloudEncoding::kQuantZstd});

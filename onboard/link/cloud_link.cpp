@@ -125,6 +125,11 @@ std::optional<common::PointCloud> CloudLink::prepare(const common::PointCloud& c
       cloud.points.resize(kept);
       pending_.resize(kept);
       pending_slots_ = slots;
+      if (kept == 0) {  // this share of a small view is empty: the next cloud takes the next
+        share_phase_ = (share_phase_ + slots) % kShareSlots;
+        ++stats_.skipped_budget;
+        return std::nullopt;
+      }
     }
     // A cloud larger than a second's worth waits for a full bucket and leaves it in debt:
     // the rate still holds on average.

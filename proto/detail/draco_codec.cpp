@@ -52,9 +52,20 @@ Result<std::vector<uint8_t>> encodeDraco(const PointCloud& cloud,
 namespace {
 
 // Draco's header as its 2.3 bitstream writes it: "DRACO", major and minor version, encoder
-// type, method, 16-bit flags; a point cloud's point count follows as 32 bits.
+// type, method, 16-bit flags; a point cloud's point count follows as 32 bits, then the number
+// of attribute decoders (8 bits), the number of attributes (a varint) and each attribute's
+// descriptor: type, data type, components, normalised, a varint id.
 constexpr size_t kHeaderBytes = 15;
 constexpr uint8_t kPointCloudType = 0;  // draco::POINT_CLOUD
+struct Descriptor {
+  uint8_t type, data_type, components;
+};
+// What encodeDraco writes, and all Draco may be given: positions, and intensity when the
+// message says so. Draco sizes a buffer of point count x components per attribute before it
+// reads a point, so these bound what a payload can make it allocate (a few hundred bytes of
+// descriptors could otherwise ask for 40 GB at the server's point limit).
+constexpr Descriptor kPosition{0, 9, 3};   // POSITION, DT_FLOAT32, 3
+constexpr Descriptor kIntensity{4, 2, 1};  // GENERIC, DT_UINT8, 1
 
 std::optional<common::Error> checkHeader(std::span<const uint8_t> payload,
                                          const CloudPayloadInfo& info) {
@@ -78,6 +89,24 @@ std::optional<common::Error> checkHeader(std::span<const uint8_t> payload,
     return common::Error{ErrorCode::kConflict, "Draco payload holds " + std::to_string(count) +
                                                    " points, point_count says " +
                                                    std::to_string(info.point_count)};
+  }
+  const size_t attributes = info.has_intensity ? 2 : 1;
+  size_t at = kHeaderBytes;
+  if (payload.size() < at + 2 || payload[at] != 1 || payload[at + 1] != attributes) {
+    return corrupt("not one attribute decoder with " + std::to_string(attributes) +
+                   " attribute(s) (intensity as the message says)");
+  }
+  at += 2;
+  const Descriptor allowed[] = {kPosition, kIntensity};
+  for (size_t i = 0; i < attributes; ++i) {
+    const Descriptor& expected = allowed[i];
+    // type, data type, components, normalised (0), and a one-byte varint id
+    if (payload.size() < at + 5 || payload[at] != expected.type ||
+        payload[at + 1] != expected.data_type || payload[at + 2] != expected.components ||
+        payload[at + 3] != 0 || payload[at + 4] >= 0x80) {
+      return corrupt("an attribute other than positions and 8-bit intensity");
+    }
+    at += 5;
   }
   return std::nullopt;
 }

@@ -161,8 +161,9 @@ Result<PointCloud> decodeQuantZstd(std::span<const uint8_t> payload, const Cloud
   if (ZSTD_findFrameCompressedSize(frame.data(), frame.size()) != frame.size()) {
     return corrupt("not exactly one zstd frame");
   }
-  // The frame states its size: checked before anything is allocated, so a small payload
-  // cannot ask for gigabytes.
+  // The frame states its size, which must be exactly what the points need: checked before
+  // anything is allocated. What the points need is bounded by the caller's bound on
+  // point_count (the server's IngestLimits: 13 MB at most).
   if (ZSTD_getFrameContentSize(frame.data(), frame.size()) != expected) {
     return corrupt("frame size differs from the point count's");
   }

@@ -5,6 +5,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
+#include "common/time.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/wire_size.hpp"
 #include "server/core/api.hpp"
@@ -141,16 +142,25 @@ TEST(MapServer, CountsEachVehiclesBytes) {
   EXPECT_GT(bytes("v1", "CloudFrame"), static_cast<double>(frame.payload.size()));
   EXPECT_EQ(bytes("v1", "Pose"), static_cast<double>(proto::wireBytes(second)));
   EXPECT_EQ(bytes("v2", "Pose"), static_cast<double>(proto::wireBytes(second)));
-  // Any id is a valid vehicle: past 1024 series (two taken above) they share one.
-  for (int i = 0; i < 1100; ++i) {
+  // Any id is a valid vehicle: past 64 in a session (two taken above) they share one series.
+  for (int i = 100; i < 200; ++i) {
     char id[16];
     std::snprintf(id, sizeof id, "w%d", i);  // ("w" + to_string: a false gcc 12 -Wrestrict)
     second.vehicle_id = id;
     second.seq = 1;
+    second.stamp_ns = common::nowNs();  // stamped now: its age counts
     ASSERT_TRUE(server.ingest(second));
   }
-  EXPECT_EQ(bytes("_other", "Pose"), static_cast<double>(78 * proto::wireBytes(second)));
-  EXPECT_EQ(bytes("w1099", "Pose"), 0.0);
+  EXPECT_GT(bytes("w161", "Pose"), 0.0);
+  EXPECT_EQ(bytes("w162", "Pose"), 0.0);
+  EXPECT_EQ(bytes("(other)", "Pose"), static_cast<double>(38 * proto::wireBytes(second)));
+  EXPECT_NE(server.metricsText().find("stereomap_vehicle_pose_latency_seconds{session=\"a\","
+                                      "vehicle=\"w161\",quantile=\"0.95\"}"),
+            std::string::npos);
+  // A session that goes takes its series along.
+  ASSERT_TRUE(server.unload("a"));
+  EXPECT_EQ(bytes("v1", "CloudFrame"), 0.0);
+  EXPECT_EQ(server.metricsText().find("session=\"a\""), std::string::npos);
 }
 
 TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {

@@ -22,7 +22,9 @@ constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 constexpr const char* kVehicleBytes = "stereomap_vehicle_received_bytes_total";
 constexpr const char* kPoseLatency = "stereomap_vehicle_pose_latency_seconds";
 constexpr size_t kMaxVehicleLinks = 1024;
-constexpr size_t kLatencyWindow = 100;  // poses: 10 s at 10 Hz
+constexpr size_t kMaxVehicleLinksPerSession = 64;
+constexpr const char* kOtherVehicles = "(other)";  // no valid id: no vehicle is taken for it
+constexpr size_t kLatencyWindow = 100;             // poses: 10 s at 10 Hz
 constexpr double kMaxPlausibleLatencyS = 30.0;
 }  // namespace
 
@@ -43,7 +45,7 @@ MapServer::MapServer(const MapServerOptions& options)
   metrics_.describe(kVehicleBytes, "counter",
                     "Bytes a vehicle's accepted samples took on the link (CDR and packet "
                     "headers, proto/wire_size.hpp), by session, vehicle and topic; vehicles "
-                    "past the 1024th share vehicle=\"_other\"");
+                    "past a session's 64th (or the server's 1024th) share vehicle=\"(other)\"");
   metrics_.describe(kPoseLatency, "gauge",
                     "Age of a vehicle's poses on arrival (now - stamp), median and 95th "
                     "percentile of the last 100, by session and vehicle; needs the vehicle's "
@@ -150,6 +152,7 @@ std::shared_ptr<Session> MapServer::unload(const std::string& id) {
   sessions_.erase(found);
   order_.erase(std::find(order_.begin(), order_.end(), id));
   closed_.insert(id);
+  forgetLinks(id);
   return session;
 }
 
@@ -163,6 +166,20 @@ void MapServer::forget(const std::string& id) {
   closed_.erase(id);
 }
 
+size_t MapServer::vehicleLinks(const std::string& session_id) const {
+  size_t count = 0;
+  for (auto it = links_.lower_bound({session_id, ""});
+       it != links_.end() && it->first.first == session_id; ++it) {
+    ++count;
+  }
+  return count;
+}
+
+void MapServer::forgetLinks(const std::string& session_id) {
+  std::erase_if(links_, [&](const auto& entry) { return entry.first.first == session_id; });
+  metrics_.removeSeries("session", session_id);
+}
+
 void MapServer::noteTraffic(const char* topic, const std::string& session_id,
                             const std::string& vehicle_id, size_t bytes,
                             std::optional<int64_t> pose_stamp_ns) {
@@ -170,11 +187,12 @@ void MapServer::noteTraffic(const char* topic, const std::string& session_id,
   {
     std::lock_guard lock(mutex_);
     auto found = links_.find({session_id, vehicle_id});
-    if (found == links_.end() && links_.size() < kMaxVehicleLinks) {
+    if (found == links_.end() && links_.size() < kMaxVehicleLinks &&
+        vehicleLinks(session_id) < kMaxVehicleLinksPerSession) {
       found = links_.try_emplace({session_id, vehicle_id}).first;
     }
     if (found == links_.end()) {
-      vehicle = "_other";  // not a valid id: no vehicle can be taken for it
+      vehicle = kOtherVehicles;
     } else if (pose_stamp_ns) {
       // Only stamps from a clock in step with ours tell the link's delay; a vehicle on its
       // own time base (a data set's stamps) or history delivered again is not counted.
@@ -436,7 +454,7 @@ std::string MapServer::metricsText() const {
     metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));
     metrics_.set("stereomap_session_fusion_seconds", labels, status.fusion_seconds);
   }
-  std::lock_guard lock(mutex_);
+  std::unique_lock lock(mutex_);
   for (const auto& [key, link] : links_) {
     if (link.pose_latency_s.empty()) continue;
     for (const double quantile : {0.5, 0.95}) {
@@ -450,6 +468,7 @@ std::string MapServer::metricsText() const {
                    *at);
     }
   }
+  lock.unlock();
   return metrics_.render();
 }
 

@@ -147,6 +147,10 @@ class MapServer {
   std::shared_ptr<Session> admit(const char* topic, const Message& message,
                                  std::optional<Rejection> rejection, Origin origin);
   // A live sample's bytes and, for a pose, its age on arrival.
+  // Under mutex_: the vehicles of a session with links_ entries; forgetting them and their
+  // metrics when the session goes.
+  size_t vehicleLinks(const std::string& session_id) const;
+  void forgetLinks(const std::string& session_id);
   void noteTraffic(const char* topic, const std::string& session_id, const std::string& vehicle_id,
                    size_t bytes, std::optional<int64_t> pose_stamp_ns);
   void reject(const char* topic, const Rejection& rejection, const std::string& from);
@@ -167,7 +171,8 @@ class MapServer {
   std::map<std::string, uint64_t> rejections_by_reason_;  // for rate-limited logging
   // What each vehicle's link delivers (session, vehicle): its poses' ages on arrival, the
   // last ones. Any vehicle id is valid, so the number of vehicles with series of their own is
-  // bounded; later ones share one bytes series and have no latency.
+  // bounded (per session and in all); later ones share one bytes series and have no latency.
+  // A session's entries and series go when it is unloaded.
   struct VehicleLink {
     std::vector<double> pose_latency_s;  // a ring of the newest
     size_t next = 0;

@@ -44,6 +44,22 @@ double Metrics::get(const std::string& name, const Labels& labels) const {
   return series == family->second.series.end() ? 0 : series->second;
 }
 
+void Metrics::removeSeries(const std::string& label, const std::string& value) {
+  const std::string one = labelText({{label, value}});  // {label="value"}
+  const std::string pair = one.substr(1, one.size() - 2);
+  std::lock_guard lock(mutex_);
+  for (auto& [name, family] : families_) {
+    std::erase_if(family.series, [&](const auto& series) {
+      const std::string& text = series.first;
+      for (size_t at = text.find(pair); at != std::string::npos; at = text.find(pair, at + 1)) {
+        const char before = text[at - 1], after = text[at + pair.size()];
+        if ((before == '{' || before == ',') && (after == ',' || after == '}')) return true;
+      }
+      return false;
+    });
+  }
+}
+
 std::string Metrics::render() const {
   std::lock_guard lock(mutex_);
   std::ostringstream out;

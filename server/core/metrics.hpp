@@ -19,6 +19,8 @@ class Metrics {
   void add(const std::string& name, const Labels& labels, double value = 1.0);
   void set(const std::string& name, const Labels& labels, double value);
   double get(const std::string& name, const Labels& labels) const;
+  // Drops every series of every family that has label `label` with value `value`.
+  void removeSeries(const std::string& label, const std::string& value);
   std::string render() const;
 
  private:

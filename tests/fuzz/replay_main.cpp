@@ -12,11 +12,20 @@
 #include <iterator>
 #include <vector>
 
+#if defined(__has_feature)
+#define STEREOMAP_HAS_ASAN __has_feature(address_sanitizer)
+#else
+#define STEREOMAP_HAS_ASAN 0
+#endif
+
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size);
 
 int main(int argc, char** argv) {
+#if !defined(__SANITIZE_ADDRESS__) && !STEREOMAP_HAS_ASAN
+  // (AddressSanitizer reserves far more address space than this for its shadow memory.)
   const rlimit limit{4ull << 30, 4ull << 30};
   ::setrlimit(RLIMIT_AS, &limit);
+#endif
   size_t replayed = 0;
   for (int i = 1; i < argc; ++i) {
     if (!std::filesystem::is_directory(argv[i])) {

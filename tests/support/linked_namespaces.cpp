@@ -8,6 +8,7 @@
 
 #include <filesystem>
 #include <regex>
+#include <sstream>
 #include <stdexcept>
 #include <vector>
 
@@ -55,13 +56,17 @@ std::optional<std::string> LinkedNamespaces::unavailable() {
 }
 
 LinkedNamespaces::LinkedNamespaces(const std::string& tag, int subnet) {
-  const std::string id = tag.substr(0, 4) + std::to_string(::getpid() % 100000);
+  const std::string id = tag.substr(0, 4) + std::to_string(::getpid());
   const std::string net = "10.213." + std::to_string(subnet % 256) + ".";
   server_ = {"sms-" + id, "vs-" + id, net + "1", net + "2", ""};
   vehicle_ = {"smv-" + id, "vv-" + id, net + "2", net + "1", ""};
-  dir_ = makeTempDir("stereomap-netns");
+  sweepStale();
+  std::vector<std::string> made;
   try {
-    for (const Side* side : {&server_, &vehicle_}) mustRun({kIp, "netns", "add", side->ns});
+    for (const Side* side : {&server_, &vehicle_}) {
+      mustRun({kIp, "netns", "add", side->ns});
+      made.push_back(side->ns);
+    }
     mustRun({kIp, "link", "add", server_.dev, "type", "veth", "peer", "name", vehicle_.dev});
     for (Side* side : {&server_, &vehicle_}) {
       mustRun({kIp, "link", "set", side->dev, "netns", side->ns});
@@ -70,9 +75,26 @@ LinkedNamespaces::LinkedNamespaces(const std::string& tag, int subnet) {
       mustRun({kIp, "-n", side->ns, "link", "set", "lo", "up"});
     }
   } catch (...) {
-    for (const Side* side : {&server_, &vehicle_}) run({kIp, "netns", "del", side->ns});
-    std::filesystem::remove_all(dir_);
+    // The veth pair starts in this namespace: gone with its namespace once moved, else here.
+    run({kIp, "link", "del", server_.dev});
+    for (const auto& ns : made) run({kIp, "netns", "del", ns});
     throw;
+  }
+}
+
+void LinkedNamespaces::sweepStale() {
+  // Namespaces of an earlier run that was killed (a test timeout): named sms-/smv- with its
+  // process id last; removed when that process is gone.
+  const auto list = run({kIp, "netns", "list"});
+  std::istringstream lines(list.output);
+  std::string name;
+  while (lines >> name) {
+    if (name.rfind("sms-", 0) != 0 && name.rfind("smv-", 0) != 0) continue;
+    const size_t digits = name.find_last_not_of("0123456789") + 1;
+    if (digits >= name.size()) continue;
+    const std::string pid = name.substr(digits);
+    if (!std::filesystem::exists("/proc/" + pid)) run({kIp, "netns", "del", name});
+    std::getline(lines, name);  // the rest of the line ("(id: N)")
   }
 }
 
@@ -80,8 +102,6 @@ LinkedNamespaces::~LinkedNamespaces() {
   relay_.reset();
   // Deleting a namespace deletes the veth end in it, and with it the other end.
   for (const Side* side : {&server_, &vehicle_}) run({kIp, "netns", "del", side->ns});
-  std::error_code ec;
-  std::filesystem::remove_all(dir_, ec);
 }
 
 void LinkedNamespaces::shape(const LinkShape& shape) {

@@ -35,6 +35,7 @@ class LinkedNamespaces {
   static std::optional<std::string> unavailable();
 
   // `tag`: a few letters that keep names apart (interface names hold 15 characters).
+  // Namespaces that a killed earlier run left behind are removed first.
   explicit LinkedNamespaces(const std::string& tag, int subnet = 0);
   ~LinkedNamespaces();
   LinkedNamespaces(const LinkedNamespaces&) = delete;
@@ -78,8 +79,9 @@ class LinkedNamespaces {
   QueueStats queue(const Side& side) const;
 
  private:
+  static void sweepStale();
+
   Side server_, vehicle_;
-  std::string dir_;
   std::unique_ptr<UdpDelayRelay> relay_;
 };
 
