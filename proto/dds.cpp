@@ -7,7 +7,7 @@
 #include <map>
 #include <mutex>
 
-#include "proto/qos.hpp"
+#include "proto/detail/qos.hpp"
 #include "stereomap.h"
 
 namespace stereomap::proto {

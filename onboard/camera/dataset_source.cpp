@@ -37,19 +37,25 @@ std::optional<double> rawNoise(const cv::Mat& left, uint64_t index) {
 // One recorded frame: file paths, stamp, and ground truth when known.
 struct FrameFiles {
   fs::path left, right;
-  int64_t stamp_ns = 0;
+  int64_t stamp_ns = 0;  // the data set's own, or from frame 0 (Clock::kFromFirstFrame)
   std::optional<Rigid3> T_map_body;
 };
+
+// Where recorded stamps count from: the data set's own clock (EuRoC), or the moment the first
+// frame is taken, as a camera's would (KITTI's times.txt, a folder's frame rate): a vehicle
+// that first waits for its server must not send its frames as that much older.
+enum class Clock { kDataSet, kFromFirstFrame };
 
 // A source over a list of recorded pairs: reads, rectifies, skips unreadable frames.
 class RecordedSource : public FrameSource {
  public:
   RecordedSource(std::string description, std::vector<FrameFiles> frames, Rectifier rectifier,
-                 std::optional<Rigid3> T_body_camera)
+                 std::optional<Rigid3> T_body_camera, Clock clock)
       : description_(std::move(description)),
         frames_(std::move(frames)),
         rectifier_(std::move(rectifier)),
-        T_body_camera_(T_body_camera) {}
+        T_body_camera_(T_body_camera),
+        clock_(clock) {}
 
   const StereoCamera& camera() const override { return rectifier_.camera(); }
   std::string describe() const override { return description_; }
@@ -66,14 +72,15 @@ class RecordedSource : public FrameSource {
       }
       SourceFrame frame;
       frame.index = next_ - 1;
-      frame.stamp_ns = files.stamp_ns;
+      if (clock_ == Clock::kFromFirstFrame && !first_frame_ns_) first_frame_ns_ = common::nowNs();
+      frame.stamp_ns = files.stamp_ns + first_frame_ns_.value_or(0);
       frame.raw_noise_sigma = rawNoise(left, frame.index);
       if (auto status = rectifier_.rectify(left, right, frame.left, frame.right); !status) {
         spdlog::warn("frame {}: {}; skipped", frame.index, status.error().message);
         continue;
       }
       frame.T_map_body = files.T_map_body;
-      if (files.T_map_body) frame.T_body_camera = T_body_camera_;
+      frame.T_body_camera = T_body_camera_;  // the mount, with or without ground truth
       return frame;
     }
     return std::nullopt;
@@ -84,6 +91,8 @@ class RecordedSource : public FrameSource {
   std::vector<FrameFiles> frames_;
   Rectifier rectifier_;
   std::optional<Rigid3> T_body_camera_;
+  Clock clock_;
+  std::optional<int64_t> first_frame_ns_;
   size_t next_ = 0;
 };
 
@@ -144,7 +153,7 @@ Result<std::unique_ptr<FrameSource>> makeRecorded(std::string description,
                                                   std::vector<FrameFiles> frames,
                                                   const StereoCalibration& calibration,
                                                   std::optional<Rigid3> T_body_raw_left,
-                                                  const DatasetOptions& options) {
+                                                  Clock clock, const DatasetOptions& options) {
   if (frames.empty()) return makeError(ErrorCode::kNotFound, description + ": no frames found");
   if (options.max_frames != 0 && frames.size() > options.max_frames) {
     frames.resize(options.max_frames);
@@ -171,7 +180,7 @@ Result<std::unique_ptr<FrameSource>> makeRecorded(std::string description,
        << (rectifier->passThrough() ? " (already rectified)" : " (rectified)") << ", baseline "
        << rectifier->camera().baseline;
   return std::unique_ptr<FrameSource>(std::make_unique<RecordedSource>(
-      text.str(), std::move(frames), std::move(rectifier).value(), T_body_camera));
+      text.str(), std::move(frames), std::move(rectifier).value(), T_body_camera, clock));
 }
 
 // KITTI poses are the left camera in frame 0's camera frame (OpenCV axes); our map is
@@ -223,18 +232,17 @@ Result<std::unique_ptr<FrameSource>> openKitti(const fs::path& dir, const Datase
                  dir.string(), times.size(), lefts.size());
     times.clear();
   }
-  const int64_t start_ns = common::nowNs();
   std::vector<FrameFiles> frames;
   for (size_t i = 0; i < lefts.size(); ++i) {
     FrameFiles f{lefts[i], dir / "image_1" / lefts[i].filename()};
     const double t = times.empty() ? static_cast<double>(i) * 0.1 : times[i];
-    f.stamp_ns = start_ns + static_cast<int64_t>(t * 1e9);
+    f.stamp_ns = static_cast<int64_t>(t * 1e9);
     if (i < poses.size()) f.T_map_body = kittiBodyPose(poses[i]);
     frames.push_back(std::move(f));
   }
   const Rigid3 T_body_camera{common::bodyFromCameraRotation(), common::Vec3::Zero()};
   return makeRecorded("kitti:" + dir.string(), std::move(frames), *calibration, T_body_camera,
-                      options);
+                      Clock::kFromFirstFrame, options);
 }
 
 struct Stamped {
@@ -296,7 +304,7 @@ Result<std::unique_ptr<FrameSource>> openEuroc(const fs::path& dir, const Datase
     frames.push_back(std::move(f));
   }
   return makeRecorded("euroc:" + dir.string(), std::move(frames), *calibration,
-                      calibration->T_body_left, options);
+                      calibration->T_body_left, Clock::kDataSet, options);
 }
 
 Result<std::unique_ptr<FrameSource>> openFolder(const fs::path& dir,
@@ -329,10 +337,8 @@ Result<std::unique_ptr<FrameSource>> openFolder(const fs::path& dir,
       frames.push_back({l, dir / ("right" + l.filename().string().substr(4))});
     }
   }
-  const int64_t start_ns = common::nowNs();
   for (size_t i = 0; i < frames.size(); ++i) {
-    frames[i].stamp_ns =
-        start_ns + static_cast<int64_t>(static_cast<double>(i) / options.rate_hz * 1e9);
+    frames[i].stamp_ns = static_cast<int64_t>(static_cast<double>(i) / options.rate_hz * 1e9);
   }
   auto calibration = calibrationOr(options, [&]() -> Result<StereoCalibration> {
     for (const char* name :
@@ -345,7 +351,7 @@ Result<std::unique_ptr<FrameSource>> openFolder(const fs::path& dir,
   });
   if (!calibration) return calibration.error();
   return makeRecorded("folder:" + dir.string(), std::move(frames), *calibration, std::nullopt,
-                      options);
+                      Clock::kFromFirstFrame, options);
 }
 
 Result<std::unique_ptr<FrameSource>> openCameras(const std::string& devices,

@@ -5,7 +5,11 @@
 #include "onboard/camera/image_noise.hpp"
 #include "tests/support/data.hpp"
 
+#include <chrono>
 #include <fstream>
+#include <thread>
+
+#include "common/time.hpp"
 
 namespace stereomap::camera {
 namespace {
@@ -89,6 +93,39 @@ TEST(DatasetSource, FolderReportsAndSkipsAMissingFrame) {
     EXPECT_FALSE(frame->T_map_body.has_value());  // a folder has no poses
   }
   EXPECT_EQ(indices, (std::vector<uint64_t>{0, 2}));
+  fs::remove_all(dir);
+}
+
+// Without ground truth (KITTI's test sequences have no poses.txt) a frame still carries the
+// camera's mount, and stamps count from the first frame taken, not from opening the source.
+TEST(DatasetSource, FramesWithoutGroundTruthKeepTheMountAndStampFromTheFirstFrame) {
+  const fs::path kitti = kData / "kitti_stereo_seq2";
+  SKIP_WITHOUT(kitti);
+  const fs::path dir =
+      fs::temp_directory_path() / ("stereomap-kitti-" + std::to_string(::getpid()));
+  fs::create_directories(dir / "image_0");
+  fs::create_directories(dir / "image_1");
+  for (const char* name : {"000000.png", "000001.png"}) {
+    fs::copy_file(kitti / "image_0" / name, dir / "image_0" / name);
+    fs::copy_file(kitti / "image_1" / name, dir / "image_1" / name);
+  }
+  fs::copy_file(kitti / "calib.txt", dir / "calib.txt");
+  auto source = openDatasetSource("kitti:" + dir.string(), {});
+  ASSERT_TRUE(source.ok()) << source.error().message;
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));  // a wait for the server
+  const int64_t before = common::nowNs();
+  auto first = (*source)->next();
+  auto second = (*source)->next();
+  ASSERT_TRUE(first && second);
+  for (const auto* frame : {&*first, &*second}) {
+    EXPECT_FALSE(frame->T_map_body.has_value());
+    ASSERT_TRUE(frame->T_body_camera.has_value());
+    // KITTI's camera looks along the body's x axis.
+    EXPECT_NEAR((frame->T_body_camera->rotation * common::Vec3::UnitZ()).x(), 1.0, 1e-9);
+  }
+  EXPECT_GE(first->stamp_ns, before);
+  EXPECT_LT(first->stamp_ns, before + 200'000'000);
+  EXPECT_EQ(second->stamp_ns - first->stamp_ns, 100'000'000);  // 10 Hz without times.txt
   fs::remove_all(dir);
 }
 

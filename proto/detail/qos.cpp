@@ -1,4 +1,4 @@
-#include "proto/qos.hpp"
+#include "proto/detail/qos.hpp"
 
 namespace stereomap::proto {
 
