@@ -14,9 +14,11 @@ function(stereomap_library name)
   stereomap_target_defaults(${name})
 endfunction()
 
-# stereomap_test(NAME SOURCES ... DEPS ...): a GoogleTest binary registered with CTest.
+# stereomap_test(NAME [SERIAL] SOURCES ... DEPS ...): a GoogleTest binary registered with
+# CTest. SERIAL: its tests run alone (they measure time, which a test beside them on the
+# machine's two cores would spoil).
 function(stereomap_test name)
-  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  cmake_parse_arguments(ARG "SERIAL" "" "SOURCES;DEPS" ${ARGN})
   add_executable(${name} ${ARG_SOURCES})
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} GTest::gtest_main GTest::gmock)
   target_compile_definitions(${name} PRIVATE
@@ -25,7 +27,11 @@ function(stereomap_test name)
     STEREOMAP_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
   stereomap_target_defaults(${name})
-  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300)
+  set(serial FALSE)
+  if(ARG_SERIAL)
+    set(serial TRUE)
+  endif()
+  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300 RUN_SERIAL ${serial})
 endfunction()
 
 # stereomap_app(NAME SOURCES ... DEPS ...): a stereomap-<verb> binary in build/bin.

@@ -524,7 +524,9 @@ size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout) {
     if (n <= 0) break;
     for (dds_return_t i = 0; i < n; ++i) {
       if (!infos[i].valid_data) continue;
-      // Cyclone has already checked the IDL bounds when deserialising; enum ranges are ours.
+      // Cyclone has already checked the IDL bounds and the enums' ranges when it normalised the
+      // received sample (0.10's read_normalize_enum drops it, silently): fromC's checks are a
+      // second line, for samples that did not come through the wire.
       auto message = Topic<T>::fromC(*static_cast<const typename Topic<T>::C*>(samples[i]));
       if (message) {
         out.push_back(std::move(message).value());

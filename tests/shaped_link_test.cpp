@@ -52,6 +52,7 @@ struct Flight {
   double occupied_early = 0, occupied_late = 0;
   long server_rss_early = 0, server_rss_late = 0, vehicle_rss_early = 0, vehicle_rss_late = 0;
   double vehicle_kbit_s = 0;  // from the vehicle's summary
+  int late_frames = -1;       // frames the vehicle finished after their 100 ms
   uint64_t relayed = 0;       // datagrams that took the delay's way
   LinkedNamespaces::QueueStats vehicle_queue, server_queue;
   std::string logs;
@@ -129,6 +130,9 @@ Flight fly(int domain, int subnet, const std::optional<LinkShape>& shape) {
   if (std::regex_search(flight.logs, match, std::regex(R"(done: .*)"))) {
     std::printf("vehicle's summary:%s\n", match[0].str().c_str());
   }
+  if (std::regex_search(flight.logs, match, std::regex(R"((\d+) late,)"))) {
+    flight.late_frames = std::stoi(match[1]);
+  }
   if (std::regex_search(flight.logs, match, std::regex(R"(link: sent (\d+) kbit/s)"))) {
     flight.vehicle_kbit_s = std::stod(match[1]);
   }
@@ -153,6 +157,10 @@ TEST(ShapedLink, AVehicleOnAOneMegabitLossyLinkKeepsItsPosesLiveAndItsMapRight) 
   const Flight shaped = fly(95, 95, LinkShape{.rate = "1mbit", .loss_percent = 1});
 
   for (const Flight* flight : {&bare, &shaped}) {
+    // Pose ages mean nothing once the vehicle falls behind real time (they grow by the
+    // backlog): the machine was too busy for this test (it runs alone under ctest).
+    EXPECT_GE(flight->late_frames, 0);
+    EXPECT_LE(flight->late_frames, kFrames / 20) << "the vehicle fell behind real time";
     // Poses at 10 Hz: every one of the 300 arrives (reliable, resent after a loss).
     EXPECT_GE(flight->poses, kFrames * 0.99) << flight->logs;
     EXPECT_GT(flight->occupied_early, 0);
