@@ -183,14 +183,12 @@ int main(int argc, char** argv) {
     spdlog::error("--link-budget: {}", budget.error().message);
     return 2;
   } else if (*budget > 0) {
-    // Poses go first and are not counted against the clouds; a tenth is left for DDS's own
-    // traffic (acknowledgements, heartbeats, resends on a lossy link).
     proto::PoseMsg pose;
     pose.vehicle_id = options.vehicle_id;
     pose.session_id = options.session_id;
     const double poses =
         static_cast<double>(proto::wireBytes(pose)) * 8 * (rate_hz > 0 ? rate_hz : 30.0);
-    link.budget_bits_per_s = 0.9 * *budget - poses;
+    link.budget_bits_per_s = link::cloudShare(*budget, poses);
     if (link.budget_bits_per_s <= 0) {
       spdlog::error("--link-budget {}: the poses alone need {:.0f} kbit/s", link_budget,
                     poses / 1000);

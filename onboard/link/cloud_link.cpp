@@ -53,6 +53,10 @@ common::Result<double> parseBitRate(const std::string& text) {
   return value * scale;
 }
 
+double cloudShare(double link_bits_per_s, double pose_bits_per_s) {
+  return 0.9 * link_bits_per_s - pose_bits_per_s;
+}
+
 proto::CloudEncoding bestEncoding(const CloudLinkOptions& options) {
   return options.map_resolution_m > 0 ? proto::CloudEncoding::kDraco
                                       : proto::CloudEncoding::kQuantZstd;

@@ -60,6 +60,11 @@ struct CloudLinkStats {
 // "0" or "off": no budget (0). Anything else is an error naming the text.
 common::Result<double> parseBitRate(const std::string& text);
 
+// The clouds' share of a link of `link_bits_per_s` that also carries `pose_bits_per_s`:
+// poses go first and are not counted against the clouds, and a tenth is left for DDS's own
+// traffic (acknowledgements, heartbeats, resends on a lossy link). <= 0: no room for clouds.
+double cloudShare(double link_bits_per_s, double pose_bits_per_s);
+
 // The encoding that sends the link's clouds in the fewest bytes (stereomap-bench-link, sim
 // rooms, docs/BENCHMARKS.md): Draco's kd-tree for thinned clouds (about a quarter smaller than
 // quantised + zstd: one point per voxel is what an octree-like coder is for), quantised + zstd
