@@ -181,6 +181,25 @@ TEST(Durability, AFullDiskLosesNoAcknowledgedFrameAndIsReportedUntilSpaceIsFreed
   fs::remove(disk.dir().string() + ".onboard.log");
 }
 
+// Issue 17: a store on a read-only file system at start is a clear error and exit 1 (it
+// was reported as "in use by another stereomap-server", the lock being unopenable).
+TEST(Durability, AReadOnlyStoreAtStartIsAClearErrorAndExitOne) {
+  SmallDisk disk(1);
+  if (!disk.mounted()) GTEST_SKIP() << disk.reason();
+  fs::create_directories(disk.dir() / "store");
+  ASSERT_EQ(::mount(nullptr, disk.dir().c_str(), nullptr, MS_REMOUNT | MS_RDONLY, nullptr), 0)
+      << std::strerror(errno);
+  for (const char* store : {"store", "new-store"}) {
+    const auto run =
+        runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-server", "--store",
+                 (disk.dir() / store).string(), "--http", "127.0.0.1:0", "--domain", "78"},
+                std::chrono::seconds(30));
+    EXPECT_EQ(run.exit_code, 1) << run.output;
+    EXPECT_NE(run.output.find("Read-only file system"), std::string::npos) << run.output;
+    EXPECT_EQ(run.output.find("in use by another"), std::string::npos) << run.output;
+  }
+}
+
 // The byte ranges of a format 2 journal's records (header 24 bytes: marker, length at +4).
 std::vector<std::pair<size_t, size_t>> recordRanges(const std::string& bytes) {
   std::vector<std::pair<size_t, size_t>> ranges;

@@ -28,6 +28,16 @@ Result<cv::Mat> readMatrix(const cv::FileStorage& fs, const std::string& file,
                            const std::string& field, int rows, int cols) {
   const cv::FileNode node = fs[field];
   if (node.empty()) return fieldError(file, field, "is missing");
+  // OpenCV allocates rows x cols before it reads the data: a mangled "cols" made it ask for
+  // 51 GB (found by fuzzing, tests/fuzz/corpus/calibration/huge-cols). Ours are 4x4 at most.
+  if (node.isMap()) {
+    const cv::FileNode node_rows = node["rows"], node_cols = node["cols"];
+    if (!node_rows.isInt() || !node_cols.isInt() || static_cast<int>(node_rows) < 0 ||
+        static_cast<int>(node_rows) > 64 || static_cast<int>(node_cols) < 0 ||
+        static_cast<int>(node_cols) > 64) {
+      return fieldError(file, field, "has rows or cols that are not whole numbers in 0..64");
+    }
+  }
   cv::Mat m;
   try {
     node >> m;

@@ -103,6 +103,11 @@ TEST(Calibration, BadFilesNameTheFileAndTheField) {
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   writeText(dir / "no_t.yaml", text.substr(0, text.find("T: ")));
   expectError(dir / "no_t.yaml", "T is missing");
+  // A size OpenCV would allocate before reading the data (50 GB): refused first.
+  std::string huge = text;
+  huge.replace(huge.find("cols", huge.find("R: ")), 7, "cols: 2000000000");
+  writeText(dir / "huge.yaml", huge);
+  expectError(dir / "huge.yaml", "R has rows or cols that are not whole numbers in 0..64");
 
   broken.T = cv::Vec3d(0, 0, 0);
   EXPECT_NE(validateCalibration(broken).error().message.find("T is zero"), std::string::npos);

@@ -46,14 +46,29 @@ OccupancyMap::~OccupancyMap() = default;
 void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
                                const common::Rigid3& T_map_sensor, double max_range_m,
                                MapChanges* changes) {
+  // OctoMap's keys span 2^16 voxels per axis around the map's origin, and its coordToKey
+  // casts to int before it checks the range: a coordinate beyond int's range (or inf, or NaN)
+  // is undefined behaviour there, not a miss. So a sensor outside the map inserts nothing, and
+  // rays longer than twice the map's diagonal are cut to that length in double precision:
+  // they still cross the whole map, and their ends lie outside it either way.
+  const common::Vec3& t = T_map_sensor.translation;
+  const double extent = impl_->tree.getResolution() * 32768.0;
+  if (!(t.cwiseAbs().maxCoeff() < extent)) {
+    if (changes != nullptr) *changes = {.complete = true, .voxels = {}};
+    return;
+  }
+  const double longest = 4 * std::sqrt(3.0) * extent;
   std::vector<octomap::point3d> points;
   points.reserve(cloud_sensor.size());
   for (const auto& p : cloud_sensor.points) {
-    const common::Vec3 p_map = T_map_sensor * p.cast<double>();
+    common::Vec3 p_map = T_map_sensor * p.cast<double>();
+    if (!p_map.allFinite()) continue;
+    if (const double length = (p_map - t).norm(); length > longest) {
+      p_map = t + (p_map - t) * (longest / length);
+    }
     points.emplace_back(static_cast<float>(p_map.x()), static_cast<float>(p_map.y()),
                         static_cast<float>(p_map.z()));
   }
-  const common::Vec3& t = T_map_sensor.translation;
   const octomap::point3d origin(static_cast<float>(t.x()), static_cast<float>(t.y()),
                                 static_cast<float>(t.z()));
   if (impl_->options.insertion == Insertion::kFast) {
@@ -74,6 +89,10 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
 }
 
 Occupancy OccupancyMap::query(const common::Vec3& p_map) const {
+  // (OctoMap's search casts to int unchecked: see insertCloud.)
+  if (!(p_map.cwiseAbs().maxCoeff() < impl_->tree.getResolution() * 32768.0)) {
+    return Occupancy::kUnknown;
+  }
   const octomap::OcTreeNode* node = impl_->tree.search(p_map.x(), p_map.y(), p_map.z());
   if (node == nullptr) return Occupancy::kUnknown;
   if (impl_->tree.isNodeOccupied(node)) return Occupancy::kOccupied;

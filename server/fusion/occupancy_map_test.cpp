@@ -57,6 +57,31 @@ TEST(OccupancyMap, RaysBeyondMaxRangeOnlyClearFreeSpace) {
   EXPECT_TRUE(map.occupiedBounds().empty());
 }
 
+// Found by fuzzing the server's samples (tests/fuzz): values a validated frame may carry
+// but OctoMap's key arithmetic cannot take. Before the fix, the first walked rays past their
+// buffer (forever), the others were undefined behaviour (a float cast to int out of range).
+TEST(OccupancyMap, ValuesAtTheLimitsOfFloatInsertNothingWrong) {
+  OccupancyMap map({.resolution = 0.1});
+  common::PointCloud cloud;
+  // An origin of -0 on a voxel border and an end 1e-38 m beside it, in the next voxel: the
+  // ray's float length is 0. Then a point far beyond float's square root (its norm is inf).
+  cloud.points = {{-1.77e-38f, 1.1e-42f, 0}, {-1.6e29f, 0, 0}, {3.05f, 0.05f, 0.05f}};
+  map.insertCloud(cloud, {common::Quat::Identity(), Vec3(-9e-280, 0, 0)}, 20.0);
+  EXPECT_EQ(map.occupiedCount(), 2u);  // the first point's voxel and the third's
+  EXPECT_EQ(map.query(Vec3(-0.05, 0.05, 0.05)), Occupancy::kOccupied);
+  EXPECT_EQ(map.query(Vec3(3.05, 0.05, 0.05)), Occupancy::kOccupied);
+  EXPECT_EQ(map.query(Vec3(-10.05, 0.05, 0.05)), Occupancy::kFree);  // the far point's ray
+  // A sensor beyond the map's 2^16 voxels (3.3 km here), or beyond int's range: nothing.
+  MapChanges changes;
+  for (const double x : {4000.0, 1e12, -1e300}) {
+    map.insertCloud(wall(3.05), {common::Quat::Identity(), Vec3(x, 0, 0)}, 20.0, &changes);
+    EXPECT_TRUE(changes.complete);
+    EXPECT_TRUE(changes.voxels.empty());
+  }
+  EXPECT_EQ(map.occupiedCount(), 2u);
+  EXPECT_EQ(map.query(Vec3(1e12, 0, 0)), Occupancy::kUnknown);
+}
+
 TEST(OccupancyMap, BinaryExportLoadsInOctoMapWithTheSameOccupiedVoxels) {
   OccupancyMap map({.resolution = 0.05});
   map.insertCloud(wall(2.0), common::Rigid3::identity(), 10.0);

@@ -426,8 +426,9 @@ common::Result<JournalReplay> visitJournal(const fs::path& path, uint64_t min_nu
   JournalReplay replay;
   replay.file_bytes = bytes.size();
   // A header cut short by a failed first write (a prefix of either magic) is an empty journal.
-  if (bytes.size() < kMagicBytes && (std::memcmp(bytes.data(), kMagicV1, bytes.size()) == 0 ||
-                                     std::memcmp(bytes.data(), kMagicV2, bytes.size()) == 0)) {
+  if (bytes.size() < kMagicBytes &&
+      (bytes.empty() || std::memcmp(bytes.data(), kMagicV1, bytes.size()) == 0 ||
+       std::memcmp(bytes.data(), kMagicV2, bytes.size()) == 0)) {
     if (!bytes.empty()) replay.problem = summary(replay);
     return replay;
   }

@@ -6,6 +6,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
 #include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
@@ -152,17 +154,28 @@ common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& r
   auto files = SessionStore::open(root);
   if (!files) return files.error();
   admin->files_.emplace(std::move(files).value());
-  if (auto probed = admin->files_->probe(); !probed) {
-    // A full disk: serve what the store holds; writes resume once one succeeds.
-    server.reportStoreProblem(probed.error().message);
-  }
+  // The lock first: on a read-only file system it cannot even be opened, which is an error
+  // to say as such (a full disk, below, is a state the server serves through).
   const fs::path lock = root / "store.lock";
   admin->lock_fd_ = ::open(lock.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
-  if (admin->lock_fd_ < 0 || ::flock(admin->lock_fd_, LOCK_EX | LOCK_NB) != 0) {
+  if (admin->lock_fd_ < 0) {
+    const int error = errno;
+    return makeError(ErrorCode::kIo,
+                     "cannot open the store's lock " + lock.string() + ": " + std::strerror(error) +
+                         (error == EROFS ? " (the store's file system is mounted read-only; a "
+                                           "server must write its journals: mount it writable, "
+                                           "or read it with stereomap-store)"
+                                         : ""));
+  }
+  if (::flock(admin->lock_fd_, LOCK_EX | LOCK_NB) != 0) {
     return makeError(ErrorCode::kConflict,
                      "the store " + root.string() +
                          " is in use by another stereomap-server or stereomap-store (it holds " +
                          lock.string() + "); stop it, or use the running server's REST API");
+  }
+  if (auto probed = admin->files_->probe(); !probed) {
+    // A full disk: serve what the store holds; writes resume once one succeeds.
+    server.reportStoreProblem(probed.error().message);
   }
   admin->openCatalog();
   return admin;

@@ -88,6 +88,10 @@ class RayWalk {
     if (key_origin == key_end) return false;
     point3d direction = end - origin;
     length_ = static_cast<float>(direction.norm());
+    // A ray whose length underflows float (an end 1e-38 m from an origin on a voxel border,
+    // in another voxel) has no direction: its walk would never end. Found by fuzzing
+    // (tests/fuzz/corpus/samples/ray-without-length), as a write past the box.
+    if (!(length_ > 0) || !std::isfinite(length_)) return false;
     direction /= length_;
     const double resolution = tree.getResolution();
     double t_max[3], t_delta[3];
