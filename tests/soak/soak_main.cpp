@@ -1,0 +1,370 @@
+// stereomap-soak (issue 17): a long run with everything at once, not in CI (tests/soak/run).
+// Simulated vehicles stream to two sessions while WebSocket viewers watch, and the server is
+// killed with SIGKILL at a fixed period and restarted on the same store. At the end:
+//   - every frame a vehicle sent is in its session's journal, or was sent while the server
+//     was down (between a kill and the restarted server answering): each lost run of frames
+//     is matched to a kill, and none is left unexplained;
+//   - every restart recovered what the killed server had acknowledged;
+//   - the last server's RSS grew at most 10 % after its warm-up;
+//   - every viewer is connected at the end, and none stayed away longer than a restart.
+// Prints the figures for docs/BENCHMARKS.md and exits 1 when a check fails.
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "common/time.hpp"
+#include "server/store/journal.hpp"
+#include "tests/support/server_fixture.hpp"
+#include "tests/support/websocket_client.hpp"
+
+namespace {
+
+using namespace stereomap;
+using namespace stereomap::testing;
+using namespace std::chrono_literals;
+using Clock = std::chrono::steady_clock;
+using nlohmann::json;
+
+struct Options {
+  double minutes = 30;
+  double kill_every_minutes = 5;
+  int vehicles = 4;
+  int sessions = 2;
+  int viewers = 5;
+  double rate = 5;
+  int domain = 96;
+  std::string store;
+};
+
+std::string sessionName(int i) { return "soak-" + std::string(1, static_cast<char>('a' + i)); }
+
+// A server's downtime: from its kill to the restarted server answering, in wall-clock ns.
+struct Downtime {
+  int64_t killed_ns = 0, ready_ns = 0;
+};
+
+int64_t rssKiB(pid_t pid) {
+  std::ifstream status("/proc/" + std::to_string(pid) + "/status");
+  std::string key;
+  int64_t value = 0;
+  while (status >> key) {
+    if (key == "VmRSS:") return (status >> value) ? value : 0;
+    status.ignore(256, '\n');
+  }
+  return 0;
+}
+
+json sessionStatus(const ServerProcess& server, const std::string& session) {
+  const auto reply = server.get("/api/sessions/" + session);
+  if (reply.status != 200) return json::object();
+  return json::parse(reply.body, nullptr, false);
+}
+
+int64_t count(const json& status, const char* key) {
+  return status.contains(key) && status[key].is_number() ? status[key].get<int64_t>() : 0;
+}
+
+// A viewer that says hello, subscribes to a session and asks for its tiles, and comes back
+// whenever it loses the server: what it received and how long it was away.
+class Viewer {
+ public:
+  Viewer(const std::atomic<int>& port, std::string session)
+      : port_(port), session_(std::move(session)), thread_([this] { run(); }) {}
+  ~Viewer() {
+    stop_ = true;
+    thread_.join();
+  }
+  struct Figures {
+    uint64_t messages = 0, bytes = 0, connections = 0;
+    double longest_away_s = 0;
+    bool connected_at_end = false;
+  };
+  Figures figures() const {
+    std::lock_guard lock(mutex_);
+    Figures f = figures_;
+    f.connected_at_end = connected_ && Clock::now() - last_message_ < 10s;
+    return f;
+  }
+
+ private:
+  void run() {
+    auto away_since = Clock::now();
+    while (!stop_) {
+      WebSocketClient client(port_.load());
+      if (client.status() != 101 || !client.sendText(R"({"type": "hello", "protocol": 2})") ||
+          !client.sendText(R"({"type": "subscribe", "session": ")" + session_ + R"("})") ||
+          !client.sendText(
+              R"({"type": "view", "id": 1, "eye": [0, 0, 2], "budget": 200000, "error": 1})")) {
+        std::this_thread::sleep_for(200ms);
+        continue;
+      }
+      {
+        std::lock_guard lock(mutex_);
+        ++figures_.connections;
+        const double away = std::chrono::duration<double>(Clock::now() - away_since).count();
+        if (figures_.connections > 1)
+          figures_.longest_away_s = std::max(figures_.longest_away_s, away);
+        connected_ = true;
+        last_message_ = Clock::now();
+      }
+      while (!stop_) {
+        const auto message = client.read(1s);
+        std::lock_guard lock(mutex_);
+        if (message.kind == WsMessage::Kind::kText || message.kind == WsMessage::Kind::kBinary) {
+          ++figures_.messages;
+          figures_.bytes += message.payload.size();
+          last_message_ = Clock::now();
+          continue;
+        }
+        // Pushes come several times a second: a close, or 3 s of silence, is a lost server.
+        if (message.kind == WsMessage::Kind::kClose || Clock::now() - last_message_ > 3s) {
+          connected_ = false;
+          away_since = last_message_;
+          break;
+        }
+      }
+    }
+  }
+
+  const std::atomic<int>& port_;
+  const std::string session_;
+  std::atomic<bool> stop_{false};
+  mutable std::mutex mutex_;
+  Figures figures_;
+  bool connected_ = false;
+  Clock::time_point last_message_ = Clock::now();
+  std::thread thread_;
+};
+
+// Waits until every session shows at least the frames the killed server had acknowledged.
+bool recovered(const ServerProcess& server, const std::map<std::string, int64_t>& acknowledged) {
+  return waitUntil(
+      180s,
+      [&] {
+        for (const auto& [session, frames] : acknowledged) {
+          if (count(sessionStatus(server, session), "frames") < frames) return false;
+        }
+        return true;
+      },
+      500ms);
+}
+
+struct Accounting {
+  int64_t sent = 0, journaled = 0, lost_at_kills = 0, unexplained = 0;
+  std::vector<std::string> problems;
+};
+
+// Every frame the vehicle sent (seq 0..frames-1) is in the journal, or belongs to a run of missing
+// frames whose neighbours' stamps enclose part of a downtime (2 s of slack each side: the
+// pipeline's latency and DDS's delivery).
+void account(const std::filesystem::path& journal_path, const std::string& vehicle, int64_t frames,
+             double rate, const std::vector<Downtime>& downtimes, Accounting& out) {
+  auto journal = store::readJournal(journal_path);
+  if (!journal) {
+    out.problems.push_back(journal.error().message);
+    return;
+  }
+  std::map<uint64_t, int64_t> stamps;  // seq -> stamp of the frames journaled
+  for (const auto& record : journal->records) {
+    if (const auto* f = std::get_if<proto::CloudFrameMsg>(&record); f && f->vehicle_id == vehicle) {
+      stamps.emplace(f->seq, f->stamp_ns);
+    }
+  }
+  out.sent += frames;
+  out.journaled += static_cast<int64_t>(stamps.size());
+  const int64_t period_ns = static_cast<int64_t>(1e9 / rate);
+  const int64_t slack_ns = 2'000'000'000;
+  for (uint64_t seq = 0; seq < static_cast<uint64_t>(frames); ++seq) {
+    if (stamps.count(seq)) continue;
+    const auto after = stamps.lower_bound(seq);  // the next journaled frame
+    const int64_t end = after != stamps.end() ? after->second : std::numeric_limits<int64_t>::max();
+    const int64_t begin =
+        after != stamps.begin()
+            ? std::prev(after)->second
+            : (after != stamps.end()
+                   ? after->second - static_cast<int64_t>(after->first - seq + 1) * period_ns
+                   : 0);
+    const bool explained = std::any_of(downtimes.begin(), downtimes.end(), [&](const Downtime& d) {
+      return begin <= d.ready_ns + slack_ns && end >= d.killed_ns - slack_ns;
+    });
+    if (explained) {
+      ++out.lost_at_kills;
+    } else {
+      ++out.unexplained;
+      if (out.problems.size() < 10) {
+        out.problems.push_back(vehicle + " frame " + std::to_string(seq) +
+                               " is missing outside any downtime");
+      }
+    }
+  }
+}
+
+int run(const Options& o) {
+  const std::string store = o.store.empty() ? makeTempDir("stereomap-soak-store") : o.store;
+  const std::string logs = makeTempDir("stereomap-soak-logs");
+  const auto frames = static_cast<int64_t>(o.minutes * 60 * o.rate);
+  std::printf(
+      "soak: %.1f min, %d vehicles in %d sessions at %.1f Hz, %d viewers, SIGKILL every "
+      "%.1f min; store %s, logs %s\n",
+      o.minutes, o.vehicles, o.sessions, o.rate, o.viewers, o.kill_every_minutes, store.c_str(),
+      logs.c_str());
+  std::fflush(stdout);
+
+  auto server = std::make_unique<ServerProcess>(o.domain, std::vector<std::string>{}, store);
+  std::atomic<int> port{server->port()};
+  std::vector<std::unique_ptr<ChildProcess>> vehicles;
+  for (int v = 0; v < o.vehicles; ++v) {
+    vehicles.push_back(std::make_unique<ChildProcess>(
+        onboardArgs(o.domain, sessionName(v % o.sessions), static_cast<int>(frames),
+                    {"--rate", std::to_string(o.rate), "--vehicle", "v" + std::to_string(v + 1),
+                     "--seed", std::to_string(v + 1), "--vo", "gt", "--wait-for-server", "60"}),
+        logs + "/vehicle-" + std::to_string(v + 1) + ".log"));
+  }
+  std::vector<std::unique_ptr<Viewer>> viewers;
+  for (int i = 0; i < o.viewers; ++i) {
+    viewers.push_back(std::make_unique<Viewer>(port, sessionName(i % o.sessions)));
+  }
+
+  const auto start = Clock::now();
+  const auto end = start + std::chrono::duration<double, std::ratio<60>>(o.minutes);
+  const auto period = std::chrono::duration<double, std::ratio<60>>(o.kill_every_minutes);
+  auto next_kill = start + period;
+  std::vector<Downtime> downtimes;
+  std::vector<double> recovery_s;
+  int recoveries_failed = 0;
+  auto life_start = start;
+  int64_t warm_rss = 0, last_rss = 0, peak_rss = 0;
+  bool all_exited = false;
+  while (!all_exited) {
+    std::this_thread::sleep_for(1s);
+    const auto now = Clock::now();
+    const pid_t pid = server->process().pid();
+    last_rss = rssKiB(pid);
+    peak_rss = std::max(peak_rss, last_rss);
+    if (warm_rss == 0 && now - life_start > 60s) warm_rss = last_rss;
+    all_exited =
+        std::all_of(vehicles.begin(), vehicles.end(), [](auto& v) { return !v->running(); });
+    if (now < next_kill || now + 30s > end) continue;
+    next_kill += period;
+
+    std::map<std::string, int64_t> acknowledged;
+    for (int s = 0; s < o.sessions; ++s) {
+      acknowledged[sessionName(s)] =
+          count(sessionStatus(*server, sessionName(s)), "frames_received");
+    }
+    Downtime down{common::nowNs(), 0};
+    server->process().kill9();
+    server.reset();
+    server = std::make_unique<ServerProcess>(o.domain, std::vector<std::string>{}, store);
+    down.ready_ns = common::nowNs();
+    port = server->port();
+    downtimes.push_back(down);
+    const auto restarted = Clock::now();
+    const bool ok = recovered(*server, acknowledged);
+    recoveries_failed += !ok;
+    recovery_s.push_back(std::chrono::duration<double>(Clock::now() - restarted).count());
+    std::printf("soak: kill %zu at %.1f min: back in %.1f s, recovered %s in %.1f s\n",
+                downtimes.size(),
+                std::chrono::duration<double, std::ratio<60>>(restarted - start).count(),
+                (down.ready_ns - down.killed_ns) / 1e9, ok ? "everything" : "NOT everything",
+                recovery_s.back());
+    std::fflush(stdout);
+    life_start = Clock::now();
+    warm_rss = 0;
+    peak_rss = 0;
+  }
+  std::this_thread::sleep_for(5s);  // the viewers see the last pushes
+  std::vector<Viewer::Figures> seen;
+  for (const auto& viewer : viewers) seen.push_back(viewer->figures());
+  viewers.clear();
+  int vehicles_failed = 0;
+  for (auto& v : vehicles) vehicles_failed += v->waitExit(10s).value_or(-1) != 0;
+  server->process().stop();
+
+  Accounting accounting;
+  for (int v = 0; v < o.vehicles; ++v) {
+    account(std::filesystem::path(store) / sessionName(v % o.sessions) / "journal.smj",
+            "v" + std::to_string(v + 1), frames, o.rate, downtimes, accounting);
+  }
+  const double minutes =
+      std::chrono::duration<double, std::ratio<60>>(Clock::now() - start).count();
+  const double growth = warm_rss > 0 ? 100.0 * (last_rss - warm_rss) / warm_rss : 0.0;
+  double longest_away = 0;
+  int connected = 0;
+  uint64_t messages = 0;
+  for (const auto& f : seen) {
+    longest_away = std::max(longest_away, f.longest_away_s);
+    connected += f.connected_at_end;
+    messages += f.messages;
+  }
+  const auto [fastest, slowest] =
+      recovery_s.empty() ? std::pair{0.0, 0.0}
+                         : std::pair{*std::min_element(recovery_s.begin(), recovery_s.end()),
+                                     *std::max_element(recovery_s.begin(), recovery_s.end())};
+  std::printf(
+      "soak: ran %.1f min; %zu kills, %zu of %zu restarts recovered everything acknowledged "
+      "(%.1f-%.1f s)\n",
+      minutes, downtimes.size(), downtimes.size() - recoveries_failed, downtimes.size(), fastest,
+      slowest);
+  std::printf(
+      "soak: frames sent %lld, journaled %lld, lost while the server was down %lld, "
+      "unexplained %lld; vehicles failed %d\n",
+      static_cast<long long>(accounting.sent), static_cast<long long>(accounting.journaled),
+      static_cast<long long>(accounting.lost_at_kills),
+      static_cast<long long>(accounting.unexplained), vehicles_failed);
+  std::printf(
+      "soak: last server's RSS %lld KiB after warm-up -> %lld KiB at the end (%+.1f %%), "
+      "peak %lld KiB\n",
+      static_cast<long long>(warm_rss), static_cast<long long>(last_rss), growth,
+      static_cast<long long>(peak_rss));
+  std::printf("soak: viewers %d of %zu connected at the end, longest away %.1f s, %llu messages\n",
+              connected, seen.size(), longest_away, static_cast<unsigned long long>(messages));
+  for (const auto& problem : accounting.problems) std::printf("soak: %s\n", problem.c_str());
+  double longest_down = 0;
+  for (const auto& d : downtimes)
+    longest_down = std::max(longest_down, (d.ready_ns - d.killed_ns) / 1e9);
+  const bool pass = recoveries_failed == 0 && accounting.unexplained == 0 &&
+                    accounting.problems.empty() && vehicles_failed == 0 && warm_rss > 0 &&
+                    growth <= 10.0 && connected == static_cast<int>(seen.size()) &&
+                    longest_away <= longest_down + 10.0;  // back within a restart (and a push)
+  std::printf("soak: %s\n", pass ? "PASS" : "FAIL");
+  std::error_code ec;
+  if (o.store.empty() && pass) std::filesystem::remove_all(store, ec);
+  if (pass) std::filesystem::remove_all(logs, ec);
+  return pass ? 0 : 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Options o;
+  CLI::App app{
+      "stereomap-soak: vehicles, viewers and a server killed with SIGKILL at a period, "
+      "for a long run (tests/soak/run); exits 1 when something was lost"};
+  app.add_option("--minutes", o.minutes, "How long the vehicles fly")
+      ->check(CLI::Range(1.0, 1440.0));
+  app.add_option("--kill-every", o.kill_every_minutes, "Minutes between SIGKILLs of the server")
+      ->check(CLI::Range(0.5, 1440.0));
+  app.add_option("--vehicles", o.vehicles, "Simulated vehicles")->check(CLI::Range(1, 16));
+  app.add_option("--sessions", o.sessions, "Sessions they share")->check(CLI::Range(1, 16));
+  app.add_option("--viewers", o.viewers, "WebSocket viewers")->check(CLI::Range(0, 64));
+  app.add_option("--rate", o.rate, "Frames per second per vehicle")->check(CLI::Range(0.5, 30.0));
+  app.add_option("--domain", o.domain, "DDS domain id")->check(CLI::Range(0, 232));
+  app.add_option("--store", o.store,
+                 "Store directory (default: a temporary one, removed on success)");
+  CLI11_PARSE(app, argc, argv);
+  return run(o);
+}
