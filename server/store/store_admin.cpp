@@ -578,6 +578,7 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
     fs::remove_all(staging, ec);
     return written;
   }
+  server_.markClosed(request.into);  // in the store, closed, whether or not it opens below
   auto loaded = load(request.into, /*read_only=*/true);
   if (!loaded) return loaded.error();
   spdlog::info("sessions '{}' and '{}' merged into '{}': {} frames, {} poses", request.first,

@@ -15,9 +15,11 @@ using common::ErrorCode;
 
 // A server's store side, as stereomap-server wires it (without DDS).
 struct Server {
-  Server(const fs::path& root, double resolution) : journals(root, resolution) {
+  Server(const fs::path& root, double resolution, size_t max_sessions = 256)
+      : journals(root, resolution) {
     core::MapServerOptions options;
     options.resolution = resolution;
+    options.max_sessions = max_sessions;
     options.log = &journals;
     options.snapshots = &journals;
     options.archive = &journals;
@@ -237,6 +239,25 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_EQ(server.admin->merge({"a", "zz", "c", {}}).error().code, ErrorCode::kNotFound);
   EXPECT_EQ(server.admin->merge({"a", "a", "c", {}}).error().code, ErrorCode::kInvalidArgument);
   EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code, ErrorCode::kInvalidArgument);
+}
+
+// A merged session is born closed. When it cannot be opened (here: the session limit), it
+// must stay closed all the same: a vehicle naming it would otherwise start a live session
+// appending to the merged journal.
+TEST_F(StoreAdminTest, AMergedSessionThatCannotBeOpenedStaysClosed) {
+  Server server(root_, 0.1, /*max_sessions=*/1);
+  fly(*server.map, "a", 2);
+  ASSERT_TRUE(server.admin->close("a").ok());
+  fly(*server.map, "b", 2);
+  const auto merged = server.admin->merge({"a", "b", "ab", {}});
+  ASSERT_FALSE(merged.ok());
+  EXPECT_EQ(merged.error().code, ErrorCode::kUnavailable) << merged.error().message;
+  ASSERT_TRUE(server.admin->close("b").ok());  // room for a session again
+  EXPECT_FALSE(server.map->ingest(wallFrame("ab", 9)));
+  EXPECT_EQ(server.map->find("ab"), nullptr);
+  const auto journal = readJournal(root_ / "ab" / "journal.smj");
+  ASSERT_TRUE(journal.ok());
+  EXPECT_EQ(journal->records.size(), 8u);  // both flights' frames and poses, nothing more
 }
 
 // A vehicle's pose graph moves poses it sent: the map is fused again from the journal with
