@@ -23,7 +23,8 @@ struct MergeRequest {
 class SessionAdmin {
  public:
   virtual ~SessionAdmin() = default;
-  // Sessions kept in the store but not loaded (state "closed"), oldest first.
+  // Sessions kept in the store but not loaded (state "closed"), by id. Asked on every
+  // listing (REST, viewers): answered from memory.
   virtual std::vector<SessionStatus> closedSessions() const = 0;
   // Loads a closed session read-only (snapshot + journal replay), with its trajectory.
   // kNotFound: no such session; kConflict: already loaded.

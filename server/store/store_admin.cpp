@@ -251,7 +251,9 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
   for (const auto& id : storedIds()) {
     if (isClosedOnDisk(id)) {
       server_.markClosed(id);
-      record(statusFromJson(id, readJson(root_ / id / kStatusName)));
+      const auto status = savedStatus(id);
+      record(status);
+      rememberClosed(status);
       continue;
     }
     auto session = load(id, /*read_only=*/false);
@@ -384,20 +386,40 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
   return scratch.unload(id);
 }
 
+core::SessionStatus StoreAdmin::savedStatus(const std::string& id) const {
+  auto status = statusFromJson(id, readJson(root_ / id / kStatusName));
+  status.closed = isClosedOnDisk(id);
+  if (status.resolution <= 0) status.resolution = resolutionOf(root_ / id, 0);
+  return status;
+}
+
 std::vector<core::SessionStatus> StoreAdmin::savedSessions() const {
   std::vector<core::SessionStatus> saved;
-  for (const auto& id : storedIds()) {
-    auto status = statusFromJson(id, readJson(root_ / id / kStatusName));
-    status.closed = isClosedOnDisk(id);
-    if (status.resolution <= 0) status.resolution = resolutionOf(root_ / id, 0);
-    saved.push_back(std::move(status));
-  }
+  for (const auto& id : storedIds()) saved.push_back(savedStatus(id));
   return saved;
 }
 
+void StoreAdmin::rememberClosed(const core::SessionStatus& status) {
+  std::lock_guard lock(closed_mutex_);
+  closed_[status.id] = status;
+}
+
+void StoreAdmin::forgetClosed(const std::string& id) {
+  std::lock_guard lock(closed_mutex_);
+  closed_.erase(id);
+}
+
 std::vector<core::SessionStatus> StoreAdmin::closedSessions() const {
-  auto closed = savedSessions();
-  std::erase_if(closed, [&](const auto& s) { return !s.closed || server_.find(s.id) != nullptr; });
+  std::vector<core::SessionStatus> closed;
+  if (options_.writable) {
+    std::lock_guard lock(closed_mutex_);
+    for (const auto& [id, status] : closed_) closed.push_back(status);
+  } else {  // a tool reading the store: nothing in memory, and no server beside it to wait
+    closed = savedSessions();
+    std::erase_if(closed, [](const auto& s) { return !s.closed; });
+  }
+  // By id, as storedIds(); those open read-only are listed with the loaded ones.
+  std::erase_if(closed, [&](const auto& s) { return server_.find(s.id) != nullptr; });
   return closed;
 }
 
@@ -443,6 +465,7 @@ common::Status StoreAdmin::closeLocked(const std::string& id) {
   status.closed = true;
   status.read_only = false;
   record(status);
+  rememberClosed(status);
   server_.unload(id);
   journals_->release(id);
   spdlog::info("session '{}' closed into the store ({} frames, {} occupied voxels)", id,
@@ -482,6 +505,7 @@ common::Status StoreAdmin::remove(const std::string& id) {
     if (auto erased = catalog_->remove(id); !erased) spdlog::warn("{}", erased.error().message);
   }
   server_.forget(id);
+  forgetClosed(id);
   spdlog::info("session '{}' deleted", id);
   return common::Ok{};
 }
@@ -579,6 +603,7 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
     return written;
   }
   server_.markClosed(request.into);  // in the store, closed, whether or not it opens below
+  rememberClosed(savedStatus(request.into));
   auto loaded = load(request.into, /*read_only=*/true);
   if (!loaded) return loaded.error();
   spdlog::info("sessions '{}' and '{}' merged into '{}': {} frames, {} poses", request.first,
@@ -640,6 +665,8 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
     fs::remove_all(staging, ec);
     return written.error();
   }
+  server_.markClosed(id);  // in the store, closed, whether or not it opens below (as merge)
+  rememberClosed(savedStatus(id));
   auto loaded = load(id, /*read_only=*/true);
   if (!loaded) return loaded.error();
   if (auto session = server_.find(id)) {
@@ -651,6 +678,7 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
     status.closed = true;
     status.read_only = false;
     record(status);
+    rememberClosed(status);
   }
   spdlog::info("{} imported as session '{}'", file.string(), id);
   return loaded;

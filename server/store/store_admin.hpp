@@ -85,6 +85,12 @@ class StoreAdmin : public core::SessionAdmin {
   common::Status requireWritable(const char* what) const;
   void openCatalog();  // catalog_ stays null (and catalog_warning_ says why) when it cannot
   void record(const core::SessionStatus& status);
+  // A session's status as last saved on disk.
+  core::SessionStatus savedStatus(const std::string& id) const;
+  // The closed sessions' statuses, kept in memory for listings (closedSessions() is asked on
+  // every REST and viewer listing; it must not read files, nor wait behind a long merge).
+  void rememberClosed(const core::SessionStatus& status);
+  void forgetClosed(const std::string& id);
 
   std::filesystem::path root_;
   core::MapServer& server_;
@@ -98,6 +104,8 @@ class StoreAdmin : public core::SessionAdmin {
   std::map<std::string, std::string> save_errors_;  // last logged failure, per session
   std::string catalog_error_;                       // the last one logged
   mutable std::mutex mutex_;                        // one operation at a time
+  std::map<std::string, core::SessionStatus> closed_;  // writable only; see rememberClosed
+  mutable std::mutex closed_mutex_;                    // guards closed_ alone
 };
 
 }  // namespace stereomap::store

@@ -241,6 +241,26 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code, ErrorCode::kInvalidArgument);
 }
 
+// Listings (REST, every viewer's "sessions") are answered from memory, not by reading every
+// closed session's session.json on the network thread: a file changed behind the server's
+// back does not change them; close, merge and delete do.
+TEST_F(StoreAdminTest, ClosedSessionsAreListedFromMemory) {
+  Server server(root_, 0.1);
+  fly(*server.map, "a", 3);
+  fly(*server.map, "b", 2);
+  ASSERT_TRUE(server.admin->close("a").ok());
+  ASSERT_TRUE(server.admin->close("b").ok());
+  fs::remove(root_ / "a" / "session.json");
+  auto listed = server.admin->closedSessions();
+  ASSERT_EQ(listed.size(), 2u);
+  EXPECT_EQ(listed[0].id, "a");
+  EXPECT_EQ(listed[0].frames_fused, 3u);
+  EXPECT_TRUE(listed[0].closed);
+  ASSERT_TRUE(server.admin->remove("b").ok());
+  ASSERT_TRUE(server.admin->open("a").ok());  // loaded: listed with the loaded ones
+  EXPECT_TRUE(server.admin->closedSessions().empty());
+}
+
 // A merged session is born closed. When it cannot be opened (here: the session limit), it
 // must stay closed all the same: a vehicle naming it would otherwise start a live session
 // appending to the merged journal.
