@@ -101,9 +101,9 @@ class StoreAdmin : public core::SessionAdmin {
   std::string catalog_warning_;
   int lock_fd_ = -1;
   std::map<std::string, uint64_t> saved_versions_;
-  std::map<std::string, std::string> save_errors_;  // last logged failure, per session
-  std::string catalog_error_;                       // the last one logged
-  mutable std::mutex mutex_;                        // one operation at a time
+  std::map<std::string, std::string> save_errors_;     // last logged failure, per session
+  std::string catalog_error_;                          // the last one logged
+  mutable std::mutex mutex_;                           // one operation at a time
   std::map<std::string, core::SessionStatus> closed_;  // writable only; see rememberClosed
   mutable std::mutex closed_mutex_;                    // guards closed_ alone
 };
