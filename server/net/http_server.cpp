@@ -8,8 +8,6 @@
 #include <nlohmann/json.hpp>
 
 #include <atomic>
-#include <condition_variable>
-#include <deque>
 #include <functional>
 #include <mutex>
 #include <set>
@@ -18,6 +16,7 @@
 #include "common/time.hpp"
 #include "common/url.hpp"
 #include "server/core/api.hpp"
+#include "server/net/admin_worker.hpp"
 #include "server/net/viewer_files.hpp"
 #include "server/viewers/viewer_hub.hpp"
 
@@ -48,50 +47,6 @@ std::string errorBody(const std::string& message) {
                                                  nlohmann::json::error_handler_t::replace) +
          "\n";
 }
-
-// Runs session-management requests (a replay can take seconds) one at a time, off the
-// network thread, so that viewers and REST reads never wait for them.
-class AdminWorker {
- public:
-  AdminWorker() : thread_([this] { run(); }) {}
-  ~AdminWorker() { stop(); }
-  void post(std::function<void()> job) {
-    {
-      std::lock_guard lock(mutex_);
-      jobs_.push_back(std::move(job));
-    }
-    changed_.notify_one();
-  }
-  void stop() {  // finishes the job under way; drops the queued ones
-    {
-      std::lock_guard lock(mutex_);
-      stopping_ = true;
-      jobs_.clear();
-    }
-    changed_.notify_one();
-    if (thread_.joinable()) thread_.join();
-  }
-
- private:
-  void run() {
-    for (;;) {
-      std::function<void()> job;
-      {
-        std::unique_lock lock(mutex_);
-        changed_.wait(lock, [this] { return stopping_ || !jobs_.empty(); });
-        if (stopping_) return;
-        job = std::move(jobs_.front());
-        jobs_.pop_front();
-      }
-      job();
-    }
-  }
-  std::mutex mutex_;
-  std::condition_variable changed_;
-  std::deque<std::function<void()>> jobs_;
-  bool stopping_ = false;
-  std::thread thread_;
-};
 
 }  // namespace
 
@@ -260,22 +215,29 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       return;
     }
     if (core::isAdminRequest(method, target)) {
-      hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
-                              body = std::move(request.body()), version = request.version(),
-                              keep_alive = request.keep_alive()] {
-        core::HttpAnswer answer;
-        try {
-          answer = core::answerAdmin(self->hub_.admin, self->hub_.server, method, target, body);
-        } catch (const std::exception& e) {
-          spdlog::error("internal error in {} {}: {}", method, target.substr(0, 200), e.what());
-          answer = {500, "application/json", errorBody(std::string("internal error: ") + e.what()),
-                    ""};
-        }
-        asio::post(self->stream_.get_executor(),
-                   [self, answer = std::move(answer), version, keep_alive]() mutable {
-                     self->sendAnswer(std::move(answer), version, false, keep_alive);
-                   });
-      });
+      const bool queued =
+          hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
+                                  body = std::move(request.body()), version = request.version(),
+                                  keep_alive = request.keep_alive()] {
+            core::HttpAnswer answer;
+            try {
+              answer = core::answerAdmin(self->hub_.admin, self->hub_.server, method, target, body);
+            } catch (const std::exception& e) {
+              spdlog::error("internal error in {} {}: {}", method, target.substr(0, 200), e.what());
+              answer = {500, "application/json",
+                        errorBody(std::string("internal error: ") + e.what()), ""};
+            }
+            asio::post(self->stream_.get_executor(),
+                       [self, answer = std::move(answer), version, keep_alive]() mutable {
+                         self->sendAnswer(std::move(answer), version, false, keep_alive);
+                       });
+          });
+      if (!queued) {
+        return sendError(http::status::service_unavailable,
+                         std::to_string(AdminWorker::kMaxWaiting) +
+                             " session-management requests are waiting already; try again later",
+                         request.keep_alive());
+      }
       return;
     }
     const auto header = request[http::field::if_none_match];

@@ -268,7 +268,15 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
 }
 
 void StoreAdmin::checkpoint(bool all) {
-  std::lock_guard lock(mutex_);
+  // The periodic round never waits behind an open, merge or import (minutes for a long
+  // journal): the next round, five seconds later, saves what this one skipped. The last
+  // one, at shutdown, waits.
+  std::unique_lock lock(mutex_, std::defer_lock);
+  if (all) {
+    lock.lock();
+  } else if (!lock.try_lock()) {
+    return;
+  }
   if (!options_.writable) return;
   // Degraded with no sample refused lately (no vehicle flying, or a start on a full disk):
   // a test write tells whether there is room again. While samples are refused, only a

@@ -51,7 +51,7 @@ class StoreAdmin : public core::SessionAdmin {
   std::vector<RecoveredSession> recoverAll();
   // Saves the map, trajectory and session.json of every loaded session that changed since
   // (ended and idle ones only, unless `all`: at shutdown), and updates the catalog rows.
-  // Writable only.
+  // Writable only. Without `all` it returns at once while another operation is under way.
   void checkpoint(bool all);
   // Set when the catalog was damaged and has been rebuilt.
   const std::string& catalogWarning() const { return catalog_warning_; }
