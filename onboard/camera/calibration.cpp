@@ -67,6 +67,12 @@ Result<cv::FileStorage> openStorage(const fs::path& path) {
     if (!storage.isOpened()) {
       return makeError(ErrorCode::kCorrupt, path.string() + ": cannot be parsed as YAML/XML");
     }
+    // OpenCV throws from storage["key"] when the top level is not a map (a list, a scalar):
+    // found by fuzzing (tests/fuzz/corpus/calibration/top-level-list).
+    if (!storage.root().isMap()) {
+      return makeError(ErrorCode::kCorrupt,
+                       path.string() + ": its top level is not a map of named fields");
+    }
     return storage;
   } catch (const cv::Exception& e) {
     return makeError(ErrorCode::kCorrupt,

@@ -94,6 +94,8 @@ TEST(Calibration, BadFilesNameTheFileAndTheField) {
   expectError(dir / "missing.yaml", "no such calibration file");
   writeText(dir / "garbage.yaml", "%YAML:1.0\nfoo: [1, 2\n");
   expectError(dir / "garbage.yaml", "cannot be parsed");
+  writeText(dir / "list.yaml", "%YAML:1.0\n- 1\n- 2\n");
+  expectError(dir / "list.yaml", "its top level is not a map");
   writeText(dir / "unknown.yaml", "%YAML:1.0\nfoo: 1\n");
   expectError(dir / "unknown.yaml", "not a known calibration format");
 
