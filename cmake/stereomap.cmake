@@ -15,7 +15,7 @@ function(stereomap_library name)
 endfunction()
 
 # stereomap_test(NAME [SERIAL] SOURCES ... DEPS ...): a GoogleTest binary registered with
-# CTest. SERIAL: its tests run alone (they measure time, which a test beside them on the
+# CTest, its test cases labelled NAME. SERIAL: its tests run alone (they measure time, which a test beside them on the
 # machine's two cores would spoil).
 function(stereomap_test name)
   cmake_parse_arguments(ARG "SERIAL" "" "SOURCES;DEPS" ${ARGN})
@@ -31,7 +31,9 @@ function(stereomap_test name)
   if(ARG_SERIAL)
     set(serial TRUE)
   endif()
-  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60 PROPERTIES TIMEOUT 300 RUN_SERIAL ${serial})
+  # Each test case is labelled with its binary, so that a run can pick binaries (ctest -L).
+  gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60
+    PROPERTIES TIMEOUT 300 RUN_SERIAL ${serial} LABELS ${name})
 endfunction()
 
 # stereomap_app(NAME SOURCES ... DEPS ...): a stereomap-<verb> binary in build/bin.

@@ -11,17 +11,16 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "common/statistics.hpp"
 #include "onboard/eval/landing_run.hpp"
 
 namespace {
 
 using namespace stereomap;
 
-double median(std::vector<double> values) {
-  if (values.empty()) return std::nan("");
-  std::nth_element(values.begin(), values.begin() + static_cast<long>(values.size() / 2),
-                   values.end());
-  return values[values.size() / 2];
+// NaN when there is nothing to take the median of: the table prints "nan".
+double medianOrNan(std::vector<double> values) {
+  return common::median(std::move(values)).value_or(std::nan(""));
 }
 
 void saveFrame(const std::filesystem::path& dir, const camera::SourceFrame& frame,
@@ -163,13 +162,13 @@ int main(int argc, char** argv) {
       std::vector<double> sorted = position;
       std::sort(sorted.begin(), sorted.end());
       const double p90 = sorted.empty() ? NAN : sorted[sorted.size() * 9 / 10];
-      const double pos = median(position), att = median(attitude);
+      const double pos = medianOrNan(position), att = medianOrNan(attitude);
       if (centre == 20) {
         at20[m][0] = pos;
         at20[m][1] = att;
       }
       std::printf("%4.0f m %-8s %7d %8d %10d %10.3f %12.3f %12.3f %12.3f %7d\n", centre, names[m],
-                  frames, detected, published, median(corners), pos, att, p90, wrong);
+                  frames, detected, published, medianOrNan(corners), pos, att, p90, wrong);
     }
   }
   // First lock: frames from the first one with the whole pad in view to the first TRACKING.
@@ -202,7 +201,7 @@ int main(int argc, char** argv) {
       "first lock: frame %d (pad wholly in view from frame %d); full detections %d, frames LOST "
       "%d; corners %.3f px RMS (median); false locks (> 5 %% of distance): default %d, patent %d "
       "of %zu frames\n",
-      first_lock, first_in_view, detections, lost, median(corner_px), false_locks[0],
+      first_lock, first_in_view, detections, lost, medianOrNan(corner_px), false_locks[0],
       false_locks[1], scores.size());
   std::printf(
       "deck motion while tracking: heave rate error %.3f m/s RMS, deck attitude %.3f deg "
@@ -212,7 +211,8 @@ int main(int argc, char** argv) {
   std::printf(
       "speed on one core (median, ms): tracking %.2f, full detection %.2f, default pose %.2f, "
       "patent pose %.3f\n",
-      median(follow_ms), median(detect_ms), median(pose_ms[0]), median(pose_ms[1]));
+      medianOrNan(follow_ms), medianOrNan(detect_ms), medianOrNan(pose_ms[0]),
+      medianOrNan(pose_ms[1]));
   std::printf("landing at 20 m: default %.3f%% / %.3f deg, patent %.3f%% / %.3f deg\n", at20[0][0],
               at20[0][1], at20[1][0], at20[1][1]);
   return 0;

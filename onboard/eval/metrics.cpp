@@ -1,6 +1,7 @@
 #include "onboard/eval/metrics.hpp"
 
-#include <Eigen/SVD>
+#include <Eigen/Geometry>
+
 
 #include <algorithm>
 #include <cmath>
@@ -77,30 +78,18 @@ Associated associateByIndex(const Trajectory& ref, const Trajectory& est) {
 }
 
 Similarity umeyama(const std::vector<Vec3>& src, const std::vector<Vec3>& dst, bool with_scale) {
-  const size_t n = src.size();
-  Vec3 mu_s = Vec3::Zero(), mu_d = Vec3::Zero();
-  for (size_t i = 0; i < n; ++i) {
-    mu_s += src[i];
-    mu_d += dst[i];
-  }
-  mu_s /= static_cast<double>(n);
-  mu_d /= static_cast<double>(n);
-  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-  double var_s = 0;
-  for (size_t i = 0; i < n; ++i) {
-    cov += (dst[i] - mu_d) * (src[i] - mu_s).transpose();
-    var_s += (src[i] - mu_s).squaredNorm();
-  }
-  cov /= static_cast<double>(n);
-  var_s /= static_cast<double>(n);
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(cov, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d S = Eigen::Matrix3d::Identity();
-  if (svd.matrixU().determinant() * svd.matrixV().determinant() < 0) S(2, 2) = -1;
-  const Eigen::Matrix3d R = svd.matrixU() * S * svd.matrixV().transpose();
+  Eigen::Matrix3Xd from(3, src.size()), to(3, dst.size());
+  for (size_t i = 0; i < src.size(); ++i) from.col(static_cast<Eigen::Index>(i)) = src[i];
+  for (size_t i = 0; i < dst.size(); ++i) to.col(static_cast<Eigen::Index>(i)) = dst[i];
+  // Eigen divides by the source's spread for the scale: none (one point, or all alike)
+  // means no scale to find.
+  const bool scaled = with_scale && (from.colwise() - from.rowwise().mean()).squaredNorm() > 0;
+  const Eigen::Matrix4d T = Eigen::umeyama(from, to, scaled);
+  const Eigen::Matrix3d sR = T.topLeftCorner<3, 3>();
   Similarity a;
-  a.scale = with_scale && var_s > 0 ? (svd.singularValues().asDiagonal() * S).trace() / var_s : 1.0;
-  a.rotation = Quat(R).normalized();
-  a.translation = mu_d - a.scale * (R * mu_s);
+  a.scale = scaled ? sR.col(0).norm() : 1.0;
+  a.rotation = Quat(sR / a.scale).normalized();
+  a.translation = T.topRightCorner<3, 1>();
   return a;
 }
 

@@ -34,7 +34,8 @@ Associated associate(const common::Trajectory& ref, const common::Trajectory& es
 Associated associateByIndex(const common::Trajectory& ref, const common::Trajectory& est);
 
 enum class Alignment { kNone, kSe3, kSim3 };
-// Umeyama (1991): the s, R, t minimising sum |dst - (s R src + t)|^2 (s = 1 unless with_scale).
+// Umeyama (1991): the s, R, t minimising sum |dst - (s R src + t)|^2 (s = 1 unless with_scale):
+// Eigen::umeyama, as evo computes it.
 struct Similarity {
   double scale = 1;
   common::Quat rotation = common::Quat::Identity();

@@ -6,6 +6,8 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "common/statistics.hpp"
+
 namespace stereomap::landing {
 
 using common::Vec3;
@@ -179,10 +181,8 @@ std::vector<cv::Point> localContour(const cv::Mat& grey, const std::vector<cv::P
         if (mask.at<uint8_t>(y, x) != 0) values.push_back(patch.at<uint8_t>(y, x));
       }
     }
-    if (values.empty()) return -1;
-    std::nth_element(values.begin(), values.begin() + static_cast<long>(values.size() / 2),
-                     values.end());
-    return static_cast<int>(values[values.size() / 2]);
+    const auto middle = common::median(std::move(values));
+    return middle ? static_cast<int>(*middle) : -1;
   };
   const int dark = medianUnder(core), light = medianUnder(ring);
   if (dark < 0 || light < 0 || light <= dark) return {};

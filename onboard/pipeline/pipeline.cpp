@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <vector>
 
+#include "common/statistics.hpp"
 #include "common/time.hpp"
 #include "proto/wire_size.hpp"
 
@@ -20,13 +21,6 @@ template <typename T>
 common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
     const std::shared_ptr<proto::Participant>& participant) {
   return proto::Writer<T>::create(participant);
-}
-
-double median(std::vector<double> values) {
-  if (values.empty()) return 0;
-  auto middle = values.begin() + values.size() / 2;
-  std::nth_element(values.begin(), middle, values.end());
-  return *middle;
 }
 
 void copyPose(const common::Rigid3& T, std::array<double, 3>& position,
@@ -465,12 +459,12 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     }
   }
   if (cloud_link) summary.link = cloud_link->stats();
-  summary.median_depth_ms = median(depth_ms);
+  summary.median_depth_ms = common::median(depth_ms).value_or(0.0);
   summary.image_noise_sigma = depth_step.noiseSigma();
   summary.noisy_images = depth_step.noisy();
-  summary.median_encode_ms = median(encode_ms);
-  summary.median_frame_ms = median(frame_ms);
-  summary.median_odometry_ms = median(odometry_ms);
+  summary.median_encode_ms = common::median(encode_ms).value_or(0.0);
+  summary.median_frame_ms = common::median(frame_ms).value_or(0.0);
+  summary.median_odometry_ms = common::median(odometry_ms).value_or(0.0);
   if (graph) {
     const auto poses = graph->finish();
     for (size_t i = 0; i < poses.size(); ++i) {

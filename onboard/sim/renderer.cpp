@@ -9,6 +9,8 @@
 
 #include <random>
 
+#include "common/statistics.hpp"
+
 namespace stereomap::sim {
 
 using common::Rigid3;
@@ -241,9 +243,8 @@ StereoFrame Renderer::render(const Rigid3& T_map_camera,
         if (row[u] > 0) depths.push_back(row[u]);
       }
     }
-    if (!depths.empty()) {
-      std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
-      const double z = depths[depths.size() / 2];
+    if (const auto median_depth = common::median(std::move(depths))) {
+      const double z = *median_depth;
       const Vec3 p_map = T_map_camera * Vec3(0, 0, z);
       const auto open = camera_.project(exposure->T_map_camera_open.inverse() * p_map);
       const auto close = camera_.project(exposure->T_map_camera_close.inverse() * p_map);

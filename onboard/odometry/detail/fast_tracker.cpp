@@ -9,6 +9,7 @@
 #include <cmath>
 #include <limits>
 
+#include "common/statistics.hpp"
 #include "onboard/odometry/detail/refine.hpp"
 #include "onboard/odometry/detail/rotation.hpp"
 
@@ -97,10 +98,9 @@ void FastTracker::updateRightGain(const cv::Mat& left, const cv::Mat& right,
     if (l >= 20 && r >= 0) ratios.push_back(r / l);  // dark windows say little
   }
   if (ratios.size() < 20) return;
-  const auto middle = ratios.begin() + static_cast<std::ptrdiff_t>(ratios.size() / 2);
-  std::nth_element(ratios.begin(), middle, ratios.end());
+  const double middle = *common::median(std::move(ratios));
   // A running mean: one frame's median scatters by about a percent.
-  right_gain_ = std::clamp(right_gain_ + 0.1 * (levelled_by_ * *middle - right_gain_), 0.5, 2.0);
+  right_gain_ = std::clamp(right_gain_ + 0.1 * (levelled_by_ * middle - right_gain_), 0.5, 2.0);
 }
 
 void FastTracker::fuse(size_t i, const Vec3& point, double disparity) {
