@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "common/time.hpp"
+#include "common/trajectory.hpp"
 #include "onboard/camera/image_noise.hpp"
 #include "onboard/camera/rectifier.hpp"
 
@@ -185,8 +186,7 @@ Result<std::unique_ptr<FrameSource>> makeRecorded(std::string description,
 
 // KITTI poses are the left camera in frame 0's camera frame (OpenCV axes); our map is
 // z-up with the body looking along +x, so the camera's axes are turned into the body's.
-Rigid3 kittiBodyPose(const Eigen::Matrix<double, 3, 4>& P) {
-  const Rigid3 T_cv0_cvk{common::Quat(Eigen::Matrix3d(P.leftCols<3>())).normalized(), P.col(3)};
+Rigid3 kittiBodyPose(const Rigid3& T_cv0_cvk) {
   const Rigid3 R_body_camera{common::bodyFromCameraRotation(), common::Vec3::Zero()};
   return R_body_camera * T_cv0_cvk * R_body_camera.inverse();
 }
@@ -211,20 +211,15 @@ Result<std::unique_ptr<FrameSource>> openKitti(const fs::path& dir, const Datase
   if (std::ifstream in(dir / "times.txt"); in) {
     for (double t; in >> t;) times.push_back(t);
   }
-  std::vector<Eigen::Matrix<double, 3, 4>> poses;
-  if (std::ifstream in(dir / "poses.txt"); in) {
-    for (std::string line; std::getline(in, line);) {
-      std::istringstream numbers(line);
-      Eigen::Matrix<double, 3, 4> P;
-      bool ok = true;
-      for (int i = 0; i < 12 && ok; ++i) ok = static_cast<bool>(numbers >> P(i / 4, i % 4));
-      if (!ok || !P.allFinite()) {
-        spdlog::warn("kitti:{}: poses.txt line {} is not 12 numbers; ground truth ignored",
-                     dir.string(), poses.size() + 1);
-        poses.clear();
-        break;
-      }
-      poses.push_back(P);
+  std::vector<Rigid3> poses;  // T_cv0_cvk: the ground truth, when the sequence has it
+  if (fs::exists(dir / "poses.txt")) {
+    common::TrajectoryFormat format;
+    auto read = common::readTrajectory(dir / "poses.txt", {}, &format);
+    if (!read || format != common::TrajectoryFormat::kKitti) {
+      spdlog::warn("kitti:{}: {}; ground truth ignored", dir.string(),
+                   read ? "poses.txt is not 12 numbers per line" : read.error().message);
+    } else {
+      for (const auto& pose : *read) poses.push_back(pose.pose);
     }
   }
   if (!times.empty() && times.size() != lefts.size()) {
