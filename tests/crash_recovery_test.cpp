@@ -13,6 +13,7 @@
 #include <sstream>
 
 #include "proto/cloud_codec.hpp"
+#include "proto/pose_fields.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/store/journal.hpp"
 #include "server/store/session_journals.hpp"
@@ -46,11 +47,9 @@ std::string referenceMapBinary(const std::vector<proto::CloudFrameMsg>& frames) 
     auto cloud = proto::decodeCloud(frame.payload, proto::payloadInfo(frame));
     EXPECT_TRUE(cloud.ok());
     if (!cloud.ok()) continue;
-    const common::Quat q(frame.sensor_orientation[3], frame.sensor_orientation[0],
-                         frame.sensor_orientation[1], frame.sensor_orientation[2]);
-    const common::Vec3 t(frame.sensor_position[0], frame.sensor_position[1],
-                         frame.sensor_position[2]);
-    reference.insertCloud(*cloud, {q.normalized(), t}, frame.max_range);
+    reference.insertCloud(*cloud,
+                          proto::rigidFromFields(frame.sensor_position, frame.sensor_orientation),
+                          frame.max_range);
   }
   std::ostringstream bt;
   EXPECT_TRUE(reference.writeBinary(bt));

@@ -7,6 +7,7 @@
 
 #include "common/statistics.hpp"
 #include "common/time.hpp"
+#include "proto/pose_fields.hpp"
 #include "proto/wire_size.hpp"
 
 namespace stereomap::pipeline {
@@ -21,13 +22,6 @@ template <typename T>
 common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
     const std::shared_ptr<proto::Participant>& participant) {
   return proto::Writer<T>::create(participant);
-}
-
-void copyPose(const common::Rigid3& T, std::array<double, 3>& position,
-              std::array<double, 4>& orientation) {
-  const common::Quat q = T.rotation.normalized();
-  position = {T.translation.x(), T.translation.y(), T.translation.z()};
-  orientation = {q.x(), q.y(), q.z(), q.w()};
 }
 
 }  // namespace
@@ -96,7 +90,7 @@ proto::PoseMsg makePoseMsg(const PipelineOptions& options, uint64_t seq, int64_t
                            const odometry::VoEstimate* estimate) {
   proto::PoseMsg pose;
   address(pose, options, seq, stamp_ns);
-  copyPose(T_map_body, pose.position, pose.orientation);
+  proto::fieldsFromRigid(T_map_body, pose.position, pose.orientation);
   pose.velocity = {velocity.x(), velocity.y(), velocity.z()};
   pose.tracking_state = proto::TrackingState::kOk;
   pose.source = proto::PoseSource::kGroundTruth;
@@ -141,8 +135,9 @@ proto::LandingTargetMsg makeLandingTargetMsg(const PipelineOptions& options, uin
   target.reason = seen.reason.substr(0, proto::kMaxLandingReason);
   target.has_pose = seen.has_pose;
   if (seen.has_pose) {
-    copyPose(seen.pose.T_camera_pad, target.camera_position, target.camera_orientation);
-    copyPose(seen.T_map_pad, target.map_position, target.map_orientation);
+    proto::fieldsFromRigid(seen.pose.T_camera_pad, target.camera_position,
+                           target.camera_orientation);
+    proto::fieldsFromRigid(seen.T_map_pad, target.map_position, target.map_orientation);
     for (int r = 0; r < 6; ++r) {
       for (int c = 0; c < 6; ++c) {
         target.camera_covariance[static_cast<size_t>(r * 6 + c)] = seen.pose.covariance(r, c);
@@ -173,7 +168,8 @@ proto::PoseCorrectionMsg makePoseCorrectionMsg(
   for (const auto& k : keyframes) {
     proto::KeyframePoseMsg pose;
     pose.stamp_ns = k.stamp_ns;
-    copyPose(anchor * k.T_world_camera * T_camera_body, pose.position, pose.orientation);
+    proto::fieldsFromRigid(anchor * k.T_world_camera * T_camera_body, pose.position,
+                           pose.orientation);
     correction.keyframes.push_back(pose);
   }
   return correction;
@@ -188,7 +184,7 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
   if (!payload) return payload.error();
   proto::CloudFrameMsg frame;
   address(frame, options, seq, stamp_ns);
-  copyPose(T_map_camera, frame.sensor_position, frame.sensor_orientation);
+  proto::fieldsFromRigid(T_map_camera, frame.sensor_position, frame.sensor_orientation);
   frame.max_range =
       stereo::farthestPoint(cloud_camera, static_cast<float>(options.stereo.cloud.max_range_m)) *
       1.001f;

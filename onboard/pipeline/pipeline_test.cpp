@@ -6,6 +6,7 @@
 
 #include "onboard/eval/metrics.hpp"
 #include "onboard/sim/sim_source.hpp"
+#include "proto/pose_fields.hpp"
 
 namespace stereomap::pipeline {
 namespace {
@@ -33,8 +34,7 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
   EXPECT_GE(msg->max_range, 6.0f);
   EXPECT_GE(msg->max_range, longest);
   EXPECT_LE(msg->max_range, std::max(6.0f, longest) * 1.01f);
-  const common::Quat q(msg->sensor_orientation[3], msg->sensor_orientation[0],
-                       msg->sensor_orientation[1], msg->sensor_orientation[2]);
+  const common::Quat q = proto::quatFromFields(msg->sensor_orientation);
   EXPECT_NEAR(q.angularDistance(T_map_camera.rotation), 0.0, 1e-9);
   auto decoded = proto::decodeCloud(msg->payload, proto::payloadInfo(*msg));
   ASSERT_TRUE(decoded.ok());

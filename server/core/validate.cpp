@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "proto/cloud_codec.hpp"
+#include "proto/pose_fields.hpp"
 
 namespace stereomap::core {
 
@@ -30,7 +31,7 @@ std::optional<Rejection> checkPose(const std::array<double, 3>& position,
                                    const std::string& what, common::Rigid3& out) {
   if (!allFinite(position)) return Rejection{"non_finite", what + " position is not finite"};
   if (!allFinite(orientation)) return Rejection{"non_finite", what + " orientation is not finite"};
-  const common::Quat q(orientation[3], orientation[0], orientation[1], orientation[2]);
+  const common::Quat q = proto::quatFromFields(orientation);
   if (!common::isUnitQuaternion(q)) {
     return Rejection{"bad_quaternion", what + " orientation is not a unit quaternion (norm " +
                                            std::to_string(q.norm()) + ")"};

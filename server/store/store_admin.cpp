@@ -16,6 +16,7 @@
 
 #include "common/files.hpp"
 #include "common/time.hpp"
+#include "proto/pose_fields.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 
@@ -103,12 +104,7 @@ void moveMessage(Message& m, const std::string& into, const std::string& vehicle
 // `T` applied to a pose stored as position + x y z w quaternion.
 void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
                    std::array<double, 4>& orientation) {
-  common::Rigid3 pose{common::Quat(orientation[3], orientation[0], orientation[1], orientation[2]),
-                      common::Vec3(position[0], position[1], position[2])};
-  pose = T * pose;
-  pose.rotation.normalize();
-  position = {pose.translation.x(), pose.translation.y(), pose.translation.z()};
-  orientation = {pose.rotation.x(), pose.rotation.y(), pose.rotation.z(), pose.rotation.w()};
+  proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
 }
 
 // Replays the journal's poses stamped no later than `until_ns` into `server`, then each
