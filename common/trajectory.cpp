@@ -1,8 +1,11 @@
 #include "common/trajectory.hpp"
 
+#include <fmt/format.h>
+
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <sstream>
 
 #include "common/files.hpp"
@@ -103,13 +106,13 @@ Result<Trajectory> readTrajectory(const std::filesystem::path& path,
 
 std::string tumText(const Trajectory& trajectory) {
   std::string text;
-  char line[256];
   for (const auto& p : trajectory) {
     const auto& t = p.pose.translation;
     const auto& q = p.pose.rotation;
-    std::snprintf(line, sizeof(line), "%.9f %.6f %.6f %.6f %.9f %.9f %.9f %.9f\n", p.t, t.x(),
-                  t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
-    text += line;
+    // No fixed buffer: a position of 1e300 m is written whole (a 256-byte line cut it).
+    fmt::format_to(std::back_inserter(text),
+                   "{:.9f} {:.6f} {:.6f} {:.6f} {:.9f} {:.9f} {:.9f} {:.9f}\n", p.t, t.x(), t.y(),
+                   t.z(), q.x(), q.y(), q.z(), q.w());
   }
   return text;
 }

@@ -2,13 +2,13 @@
 
 #include <algorithm>
 #include <chrono>
-#include <iomanip>
 
 #include <spdlog/spdlog.h>
 
 #include "common/forked_write.hpp"
 #include "common/png.hpp"
 #include "common/time.hpp"
+#include "common/trajectory.hpp"
 
 #include <sstream>
 
@@ -533,18 +533,12 @@ std::vector<PoseRecord> Session::trajectory(size_t from) const {
 }
 
 std::string Session::trajectoryTum(const std::string& vehicle_id) const {
-  std::ostringstream out;
-  out << std::fixed;
+  common::Trajectory poses;
   for (const auto& pose : trajectory()) {
     if (!vehicle_id.empty() && pose.vehicle_id != vehicle_id) continue;
-    const auto& t = pose.T_map_body.translation;
-    const auto& q = pose.T_map_body.rotation;
-    out << std::setprecision(9) << pose.stamp_ns / 1'000'000'000 << "." << std::setw(9)
-        << std::setfill('0') << pose.stamp_ns % 1'000'000'000 << std::setfill(' ')
-        << std::setprecision(6) << " " << t.x() << " " << t.y() << " " << t.z() << " "
-        << std::setprecision(9) << q.x() << " " << q.y() << " " << q.z() << " " << q.w() << "\n";
+    poses.push_back({common::nsToSeconds(pose.stamp_ns), pose.T_map_body});
   }
-  return out.str();
+  return common::tumText(poses);
 }
 
 common::Result<std::string> Session::mapBinary() const {
