@@ -7,13 +7,15 @@
 // middle and back; switching sessions; and a page that
 // reconnects by itself after the server restarts. Screenshots sit beside --screenshot.
 //
-// Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P
-//                       --screenshot FILE [--frames 60]
+// Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N
+//                       --screenshot FILE [--port P] [--frames 60]
+// Without --port (or with 0) a free port is picked: the server keeps it across its restart.
 // Prints "1 passed, 0 failed" and exits 0, or "0 passed, 1 failed" and exits 1; 2 on bad usage.
 
 import { spawn } from 'node:child_process';
 import { existsSync } from 'node:fs';
 import { mkdtemp, mkdir, rm } from 'node:fs/promises';
+import net from 'node:net';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
 import { pathToFileURL } from 'node:url';
@@ -37,7 +39,7 @@ const kChromiumFlags = ['--headless', '--no-sandbox', '--disable-gpu', '--use-an
 class TestFailure extends Error {}
 
 function usage(message) {
-  console.error(`viewer_e2e: ${message}\nusage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --port P --screenshot FILE [--frames 60]`);
+  console.error(`viewer_e2e: ${message}\nusage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N --screenshot FILE [--port P] [--frames 60]`);
   process.exit(2);
 }
 
@@ -51,7 +53,7 @@ function readOptions() {
   } catch (error) {
     usage(error.message);
   }
-  for (const name of ['bin-dir', 'web-root', 'dds-config', 'domain', 'port', 'screenshot']) {
+  for (const name of ['bin-dir', 'web-root', 'dds-config', 'domain', 'screenshot']) {
     if (!values[name]) usage(`--${name} is required`);
   }
   const integer = (name, fallback) => {
@@ -64,7 +66,7 @@ function readOptions() {
     webRoot: path.resolve(values['web-root']),
     ddsConfig: path.resolve(values['dds-config']),
     domain: integer('domain'),
-    port: integer('port'),
+    port: integer('port', 0),
     screenshot: path.resolve(values.screenshot),
     frames: integer('frames', 60),
   };
@@ -140,8 +142,21 @@ async function loadChromium() {
   }
 }
 
+// A port nothing listens on now (the kernel's choice), so that runs side by side never meet.
+function freePort() {
+  return new Promise((resolve, reject) => {
+    const probe = net.createServer();
+    probe.once('error', reject);
+    probe.listen(0, '127.0.0.1', () => {
+      const { port } = probe.address();
+      probe.close(() => resolve(port));
+    });
+  });
+}
+
 async function run(options, resources, progress) {
-  const { binDir, webRoot, ddsConfig, domain, port, frames } = options;
+  const { binDir, webRoot, ddsConfig, domain, frames } = options;
+  const port = options.port || (await freePort());
   const ddsEnv = { CYCLONEDDS_URI: pathToFileURL(ddsConfig).href };
   const base = `http://127.0.0.1:${port}`;
   const ddsArgs = ['--dds-config', ddsConfig, '--domain', String(domain)];
