@@ -13,6 +13,7 @@
 #include "common/shutdown.hpp"
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
+#include "server/fusion/octomap_log.hpp"
 #include "server/net/http_server.hpp"
 #include "server/store/store_admin.hpp"
 
@@ -76,6 +77,7 @@ bool isLoopback(const std::string& address) {
 
 int main(int argc, char** argv) {
   common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
+  fusion::OctomapLogRoute octomap_log;
 
   CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
   std::string http_spec = "127.0.0.1:8080";

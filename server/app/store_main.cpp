@@ -15,6 +15,7 @@
 #include "server/core/map_server.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "server/fusion/octomap_log.hpp"
 #include "server/store/journal.hpp"
 #include "server/store/store_admin.hpp"
 
@@ -190,6 +191,7 @@ int repair(Store& store, const std::vector<std::string>& ids) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  fusion::OctomapLogRoute octomap_log;
   CLI::App app{
       "stereomap-store: list, check, export, close, delete and merge the sessions of a "
       "stereomap store (the directory given to stereomap-server --store)"};
