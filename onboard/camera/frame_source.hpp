@@ -20,6 +20,16 @@ struct SourceFrame {
   cv::Mat right;                                // CV_8UC1, rectified
   std::optional<common::Rigid3> T_map_body;     // ground truth, when the source knows it
   std::optional<common::Rigid3> T_body_camera;  // the left camera's mount on the body
+  // The mount, or a forward-looking camera at the body's origin when the source does not say.
+  common::Rigid3 mount() const {
+    return T_body_camera.value_or(
+        common::Rigid3{common::bodyFromCameraRotation(), common::Vec3::Zero()});
+  }
+  // The left camera's pose in the map from the ground truth (the body at the map's origin
+  // without it). The first frame's is where odometry anchors its world frame in the map.
+  common::Rigid3 T_map_camera_truth() const {
+    return T_map_body.value_or(common::Rigid3{}) * mount();
+  }
   // The left image's noise (imageNoiseSigma, grey levels) measured before rectification, on
   // some frames of sources that rectify: interpolation hides most of it afterwards.
   std::optional<double> raw_noise_sigma;

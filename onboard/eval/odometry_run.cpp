@@ -22,7 +22,7 @@ OdometryRun run(camera::FrameSource& source, const odometry::VoOptions& options,
   OdometryRun run;
   std::optional<common::Rigid3> anchor;
   while (auto frame = source.next()) {
-    const auto e = vo.track(frame->left, frame->right, frame->stamp_ns);
+    const auto e = vo.track(frame->left, frame->right);
     run.milliseconds.push_back(e.milliseconds);
     run.lost += e.state == odometry::TrackingState::kLost;
     run.degraded += e.state == odometry::TrackingState::kDegraded;
@@ -30,8 +30,7 @@ OdometryRun run(camera::FrameSource& source, const odometry::VoOptions& options,
     run.right_offset_px = e.right_offset_px;
     run.right_gain = e.right_gain;
 
-    const common::Rigid3 truth = frame->T_map_body.value_or(common::Rigid3{}) *
-                                 frame->T_body_camera.value_or(common::Rigid3{});
+    const common::Rigid3 truth = frame->T_map_camera_truth();
     if (!anchor) anchor = truth;
     const double t = static_cast<double>(frame->stamp_ns) * 1e-9;
     run.truth.push_back({t, truth});

@@ -42,9 +42,6 @@ struct StereoOdometry::Impl {
                           std::in_place_type<detail::FastTracker>, camera, options)) {}
   VoOptions options;
   std::variant<detail::FastTracker, detail::PaperTracker> tracker;
-  bool has_previous = false;
-  common::Vec3 previous_position = common::Vec3::Zero();
-  int64_t previous_stamp_ns = 0;
 };
 
 StereoOdometry::StereoOdometry(const camera::StereoCamera& camera, const VoOptions& options)
@@ -54,18 +51,9 @@ StereoOdometry::StereoOdometry(StereoOdometry&&) noexcept = default;
 StereoOdometry& StereoOdometry::operator=(StereoOdometry&&) noexcept = default;
 const VoOptions& StereoOdometry::options() const { return impl_->options; }
 
-VoEstimate StereoOdometry::track(const cv::Mat& left, const cv::Mat& right, int64_t stamp_ns) {
+VoEstimate StereoOdometry::track(const cv::Mat& left, const cv::Mat& right) {
   const auto start = std::chrono::steady_clock::now();
   VoEstimate estimate = std::visit([&](auto& t) { return t.track(left, right); }, impl_->tracker);
-  // Eq. (10): velocity by finite difference of positions.
-  const common::Vec3 position = estimate.T_world_camera.translation;
-  if (impl_->has_previous && stamp_ns > impl_->previous_stamp_ns) {
-    estimate.velocity = (position - impl_->previous_position) /
-                        (static_cast<double>(stamp_ns - impl_->previous_stamp_ns) * 1e-9);
-  }
-  impl_->has_previous = true;
-  impl_->previous_position = position;
-  impl_->previous_stamp_ns = stamp_ns;
   estimate.milliseconds =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   return estimate;

@@ -2,7 +2,7 @@
 //
 //   StereoOdometry vo(camera, {.mode = VoMode::kFast});
 //   for (each rectified pair) {
-//     const VoEstimate e = vo.track(left, right, stamp_ns);
+//     const VoEstimate e = vo.track(left, right);
 //     if (e.state != TrackingState::kLost) use(e.T_world_camera, e.covariance);
 //   }
 //
@@ -69,8 +69,7 @@ struct VoEstimate {
   TrackingState state = TrackingState::kInit;
   common::Rigid3 T_world_camera;  // left camera, OpenCV axes
   Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();  // rot, trans
-  common::Vec3 velocity = common::Vec3::Zero();  // world frame, m/s (finite difference)
-  int features = 0;                              // tracked or matched this frame
+  int features = 0;  // tracked or matched this frame
   int inliers = 0;
   bool keyframe = false;
   double milliseconds = 0;
@@ -89,8 +88,10 @@ class StereoOdometry {
   StereoOdometry(StereoOdometry&&) noexcept;
   StereoOdometry& operator=(StereoOdometry&&) noexcept;
 
-  // One rectified CV_8UC1 pair; never throws for bad tracking (the state says so).
-  VoEstimate track(const cv::Mat& left, const cv::Mat& right, int64_t stamp_ns);
+  // One rectified CV_8UC1 pair; never throws for bad tracking (the state says so). The
+  // velocity (the paper's eq. 10, a finite difference of positions) is the pipeline's, for
+  // every pose source alike: onboard/pipeline.
+  VoEstimate track(const cv::Mat& left, const cv::Mat& right);
   const VoOptions& options() const;
 
   struct Impl;

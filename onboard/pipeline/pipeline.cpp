@@ -303,13 +303,12 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     report_frame.T_map_body_truth = frame->T_map_body;
     std::optional<odometry::VoEstimate> estimate;
     // The left camera's mount; a forward-looking camera when the source does not say.
-    const common::Rigid3 T_body_camera = frame->T_body_camera.value_or(
-        common::Rigid3{common::bodyFromCameraRotation(), common::Vec3::Zero()});
+    const common::Rigid3 T_body_camera = frame->mount();
     common::Rigid3 T_map_body;
     if (odometry) {
-      estimate = odometry->track(frame->left, frame->right, frame->stamp_ns);
+      estimate = odometry->track(frame->left, frame->right);
       odometry_ms.push_back(estimate->milliseconds);
-      if (!anchor) anchor = frame->T_map_body.value_or(common::Rigid3{}) * T_body_camera;
+      if (!anchor) anchor = frame->T_map_camera_truth();
       report_frame.T_map_body_odometry =
           *anchor * estimate->T_world_camera * T_body_camera.inverse();
       // With the graph, the odometry's own poses are still what is published: the graph's
@@ -342,6 +341,8 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     sendCorrection(frame->stamp_ns, T_body_camera, /*now=*/false);
     last_T_body_camera = T_body_camera;
     last_stamp = frame->stamp_ns;
+    // The body's velocity in the map (the VO paper's eq. 10): a finite difference of the
+    // published positions, whichever source gave them.
     common::Vec3 velocity = common::Vec3::Zero();
     if (previous_pose && frame->stamp_ns > previous_stamp) {
       velocity = (T_map_body.translation - previous_pose->translation) /
