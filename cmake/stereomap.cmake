@@ -43,3 +43,20 @@ function(stereomap_app name)
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} CLI11::CLI11)
   stereomap_target_defaults(${name})
 endfunction()
+
+# stereomap_bench(NAME SOURCES ... DEPS ... [DATA] [JEMALLOC]): the benchmark binary
+# stereomap-bench-NAME in build/bin (figures for docs/BENCHMARKS.md). DATA: it reads the shared
+# data sets (STEREOMAP_DATA_DIR); JEMALLOC: it allocates as the server does.
+function(stereomap_bench name)
+  cmake_parse_arguments(ARG "DATA;JEMALLOC" "" "SOURCES;DEPS" ${ARGN})
+  set(target stereomap-bench-${name})
+  add_executable(${target} ${ARG_SOURCES})
+  target_link_libraries(${target} PRIVATE ${ARG_DEPS})
+  if(ARG_DATA)
+    target_compile_definitions(${target} PRIVATE STEREOMAP_DATA_DIR="${STEREOMAP_DATA_DIR}")
+  endif()
+  if(ARG_JEMALLOC)
+    stereomap_use_jemalloc(${target})
+  endif()
+  stereomap_target_defaults(${target})
+endfunction()

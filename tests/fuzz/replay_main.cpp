@@ -13,16 +13,18 @@
 #include <vector>
 
 #if defined(__has_feature)
-#define STEREOMAP_HAS_ASAN __has_feature(address_sanitizer)
+#define STEREOMAP_HAS_SANITIZER \
+  (__has_feature(address_sanitizer) || __has_feature(thread_sanitizer))
 #else
-#define STEREOMAP_HAS_ASAN 0
+#define STEREOMAP_HAS_SANITIZER 0
 #endif
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size);
 
 int main(int argc, char** argv) {
-#if !defined(__SANITIZE_ADDRESS__) && !STEREOMAP_HAS_ASAN
-  // (AddressSanitizer reserves far more address space than this for its shadow memory.)
+#if !defined(__SANITIZE_ADDRESS__) && !defined(__SANITIZE_THREAD__) && !STEREOMAP_HAS_SANITIZER
+  // (The address and thread sanitizers reserve far more address space than this for shadow
+  // memory.)
   const rlimit limit{4ull << 30, 4ull << 30};
   ::setrlimit(RLIMIT_AS, &limit);
 #endif
