@@ -225,10 +225,12 @@ class Session {
 
   mutable std::mutex map_mutex_;               // the worker holds it while inserting
   std::unique_ptr<fusion::OccupancyMap> map_;  // replaced (under map_mutex_) by a re-fusion
-  uint64_t last_fused_number_ = 0;             // journal record number of the last frame in map_
-  tiles::TileSet tiles_;                       // written by the worker only
-  fusion::MapChanges changes_;                 // the worker's scratch
-  uint64_t snapshot_due_ = 0;  // fused-frame count at which the next snapshot is due (worker)
+  // Journal record number of the last frame in map_: written under map_mutex_ with the map,
+  // read under queue_mutex_ when a re-fusion starts (hence atomic; found by ThreadSanitizer).
+  std::atomic<uint64_t> last_fused_number_{0};
+  tiles::TileSet tiles_;        // written by the worker only
+  fusion::MapChanges changes_;  // the worker's scratch
+  uint64_t snapshot_due_ = 0;   // fused-frame count at which the next snapshot is due (worker)
   std::mutex snapshot_mutex_;
   std::condition_variable snapshot_changed_;
   bool snapshot_wanted_ = false, snapshot_writing_ = false, snapshot_stopping_ = false;
