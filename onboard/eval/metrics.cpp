@@ -88,7 +88,8 @@ Similarity umeyama(const std::vector<Vec3>& src, const std::vector<Vec3>& dst, b
   const Eigen::Matrix3d sR = T.topLeftCorner<3, 3>();
   Similarity a;
   a.scale = scaled ? sR.col(0).norm() : 1.0;
-  a.rotation = Quat(sR / a.scale).normalized();
+  // A reference that does not move (scale 0) has no rotation to find.
+  a.rotation = a.scale > 0 ? Quat(sR / a.scale).normalized() : Quat::Identity();
   a.translation = T.topRightCorner<3, 1>();
   return a;
 }

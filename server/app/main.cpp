@@ -77,7 +77,6 @@ bool isLoopback(const std::string& address) {
 
 int main(int argc, char** argv) {
   common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
-  fusion::OctomapLogRoute octomap_log;
 
   CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
   std::string http_spec = "127.0.0.1:8080";
@@ -125,6 +124,7 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& error) {
     return app.exit(error) == 0 ? 0 : 2;
   }
+  fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
 
   net::HttpServerOptions http;
   const size_t colon = http_spec.rfind(':');

@@ -191,7 +191,6 @@ int repair(Store& store, const std::vector<std::string>& ids) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  fusion::OctomapLogRoute octomap_log;
   CLI::App app{
       "stereomap-store: list, check, export, close, delete and merge the sessions of a "
       "stereomap store (the directory given to stereomap-server --store)"};
@@ -274,6 +273,7 @@ int main(int argc, char** argv) {
   } catch (const CLI::ParseError& error) {
     return app.exit(error) == 0 ? 0 : 2;
   }
+  fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);
 

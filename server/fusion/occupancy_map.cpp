@@ -53,7 +53,7 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
   // they still cross the whole map, and their ends lie outside it either way.
   const common::Vec3& t = T_map_sensor.translation;
   const double extent = impl_->tree.getResolution() * 32768.0;
-  if (!(t.cwiseAbs().maxCoeff() < extent)) {
+  if (!(t.array().abs() < extent).all()) {  // (false for NaN, which maxCoeff may skip)
     if (changes != nullptr) *changes = {.complete = true, .voxels = {}};
     return;
   }
@@ -90,7 +90,7 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
 
 Occupancy OccupancyMap::query(const common::Vec3& p_map) const {
   // (OctoMap's search casts to int unchecked: see insertCloud.)
-  if (!(p_map.cwiseAbs().maxCoeff() < impl_->tree.getResolution() * 32768.0)) {
+  if (!(p_map.array().abs() < impl_->tree.getResolution() * 32768.0).all()) {
     return Occupancy::kUnknown;
   }
   const octomap::OcTreeNode* node = impl_->tree.search(p_map.x(), p_map.y(), p_map.z());

@@ -502,7 +502,10 @@ common::Status StoreAdmin::remove(const std::string& id) {
   auto removed = removeTree(root_, dir);
   journals_->readmit(id);
   if (!removed) {
-    server_.markClosed(id);  // unloaded, still on disk: it stays closed
+    server_.markClosed(id);  // unloaded, still on disk: it stays closed, and listed so
+    auto status = savedStatus(id);
+    status.closed = true;
+    rememberClosed(status);
     return removed;
   }
   if (catalog_) {

@@ -9,6 +9,10 @@
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace stereomap;
   const auto& dir = fuzz::scratch();
+  // Each input on its own: a file left by the one before (extrinsics.yml) must not be read.
+  for (const auto& entry : std::filesystem::directory_iterator(dir.path())) {
+    std::filesystem::remove(entry.path());
+  }
   fuzz::FuzzInput in(data, size);
   const uint8_t reader = in.byte() % 4;
   const std::string_view first = in.until('\0');

@@ -22,7 +22,8 @@ void withLoopbackDds(std::vector<std::string>& argv, const std::vector<std::stri
 }  // namespace
 
 ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_args,
-                             const std::string& store, bool require_healthy) {
+                             const std::string& store, bool require_healthy,
+                             std::chrono::seconds start_within) {
   owns_store_ = store.empty();
   store_ = owns_store_ ? makeTempDir("stereomap-test-store") : store;
   log_ = makeTempDir("stereomap-test-log") + "/server.log";
@@ -37,7 +38,7 @@ ServerProcess::ServerProcess(int domain, const std::vector<std::string>& extra_a
   argv.insert(argv.end(), extra_args.begin(), extra_args.end());
   process_ = std::make_unique<ChildProcess>(argv, log_);
   // The server logs "viewer: http://127.0.0.1:PORT/" once it listens.
-  const bool up = waitUntil(20s, [&] {
+  const bool up = waitUntil(start_within, [&] {
     const std::string text = log();
     const size_t at = text.find("viewer: http://127.0.0.1:");
     if (at == std::string::npos) return !process_->running();

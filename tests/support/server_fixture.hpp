@@ -8,6 +8,7 @@
 // new test takes a free one and adds it here.
 #pragma once
 
+#include <chrono>
 #include <cstdlib>
 #include <memory>
 #include <string>
@@ -22,9 +23,10 @@ class ServerProcess {
   // Starts the server and waits until it answers /healthz (200, or any answer when
   // `require_healthy` is false: a degraded store); throws with the log on failure.
   // With `store` given the server uses (and the fixture keeps) that directory; otherwise a
-  // temporary one, removed at the end.
+  // temporary one, removed at the end. `start_within`: how long recovery may take.
   ServerProcess(int domain, const std::vector<std::string>& extra_args = {},
-                const std::string& store = "", bool require_healthy = true);
+                const std::string& store = "", bool require_healthy = true,
+                std::chrono::seconds start_within = std::chrono::seconds(20));
   ~ServerProcess();
   int port() const { return port_; }
   const std::string& store() const { return store_; }
