@@ -77,6 +77,11 @@ Result<cv::FileStorage> openStorage(const fs::path& path) {
   } catch (const cv::Exception& e) {
     return makeError(ErrorCode::kCorrupt,
                      path.string() + ": cannot be parsed as YAML/XML (" + e.err + ")");
+  } catch (const std::exception& e) {
+    // OpenCV 4.6's parser also lets std::length_error out of a mangled file (found by
+    // fuzzing: tests/fuzz/corpus/calibration/parser-length-error).
+    return makeError(ErrorCode::kCorrupt,
+                     path.string() + ": cannot be parsed as YAML/XML (" + e.what() + ")");
   }
 }
 
