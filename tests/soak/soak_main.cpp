@@ -123,8 +123,19 @@ class Viewer {
   }
 
  private:
+  // A viewer thread never ends the run: whatever goes wrong with a connection (an exception
+  // included) is a lost connection, and the viewer connects again.
   void run() {
-    auto away_since = Clock::now();
+    while (!stop_) {
+      try {
+        watch();
+      } catch (const std::exception&) {
+        std::lock_guard lock(mutex_);
+        connected_ = false;
+      }
+    }
+  }
+  void watch() {
     while (!stop_) {
       WebSocketClient client(port_.load());
       if (client.status() != 101 || !client.sendText(R"({"type": "hello", "protocol": 2})") ||
@@ -137,7 +148,7 @@ class Viewer {
       {
         std::lock_guard lock(mutex_);
         ++figures_.connections;
-        const double away = std::chrono::duration<double>(Clock::now() - away_since).count();
+        const double away = std::chrono::duration<double>(Clock::now() - away_since_).count();
         if (figures_.connections > 1)
           figures_.longest_away_s = std::max(figures_.longest_away_s, away);
         connected_ = true;
@@ -155,7 +166,7 @@ class Viewer {
         // Pushes come several times a second: a close, or 3 s of silence, is a lost server.
         if (message.kind == WsMessage::Kind::kClose || Clock::now() - last_message_ > 3s) {
           connected_ = false;
-          away_since = last_message_;
+          away_since_ = last_message_;
           break;
         }
         std::this_thread::sleep_for(50ms);  // (a lost socket answers at once: no spinning)
@@ -170,6 +181,7 @@ class Viewer {
   Figures figures_;
   bool connected_ = false;
   Clock::time_point last_message_ = Clock::now();
+  Clock::time_point away_since_ = Clock::now();
   std::thread thread_;
 };
 

@@ -92,9 +92,12 @@ bool WebSocketClient::readExactly(void* data, size_t size, Clock::time_point dea
         std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now());
     if (left.count() <= 0) return false;
     pollfd p{fd_, POLLIN, 0};
-    if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) return false;
-    const ssize_t n = ::recv(fd_, out + done, size - done, 0);
-    if (n <= 0) return false;
+    const bool ready = ::poll(&p, 1, static_cast<int>(left.count())) > 0;
+    const ssize_t n = ready ? ::recv(fd_, out + done, size - done, 0) : 0;
+    if (n <= 0) {
+      pending_.insert(0, out, done);  // what was read stays for the next read
+      return false;
+    }
     done += static_cast<size_t>(n);
   }
   return true;
@@ -105,19 +108,35 @@ WsMessage WebSocketClient::read(std::chrono::milliseconds timeout) {
   WsMessage message;
   std::string joined;
   uint8_t first_opcode = 0;
+  // The bytes of this message read so far: a timeout in its middle puts them back, so that
+  // the next read starts at the message's first byte, not in the middle of a frame (which
+  // then read a payload length from tile bytes: found by the soak run).
+  std::string consumed;
+  auto timedOut = [&] {
+    pending_.insert(0, consumed);
+    return WsMessage{};
+  };
   for (;;) {
     uint8_t head[2];
-    if (fd_ < 0 || !readExactly(head, 2, deadline)) return {};
+    if (fd_ < 0 || !readExactly(head, 2, deadline)) return timedOut();
+    consumed.append(reinterpret_cast<const char*>(head), 2);
     uint64_t length = head[1] & 0x7F;
     if (length == 126 || length == 127) {
       uint8_t ext[8];
       const size_t n = length == 126 ? 2 : 8;
-      if (!readExactly(ext, n, deadline)) return {};
+      if (!readExactly(ext, n, deadline)) return timedOut();
+      consumed.append(reinterpret_cast<const char*>(ext), n);
       length = 0;
       for (size_t i = 0; i < n; ++i) length = (length << 8) | ext[i];
     }
+    if (length > (1ull << 30)) {  // not a frame this server sends: the stream is lost
+      ::close(fd_);
+      fd_ = -1;
+      return {};
+    }
     std::string payload(length, '\0');
-    if (length > 0 && !readExactly(payload.data(), length, deadline)) return {};
+    if (length > 0 && !readExactly(payload.data(), length, deadline)) return timedOut();
+    consumed += payload;
     const uint8_t opcode = head[0] & 0x0F;
     if (opcode == 0x9) {  // ping: answer, read on
       sendFrame(0xA, payload);
