@@ -419,7 +419,11 @@ int main(int argc, char** argv) {
   app.add_option("--domain", o.domain, "DDS domain id")->check(CLI::Range(0, 232));
   app.add_option("--store", o.store,
                  "Store directory (default: a temporary one, removed on success)");
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;  // bad usage exits 2, as every stereomap binary
+  }
   try {
     return run(o);  // (its processes are stopped as it unwinds)
   } catch (const std::exception& e) {
