@@ -53,6 +53,7 @@ struct Flight {
   long server_rss_early = 0, server_rss_late = 0, vehicle_rss_early = 0, vehicle_rss_late = 0;
   double vehicle_kbit_s = 0;  // from the vehicle's summary
   int late_frames = -1;       // frames the vehicle finished after their 100 ms
+  double frame_median_s = 0;  // the vehicle's own work per frame (its summary's median)
   uint64_t relayed = 0;       // datagrams that took the delay's way
   LinkedNamespaces::QueueStats vehicle_queue, server_queue;
   std::string logs;
@@ -133,6 +134,9 @@ Flight fly(int domain, int subnet, const std::optional<LinkShape>& shape) {
   if (std::regex_search(flight.logs, match, std::regex(R"((\d+) late,)"))) {
     flight.late_frames = std::stoi(match[1]);
   }
+  if (std::regex_search(flight.logs, match, std::regex(R"(frame ([0-9.]+) ms)"))) {
+    flight.frame_median_s = std::stod(match[1]) / 1000;
+  }
   if (std::regex_search(flight.logs, match, std::regex(R"(link: sent (\d+) kbit/s)"))) {
     flight.vehicle_kbit_s = std::stod(match[1]);
   }
@@ -175,8 +179,14 @@ TEST(ShapedLink, AVehicleOnAOneMegabitLossyLinkKeepsItsPosesLiveAndItsMapRight) 
     EXPECT_LE(flight->server_rss_late, flight->server_rss_early * 1.2);
   }
   EXPECT_LE(shaped.pose_latency_p95_s, 0.2);
-  // The delay is there: every datagram to the server took it.
-  EXPECT_GE(shaped.pose_latency_p50_s, bare.pose_latency_p50_s + 0.045);
+  // The delay is there: every datagram to the server took it. A pose's age is the vehicle's
+  // work on its frame plus the way, and the work varies between the two flights by more than
+  // the margin (a CI run: 77.5 against 75.2 ms a frame, and ages 71 against 116 ms), so each
+  // flight's ages are compared net of its own median frame time.
+  EXPECT_GT(bare.frame_median_s, 0);
+  EXPECT_GT(shaped.frame_median_s, 0);
+  EXPECT_GE(shaped.pose_latency_p50_s - shaped.frame_median_s,
+            bare.pose_latency_p50_s - bare.frame_median_s + 0.045);
   EXPECT_GT(shaped.relayed, static_cast<uint64_t>(kFrames));
   EXPECT_GE(shaped.score.precision, bare.score.precision - 0.01);
   ::testing::Test::RecordProperty("shaped_pose_p95_ms",
