@@ -1,6 +1,7 @@
 #include "common/forked_write.hpp"
 
 #include <fcntl.h>
+#include <poll.h>
 #include <signal.h>
 #include <sys/prctl.h>
 #include <sys/wait.h>
@@ -111,12 +112,29 @@ void ForkedWrite::abandon() {
   child_ = -1;
 }
 
-Result<std::string> ForkedWrite::finish() {
+Result<std::string> ForkedWrite::finish(std::optional<std::chrono::milliseconds> deadline) {
   if (child_ <= 0) return makeError(ErrorCode::kInvalidArgument, "nothing to collect");
+  using Clock = std::chrono::steady_clock;
+  const auto until = deadline ? Clock::now() + *deadline : Clock::time_point::max();
   std::string bytes;
   int read_error = 0;
   char chunk[1 << 16];
   for (;;) {
+    if (deadline) {
+      const auto left = std::chrono::ceil<std::chrono::milliseconds>(until - Clock::now()).count();
+      pollfd readable{.fd = read_fd_, .events = POLLIN, .revents = 0};
+      const int ready = left > 0 ? ::poll(&readable, 1, static_cast<int>(left)) : 0;
+      if (ready < 0 && errno == EINTR) continue;
+      if (ready < 0) {
+        read_error = errno;
+        break;
+      }
+      if (ready == 0) {
+        abandon();  // kills and reaps the child
+        return makeError(ErrorCode::kUnavailable, "the forked child did not finish within " +
+                                                      std::to_string(deadline->count()) + " ms");
+      }
+    }
     const ssize_t n = ::read(read_fd_, chunk, sizeof(chunk));
     if (n < 0 && errno == EINTR) continue;
     if (n < 0) read_error = errno;

@@ -15,8 +15,10 @@
 
 #include <sys/types.h>
 
+#include <chrono>
 #include <functional>
 #include <iosfwd>
+#include <optional>
 #include <string>
 
 #include "common/result.hpp"
@@ -35,8 +37,9 @@ class ForkedWrite {
   ForkedWrite& operator=(const ForkedWrite&) = delete;
   ~ForkedWrite();  // a child not collected is killed and reaped
 
-  // Blocks until the child is done: everything it wrote, or an error when it failed.
-  Result<std::string> finish();
+  // Blocks until the child is done: everything it wrote, or an error when it failed. With a
+  // deadline, a child not done by then is killed and the answer is kUnavailable.
+  Result<std::string> finish(std::optional<std::chrono::milliseconds> deadline = std::nullopt);
 
  private:
   ForkedWrite(pid_t child, int read_fd) : child_(child), read_fd_(read_fd) {}

@@ -35,6 +35,30 @@ TEST(ForkedWrite, AFailedWriteIsAnError) {
   EXPECT_NE(bytes.error().message.find("failed"), std::string::npos);
 }
 
+TEST(ForkedWrite, AChildPastItsDeadlineIsKilledAndAnError) {
+  auto job = ForkedWrite::start([](std::ostream& out) {
+    out << "started";
+    out.flush();
+    for (;;) std::this_thread::sleep_for(std::chrono::seconds(1));  // a parser that loops
+    return true;
+  });
+  ASSERT_TRUE(job);
+  const auto started = std::chrono::steady_clock::now();
+  auto bytes = job->finish(std::chrono::milliseconds(300));
+  const auto took = std::chrono::steady_clock::now() - started;
+  ASSERT_FALSE(bytes);
+  EXPECT_EQ(bytes.error().code, ErrorCode::kUnavailable);
+  EXPECT_NE(bytes.error().message.find("within 300 ms"), std::string::npos);
+  EXPECT_GE(took, std::chrono::milliseconds(300));
+  EXPECT_LT(took, std::chrono::seconds(5));
+  // A child done in time is collected as without a deadline.
+  auto quick = ForkedWrite::start([](std::ostream& out) { return static_cast<bool>(out << "ok"); });
+  ASSERT_TRUE(quick);
+  auto done = quick->finish(std::chrono::seconds(30));
+  ASSERT_TRUE(done) << done.error().message;
+  EXPECT_EQ(*done, "ok");
+}
+
 TEST(ForkedWrite, AnUncollectedChildIsKilledAndReaped) {
   auto job = ForkedWrite::start([](std::ostream& out) {
     for (;;) out << std::string(1 << 16, 'x');  // blocks on the full pipe

@@ -1,7 +1,10 @@
 #include "onboard/camera/calibration.hpp"
 
+#include <chrono>
 #include <fstream>
 #include <sstream>
+
+#include "common/forked_write.hpp"
 
 namespace stereomap::camera {
 
@@ -58,10 +61,51 @@ Result<cv::Mat> readMatrix(const cv::FileStorage& fs, const std::string& file,
   return m;
 }
 
+// A calibration file is a few kB; anything this large is not one, and would be slow to parse.
+constexpr std::uintmax_t kMaxCalibrationBytes = 1 << 20;
+// OpenCV parses a few-kB file in milliseconds; this leaves room for a loaded, sanitised run.
+constexpr std::chrono::seconds kParseDeadline{5};
+
+// OpenCV 4.6's YAML parser loops forever on some damaged files (found by fuzzing:
+// tests/fuzz/corpus/calibration/opencv-yaml-hang, 20 bytes). There is no way to stop it from
+// the same process, so a forked child parses the file first, with a deadline; only a file the
+// child got through is parsed here (the same bytes: the parser is deterministic).
+common::Status parsesInTime(const fs::path& path) {
+  auto child = common::ForkedWrite::start([&path](std::ostream&) {
+    try {
+      cv::FileStorage storage(path.string(), cv::FileStorage::READ);
+    } catch (...) {
+      // Errors are the parent's to report, from its own parse.
+    }
+    return true;
+  });
+  // Without fork (no memory for it, or a process limit) the file is parsed unguarded.
+  if (!child) return common::Ok{};
+  auto done = child->finish(kParseDeadline);
+  if (done) return common::Ok{};
+  if (done.error().code == ErrorCode::kUnavailable) {
+    return makeError(ErrorCode::kCorrupt, path.string() +
+                                              ": OpenCV's YAML/XML parser did not finish within " +
+                                              std::to_string(kParseDeadline.count()) +
+                                              " s (a damaged file makes it loop)");
+  }
+  // The child died in the parser: this process would too.
+  return makeError(
+      ErrorCode::kCorrupt,
+      path.string() + ": OpenCV's YAML/XML parser failed on it (" + done.error().message + ")");
+}
+
 Result<cv::FileStorage> openStorage(const fs::path& path) {
-  if (!fs::is_regular_file(path)) {
+  std::error_code error;
+  if (!fs::is_regular_file(path, error)) {
     return makeError(ErrorCode::kNotFound, path.string() + ": no such calibration file");
   }
+  if (const auto bytes = fs::file_size(path, error); !error && bytes > kMaxCalibrationBytes) {
+    return makeError(ErrorCode::kTooLarge,
+                     path.string() + ": " + std::to_string(bytes) +
+                         " bytes is too large for a calibration file (at most 1 MiB)");
+  }
+  if (auto parsed = parsesInTime(path); !parsed) return parsed.error();
   try {
     cv::FileStorage storage(path.string(), cv::FileStorage::READ);
     if (!storage.isOpened()) {

@@ -7,6 +7,7 @@
 #include <opencv2/video/tracking.hpp>
 #include "tests/support/data.hpp"
 
+#include <chrono>
 #include <fstream>
 
 #include "onboard/camera/chessboard.hpp"
@@ -110,6 +111,16 @@ TEST(Calibration, BadFilesNameTheFileAndTheField) {
   huge.replace(huge.find("cols", huge.find("R: ")), 7, "cols: 2000000000");
   writeText(dir / "huge.yaml", huge);
   expectError(dir / "huge.yaml", "R has rows or cols that are not whole numbers in 0..64");
+
+  // OpenCV 4.6's parser loops forever on these 20 bytes (found by fuzzing): an error after the
+  // parse deadline (5 s), not a hang.
+  writeText(dir / "loops.yaml", "%YAML:1.\n t:d\n  \n-\n-");
+  const auto started = std::chrono::steady_clock::now();
+  expectError(dir / "loops.yaml", "parser did not finish within 5 s");
+  EXPECT_LT(std::chrono::steady_clock::now() - started, std::chrono::seconds(30));
+  // Far larger than any calibration: refused before anything parses it.
+  writeText(dir / "large.yaml", "%YAML:1.0\nfoo: \"" + std::string(2 << 20, 'x') + "\"\n");
+  expectError(dir / "large.yaml", "too large for a calibration file");
 
   broken.T = cv::Vec3d(0, 0, 0);
   EXPECT_NE(validateCalibration(broken).error().message.find("T is zero"), std::string::npos);

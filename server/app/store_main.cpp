@@ -11,8 +11,9 @@
 #include <nlohmann/json.hpp>
 
 #include "common/transform_args.hpp"
-#include "server/core/api.hpp"
+#include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/fusion/octomap_log.hpp"
@@ -78,14 +79,11 @@ int list(Store& store, bool as_json) {
   if (as_json) {
     nlohmann::json out = nlohmann::json::array();
     for (const auto& r : *rows) {
-      out.push_back({{"id", r.id},
-                     {"vehicles", r.vehicles},
-                     {"state", r.state},
-                     {"frames", r.frames},
-                     {"resolution", r.resolution},
-                     {"occupied_voxels", r.occupied_voxels},
-                     {"journal_bytes", r.journal_bytes},
-                     {"updated_ns", r.updated_ns}});
+      // The server's session object, with what the catalog keeps, and the store's own facts.
+      auto object = core::sessionObject(store::catalogStatus(r), core::SessionFields::kCatalog);
+      object["journal_bytes"] = r.journal_bytes;
+      object["updated_ns"] = r.updated_ns;
+      out.push_back(std::move(object));
     }
     std::cout << out.dump(2) << "\n";
     return 0;

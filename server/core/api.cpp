@@ -7,6 +7,7 @@
 
 #include "common/transform_args.hpp"
 #include "common/url.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 
 namespace stereomap::core {
@@ -28,12 +29,6 @@ std::optional<HttpAnswer> badId(const std::string& what, const std::string& id) 
       id.size() > 80 ? id.substr(0, 80) + "... (" + std::to_string(id.size()) + " bytes)" : id;
   return error(400, what + " '" + shown + "' is not 1-" + std::to_string(proto::kMaxIdLength) +
                         " of [A-Za-z0-9._-] (and not . or ..)");
-}
-
-json boundsJson(const common::Box3& bounds) {
-  if (bounds.empty()) return nullptr;
-  return {{"min", {bounds.min.x(), bounds.min.y(), bounds.min.z()}},
-          {"max", {bounds.max.x(), bounds.max.y(), bounds.max.z()}}};
 }
 
 // GET /api/sessions/{id}/landing: each vehicle's newest view of the landing pad.
@@ -65,28 +60,6 @@ json landingJson(const std::string& id, const std::vector<proto::LandingTargetMs
     vehicles.push_back(std::move(entry));
   }
   return {{"session", id}, {"vehicles", std::move(vehicles)}};
-}
-
-json statusJson(const SessionStatus& s) {
-  return {{"id", s.id},
-          {"vehicle", s.vehicles.empty() ? "" : s.vehicles.front()},
-          {"vehicles", s.vehicles},
-          {"state", stateName(s)},
-          {"resolution", s.resolution},
-          {"frames", s.frames_fused},
-          {"frames_received", s.frames_received},
-          {"dropped_frames", s.frames_dropped},
-          {"fusion_backlog", s.backlog},
-          {"occupied_voxels", s.occupied_voxels},
-          {"poses", s.poses},
-          {"bounds", boundsJson(s.bounds)},
-          {"ended_by", s.ended_by.empty() ? json(nullptr) : json(s.ended_by)},
-          {"store_error", s.store_error.empty() ? json(nullptr) : json(s.store_error)},
-          {"samples_refused", s.samples_refused},
-          {"corrections", s.corrections},
-          {"refusions", s.refusions},
-          {"refusing", s.refusing},
-          {"refusion_error", s.refusion_error.empty() ? json(nullptr) : json(s.refusion_error)}};
 }
 
 // Splits "/api/sessions/x/y?q" into path segments (query dropped).
@@ -158,17 +131,11 @@ HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& p
 
 }  // namespace
 
-std::string sessionJson(const SessionStatus& status, const char* message_type) {
-  json object = statusJson(status);
-  if (message_type != nullptr) object["type"] = message_type;
-  return object.dump();
-}
-
 std::string sessionListJson(const MapServer& server, const SessionAdmin* admin) {
   json list = json::array();
-  for (const auto& session : server.sessions()) list.push_back(statusJson(session->status()));
+  for (const auto& session : server.sessions()) list.push_back(sessionObject(session->status()));
   if (admin != nullptr) {
-    for (const auto& closed : admin->closedSessions()) list.push_back(statusJson(closed));
+    for (const auto& closed : admin->closedSessions()) list.push_back(sessionObject(closed));
   }
   return list.dump();
 }
@@ -225,7 +192,7 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
     for (const auto& closed : admin->closedSessions()) {
       if (closed.id != parts[2]) continue;
       if (parts.size() == 3) {
-        return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
+        return HttpAnswer{200, "application/json", sessionObject(closed).dump() + "\n", ""};
       }
       return error(409, "session '" + parts[2] + "' is closed: open it first (POST /api/sessions/" +
                             parts[2] + "/open)");
@@ -233,7 +200,7 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   }
   if (!session) return error(404, "no session '" + parts[2] + "'");
   if (parts.size() == 3) {
-    return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
+    return HttpAnswer{200, "application/json", sessionObject(session->status()).dump() + "\n", ""};
   }
   if (parts[3] == "tiles") return answerTiles(*session, parts, if_none_match);
   if (parts.size() == 4 && parts[3] == "landing") {
@@ -275,37 +242,6 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
     return HttpAnswer{200, file->content_type, std::move(file->content), file->name};
   }
   return error(404, "unknown session resource '" + std::string(target) + "'");
-}
-
-common::Result<ExportFile> exportSession(const Session& session, const std::string& id,
-                                         const ExportRequest& request) {
-  const std::string binary = "application/octet-stream";
-  const std::string name = id + "." + request.format;
-  if (request.format == "bt" || request.format == "ot") {
-    auto map = request.format == "bt" ? session.mapBinary() : session.mapFull();
-    if (!map) return map.error();
-    return ExportFile{std::move(*map), binary, name};
-  }
-  if (request.format == "ply") return ExportFile{session.occupiedPly(), binary, name};
-  if (request.format == "png") {
-    auto png = session.occupancyPng(request.z_min, request.z_max, request.scale);
-    if (!png) return png.error();
-    return ExportFile{std::move(*png), "image/png", name};
-  }
-  if (request.format == "tum") {
-    const auto vehicles = session.status().vehicles;
-    const std::string& wanted = request.vehicle;
-    if (!wanted.empty() && std::find(vehicles.begin(), vehicles.end(), wanted) == vehicles.end()) {
-      return common::makeError(common::ErrorCode::kNotFound,
-                               "session '" + id + "' has no vehicle '" + wanted + "'");
-    }
-    const std::string chosen = !wanted.empty() ? wanted : vehicles.empty() ? "" : vehicles[0];
-    return ExportFile{session.trajectoryTum(chosen), "text/plain",
-                      id + (chosen.empty() ? "" : "-" + chosen) + ".tum"};
-  }
-  return common::makeError(
-      common::ErrorCode::kInvalidArgument,
-      "unknown export format '" + request.format + "' (bt, ot, ply, png, tum)");
 }
 
 bool isAdminRequest(std::string_view method, std::string_view target) {
@@ -369,11 +305,11 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
                  done.error().message);
   }
   if (const auto session = server.find(id)) {
-    return HttpAnswer{200, "application/json", statusJson(session->status()).dump() + "\n", ""};
+    return HttpAnswer{200, "application/json", sessionObject(session->status()).dump() + "\n", ""};
   }
   for (const auto& closed : admin->closedSessions()) {
     if (closed.id == id)
-      return HttpAnswer{200, "application/json", statusJson(closed).dump() + "\n", ""};
+      return HttpAnswer{200, "application/json", sessionObject(closed).dump() + "\n", ""};
   }
   return HttpAnswer{200, "application/json", json{{"id", id}}.dump() + "\n", ""};
 }

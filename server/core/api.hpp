@@ -7,6 +7,7 @@
 #include <string>
 #include <string_view>
 
+#include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
 
@@ -40,27 +41,6 @@ bool isAdminRequest(std::string_view method, std::string_view target);
 HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string_view method,
                        std::string_view target, const std::string& body);
 
-// A session's map or trajectory as a file, for REST downloads and `stereomap-store export`:
-// format "bt", "ot", "ply", "png" (the height band z_min..z_max, scale pixels per voxel) or
-// "tum" (one vehicle: the given one, else the session's first). kNotFound names what is
-// missing (the vehicle, or voxels in the band); the caller checks the request's values.
-struct ExportRequest {
-  std::string format;
-  double z_min = -1e9, z_max = 1e9;
-  int scale = 1;
-  std::string vehicle;
-};
-struct ExportFile {
-  std::string content;
-  std::string content_type;
-  std::string name;  // REST's download name: {id}.{format}, {id}-{vehicle}.tum
-};
-common::Result<ExportFile> exportSession(const Session& session, const std::string& id,
-                                         const ExportRequest& request);
-
-// The JSON object describing a session (GET /api/sessions and, with message_type
-// "session", the viewer's message).
-std::string sessionJson(const SessionStatus& status, const char* message_type = nullptr);
 // Every session as a JSON array (GET /api/sessions, the viewer's "sessions" message): the
 // loaded ones, then (with `admin`) the store's closed ones.
 std::string sessionListJson(const MapServer& server, const SessionAdmin* admin);

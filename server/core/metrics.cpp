@@ -11,7 +11,7 @@ std::string Metrics::labelText(const Labels& labels) {
     if (i > 0) text += ",";
     text += labels[i].first + "=\"";
     for (char c : labels[i].second) {  // escape per the exposition format
-      if (c == '\\' || c == '"') text += '\\';
+      if (c == '\\' || c == '"' || c == '\n') text += '\\';
       text += c == '\n' ? 'n' : c;
     }
     text += "\"";

@@ -172,22 +172,11 @@ class Session {
   std::vector<fusion::VoxelIndex> occupiedVoxels() const;
   // Poses [from, end) in arrival order.
   std::vector<PoseRecord> trajectory(size_t from = 0) const;
-  // TUM lines "t tx ty tz qx qy qz qw" for one vehicle (all vehicles when empty).
-  std::string trajectoryTum(const std::string& vehicle_id = "") const;
   // OctoMap binary of the map as it is now (after the frame being fused, if any), written by a
   // forked child; an error when the fork or the child failed.
   common::Result<std::string> mapBinary() const;
   // OctoMap full format (.ot, log-odds kept), likewise.
   common::Result<std::string> mapFull() const;
-  // Binary PLY of the occupied voxels' centres (map frame, metres).
-  std::string occupiedPly() const;
-  // A top-down PNG of the occupied voxels with centres in [z_min, z_max] (one pixel per
-  // voxel, or a square of pixels_per_voxel; white occupied, black not); pixel (0, 0) is the
-  // voxel with the smallest x and largest y. kNotFound when nothing is occupied in the band;
-  // kTooLarge above kMaxPngPixels (a request cannot make the server allocate gigabytes).
-  static constexpr size_t kMaxPngPixels = 64u << 20;
-  common::Result<std::string> occupancyPng(double z_min, double z_max,
-                                           int pixels_per_voxel = 1) const;
   // Blocks until every queued frame is fused and no re-fusion is under way (for tests and
   // closing: the map then holds every correction).
   void waitUntilIdle() const;

@@ -3,6 +3,8 @@
 #include <SQLiteCpp/SQLiteCpp.h>
 #include <sqlite3.h>
 
+#include <algorithm>
+
 #include "common/time.hpp"
 
 namespace stereomap::store {
@@ -113,6 +115,24 @@ CatalogRow catalogRow(const core::SessionStatus& s, uint64_t journal_bytes) {
                  0};
   for (const auto& v : s.vehicles) row.vehicles += (row.vehicles.empty() ? "" : ",") + v;
   return row;
+}
+
+core::SessionStatus catalogStatus(const CatalogRow& row) {
+  core::SessionStatus s;
+  s.id = row.id;
+  for (size_t start = 0; start < row.vehicles.size();) {
+    const size_t comma = std::min(row.vehicles.find(',', start), row.vehicles.size());
+    if (comma > start) s.vehicles.push_back(row.vehicles.substr(start, comma - start));
+    start = comma + 1;
+  }
+  s.closed = row.state == "closed";
+  s.read_only = row.state == "opened";
+  s.ended = row.state != "live";
+  s.frames_fused = s.frames_received = row.frames;
+  s.resolution = row.resolution;
+  s.occupied_voxels = row.occupied_voxels;
+  s.bounds = row.bounds;
+  return s;
 }
 
 common::Status Catalog::record(const core::SessionStatus& s, uint64_t journal_bytes) {

@@ -28,6 +28,9 @@ struct CatalogRow {
 
 // A session's row as record() stores it (updated_ns left for the caller).
 CatalogRow catalogRow(const core::SessionStatus& status, uint64_t journal_bytes);
+// The status a row keeps (core::SessionFields::kCatalog): id, vehicles, state, frames,
+// resolution, occupied voxels and bounds; the rest at its defaults.
+core::SessionStatus catalogStatus(const CatalogRow& row);
 
 class Catalog {
  public:

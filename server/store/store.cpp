@@ -4,7 +4,8 @@
 
 #include "common/files.hpp"
 
-#include "server/core/api.hpp"
+#include "server/core/exports.hpp"
+#include "server/core/session_json.hpp"
 #include "server/store/session_journals.hpp"
 
 namespace stereomap::store {
@@ -45,7 +46,8 @@ common::Status SessionStore::save(const core::Session& session, bool closed) con
   const auto vehicles = session.status().vehicles;
   for (size_t i = 0; i < vehicles.size(); ++i) {  // one TUM file per vehicle
     const std::string name = i == 0 ? "trajectory.tum" : "trajectory-" + vehicles[i] + ".tum";
-    if (auto s = common::writeFileAtomically(dir / name, session.trajectoryTum(vehicles[i])); !s)
+    if (auto s = common::writeFileAtomically(dir / name, core::trajectoryTum(session, vehicles[i]));
+        !s)
       return s;
   }
   auto status = session.status();

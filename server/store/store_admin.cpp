@@ -17,6 +17,7 @@
 #include "common/files.hpp"
 #include "common/time.hpp"
 #include "proto/pose_fields.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 
@@ -49,38 +50,6 @@ double resolutionOf(const fs::path& dir, double fallback) {
     }
   }
   return fallback;
-}
-
-core::SessionStatus statusFromJson(const std::string& id, const json& doc) {
-  core::SessionStatus s;
-  s.id = id;
-  s.closed = true;
-  if (!doc.is_object()) return s;
-  auto count = [&](const char* key) {
-    return doc.contains(key) && doc[key].is_number_unsigned() ? doc[key].get<uint64_t>() : 0;
-  };
-  if (doc.contains("vehicles") && doc["vehicles"].is_array()) {
-    for (const auto& v : doc["vehicles"])
-      if (v.is_string()) s.vehicles.push_back(v.get<std::string>());
-  }
-  if (doc.contains("resolution") && doc["resolution"].is_number()) {
-    s.resolution = doc["resolution"].get<double>();
-  }
-  s.frames_fused = s.frames_received = count("frames");
-  s.occupied_voxels = count("occupied_voxels");
-  s.poses = count("poses");
-  s.ended = doc.value("state", "") != "live";
-  const auto& bounds = doc.contains("bounds") ? doc["bounds"] : json();
-  if (bounds.is_object() && bounds.contains("min") && bounds.contains("max")) {
-    try {
-      const auto lo = bounds["min"].get<std::array<double, 3>>();
-      const auto hi = bounds["max"].get<std::array<double, 3>>();
-      s.bounds.extend({lo[0], lo[1], lo[2]});
-      s.bounds.extend({hi[0], hi[1], hi[2]});
-    } catch (const json::exception&) {
-    }
-  }
-  return s;
 }
 
 // Deletes a directory tree, renaming it aside first so that it vanishes from the store at
@@ -391,8 +360,9 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
 }
 
 core::SessionStatus StoreAdmin::savedStatus(const std::string& id) const {
-  auto status = statusFromJson(id, readJson(root_ / id / kStatusName));
-  status.closed = isClosedOnDisk(id);
+  auto status = core::sessionFromJson(id, readJson(root_ / id / kStatusName));
+  status.closed = isClosedOnDisk(id);  // the marker decides, not the saved state
+  status.read_only = false;            // not loaded
   if (status.resolution <= 0) status.resolution = resolutionOf(root_ / id, 0);
   return status;
 }

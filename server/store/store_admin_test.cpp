@@ -9,6 +9,7 @@
 #include <chrono>
 #include <thread>
 
+#include "server/core/exports.hpp"
 #include "tests/support/synthetic.hpp"
 
 namespace stereomap::store {
@@ -230,7 +231,7 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_EQ(status.poses, 8u);
   EXPECT_EQ(status.vehicles, (std::vector<std::string>{"v1", "v1-b"}));
   EXPECT_NEAR(status.bounds.max.y() - a.bounds.max.y(), 5.0, 0.11);
-  const auto tum = merged->trajectoryTum("v1-b");
+  const auto tum = core::trajectoryTum(*merged, "v1-b");
   EXPECT_NE(tum.find(" 5.000000 1.000000 "), std::string::npos) << tum;  // moved +5 m in y
   // The same map as fusing both flights directly, the second 5 m to the side.
   for (int i = 0; i < 4; ++i) ASSERT_TRUE(server.map->ingest(wallFrame("direct", i)));

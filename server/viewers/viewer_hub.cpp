@@ -15,6 +15,7 @@
 #include "common/time.hpp"
 #include "common/url.hpp"
 #include "server/core/api.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/viewers/view_planner.hpp"
 
@@ -114,12 +115,6 @@ std::vector<Text> poseMessages(const std::string& session,
     }
   }
   return out;
-}
-
-json boundsJson(const common::Box3& box) {
-  if (box.empty()) return nullptr;
-  return {{"min", {box.min.x(), box.min.y(), box.min.z()}},
-          {"max", {box.max.x(), box.max.y(), box.max.z()}}};
 }
 
 }  // namespace
@@ -352,8 +347,8 @@ struct ViewerHub::Impl {
                       {"version", summary.version},
                       {"voxels", summary.occupied_voxels},
                       {"tiles", summary.tiles},
-                      {"bounds", boundsJson(summary.bounds)},
-                      {"status", json::parse(core::sessionJson(session->status()))}}),
+                      {"bounds", core::boundsJson(summary.bounds)},
+                      {"status", core::sessionObject(session->status())}}),
               false);
     auto poses = session->trajectory(0);
     poses.resize(std::min(poses.size(), feed->second.poses));  // the rest comes as pushes
@@ -429,7 +424,7 @@ struct ViewerHub::Impl {
                         {"until", static_cast<double>(done.until_ns) * 1e-9},
                         {"frames", viewer.replay->status().frames_fused},
                         {"voxels", summary.occupied_voxels},
-                        {"bounds", boundsJson(summary.bounds)}}),
+                        {"bounds", core::boundsJson(summary.bounds)}}),
                 false);
       for (auto& text : poseMessages(done.id, viewer.replay->trajectory(0), true)) {
         queueText(viewer, std::move(text), false);
@@ -720,7 +715,7 @@ struct ViewerHub::Impl {
                                     {"changed_ms", static_cast<double>(summary.changed_ns) * 1e-6},
                                     {"voxels", summary.occupied_voxels},
                                     {"tiles", summary.tiles},
-                                    {"bounds", boundsJson(summary.bounds)}});
+                                    {"bounds", core::boundsJson(summary.bounds)}});
         for (Viewer* viewer : subscribers[feed->first]) {
           if (!viewer->view) continue;  // its first view will fetch everything
           for (const auto& [key, version] : *changed) {

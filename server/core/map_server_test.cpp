@@ -1,0 +1,130 @@
+#include "server/core/map_server.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cstdio>
+
+#include "common/time.hpp"
+#include "proto/wire_size.hpp"
+#include "tests/support/synthetic.hpp"
+
+namespace stereomap::core {
+namespace {
+
+TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
+  MapServer server({.resolution = 0.1});
+  EXPECT_TRUE(server.ingest(testing::wallFrame("a", 2.05)));
+  auto bad = testing::wallFrame("a", 2.05);
+  bad.payload.resize(10);
+  EXPECT_FALSE(server.ingest(bad));
+  EXPECT_TRUE(server.ingest(testing::poseAt("a", 0.5, 1'000'000'000)));
+  auto session = server.find("a");
+  ASSERT_TRUE(session);
+  session->waitUntilIdle();
+  const auto status = session->status();
+  EXPECT_EQ(status.frames_fused, 1u);
+  EXPECT_GT(status.occupied_voxels, 50u);
+  EXPECT_EQ(status.poses, 1u);
+  EXPECT_EQ(server.metrics().get("stereomap_samples_rejected_total",
+                                 {{"topic", "CloudFrame"}, {"reason", "decode_failed"}}),
+            1.0);
+  EXPECT_NE(server.metricsText().find("stereomap_session_occupied_voxels{session=\"a\"}"),
+            std::string::npos);
+}
+
+// What each vehicle's accepted samples took on the link, as the vehicle counts it.
+TEST(MapServer, CountsEachVehiclesBytes) {
+  MapServer server({.resolution = 0.1});
+  const auto frame = testing::wallFrame("a", 2.05);
+  ASSERT_TRUE(server.ingest(frame));
+  auto second = testing::poseAt("a", 0.5, 1'000'000'000);
+  ASSERT_TRUE(server.ingest(second));
+  second.vehicle_id = "v2";
+  ASSERT_TRUE(server.ingest(second));
+  auto bad = frame;
+  bad.payload.resize(10);
+  EXPECT_FALSE(server.ingest(bad));  // rejected: not counted
+  auto bytes = [&](const std::string& vehicle, const std::string& topic) {
+    return server.metrics().get("stereomap_vehicle_received_bytes_total",
+                                {{"session", "a"}, {"vehicle", vehicle}, {"topic", topic}});
+  };
+  EXPECT_EQ(bytes("v1", "CloudFrame"), static_cast<double>(proto::wireBytes(frame)));
+  EXPECT_GT(bytes("v1", "CloudFrame"), static_cast<double>(frame.payload.size()));
+  EXPECT_EQ(bytes("v1", "Pose"), static_cast<double>(proto::wireBytes(second)));
+  EXPECT_EQ(bytes("v2", "Pose"), static_cast<double>(proto::wireBytes(second)));
+  // Any id is a valid vehicle: past 64 in a session (two taken above) they share one series.
+  for (int i = 100; i < 200; ++i) {
+    char id[16];
+    std::snprintf(id, sizeof id, "w%d", i);  // ("w" + to_string: a false gcc 12 -Wrestrict)
+    second.vehicle_id = id;
+    second.seq = 1;
+    second.stamp_ns = common::nowNs();  // stamped now: its age counts
+    ASSERT_TRUE(server.ingest(second));
+  }
+  EXPECT_GT(bytes("w161", "Pose"), 0.0);
+  EXPECT_EQ(bytes("w162", "Pose"), 0.0);
+  EXPECT_EQ(bytes("(other)", "Pose"), static_cast<double>(38 * proto::wireBytes(second)));
+  EXPECT_NE(server.metricsText().find("stereomap_vehicle_pose_latency_seconds{session=\"a\","
+                                      "vehicle=\"w161\",quantile=\"0.95\"}"),
+            std::string::npos);
+  // A session that goes takes its series along.
+  ASSERT_TRUE(server.unload("a"));
+  EXPECT_EQ(bytes("v1", "CloudFrame"), 0.0);
+  EXPECT_EQ(server.metricsText().find("session=\"a\""), std::string::npos);
+}
+
+// A journal that keeps everything but pose corrections (a disk that fills up just then).
+class NoRoomForCorrections : public IngestLog {
+ public:
+  common::Result<uint64_t> append(const proto::CloudFrameMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::PoseMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::SessionEventMsg&) override { return ++number_; }
+  common::Result<uint64_t> append(const proto::PoseCorrectionMsg&) override {
+    return common::makeError(common::ErrorCode::kIo, "No space left on device");
+  }
+
+ private:
+  uint64_t number_ = 0;
+};
+
+// A correction the journal cannot keep is refused (the vehicle's DDS history brings it again)
+// and changes nothing: not the trajectory, not the snapshots, which it would otherwise hold up.
+TEST(MapServer, ACorrectionThatCannotBeJournaledChangesNothing) {
+  NoRoomForCorrections journal;
+  struct Snapshots : SnapshotSink {
+    common::Status saveSnapshot(const std::string&, uint64_t, const std::string&) override {
+      ++taken;
+      return common::Ok{};
+    }
+    std::atomic<int> taken{0};
+  } snapshots;
+  MapServerOptions options{.resolution = 0.1, .log = &journal};
+  options.snapshots = &snapshots;
+  options.snapshot_every = 1;
+  MapServer server(options);
+  ASSERT_TRUE(server.ingest(testing::poseAt("s", 1.0, 10)));
+  proto::PoseCorrectionMsg correction;
+  correction.vehicle_id = "v1";
+  correction.session_id = "s";
+  correction.seq = 1;
+  correction.keyframes.push_back({10, {1.0, 2.0, 0}, {0, 0, 0, 1}});
+  EXPECT_FALSE(server.ingest(correction));
+  const auto session = server.find("s");
+  EXPECT_EQ(session->status().corrections, 0u);
+  EXPECT_EQ(session->trajectory(0).at(0).T_map_body.translation.y(), 0.0);
+  EXPECT_NE(session->status().store_error.find("No space left"), std::string::npos);
+  EXPECT_FALSE(server.storeHealth().ok);
+  EXPECT_NE(server.metricsText().find("reason=\"journal_failed\""), std::string::npos);
+  session->waitUntilIdle();  // returns: nothing is pending
+  // Snapshots go on (the correction's announcement was withdrawn).
+  ASSERT_TRUE(server.ingest(testing::wallFrame("s", 3.0, 1)));
+  session->waitUntilIdle();
+  for (int i = 0; i < 500 && snapshots.taken == 0; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));  // the writer's own thread
+  }
+  EXPECT_GT(snapshots.taken, 0);
+}
+
+
+}  // namespace
+}  // namespace stereomap::core

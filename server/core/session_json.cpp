@@ -1,0 +1,100 @@
+#include "server/core/session_json.hpp"
+
+#include <array>
+
+namespace stereomap::core {
+
+using nlohmann::json;
+
+namespace {
+
+json textOrNull(const std::string& text) { return text.empty() ? json(nullptr) : json(text); }
+
+}  // namespace
+
+json boundsJson(const common::Box3& bounds) {
+  if (bounds.empty()) return nullptr;
+  return {{"min", {bounds.min.x(), bounds.min.y(), bounds.min.z()}},
+          {"max", {bounds.max.x(), bounds.max.y(), bounds.max.z()}}};
+}
+
+json sessionObject(const SessionStatus& s, SessionFields fields) {
+  json object = {{"id", s.id},
+                 {"vehicle", s.vehicles.empty() ? "" : s.vehicles.front()},
+                 {"vehicles", s.vehicles},
+                 {"state", stateName(s)},
+                 {"resolution", s.resolution},
+                 {"frames", s.frames_fused},
+                 {"occupied_voxels", s.occupied_voxels},
+                 {"bounds", boundsJson(s.bounds)}};
+  if (fields == SessionFields::kCatalog) return object;
+  object.update(json{{"frames_received", s.frames_received},
+                     {"dropped_frames", s.frames_dropped},
+                     {"fusion_backlog", s.backlog},
+                     {"poses", s.poses},
+                     {"ended_by", textOrNull(s.ended_by)},
+                     {"store_error", textOrNull(s.store_error)},
+                     {"samples_refused", s.samples_refused},
+                     {"corrections", s.corrections},
+                     {"refusions", s.refusions},
+                     {"refusing", s.refusing},
+                     {"refusion_error", textOrNull(s.refusion_error)}});
+  return object;
+}
+
+std::string sessionJson(const SessionStatus& status, const char* message_type) {
+  json object = sessionObject(status);
+  if (message_type != nullptr) object["type"] = message_type;
+  return object.dump();
+}
+
+SessionStatus sessionFromJson(const std::string& id, const json& doc) {
+  SessionStatus s;
+  s.id = id;
+  s.ended = true;
+  if (!doc.is_object()) return s;
+  auto count = [&](const char* key, uint64_t fallback = 0) {
+    const auto found = doc.find(key);
+    return found != doc.end() && found->is_number_unsigned() ? found->get<uint64_t>() : fallback;
+  };
+  auto text = [&](const char* key) {
+    const auto found = doc.find(key);
+    return found != doc.end() && found->is_string() ? found->get<std::string>() : std::string();
+  };
+  if (const auto vehicles = doc.find("vehicles"); vehicles != doc.end() && vehicles->is_array()) {
+    for (const auto& v : *vehicles) {
+      if (v.is_string()) s.vehicles.push_back(v.get<std::string>());
+    }
+  }
+  if (const auto r = doc.find("resolution"); r != doc.end() && r->is_number()) {
+    s.resolution = r->get<double>();
+  }
+  s.frames_fused = count("frames");
+  s.frames_received = count("frames_received", s.frames_fused);
+  s.frames_dropped = count("dropped_frames");
+  s.occupied_voxels = count("occupied_voxels");
+  s.poses = count("poses");
+  s.samples_refused = count("samples_refused");
+  s.corrections = count("corrections");
+  s.refusions = count("refusions");
+  s.ended_by = text("ended_by");
+  const std::string state = text("state");
+  s.closed = state == "closed";
+  s.read_only = state == "opened";
+  s.ended = state != "live";  // no state: a stored session that stopped unsaved
+  const auto bounds = doc.find("bounds");
+  if (bounds != doc.end() && bounds->is_object() && bounds->contains("min") &&
+      bounds->contains("max")) {
+    try {
+      const auto lo = (*bounds)["min"].get<std::array<double, 3>>();
+      const auto hi = (*bounds)["max"].get<std::array<double, 3>>();
+      s.bounds.extend({lo[0], lo[1], lo[2]});
+      s.bounds.extend({hi[0], hi[1], hi[2]});
+    } catch (const json::exception&) {
+      // Not three numbers each: no bounds.
+    }
+  }
+  return s;
+}
+
+}  // namespace stereomap::core
