@@ -7,22 +7,22 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <ctime>
-#include <filesystem>
 
 #include "common/shutdown.hpp"
 #include "common/trajectory.hpp"
-#include "onboard/camera/dataset_source.hpp"
 #include "onboard/link/cloud_link.hpp"
 #include "onboard/pipeline/pipeline.hpp"
-#include "onboard/sim/deck.hpp"
-#include "onboard/sim/sim_source.hpp"
+#include "onboard/sources/source_registry.hpp"
 #include "proto/dds_cli.hpp"
 #include "proto/wire_size.hpp"
 
 namespace {
+
+using namespace stereomap;
 
 std::string defaultSessionName() {
   const std::time_t now = std::time(nullptr);
@@ -31,126 +31,121 @@ std::string defaultSessionName() {
   return text;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  using namespace stereomap;
-  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
-
-  CLI::App app{"stereomap-onboard: stream a vehicle's stereo depth and pose to the server"};
-  std::string source_spec = "sim";
+// The command line as given; pipelineOptions() and sourceOptions() turn it into settings.
+struct Flags {
+  std::string source = "sim";
+  std::string calibration_file;
   uint64_t frames = 0;
   double rate_hz = 10.0;
-  pipeline::PipelineOptions options;
-  options.session_id = defaultSessionName();
+  pipeline::PipelineOptions pipeline;
   proto::DdsOptions dds;
   uint32_t seed = 1;
-  std::string stereo_preset = "fast";
-  double noise_sigma = 0, blur_sigma = 0;
+  std::string stereo_preset = "fast", noise_handling = "auto", codec = "auto";
   std::string camera_preset;
-  std::string vo = "fast", trajectory_out, kitti_out, odometry_out, truth_out;
+  double noise_sigma = 0, blur_sigma = 0;
+  std::string vo = "fast";
+  std::string trajectory_out, kitti_out, odometry_out, truth_out;
   bool no_publish = false;
   double wait_s = 3.0;
   double paper_resolution = 0;
-  std::string calibration_file;
   std::string landing_mode = "off";
-  app.add_option("--source", source_spec,
-                 "Frame source: sim, sim:deck (a descent onto a moving ship's deck with the "
-                 "landing pad), kitti:DIR, euroc:DIR, folder:DIR or camera:LEFT,RIGHT")
+  std::string link_budget = "off";
+};
+
+void addFlags(CLI::App& app, Flags& f) {
+  f.pipeline.session_id = defaultSessionName();
+  app.add_option("--source", f.source, "Frame source: " + sources::sourcesHelp())
       ->capture_default_str();
-  app.add_option("--calib", calibration_file,
+  app.add_option("--calib", f.calibration_file,
                  "Stereo calibration (ours, OpenCV stereo_calib, KITTI calib.txt); overrides "
                  "the source's own")
       ->check(CLI::ExistingFile);
-  app.add_option("--frames", frames, "Stop after N frames (0: run until Ctrl-C)")
+  app.add_option("--frames", f.frames, "Stop after N frames (0: run until Ctrl-C)")
       ->capture_default_str();
-  app.add_option("--rate", rate_hz, "Frames per second (0: as fast as possible)")
+  app.add_option("--rate", f.rate_hz, "Frames per second (0: as fast as possible)")
       ->check(CLI::Range(0.0, 1000.0))
       ->capture_default_str();
-  app.add_option("--session", options.session_id, "Session name (letters, digits, . _ -)")
+  app.add_option("--session", f.pipeline.session_id, "Session name (letters, digits, . _ -)")
       ->capture_default_str();
-  app.add_option("--vehicle", options.vehicle_id, "Vehicle id")->capture_default_str();
-  proto::addDdsFlags(app, dds);
-  app.add_option("--seed", seed, "Simulated room's seed")->capture_default_str();
-  app.add_option("--stereo", stereo_preset,
+  app.add_option("--vehicle", f.pipeline.vehicle_id, "Vehicle id")->capture_default_str();
+  proto::addDdsFlags(app, f.dds);
+  app.add_option("--seed", f.seed, "Simulated room's seed")->capture_default_str();
+  app.add_option("--stereo", f.stereo_preset,
                  "Stereo configuration: fast (real time) or accurate (docs/BENCHMARKS.md)")
       ->check(CLI::IsMember({"fast", "accurate"}))
       ->capture_default_str();
-  std::string noise_handling = "auto";
-  app.add_option("--noise-handling", noise_handling,
+  app.add_option("--noise-handling", f.noise_handling,
                  "Image noise in the depth step: auto (estimated from the images; noisy "
                  "images are matched smoothed with larger blocks and their depth averaged over "
                  "frames, docs/BENCHMARKS.md), on (always so) or off (frame by frame, as for "
                  "clean images)")
       ->check(CLI::IsMember({"auto", "on", "off"}))
       ->capture_default_str();
-  app.add_option("--max-range", options.stereo.cloud.max_range_m, "Cloud range limit, metres")
+  app.add_option("--max-range", f.pipeline.stereo.cloud.max_range_m, "Cloud range limit, metres")
       ->check(CLI::Range(0.5, 100.0))
       ->capture_default_str();
-  std::string codec = "auto";
-  app.add_option("--codec", codec,
+  app.add_option("--codec", f.codec,
                  "Cloud encoding: auto (the smallest, docs/BENCHMARKS.md: draco for clouds "
                  "thinned to the map's voxels, zstd for whole ones), draco (kd-tree), zstd "
                  "(quantised, delta coded, zstd) or raw (floats)")
       ->check(CLI::IsMember({"auto", "draco", "zstd", "raw"}))
       ->capture_default_str();
-  app.add_option("--quantization-bits", options.codec.quantization_bits,
+  app.add_option("--quantization-bits", f.pipeline.codec.quantization_bits,
                  "Position quantisation bits (draco and zstd); thinned clouds use fewer when "
                  "1/64 of a voxel allows")
       ->check(CLI::Range(6, 20))
       ->capture_default_str();
-  app.add_option("--camera", camera_preset,
+  app.add_option("--camera", f.camera_preset,
                  "Sim: the camera model: clean (exact images; the room's default), typical "
                  "(noise sigma 2 at mid grey, 5 % left/right gain mismatch, defocus, motion "
                  "blur, vignetting, gamma) or poor (sigma 4, 10 %, stronger blur); the deck's "
                  "default is typical. --image-noise and --image-blur "
                  "override its read noise and defocus")
       ->check(CLI::IsMember({"clean", "typical", "poor"}));
-  app.add_option("--image-noise", noise_sigma, "Sim: Gaussian image noise, grey levels")
+  app.add_option("--image-noise", f.noise_sigma, "Sim: Gaussian image noise, grey levels")
       ->check(CLI::Range(0.0, 50.0))
       ->capture_default_str();
-  app.add_option("--image-blur", blur_sigma, "Sim: Gaussian blur of the images, pixels")
+  app.add_option("--image-blur", f.blur_sigma, "Sim: Gaussian blur of the images, pixels")
       ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
-  app.add_option("--vo", vo,
+  app.add_option("--vo", f.vo,
                  "Pose from: fast (stereo visual odometry), paper (the stereo-VO paper's "
                  "method) or gt (the source's ground truth)")
       ->check(CLI::IsMember({"fast", "paper", "gt"}))
       ->capture_default_str();
-  app.add_option("--trajectory-out", trajectory_out,
+  app.add_option("--trajectory-out", f.trajectory_out,
                  "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw; with "
                  "--pose-graph, every frame through the final graph");
-  app.add_flag("--pose-graph", options.pose_graph,
+  app.add_flag("--pose-graph", f.pipeline.pose_graph,
                "Correct the odometry with a pose graph over its keyframes: loop closures and "
                "joins of lost tracks by place recognition, solved on a worker thread; the "
                "corrected keyframe poses are sent to the server, which fuses its map again");
-  app.add_option("--odometry-trajectory-out", odometry_out,
+  app.add_option("--odometry-trajectory-out", f.odometry_out,
                  "Write the odometry's own poses (T_map_body, TUM), before any correction");
-  app.add_option("--truth-out", truth_out,
+  app.add_option("--truth-out", f.truth_out,
                  "Write the source's ground-truth poses (T_map_body, TUM), where it has them");
-  app.add_option("--kitti-poses-out", kitti_out,
+  app.add_option("--kitti-poses-out", f.kitti_out,
                  "Write the left camera's poses relative to the first frame, KITTI format");
-  app.add_flag("--no-publish", no_publish,
+  app.add_flag("--no-publish", f.no_publish,
                "No DDS: run the odometry alone (with a progress bar and a summary)");
-  app.add_option("--voxel-downsample", options.stereo.cloud.voxel_m,
+  app.add_option("--voxel-downsample", f.pipeline.stereo.cloud.voxel_m,
                  "Keep one point per voxel of this edge, metres (0: off; the 5x2 blocks stay)")
       ->check(CLI::Range(0.0, 10.0))
       ->capture_default_str();
-  app.add_option("--min-disparity-for-resolution", paper_resolution,
+  app.add_option("--min-disparity-for-resolution", f.paper_resolution,
                  "Skip disparities below the octree-mapping paper's d_min = ceil(sqrt(b*f*0.5/r)) "
                  "for map resolution r metres (0: off)")
       ->check(CLI::Range(0.0, 10.0));
-  app.add_option("--landing", landing_mode,
+  app.add_option("--landing", f.landing_mode,
                  "Watch for the landing pad and publish it (LandingTarget): default (PnP refined "
                  "on both images) or patent (the patent's linear solution); off: no watch")
       ->check(CLI::IsMember({"off", "default", "patent"}))
       ->capture_default_str();
-  std::string link_budget = "off";
-  app.add_option("--link-budget", link_budget,
+  app.add_option("--link-budget", f.link_budget,
                  "Keep the stream under this rate on the radio link (1Mbit, 500kbit, ...; off): "
                  "clouds are sent less often, poses keep their rate")
       ->capture_default_str();
-  auto& link = *options.link;
+  auto& link = *f.pipeline.link;
   app.add_option("--map-resolution", link.map_resolution_m,
                  "The server's map resolution: clouds are thinned to one point per voxel of it "
                  "(0: sent whole)")
@@ -163,176 +158,181 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.set_config("--config", "", "Read these options from a TOML or INI file (name = value)");
   app.allow_config_extras(CLI::config_extras_mode::error);  // a typo in the file is an error
-  app.add_option("--wait-for-server", wait_s, "Seconds to wait for a server before streaming")
+  app.add_option("--wait-for-server", f.wait_s, "Seconds to wait for a server before streaming")
       ->check(CLI::Range(0.0, 600.0))
       ->capture_default_str();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+}
 
+// Completes f.pipeline from the flags CLI11 cannot check alone; false (said) on bad usage.
+bool pipelineOptions(Flags& f) {
+  auto& options = f.pipeline;
   if (options.session_id.empty() || options.session_id.size() > proto::kMaxIdLength ||
       options.session_id.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
                                            "0123456789._-") != std::string::npos) {
     spdlog::error("--session '{}' must be 1-64 letters, digits, '.', '_' or '-'",
                   options.session_id);
-    return 2;
+    return false;
   }
-  if (auto budget = link::parseBitRate(link_budget); !budget) {
+  auto& link = *options.link;
+  if (auto budget = link::parseBitRate(f.link_budget); !budget) {
     spdlog::error("--link-budget: {}", budget.error().message);
-    return 2;
+    return false;
   } else if (*budget > 0) {
     proto::PoseMsg pose;
     pose.vehicle_id = options.vehicle_id;
     pose.session_id = options.session_id;
     const double poses =
-        static_cast<double>(proto::wireBytes(pose)) * 8 * (rate_hz > 0 ? rate_hz : 30.0);
+        static_cast<double>(proto::wireBytes(pose)) * 8 * (f.rate_hz > 0 ? f.rate_hz : 30.0);
     link.budget_bits_per_s = link::cloudShare(*budget, poses);
     if (link.budget_bits_per_s <= 0) {
-      spdlog::error("--link-budget {}: the poses alone need {:.0f} kbit/s", link_budget,
+      spdlog::error("--link-budget {}: the poses alone need {:.0f} kbit/s", f.link_budget,
                     poses / 1000);
-      return 2;
+      return false;
     }
   }
   options.codec.encoding =
-      codec == "auto" ? link::bestEncoding(link) : *proto::parseEncoding(codec);  // IsMember
-  options.rate_hz = rate_hz;
-  options.stereo.matcher = stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
-                                                       : stereo::MatcherOptions::fast();
-  options.stereo.noise = noise_handling == "on"    ? stereo::NoiseHandling::kOn
-                         : noise_handling == "off" ? stereo::NoiseHandling::kOff
-                                                   : stereo::NoiseHandling::kAuto;
-  options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(wait_s * 1000));
-
-  // --camera replaces the source's camera model; --image-noise and --image-blur then set its
-  // read noise and defocus.
-  auto applyCameraFlags = [&](sim::CameraModel& model) {
-    if (!camera_preset.empty()) model = *sim::CameraModel::preset(camera_preset);
-    if (app.count("--image-noise") > 0) model.noise_sigma = noise_sigma;
-    if (app.count("--image-blur") > 0) model.blur_sigma = blur_sigma;
-  };
-  std::unique_ptr<camera::FrameSource> source;
-  if (source_spec == "sim:deck") {
-    sim::DeckSourceOptions deck{
-        .seed = seed, .rate_hz = rate_hz > 0 ? rate_hz : 10.0, .max_frames = frames};
-    applyCameraFlags(deck.render.camera);
-    source = std::make_unique<sim::DeckSource>(deck);
-    // Odometry would follow the deck (the scene moves with it); the sim's navigation stands
-    // in for the vehicle's GPS/INS, as the landing patent uses it.
-    if (app.count("--vo") == 0) {
-      vo = "gt";
-      spdlog::info(
-          "sim:deck: poses from the sim's navigation (stands in for GPS/INS; --vo to "
-          "change)");
-    }
-  } else if (source_spec == "sim") {
-    sim::SimSourceOptions sim_options{
-        .seed = seed, .rate_hz = rate_hz > 0 ? rate_hz : 10.0, .max_frames = frames};
-    applyCameraFlags(sim_options.render.camera);
-    source = std::make_unique<sim::SimSource>(sim_options);
-  } else {
-    camera::DatasetOptions dataset{.max_frames = frames, .rate_hz = rate_hz > 0 ? rate_hz : 10.0};
-    if (!calibration_file.empty()) dataset.calibration_file = calibration_file;
-    auto opened = camera::openDatasetSource(source_spec, dataset);
-    if (!opened) {
-      spdlog::error("{}", opened.error().message);
-      return opened.error().code == common::ErrorCode::kInvalidArgument ? 2 : 1;
-    }
-    source = std::move(opened).value();
-  }
-
-  if (paper_resolution > 0) {
-    const auto& camera = source->camera();
-    options.stereo.matcher.min_disparity =
-        stereo::minimumDisparity(camera.baseline, camera.fx, paper_resolution);
-    spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels",
-                 options.stereo.matcher.min_disparity,
-                 camera.depthFromDisparity(options.stereo.matcher.min_disparity), paper_resolution);
-  }
-
-  options.pose_source =
-      vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
-  options.odometry.mode = vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
-  options.depth = !no_publish;  // the clouds only matter to a server
-  if (landing_mode != "off") {
+      f.codec == "auto" ? link::bestEncoding(link) : *proto::parseEncoding(f.codec);  // IsMember
+  options.rate_hz = f.rate_hz;
+  options.stereo.matcher = f.stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
+                                                         : stereo::MatcherOptions::fast();
+  options.stereo.noise = f.noise_handling == "on"    ? stereo::NoiseHandling::kOn
+                         : f.noise_handling == "off" ? stereo::NoiseHandling::kOff
+                                                     : stereo::NoiseHandling::kAuto;
+  options.wait_for_server = std::chrono::milliseconds(static_cast<int64_t>(f.wait_s * 1000));
+  options.depth = !f.no_publish;  // the clouds only matter to a server
+  if (f.landing_mode != "off") {
     options.landing = landing::LandingWatchOptions{};
     options.landing->pose.mode =
-        landing_mode == "patent" ? landing::PoseMode::kPatent : landing::PoseMode::kDefault;
+        f.landing_mode == "patent" ? landing::PoseMode::kPatent : landing::PoseMode::kDefault;
   }
+  if (f.no_publish) options.progress_every = 0;
+  return true;
+}
 
-  // Trajectory files, and a progress bar when running the odometry alone.
-  // Kept only when asked for: a live vehicle runs until Ctrl-C.
-  common::Trajectory trajectory, kitti_poses, odometry_poses, truth_poses;
-  std::optional<common::Rigid3> first_camera;
-  uint64_t n = 0;
-  const bool bar = no_publish && isatty(STDERR_FILENO);
-  options.on_frame = [&](const pipeline::FrameReport& r) {
+sources::SourceOptions sourceOptions(const CLI::App& app, const Flags& f) {
+  sources::SourceOptions options{.max_frames = f.frames,
+                                 .rate_hz = f.rate_hz,
+                                 .seed = f.seed,
+                                 .camera_preset = f.camera_preset};
+  if (!f.calibration_file.empty()) options.calibration_file = f.calibration_file;
+  if (app.count("--image-noise") > 0) options.noise_sigma = f.noise_sigma;
+  if (app.count("--image-blur") > 0) options.blur_sigma = f.blur_sigma;
+  return options;
+}
+
+// What the source implies for the pipeline: where poses come from (a source may prefer its
+// own when --vo was not given) and the paper's minimum disparity for the camera.
+void adaptToSource(const CLI::App& app, const sources::OpenedSource& opened, Flags& f) {
+  if (opened.prefer_ground_truth && app.count("--vo") == 0) {
+    f.vo = "gt";
+    spdlog::info("{} (--vo to change)", *opened.prefer_ground_truth);
+  }
+  auto& options = f.pipeline;
+  options.pose_source =
+      f.vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
+  options.odometry.mode = f.vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
+  if (f.paper_resolution > 0) {
+    const auto& camera = opened.source->camera();
+    options.stereo.matcher.min_disparity =
+        stereo::minimumDisparity(camera.baseline, camera.fx, f.paper_resolution);
+    spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels",
+                 options.stereo.matcher.min_disparity,
+                 camera.depthFromDisparity(options.stereo.matcher.min_disparity),
+                 f.paper_resolution);
+  }
+}
+
+// The trajectory files asked for, kept frame by frame (only when asked: a live vehicle runs
+// until Ctrl-C), and a progress bar when the odometry runs alone on a terminal.
+class TrajectoryFiles {
+ public:
+  explicit TrajectoryFiles(const Flags& f) : f_(f), bar_(f.no_publish && isatty(STDERR_FILENO)) {}
+
+  void onFrame(const pipeline::FrameReport& r) {
     const double t = static_cast<double>(r.stamp_ns) * 1e-9;
-    ++n;
-    if (!trajectory_out.empty()) trajectory.push_back({t, r.T_map_body});
-    if (!odometry_out.empty()) odometry_poses.push_back({t, r.T_map_body_odometry});
-    if (!truth_out.empty() && r.T_map_body_truth) truth_poses.push_back({t, *r.T_map_body_truth});
-    if (!first_camera) first_camera = r.T_map_camera;
-    if (!kitti_out.empty()) kitti_poses.push_back({t, first_camera->inverse() * r.T_map_camera});
-    if (bar) {
-      const int filled = frames > 0 ? static_cast<int>(30 * n / frames) : static_cast<int>(n % 31);
+    ++frames_;
+    if (!f_.trajectory_out.empty()) trajectory_.push_back({t, r.T_map_body});
+    if (!f_.odometry_out.empty()) odometry_.push_back({t, r.T_map_body_odometry});
+    if (!f_.truth_out.empty() && r.T_map_body_truth) truth_.push_back({t, *r.T_map_body_truth});
+    if (!first_camera_) first_camera_ = r.T_map_camera;
+    if (!f_.kitti_out.empty()) kitti_.push_back({t, first_camera_->inverse() * r.T_map_camera});
+    if (bar_) {
+      const int filled = f_.frames > 0 ? static_cast<int>(30 * frames_ / f_.frames)
+                                       : static_cast<int>(frames_ % 31);
       std::fprintf(stderr, "\r[%-30s] %llu%s frames, odometry %s, %.1f ms",
-                   std::string(filled, '#').c_str(), static_cast<unsigned long long>(n),
-                   frames > 0 ? ("/" + std::to_string(frames)).c_str() : "",
+                   std::string(filled, '#').c_str(), static_cast<unsigned long long>(frames_),
+                   f_.frames > 0 ? ("/" + std::to_string(f_.frames)).c_str() : "",
                    odometry::stateName(r.state), r.odometry_ms);
     }
-  };
-  if (no_publish) options.progress_every = 0;
+  }
 
-  std::shared_ptr<proto::Participant> participant;
-  std::unique_ptr<pipeline::VehiclePublisher> publisher;
-  if (!no_publish) {
-    auto created = proto::Participant::create(dds);
-    if (!created) {
-      spdlog::error("{}", created.error().message);
-      return 1;
+  // Writes the files; with a pose graph, the trajectory as the final graph has it.
+  bool write(const pipeline::PipelineSummary& summary) {
+    if (bar_) std::fprintf(stderr, "\n");
+    if (f_.pipeline.pose_graph && summary.corrected_T_map_body.size() == trajectory_.size()) {
+      for (size_t i = 0; i < trajectory_.size(); ++i) {
+        trajectory_[i].pose = summary.corrected_T_map_body[i];
+      }
     }
-    participant = std::move(created).value();
-    auto made = pipeline::VehiclePublisher::create(participant);
-    if (!made) {
-      spdlog::error("{}", made.error().message);
-      return 1;
+    for (const auto& [path, text] : {std::pair{f_.trajectory_out, common::tumText(trajectory_)},
+                                     std::pair{f_.kitti_out, common::kittiText(kitti_)},
+                                     std::pair{f_.odometry_out, common::tumText(odometry_)},
+                                     std::pair{f_.truth_out, common::tumText(truth_)}}) {
+      if (path.empty()) continue;
+      if (auto written = common::writeText(path, text); !written) {
+        spdlog::error("{}", written.error().message);
+        return false;
+      }
+      spdlog::info("wrote {} poses to {}", frames_, path);
     }
-    publisher = std::move(made).value();
-    spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
-                 options.vehicle_id, options.session_id, dds.domain_id, source->describe(), rate_hz,
-                 frames > 0 ? fmt::format(", {} frames", frames) : std::string(", until Ctrl-C"),
-                 vo);
-  } else {
-    spdlog::info("odometry ({}) on {}, nothing published", vo, source->describe());
+    return true;
   }
-  const auto summary = pipeline::runPipeline(*source, publisher.get(), options, shutdown);
-  if (bar) std::fprintf(stderr, "\n");
-  if (options.pose_graph && summary.corrected_T_map_body.size() == trajectory.size()) {
-    for (size_t i = 0; i < trajectory.size(); ++i) {
-      trajectory[i].pose = summary.corrected_T_map_body[i];
-    }
+
+ private:
+  const Flags& f_;
+  const bool bar_;
+  uint64_t frames_ = 0;
+  common::Trajectory trajectory_, kitti_, odometry_, truth_;
+  std::optional<common::Rigid3> first_camera_;
+};
+
+// The vehicle's DDS writers (nullptr with --no-publish); false (said) when DDS fails.
+bool makePublisher(const Flags& f, const camera::FrameSource& source,
+                   std::shared_ptr<proto::Participant>& participant,
+                   std::unique_ptr<pipeline::VehiclePublisher>& publisher) {
+  if (f.no_publish) {
+    spdlog::info("odometry ({}) on {}, nothing published", f.vo, source.describe());
+    return true;
   }
-  if (options.pose_graph) {
+  auto created = proto::Participant::create(f.dds);
+  if (!created) {
+    spdlog::error("{}", created.error().message);
+    return false;
+  }
+  participant = std::move(created).value();
+  auto made = pipeline::VehiclePublisher::create(participant);
+  if (!made) {
+    spdlog::error("{}", made.error().message);
+    return false;
+  }
+  publisher = std::move(made).value();
+  spdlog::info(
+      "vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
+      f.pipeline.vehicle_id, f.pipeline.session_id, f.dds.domain_id, source.describe(), f.rate_hz,
+      f.frames > 0 ? fmt::format(", {} frames", f.frames) : std::string(", until Ctrl-C"), f.vo);
+  return true;
+}
+
+// The summary lines (tests and operators read them); the exit code.
+int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
+  if (f.pipeline.pose_graph) {
     spdlog::info(
         "pose graph: {} keyframes, {} loop closures, {} of {} later tracks joined, "
         "longest solve {:.1f} ms",
         summary.graph.keyframes, summary.graph.loops, summary.graph.joined_tracks,
         std::max(0, summary.graph.tracks - 1), summary.graph.solve_ms_max);
   }
-  for (const auto& [path, text] : {std::pair{trajectory_out, common::tumText(trajectory)},
-                                   std::pair{kitti_out, common::kittiText(kitti_poses)},
-                                   std::pair{odometry_out, common::tumText(odometry_poses)},
-                                   std::pair{truth_out, common::tumText(truth_poses)}}) {
-    if (path.empty()) continue;
-    if (auto written = common::writeText(path, text); !written) {
-      spdlog::error("{}", written.error().message);
-      return 1;
-    }
-    spdlog::info("wrote {} poses to {}", n, path);
-  }
-  if (options.pose_source == pipeline::PoseSource::kOdometry) {
+  if (f.pipeline.pose_source == pipeline::PoseSource::kOdometry) {
     spdlog::info("odometry: {} frames, {} lost, {} degraded, {:.1f} ms per frame (median)",
                  summary.frames, summary.lost_frames, summary.degraded_frames,
                  summary.median_odometry_ms);
@@ -342,17 +342,17 @@ int main(int argc, char** argv) {
           "the right image sits {:+.2f} px off its calibration (estimated by the odometry, "
           "which corrects for it); the stereo calibration needs redoing",
           summary.right_offset_px);
-    } else if (options.odometry.mode == odometry::VoMode::kFast) {
+    } else if (f.pipeline.odometry.mode == odometry::VoMode::kFast) {
       spdlog::info(
           "stereo calibration check: right image offset {:+.2f} px, right camera gain {:.3f}",
           summary.right_offset_px, summary.right_gain);
     }
   }
-  if (options.landing) {
+  if (f.pipeline.landing) {
     spdlog::info("landing pad: tracked in {} of {} frames, {} poses published",
                  summary.landing_tracked, summary.frames, summary.landing_poses);
   }
-  if (no_publish) return 0;
+  if (f.no_publish) return 0;
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), depth {:.1f} ms, encode {:.1f} ms, frame "
       "{:.1f} ms (medians), {} late, {} publish errors; images {} (noise sigma {:.1f} grey "
@@ -371,4 +371,38 @@ int main(int argc, char** argv) {
       sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
       sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
   return summary.publish_errors == 0 ? 0 : 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
+
+  CLI::App app{"stereomap-onboard: stream a vehicle's stereo depth and pose to the server"};
+  Flags flags;
+  addFlags(app, flags);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;
+  }
+  if (!pipelineOptions(flags)) return 2;
+
+  auto opened = sources::openSource(flags.source, sourceOptions(app, flags));
+  if (!opened) {
+    spdlog::error("{}", opened.error().message);
+    return opened.error().code == common::ErrorCode::kInvalidArgument ? 2 : 1;
+  }
+  adaptToSource(app, *opened, flags);
+
+  TrajectoryFiles files(flags);
+  flags.pipeline.on_frame = [&files](const pipeline::FrameReport& r) { files.onFrame(r); };
+  std::shared_ptr<proto::Participant> participant;
+  std::unique_ptr<pipeline::VehiclePublisher> publisher;
+  if (!makePublisher(flags, *opened->source, participant, publisher)) return 1;
+
+  const auto summary =
+      pipeline::runPipeline(*opened->source, publisher.get(), flags.pipeline, shutdown);
+  if (!files.write(summary)) return 1;
+  return reportSummary(flags, summary);
 }

@@ -15,13 +15,14 @@ namespace stereomap::camera {
 namespace {
 
 namespace fs = std::filesystem;
+using common::Result;
 const fs::path kData = testing::kDataDir;
 #define SKIP_WITHOUT(path) STEREOMAP_SKIP_WITHOUT(path)
 
 TEST(DatasetSource, KittiFramesArriveRectifiedWithGroundTruth) {
   const fs::path dir = kData / "kitti_stereo_seq2";
   SKIP_WITHOUT(dir);
-  auto source = openDatasetSource("kitti:" + dir.string(), {});
+  auto source = openKitti(dir, {});
   ASSERT_TRUE(source.ok()) << source.error().message;
   EXPECT_DOUBLE_EQ((*source)->camera().fx, 718.856);
   EXPECT_NEAR((*source)->camera().baseline, 0.5372, 1e-4);
@@ -50,7 +51,7 @@ TEST(DatasetSource, KittiFramesArriveRectifiedWithGroundTruth) {
 TEST(DatasetSource, EurocFramesAreRectifiedAndPosed) {
   const fs::path dir = kData / "euroc_v101_micro";
   SKIP_WITHOUT(dir);
-  auto source = openDatasetSource("euroc:" + dir.string(), {.max_frames = 5});
+  auto source = openEuroc(dir, {.max_frames = 5});
   ASSERT_TRUE(source.ok()) << source.error().message;
   EXPECT_NEAR((*source)->camera().fx, 436.235, 1e-3);
   size_t frames = 0;
@@ -85,7 +86,7 @@ TEST(DatasetSource, FolderReportsAndSkipsAMissingFrame) {
   }
   fs::copy_file(kitti / "calib.txt", dir / "calib.txt");
   fs::remove(dir / "right_000001.png");
-  auto source = openDatasetSource("folder:" + dir.string(), {});
+  auto source = openFolder(dir, {});
   ASSERT_TRUE(source.ok()) << source.error().message;
   std::vector<uint64_t> indices;
   while (auto frame = (*source)->next()) {
@@ -110,7 +111,7 @@ TEST(DatasetSource, FramesWithoutGroundTruthKeepTheMountAndStampFromTheFirstFram
     fs::copy_file(kitti / "image_1" / name, dir / "image_1" / name);
   }
   fs::copy_file(kitti / "calib.txt", dir / "calib.txt");
-  auto source = openDatasetSource("kitti:" + dir.string(), {});
+  auto source = openKitti(dir, {});
   ASSERT_TRUE(source.ok()) << source.error().message;
   std::this_thread::sleep_for(std::chrono::milliseconds(300));  // a wait for the server
   const int64_t before = common::nowNs();
@@ -129,20 +130,17 @@ TEST(DatasetSource, FramesWithoutGroundTruthKeepTheMountAndStampFromTheFirstFram
   fs::remove_all(dir);
 }
 
-TEST(DatasetSource, BadSpecsAreClearErrors) {
-  auto expectError = [](const std::string& spec, const std::string& needle,
-                        const DatasetOptions& options = {}) {
-    auto source = openDatasetSource(spec, options);
-    ASSERT_FALSE(source.ok()) << spec;
+TEST(DatasetSource, WhatIsMissingIsAClearError) {
+  auto expectError = [](const Result<std::unique_ptr<FrameSource>>& source,
+                        const std::string& needle) {
+    ASSERT_FALSE(source.ok()) << needle;
     EXPECT_NE(source.error().message.find(needle), std::string::npos) << source.error().message;
   };
-  expectError("kitti:/nonexistent", "no image_0/ folder");
-  expectError("euroc:/nonexistent", "no mav0/cam0/data.csv");
-  expectError("folder:/nonexistent", "no such folder");
-  expectError("tape:/x", "unknown source 'tape'");
-  expectError("kitti", "needs a location");
-  expectError("camera:0", "expected camera:LEFT,RIGHT");
-  expectError("camera:0,1", "needs --calib");
+  expectError(openKitti("/nonexistent", {}), "kitti:/nonexistent: no image_0/ folder");
+  expectError(openEuroc("/nonexistent", {}), "euroc:/nonexistent: no mav0/cam0/data.csv");
+  expectError(openFolder("/nonexistent", {}), "folder:/nonexistent: no such folder");
+  expectError(openCameras("0", {}), "expected camera:LEFT,RIGHT");
+  expectError(openCameras("0,1", {}), "needs --calib");
 }
 
 }  // namespace

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <functional>
 
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/eval/metrics.hpp"
@@ -21,15 +22,18 @@ namespace {
 const auto kKitti = testing::kDataDir / "kitti_stereo_seq2";
 const auto kEuroc = testing::kDataDir / "euroc_v101_micro";
 
-eval::OdometryRun onDataset(const std::string& spec, VoMode mode) {
-  auto source = camera::openDatasetSource(spec, {});
+eval::OdometryRun onDataset(
+    const std::function<common::Result<std::unique_ptr<camera::FrameSource>>(
+        const std::filesystem::path&, const camera::DatasetOptions&)>& open,
+    const std::filesystem::path& dir, VoMode mode) {
+  auto source = open(dir, {});
   EXPECT_TRUE(source.ok()) << source.error().message;
   return source.ok() ? eval::runOdometry(**source, {.mode = mode}) : eval::OdometryRun{};
 }
 
 TEST(Odometry, KittiExcerptRotationAndShape) {
   STEREOMAP_SKIP_WITHOUT(kKitti);
-  const auto run = onDataset("kitti:" + kKitti.string(), VoMode::kFast);
+  const auto run = onDataset(camera::openKitti, kKitti, VoMode::kFast);
   ASSERT_EQ(run.estimate.size(), 51u);
   EXPECT_EQ(run.lost, 0);
   const auto drift = eval::kittiDrift(run.truth, run.estimate, {20});
@@ -45,7 +49,7 @@ TEST(Odometry, KittiExcerptRotationAndShape) {
 
 TEST(Odometry, EurocStandingStillDoesNotDrift) {
   STEREOMAP_SKIP_WITHOUT(kEuroc);
-  const auto run = onDataset("euroc:" + kEuroc.string(), VoMode::kFast);
+  const auto run = onDataset(camera::openEuroc, kEuroc, VoMode::kFast);
   ASSERT_GT(run.estimate.size(), 30u);
   const double moved = eval::largestDisplacement(run.estimate);
   std::printf("EuRoC static: largest estimated motion %.4f m\n", moved);

@@ -17,9 +17,9 @@ class Exports : public ::testing::Test {
     common::Rigid3 moved;
     moved.translation = {1, 2, 3};
     session_.addPose({"v2", 2'500'000'000, moved});
-    ASSERT_TRUE(session_.enqueue(FusionJob{"v1", 0, 1'000'000'000,
-                                           testing::planeCloud(2.05, 0.5, 0.03),
-                                           common::Rigid3::identity(), 10}));
+    ASSERT_TRUE(
+        session_.enqueue(FusionJob{"v1", 0, 1'000'000'000, testing::planeCloud(2.05, 0.5, 0.03),
+                                   common::Rigid3::identity(), 10}));
     session_.waitUntilIdle();
   }
   Session session_{"s", {.resolution = 0.1}};

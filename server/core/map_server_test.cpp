@@ -125,6 +125,5 @@ TEST(MapServer, ACorrectionThatCannotBeJournaledChangesNothing) {
   EXPECT_GT(snapshots.taken, 0);
 }
 
-
 }  // namespace
 }  // namespace stereomap::core

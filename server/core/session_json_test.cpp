@@ -69,12 +69,9 @@ TEST(SessionJson, TheCatalogsFieldsAreTheSameKeysWithTheSameValues) {
 // session.json is a file on disk: damaged or foreign content gives defaults, never a throw,
 // and the id is the caller's (the directory's), never the file's.
 TEST(SessionJson, ADamagedDocumentGivesDefaults) {
-  const json damaged = {{"id", "../etc"},
-                        {"vehicles", {1, "v1", nullptr}},
-                        {"resolution", "fine"},
-                        {"frames", -4},
-                        {"poses", 1.5},
-                        {"bounds", {{"min", {1, 2}}, {"max", "x"}}},
+  const json damaged = {{"id", "../etc"},       {"vehicles", {1, "v1", nullptr}},
+                        {"resolution", "fine"}, {"frames", -4},
+                        {"poses", 1.5},         {"bounds", {{"min", {1, 2}}, {"max", "x"}}},
                         {"ended_by", 7}};
   const SessionStatus read = sessionFromJson("s1", damaged);
   EXPECT_EQ(read.id, "s1");

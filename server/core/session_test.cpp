@@ -16,7 +16,12 @@ TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
   Session session("q", {.resolution = 0.1, .queue_capacity = 1});
   size_t accepted = 0;
   for (int i = 0; i < 20; ++i) {
-    FusionJob job{"v", static_cast<uint64_t>(i), 0, testing::planeCloud(3.0, 0.5, 0.03), common::Rigid3::identity(), 10};
+    FusionJob job{"v",
+                  static_cast<uint64_t>(i),
+                  0,
+                  testing::planeCloud(3.0, 0.5, 0.03),
+                  common::Rigid3::identity(),
+                  10};
     accepted += session.enqueue(std::move(job));
   }
   session.waitUntilIdle();

@@ -129,7 +129,7 @@ int main(int argc, char** argv) {
   const auto euroc = std::filesystem::path(data) / "euroc_v101_micro";
   for (const auto& [mode, options, ablation] : modes) {
     if (std::filesystem::exists(kitti)) {
-      auto source = camera::openDatasetSource("kitti:" + kitti.string(), {});
+      auto source = camera::openKitti(kitti, {});
       if (source)
         row("KITTI 01 0-50 (20 m segments)", mode, eval::runOdometry(**source, options), {20});
     }
@@ -146,13 +146,13 @@ int main(int argc, char** argv) {
           {5});
     }
     if (std::filesystem::exists(euroc) && !ablation) {
-      auto source = camera::openDatasetSource("euroc:" + euroc.string(), {});
+      auto source = camera::openEuroc(euroc, {});
       if (source) row("EuRoC V1_01 static clip", mode, eval::runOdometry(**source, options), {});
     }
   }
   for (const double focal_scale : {1.0, 0.99}) {
     if (!std::filesystem::exists(kitti)) break;
-    auto source = camera::openDatasetSource("kitti:" + kitti.string(), {});
+    auto source = camera::openKitti(kitti, {});
     if (!source) break;
     const auto r = essentialRotation(**source, 20, focal_scale);
     std::printf(

@@ -1,0 +1,113 @@
+#include "onboard/sources/source_registry.hpp"
+
+#include "onboard/camera/dataset_source.hpp"
+#include "onboard/sim/deck.hpp"
+#include "onboard/sim/sim_source.hpp"
+
+namespace stereomap::sources {
+
+namespace {
+
+using common::ErrorCode;
+using common::makeError;
+using common::Result;
+
+// --camera replaces the source's camera model; --image-noise and --image-blur then set its
+// read noise and defocus.
+void applyCameraModel(const SourceOptions& options, sim::CameraModel& model) {
+  if (!options.camera_preset.empty()) {
+    if (auto preset = sim::CameraModel::preset(options.camera_preset)) model = *preset;
+  }
+  if (options.noise_sigma) model.noise_sigma = *options.noise_sigma;
+  if (options.blur_sigma) model.blur_sigma = *options.blur_sigma;
+}
+
+double simRate(const SourceOptions& options) {
+  return options.rate_hz > 0 ? options.rate_hz : 10.0;  // "as fast as possible" still has a clock
+}
+
+Result<OpenedSource> openSim(const std::string&, const SourceOptions& options) {
+  sim::SimSourceOptions sim{
+      .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
+  applyCameraModel(options, sim.render.camera);
+  return OpenedSource{std::make_unique<sim::SimSource>(sim), std::nullopt};
+}
+
+Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) {
+  sim::DeckSourceOptions deck{
+      .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
+  applyCameraModel(options, deck.render.camera);
+  return OpenedSource{std::make_unique<sim::DeckSource>(deck),
+                      "sim:deck: poses from the sim's navigation (stands in for GPS/INS; odometry "
+                      "would follow the moving deck)"};
+}
+
+// A data set's opener as a row's.
+template <typename Location>
+auto dataset(Result<std::unique_ptr<camera::FrameSource>> (*open)(const Location&,
+                                                                   const camera::DatasetOptions&)) {
+  return [open](const std::string& location, const SourceOptions& options) -> Result<OpenedSource> {
+    camera::DatasetOptions dataset{.calibration_file = options.calibration_file,
+                                   .max_frames = options.max_frames,
+                                   .rate_hz = options.rate_hz > 0 ? options.rate_hz : 10.0};
+    auto source = open(Location(location), dataset);
+    if (!source) return source.error();
+    return OpenedSource{std::move(source).value(), std::nullopt};
+  };
+}
+
+bool takesLocation(const SourceKind& kind) { return kind.prefix.back() == ':'; }
+
+}  // namespace
+
+const std::vector<SourceKind>& sourceKinds() {
+  static const std::vector<SourceKind> kinds = {
+      {"sim", "sim", "the simulated room's flight", openSim},
+      {"sim:deck", "sim:deck", "a descent onto a moving ship's deck with the landing pad",
+       openDeck},
+      {"kitti:", "kitti:DIR", "a KITTI odometry sequence", dataset(camera::openKitti)},
+      {"euroc:", "euroc:DIR", "a EuRoC sequence, ASL layout", dataset(camera::openEuroc)},
+      {"folder:", "folder:DIR", "left/right image pairs and a calibration file",
+       dataset(camera::openFolder)},
+      {"camera:", "camera:LEFT,RIGHT", "two video devices, numbers or paths; needs --calib",
+       dataset(camera::openCameras)},
+  };
+  return kinds;
+}
+
+std::string sourcesHelp() {
+  std::string text;
+  for (const auto& kind : sourceKinds()) {
+    text += (text.empty() ? "" : ", ") + kind.usage + " (" + kind.help + ")";
+  }
+  return text;
+}
+
+Result<OpenedSource> openSource(const std::string& spec, const SourceOptions& options) {
+  std::string usages;
+  for (const auto& kind : sourceKinds()) usages += (usages.empty() ? "" : ", ") + kind.usage;
+  for (const auto& kind : sourceKinds()) {
+    if (!takesLocation(kind)) {
+      if (spec == kind.prefix) return kind.open("", options);
+      continue;
+    }
+    if (spec.rfind(kind.prefix, 0) != 0) continue;
+    const std::string location = spec.substr(kind.prefix.size());
+    if (location.empty()) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "source '" + spec + "' needs a location: " + kind.usage);
+    }
+    return kind.open(location, options);
+  }
+  // "kitti" without its colon is a location forgotten, not an unknown source.
+  for (const auto& kind : sourceKinds()) {
+    if (takesLocation(kind) && spec + ":" == kind.prefix) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "source '" + spec + "' needs a location: " + kind.usage);
+    }
+  }
+  return makeError(ErrorCode::kInvalidArgument,
+                   "unknown source '" + spec + "': use " + usages);
+}
+
+}  // namespace stereomap::sources
