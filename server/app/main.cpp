@@ -9,6 +9,8 @@
 #include <fstream>
 #include <optional>
 #include <thread>
+#include <tuple>
+#include <vector>
 
 #include "common/shutdown.hpp"
 #include "proto/dds_cli.hpp"
@@ -20,19 +22,6 @@
 namespace {
 
 using namespace stereomap;
-
-// Reads one topic until shutdown, handing every sample to the map server.
-template <typename T>
-void pump(proto::Reader<T>& reader, core::MapServer& server, const common::Shutdown& shutdown) {
-  std::vector<T> batch;
-  bool last_round = false;
-  while (!last_round) {
-    last_round = shutdown.stopRequested();  // after a stop: one more round for what arrived
-    batch.clear();
-    reader.take(batch, last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500));
-    for (const auto& sample : batch) server.ingest(sample);
-  }
-}
 
 // The token from --token, --token-file or $STEREOMAP_TOKEN (at most one of the flags);
 // exits 2 with a message on a bad file. Empty: none.
@@ -73,85 +62,82 @@ bool isLoopback(const std::string& address) {
          address == "localhost";
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
-
-  CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
+struct Flags {
   std::string http_spec = "127.0.0.1:8080";
   std::string store_dir = "stereomap-store";
   core::MapServerOptions options;
   proto::DdsOptions dds;
   std::string web_root;
   std::string token, token_file;
-  app.add_option("--http", http_spec, "Address and port for HTTP and WebSocket")
+  double vehicle_timeout_s = 60;
+};
+
+void addFlags(CLI::App& app, Flags& f) {
+  app.add_option("--http", f.http_spec, "Address and port for HTTP and WebSocket")
       ->capture_default_str();
-  app.add_option("--store", store_dir, "Directory where sessions are kept")->capture_default_str();
-  app.add_option("--resolution", options.resolution, "Finest voxel edge, metres")
+  app.add_option("--store", f.store_dir, "Directory where sessions are kept")
+      ->capture_default_str();
+  app.add_option("--resolution", f.options.resolution, "Finest voxel edge, metres")
       ->check(CLI::Range(0.01, 2.0))
       ->capture_default_str();
-  proto::addDdsFlags(app, dds);
-  app.add_option("--web-root", web_root, "The built viewer (default: ../web beside this binary)");
-  app.add_option("--token-file", token_file,
+  proto::addDdsFlags(app, f.dds);
+  app.add_option("--web-root", f.web_root, "The built viewer (default: ../web beside this binary)");
+  app.add_option("--token-file", f.token_file,
                  "File whose first line is the token clients must present (Authorization: "
                  "Bearer T or ?token=T); required when --http is not a loopback address. Or set "
                  "STEREOMAP_TOKEN in the environment");
-  app.add_option("--token", token,
+  app.add_option("--token", f.token,
                  "The token itself (visible to every local user in the process list: prefer "
                  "--token-file or STEREOMAP_TOKEN)");
-  app.add_option("--max-cloud-bytes", options.limits.max_payload_bytes,
+  app.add_option("--max-cloud-bytes", f.options.limits.max_payload_bytes,
                  "Largest accepted cloud payload, bytes")
       ->check(CLI::Range(size_t{1024}, proto::kMaxPayloadBytes))
       ->capture_default_str();
-  app.add_option("--snapshot-every", options.snapshot_every,
+  app.add_option("--snapshot-every", f.options.snapshot_every,
                  "Fused frames between map snapshots (recovery replays only the journal after "
                  "the last one)")
       ->check(CLI::Range(1, 1000000))
       ->capture_default_str();
-  double vehicle_timeout_s = 60;
-  app.add_option("--vehicle-timeout", vehicle_timeout_s,
+  app.add_option("--vehicle-timeout", f.vehicle_timeout_s,
                  "Seconds without samples after which a live session counts as ended (its "
                  "vehicle stopped unseen, e.g. while the server was down); 0: never")
       ->check(CLI::Range(0.0, 86400.0))
       ->capture_default_str();
-  app.add_option("--queue", options.queue_capacity,
+  app.add_option("--queue", f.options.queue_capacity,
                  "Frames per session waiting for fusion before new ones are dropped")
       ->check(CLI::Range(1, 100000))
       ->capture_default_str();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
-  fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
+}
 
+// Where and for whom the server listens: the address, the token and the viewer's files;
+// nullopt (said) on bad usage.
+std::optional<net::HttpServerOptions> httpOptions(const Flags& f) {
   net::HttpServerOptions http;
-  const size_t colon = http_spec.rfind(':');
+  const size_t colon = f.http_spec.rfind(':');
   try {
     if (colon == std::string::npos) throw std::invalid_argument("no port");
-    http.address = http_spec.substr(0, colon);
-    const int port = std::stoi(http_spec.substr(colon + 1));
+    http.address = f.http_spec.substr(0, colon);
+    const int port = std::stoi(f.http_spec.substr(colon + 1));
     if (port < 0 || port > 65535) throw std::out_of_range("port");
     http.port = static_cast<uint16_t>(port);
   } catch (const std::exception&) {
-    spdlog::error("--http '{}' must be ADDRESS:PORT, e.g. 127.0.0.1:8080", http_spec);
-    return 2;
+    spdlog::error("--http '{}' must be ADDRESS:PORT, e.g. 127.0.0.1:8080", f.http_spec);
+    return std::nullopt;
   }
   if (http.address == "localhost") http.address = "127.0.0.1";
-  const auto resolved_token = resolveToken(token, token_file);
-  if (!resolved_token) return 2;
-  if (!isLoopback(http.address) && resolved_token->empty()) {
+  const auto token = resolveToken(f.token, f.token_file);
+  if (!token) return std::nullopt;
+  if (!isLoopback(http.address) && token->empty()) {
     spdlog::error(
         "--http {} is not a loopback address: give a token (--token-file FILE or "
         "STEREOMAP_TOKEN) so that only your operators can see the maps",
-        http_spec);
-    return 2;
+        f.http_spec);
+    return std::nullopt;
   }
-  http.token = *resolved_token;
-  http.web_root = web_root.empty()
+  http.token = *token;
+  http.web_root = f.web_root.empty()
                       ? std::filesystem::canonical("/proc/self/exe").parent_path() / ".." / "web"
-                      : std::filesystem::path(web_root);
+                      : std::filesystem::path(f.web_root);
   http.web_root = std::filesystem::weakly_canonical(http.web_root);
   if (!std::filesystem::exists(http.web_root / "index.html")) {
     spdlog::warn(
@@ -159,41 +145,83 @@ int main(int argc, char** argv) {
         "still works",
         http.web_root.string());
   }
+  return http;
+}
 
-  auto participant = proto::Participant::create(dds);
-  if (!participant) {
-    spdlog::error("{}", participant.error().message);
-    return 1;
-  }
-  auto clouds = proto::Reader<proto::CloudFrameMsg>::create(*participant);
-  auto poses = proto::Reader<proto::PoseMsg>::create(*participant);
-  auto events = proto::Reader<proto::SessionEventMsg>::create(*participant);
-  auto corrections = proto::Reader<proto::PoseCorrectionMsg>::create(*participant);
-  auto landing = proto::Reader<proto::LandingTargetMsg>::create(*participant);
-  if (!clouds || !poses || !events || !corrections || !landing) {
-    spdlog::error("cannot create DDS readers: {}", !clouds        ? clouds.error().message
-                                                   : !poses       ? poses.error().message
-                                                   : !events      ? events.error().message
-                                                   : !corrections ? corrections.error().message
-                                                                  : landing.error().message);
-    return 1;
+// A reader per topic and a thread per reader handing its samples to the map server, from
+// start() until the shutdown is requested (then one more round for what had arrived).
+class DdsIngest {
+ public:
+  static common::Result<std::unique_ptr<DdsIngest>> create(
+      const std::shared_ptr<proto::Participant>& participant) {
+    auto ingest = std::unique_ptr<DdsIngest>(new DdsIngest);
+    common::Status opened = common::Ok{};
+    std::apply([&](auto&... readers) { (open(participant, readers, opened), ...); },
+               ingest->readers_);
+    if (!opened) return opened.error();
+    return ingest;
   }
 
-  // Journal first: a frame counts as received once it is on disk. Then recover what earlier
-  // runs journaled, before DDS delivers anything new.
-  store::SessionJournals journals(store_dir, options.resolution);
-  options.log = &journals;
-  options.snapshots = &journals;
-  options.archive = &journals;
-  core::MapServer server(options);
-  auto admin = store::StoreAdmin::create(store_dir, server, &journals,
-                                         {.default_resolution = options.resolution});
-  if (!admin) {
-    spdlog::error("{}", admin.error().message);
-    return 1;
+  void start(core::MapServer& server, common::Shutdown& shutdown) {
+    shutdown.onStop(
+        [this] { std::apply([](auto&... readers) { (readers->wake(), ...); }, readers_); });
+    std::apply(
+        [&](auto&... readers) {
+          (threads_.emplace_back(
+               [&server, &shutdown, reader = readers.get()] { pump(*reader, server, shutdown); }),
+           ...);
+        },
+        readers_);
   }
-  if (!(*admin)->catalogWarning().empty()) spdlog::warn("{}", (*admin)->catalogWarning());
-  for (const auto& session : (*admin)->recoverAll()) {
+
+  void join() {
+    for (auto& thread : threads_) thread.join();
+    threads_.clear();
+  }
+
+ private:
+  DdsIngest() = default;
+
+  template <typename T>
+  static void open(const std::shared_ptr<proto::Participant>& participant,
+                   std::unique_ptr<proto::Reader<T>>& reader, common::Status& opened) {
+    if (!opened) return;
+    auto created = proto::Reader<T>::create(participant);
+    if (!created) {
+      opened = common::makeError(created.error().code,
+                                 "cannot create DDS readers: " + created.error().message);
+      return;
+    }
+    reader = std::move(created).value();
+  }
+
+  template <typename T>
+  static void pump(proto::Reader<T>& reader, core::MapServer& server,
+                   const common::Shutdown& shutdown) {
+    std::vector<T> batch;
+    bool last_round = false;
+    while (!last_round) {
+      last_round = shutdown.stopRequested();  // after a stop: one more round for what arrived
+      batch.clear();
+      reader.take(batch,
+                  last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500));
+      for (const auto& sample : batch) server.ingest(sample);
+    }
+  }
+
+  std::tuple<std::unique_ptr<proto::Reader<proto::CloudFrameMsg>>,
+             std::unique_ptr<proto::Reader<proto::PoseMsg>>,
+             std::unique_ptr<proto::Reader<proto::SessionEventMsg>>,
+             std::unique_ptr<proto::Reader<proto::PoseCorrectionMsg>>,
+             std::unique_ptr<proto::Reader<proto::LandingTargetMsg>>>
+      readers_;
+  std::vector<std::thread> threads_;
+};
+
+// What earlier runs journaled, fused again before DDS delivers anything new.
+void recoverSessions(store::StoreAdmin& admin) {
+  if (!admin.catalogWarning().empty()) spdlog::warn("{}", admin.catalogWarning());
+  for (const auto& session : admin.recoverAll()) {
     if (!session.problem.empty()) {
       spdlog::warn(
           "session '{}': {} ({} records lost; `stereomap-store check` and `repair` "
@@ -203,39 +231,19 @@ int main(int argc, char** argv) {
     spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
                  session.frames, session.snapshot_frames, session.poses);
   }
+}
 
-  auto http_server = net::HttpServer::create(http, server, admin->get());
-  if (!http_server) {
-    spdlog::error("{}", http_server.error().message);
-    return 1;
-  }
-  (*http_server)->start();
-
-  shutdown.onStop([&] {
-    (*clouds)->wake();
-    (*poses)->wake();
-    (*events)->wake();
-    (*corrections)->wake();
-    (*landing)->wake();
-  });
-  std::vector<std::thread> ingest;
-  ingest.emplace_back([&] { pump(**clouds, server, shutdown); });
-  ingest.emplace_back([&] { pump(**poses, server, shutdown); });
-  ingest.emplace_back([&] { pump(**events, server, shutdown); });
-  ingest.emplace_back([&] { pump(**corrections, server, shutdown); });
-  ingest.emplace_back([&] { pump(**landing, server, shutdown); });
-
-  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", dds.domain_id,
-               options.resolution, store_dir);
-  spdlog::info("viewer: http://{}:{}/", http.address, (*http_server)->port());
-
+// Until the shutdown: every second ends silent sessions; every five saves what is due and
+// logs the maps' growth.
+void serveUntilStopped(const Flags& f, core::MapServer& server, store::StoreAdmin& admin,
+                       const net::HttpServer& http, const common::Shutdown& shutdown) {
   size_t last_voxels = 0;
   const auto vehicle_timeout =
-      std::chrono::milliseconds(static_cast<int64_t>(vehicle_timeout_s * 1000));
+      std::chrono::milliseconds(static_cast<int64_t>(f.vehicle_timeout_s * 1000));
   for (int tick = 1; !shutdown.waitFor(std::chrono::seconds(1)); ++tick) {
     if (vehicle_timeout.count() > 0) server.endSilentSessions(vehicle_timeout);
     if (tick % 5 != 0) continue;
-    (*admin)->checkpoint(/*all=*/false);
+    admin.checkpoint(/*all=*/false);
     size_t voxels = 0, frames = 0, backlog = 0;
     const auto sessions = server.sessions();
     for (const auto& session : sessions) {
@@ -249,15 +257,62 @@ int main(int argc, char** argv) {
           "map: {} sessions, {} frames fused, {} occupied voxels (+{}), backlog {}, "
           "{} viewers",
           sessions.size(), frames, voxels,
-          static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog,
-          (*http_server)->viewers());
+          static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog, http.viewers());
       last_voxels = voxels;
     }
   }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  common::Shutdown shutdown;  // first: blocks SIGINT/SIGTERM for every later thread
+
+  CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
+  Flags flags;
+  addFlags(app, flags);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& error) {
+    return app.exit(error) == 0 ? 0 : 2;
+  }
+  fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
+  const auto http = httpOptions(flags);
+  if (!http) return 2;
+
+  auto fail = [](const common::Error& error) {
+    spdlog::error("{}", error.message);
+    return 1;
+  };
+  auto participant = proto::Participant::create(flags.dds);
+  if (!participant) return fail(participant.error());
+  auto ingest = DdsIngest::create(*participant);
+  if (!ingest) return fail(ingest.error());
+
+  // Journal first: a frame counts as received once it is on disk.
+  store::SessionJournals journals(flags.store_dir, flags.options.resolution);
+  flags.options.log = &journals;
+  flags.options.snapshots = &journals;
+  flags.options.archive = &journals;
+  core::MapServer server(flags.options);
+  auto admin = store::StoreAdmin::create(flags.store_dir, server, &journals,
+                                         {.default_resolution = flags.options.resolution});
+  if (!admin) return fail(admin.error());
+  recoverSessions(**admin);
+
+  auto http_server = net::HttpServer::create(*http, server, admin->get());
+  if (!http_server) return fail(http_server.error());
+  (*http_server)->start();
+  (*ingest)->start(server, shutdown);
+  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", flags.dds.domain_id,
+               flags.options.resolution, flags.store_dir);
+  spdlog::info("viewer: http://{}:{}/", http->address, (*http_server)->port());
+
+  serveUntilStopped(flags, server, **admin, **http_server, shutdown);
 
   spdlog::info("stopping (signal {}): finishing queued frames and saving sessions",
                shutdown.signal());
-  for (auto& thread : ingest) thread.join();
+  (*ingest)->join();
   (*http_server)->stop();
   for (const auto& session : server.sessions()) session->waitUntilFused();
   (*admin)->checkpoint(/*all=*/true);
