@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <regex>
 
+#include "common/cli.hpp"
 #include "onboard/camera/chessboard.hpp"
 
 namespace {
@@ -36,11 +37,7 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   app.add_option("--out", out, "Calibration file to write (stereomap YAML)")->required();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
 
   std::smatch match;
   const std::regex board_format(R"((\d+)x(\d+))");

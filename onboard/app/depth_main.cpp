@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cstdio>
 
+#include "common/cli.hpp"
 #include "onboard/camera/calibration.hpp"
 #include "onboard/camera/rectifier.hpp"
 #include "onboard/stereo/depth.hpp"
@@ -37,11 +38,7 @@ int main(int argc, char** argv) {
   app.add_option("--max-range", max_range, "Cloud range limit, metres")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   if (!cloud_out.empty() && calib_path.empty()) {
     std::fprintf(stderr, "--cloud-out needs --calib: depth needs the focal length and baseline\n");
     return 2;

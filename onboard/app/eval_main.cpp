@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <iostream>
 
+#include "common/cli.hpp"
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/plot.hpp"
 
@@ -104,11 +105,7 @@ int main(int argc, char** argv) {
                    "to half the path)")
       ->delimiter(',');
   kitti->add_option("--step", step, "Frames between segment starts")->capture_default_str();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   auto pairs = load(in);
   if (!pairs) {
     std::fprintf(stderr, "error: %s\n", pairs.error().message.c_str());

@@ -11,6 +11,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "common/cli.hpp"
 #include "common/statistics.hpp"
 #include "onboard/eval/landing_run.hpp"
 
@@ -85,7 +86,7 @@ int main(int argc, char** argv) {
                  "Write every --save-every-th scored frame as a PNG here");
   app.add_option("--save-every", save_every, "With --save-frames: one picture per this many")
       ->check(CLI::Range(1, 100000));
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   if (!camera_preset.empty()) {
     sim::CameraModel& model = source_options.render.camera;
     const double noise = model.noise_sigma, blur = model.blur_sigma;

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <ctime>
 
+#include "common/cli.hpp"
 #include "common/shutdown.hpp"
 #include "common/trajectory.hpp"
 #include "onboard/link/cloud_link.hpp"
@@ -381,11 +382,7 @@ int main(int argc, char** argv) {
   CLI::App app{"stereomap-onboard: stream a vehicle's stereo depth and pose to the server"};
   Flags flags;
   addFlags(app, flags);
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   if (!pipelineOptions(flags)) return 2;
 
   auto opened = sources::openSource(flags.source, sourceOptions(app, flags));

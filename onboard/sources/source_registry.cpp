@@ -45,7 +45,7 @@ Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) 
 // A data set's opener as a row's.
 template <typename Location>
 auto dataset(Result<std::unique_ptr<camera::FrameSource>> (*open)(const Location&,
-                                                                   const camera::DatasetOptions&)) {
+                                                                  const camera::DatasetOptions&)) {
   return [open](const std::string& location, const SourceOptions& options) -> Result<OpenedSource> {
     camera::DatasetOptions dataset{.calibration_file = options.calibration_file,
                                    .max_frames = options.max_frames,
@@ -106,8 +106,7 @@ Result<OpenedSource> openSource(const std::string& spec, const SourceOptions& op
                        "source '" + spec + "' needs a location: " + kind.usage);
     }
   }
-  return makeError(ErrorCode::kInvalidArgument,
-                   "unknown source '" + spec + "': use " + usages);
+  return makeError(ErrorCode::kInvalidArgument, "unknown source '" + spec + "': use " + usages);
 }
 
 }  // namespace stereomap::sources

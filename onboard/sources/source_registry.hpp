@@ -43,7 +43,7 @@ struct SourceKind {
   std::string usage;   // as the help shows it: "kitti:DIR"
   std::string help;    // what it is, in a few words
   std::function<common::Result<OpenedSource>(const std::string& location,
-                                              const SourceOptions& options)>
+                                             const SourceOptions& options)>
       open;
 };
 

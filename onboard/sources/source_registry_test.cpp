@@ -15,8 +15,8 @@ TEST(SourceRegistry, EverySourceIsListedOnceWithItsHelp) {
     EXPECT_EQ(kind.usage.rfind(kind.prefix, 0), 0u) << kind.usage;
     EXPECT_NE(sourcesHelp().find(kind.usage + " (" + kind.help + ")"), std::string::npos);
   }
-  EXPECT_EQ(prefixes, (std::set<std::string>{"sim", "sim:deck", "kitti:", "euroc:", "folder:",
-                                             "camera:"}));
+  EXPECT_EQ(prefixes,
+            (std::set<std::string>{"sim", "sim:deck", "kitti:", "euroc:", "folder:", "camera:"}));
 }
 
 TEST(SourceRegistry, OpensTheSimulatorsWithTheirOptions) {

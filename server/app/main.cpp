@@ -12,6 +12,7 @@
 #include <tuple>
 #include <vector>
 
+#include "common/cli.hpp"
 #include "common/shutdown.hpp"
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
@@ -271,11 +272,7 @@ int main(int argc, char** argv) {
   CLI::App app{"stereomap-server: fuse vehicles' clouds into live 3D maps and serve them"};
   Flags flags;
   addFlags(app, flags);
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
   const auto http = httpOptions(flags);
   if (!http) return 2;

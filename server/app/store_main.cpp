@@ -10,6 +10,7 @@
 #include <iostream>
 #include <nlohmann/json.hpp>
 
+#include "common/cli.hpp"
 #include "common/transform_args.hpp"
 #include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
@@ -266,11 +267,7 @@ int main(int argc, char** argv) {
       ->delimiter(',')
       ->expected(7);
 
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);

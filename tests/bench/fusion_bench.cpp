@@ -13,6 +13,7 @@
 #include <random>
 #include <sstream>
 
+#include "common/cli.hpp"
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
@@ -104,7 +105,7 @@ int main(int argc, char** argv) {
   app.add_option("--stock-runs", stock_runs, "Timed runs of OctoMap per case")
       ->check(CLI::Range(1, 100));
   app.add_option("--tum", tum, "TUM RGB-D folder (skipped when absent)");
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
 
   std::printf(
       "| case | points | OctoMap insertPointCloud | ours, 1 thread | ours, 2 threads | "

@@ -18,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "common/cli.hpp"
 #include "onboard/link/cloud_link.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/wire_size.hpp"
@@ -119,7 +120,7 @@ int main(int argc, char** argv) {
   app.add_option("--zstd-level", codec.zstd_level, "zstd level")
       ->check(CLI::Range(1, 19))
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   cv::setNumThreads(1);
   link_options.map_resolution_m = thin ? resolution : 0;
   link_options.budget_bits_per_s = budget_kbit * 1000;

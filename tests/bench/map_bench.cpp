@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "common/cli.hpp"
 #include "tests/support/sim_map_accuracy.hpp"
 
 int main(int argc, char** argv) {
@@ -110,7 +111,7 @@ int main(int argc, char** argv) {
   app.add_option("--interior", interior,
                  "Noisy images: unconfirmed blocks inside a surface this smooth pass, px (0: none)")
       ->check(CLI::Range(0.0, 100.0));
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   if (temporal_max > 0 && temporal_max < std::max(temporal_min, 2)) {
     std::fprintf(stderr, "--temporal-max must be at least --temporal (default 2)\n");
     return 2;

@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <map>
 
+#include "common/cli.hpp"
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/posegraph/ground_test.hpp"
@@ -101,7 +102,7 @@ int main(int argc, char** argv) {
                  "Sim loop flights (3 loops each, about 40 s apiece) with the product's graph")
       ->check(CLI::Range(0, 20))
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   options.method = method == "vc"     ? MarkerMethod::kVectorCross
                    : method == "body" ? MarkerMethod::kBodyFrames
                                       : MarkerMethod::kLeastSquares;

@@ -20,6 +20,7 @@
 #include <sstream>
 #include <thread>
 
+#include "common/cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/store/session_journals.hpp"
 #include "tests/bench/bench_support.hpp"
@@ -95,7 +96,7 @@ int main(int argc, char** argv) {
   app.add_flag(
       "--blocks", in_blocks,
       "A's frames all before B's, instead of frame by frame in turns (the earlier method)");
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   spdlog::set_level(spdlog::level::warn);
 
   const fs::path root =

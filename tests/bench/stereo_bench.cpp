@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <functional>
 
+#include "common/cli.hpp"
 #include "onboard/camera/rectifier.hpp"
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/renderer.hpp"
@@ -45,7 +46,7 @@ int main(int argc, char** argv) {
   int runs = 30;
   app.add_option("--data", data, "Middlebury folder")->capture_default_str();
   app.add_option("--runs", runs, "Timed runs per configuration")->check(CLI::Range(1, 1000));
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   cv::setNumThreads(1);  // one core, as the figures ask
 
   const std::vector<std::pair<std::string, stereo::MatcherOptions>> ours = {

@@ -28,6 +28,7 @@
 #include <mutex>
 #include <thread>
 
+#include "common/cli.hpp"
 #include "common/time.hpp"
 #include "server/net/http_server.hpp"
 #include "tests/bench/bench_support.hpp"
@@ -204,7 +205,7 @@ int main(int argc, char** argv) {
                  "after 10 s)")
       ->check(CLI::Range(2.0, 600.0));
   app.add_option("--campus", campus_file, "the large map")->check(CLI::ExistingFile);
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   spdlog::set_level(spdlog::level::err);
 
   std::printf("rendering 300 sim frames...\n");

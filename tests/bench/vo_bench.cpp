@@ -15,6 +15,7 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "common/cli.hpp"
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
@@ -106,7 +107,7 @@ int main(int argc, char** argv) {
   CLI::App app{"stereomap-bench-vo: visual odometry figures, fast and paper modes"};
   std::string data = STEREOMAP_DATA_DIR;
   app.add_option("--data", data, "The shared data folder")->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
   cv::setNumThreads(0);  // one core, as on the vehicle's budget
   std::printf(
       "| data | mode | frames | lost | drift: translation / rotation (deg/100 m) | ATE Sim3 | ATE "

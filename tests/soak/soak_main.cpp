@@ -28,6 +28,7 @@
 #include <variant>
 #include <vector>
 
+#include "common/cli.hpp"
 #include "common/time.hpp"
 #include "server/store/journal.hpp"
 #include "tests/support/server_fixture.hpp"
@@ -419,11 +420,7 @@ int main(int argc, char** argv) {
   app.add_option("--domain", o.domain, "DDS domain id")->check(CLI::Range(0, 232));
   app.add_option("--store", o.store,
                  "Store directory (default: a temporary one, removed on success)");
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& error) {
-    return app.exit(error) == 0 ? 0 : 2;  // bad usage exits 2, as every stereomap binary
-  }
+  if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   try {
     return run(o);  // (its processes are stopped as it unwinds)
   } catch (const std::exception& e) {
