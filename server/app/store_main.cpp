@@ -4,9 +4,11 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <nlohmann/json.hpp>
 
@@ -187,167 +189,215 @@ int repair(Store& store, const std::vector<std::string>& ids) {
   return failed > 0 ? 1 : 0;
 }
 
+// Every flag and argument of every subcommand.
+struct Args {
+  std::string root = "stereomap-store";
+  double resolution = 0.1;
+  bool as_json = false;
+  std::vector<std::string> repair_ids;
+  std::string id;
+  core::ExportRequest request{.format = ""};
+  std::string out;
+  bool yes = false;
+  std::string map_file;
+  std::string first, second, into;
+  std::vector<double> transform;
+};
+
+// A subcommand: whether it writes (it needs the store to itself) and what it does.
+struct Command {
+  CLI::App* app;
+  bool writes;
+  std::function<int(Store&, Args&)> run;
+};
+
+int importMap(Store& store, Args& a) {
+  std::printf("reading and checking %s...\n", a.map_file.c_str());
+  std::fflush(stdout);
+  auto imported = store.admin->importMap(a.map_file, a.id);
+  if (!imported) return fail(imported.error().message);
+  const auto session = store.server->find(a.id);
+  const auto status = session->status();
+  std::printf("imported %s as session '%s': %zu occupied voxels at %g m, %zu tiles\n",
+              a.map_file.c_str(), a.id.c_str(), status.occupied_voxels, status.resolution,
+              session->tiles().summary().tiles);
+  return 0;
+}
+
+// The named sessions, or every one whose journal is damaged or of format 1.
+int repairJournals(Store& store, Args& a) {
+  auto& admin = *store.admin;
+  if (a.repair_ids.empty()) {
+    for (const auto& stored : admin.storedIds()) {
+      auto replay = store::readJournal(admin.root() / stored / store::kJournalName);
+      if (!replay || !replay->problem.empty() || replay->version == 1) {
+        a.repair_ids.push_back(stored);
+      }
+    }
+    if (a.repair_ids.empty()) std::printf("every journal is intact\n");
+  }
+  return repair(store, a.repair_ids);
+}
+
+// The session as the store holds it, replayed into this tool's private server.
+common::Result<std::shared_ptr<core::Session>> replayed(Store& store, const std::string& id) {
+  if (auto opened = store.admin->open(id); !opened) return opened.error();
+  return store.server->find(id);
+}
+
+int showSession(Store& store, Args& a) {
+  const bool was_closed = store.admin->isClosedOnDisk(a.id);
+  auto session = replayed(store, a.id);
+  if (!session) return fail(session.error().message);
+  auto status = (*session)->status();  // the state in the store, not this tool's copy's
+  status.read_only = false;
+  status.closed = was_closed;
+  std::cout << core::sessionJson(status) << "\n";
+  return 0;
+}
+
+int exportFile(Store& store, Args& a) {
+  auto session = replayed(store, a.id);
+  if (!session) return fail(session.error().message);
+  const auto exported = core::exportSession(**session, a.id, a.request);
+  if (!exported) return fail(exported.error().message);
+  const std::string& content = exported->content;
+  const std::string out = a.out.empty() ? a.id + "." + a.request.format : a.out;
+  std::ofstream file(out, std::ios::binary | std::ios::trunc);
+  file.write(content.data(), static_cast<std::streamsize>(content.size()));
+  if (!file.flush()) return fail("cannot write " + out);
+  std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
+  return 0;
+}
+
+int closeSession(Store& store, Args& a) {
+  if (store.admin->isClosedOnDisk(a.id)) return fail("session '" + a.id + "' is already closed");
+  if (auto opened = store.admin->open(a.id); !opened) return fail(opened.error().message);
+  if (auto closed = store.admin->close(a.id); !closed) return fail(closed.error().message);
+  std::printf("session '%s' closed\n", a.id.c_str());
+  return 0;
+}
+
+int deleteSession(Store& store, Args& a) {
+  if (auto removed = store.admin->remove(a.id); !removed) return fail(removed.error().message);
+  std::printf("session '%s' deleted\n", a.id.c_str());
+  return 0;
+}
+
+int mergeSessions(Store& store, Args& a) {
+  core::MergeRequest request{a.first, a.second, a.into, common::Rigid3::identity()};
+  if (!a.transform.empty()) {
+    const auto T = common::rigidFromTxyzQxyzw(a.transform);
+    if (!T)
+      return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
+    request.T_first_second = *T;
+  }
+  if (auto merged = store.admin->merge(request); !merged) return fail(merged.error().message);
+  const auto status = store.server->find(a.into)->status();
+  if (auto closed = store.admin->close(a.into); !closed) return fail(closed.error().message);
+  std::printf(
+      "merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
+      a.first.c_str(), a.second.c_str(), a.into.c_str(),
+      static_cast<unsigned long long>(status.frames_fused), status.poses, status.occupied_voxels);
+  return 0;
+}
+
+std::vector<Command> addCommands(CLI::App& app, Args& a) {
+  app.require_subcommand(1);
+  app.add_option("--store", a.root, "The store directory")->capture_default_str();
+  app.add_option("--resolution", a.resolution,
+                 "Voxel edge (m) for sessions whose directory does not record one")
+      ->check(CLI::Range(0.01, 2.0))
+      ->capture_default_str();
+  std::vector<Command> commands;
+
+  auto* list_cmd =
+      app.add_subcommand("list", "Sessions in the catalog (as the server last saw them)");
+  list_cmd->add_flag("--json", a.as_json,
+                     "JSON: GET /api/sessions' objects with what the catalog keeps");
+  commands.push_back({list_cmd, false, [](Store& s, Args& a) { return list(s, a.as_json); }});
+
+  commands.push_back({app.add_subcommand("check",
+                                         "Read every journal and snapshot; name each damaged "
+                                         "record; exit 1 if any is damaged"),
+                      false, [](Store& s, Args&) { return check(s); }});
+
+  auto* repair_cmd = app.add_subcommand(
+      "repair",
+      "Rewrite damaged journals without their unreadable records (the original is kept beside "
+      "it as journal.smj.damaged-TIME); needs the store to itself");
+  repair_cmd->add_option("session", a.repair_ids, "Session ids (default: every damaged one)");
+  commands.push_back({repair_cmd, true, repairJournals});
+
+  auto* show_cmd = app.add_subcommand("show", "Replay one session and print its status (JSON)");
+  show_cmd->add_option("session", a.id, "Session id")->required();
+  commands.push_back({show_cmd, false, showSession});
+
+  auto* export_cmd = app.add_subcommand("export", "Replay one session and write a file");
+  export_cmd->add_option("session", a.id, "Session id")->required();
+  export_cmd->add_option("--format", a.request.format, "bt | ot | ply | png | tum")
+      ->required()
+      ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
+  export_cmd->add_option("--out", a.out, "Output file (default: SESSION.FORMAT)");
+  export_cmd->add_option("--zmin", a.request.z_min, "png: lowest voxel centre height, m");
+  export_cmd->add_option("--zmax", a.request.z_max, "png: highest voxel centre height, m");
+  export_cmd->add_option("--scale", a.request.scale, "png: pixels per voxel")
+      ->check(CLI::Range(1, 16));
+  export_cmd->add_option("--vehicle", a.request.vehicle, "tum: the vehicle (default: the first)");
+  commands.push_back({export_cmd, false, exportFile});
+
+  auto* close_cmd = app.add_subcommand(
+      "close", "Save a session's map and trajectory and mark it closed (not loaded at start)");
+  close_cmd->add_option("session", a.id, "Session id")->required();
+  commands.push_back({close_cmd, true, closeSession});
+
+  auto* delete_cmd = app.add_subcommand("delete", "Delete a session and its files");
+  delete_cmd->add_option("session", a.id, "Session id")->required();
+  delete_cmd->add_flag("--yes", a.yes, "Confirm: the session's journal and maps are removed");
+  commands.push_back({delete_cmd, true, deleteSession});
+
+  auto* import_cmd = app.add_subcommand(
+      "import",
+      "Make an OctoMap file (.bt or .ot) a closed session of the store, at the file's own "
+      "resolution and without a trajectory (nothing is written if the file is damaged)");
+  import_cmd->add_option("file", a.map_file, "The .bt or .ot file")->required();
+  import_cmd->add_option("--session", a.id, "The new session's id")->required();
+  commands.push_back({import_cmd, true, importMap});
+
+  auto* merge_cmd = app.add_subcommand(
+      "merge", "Merge two sessions into a new, closed one (the second moved by --transform)");
+  merge_cmd->add_option("first", a.first, "First session (its map frame is the result's)")
+      ->required();
+  merge_cmd->add_option("second", a.second, "Second session")->required();
+  merge_cmd->add_option("--into", a.into, "The new session's id")->required();
+  merge_cmd
+      ->add_option("--transform", a.transform,
+                   "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
+      ->delimiter(',')
+      ->expected(7);
+  commands.push_back({merge_cmd, true, mergeSessions});
+  return commands;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{
       "stereomap-store: list, check, export, close, delete and merge the sessions of a "
       "stereomap store (the directory given to stereomap-server --store)"};
-  app.require_subcommand(1);
-  std::string root = "stereomap-store";
-  double resolution = 0.1;
-  app.add_option("--store", root, "The store directory")->capture_default_str();
-  app.add_option("--resolution", resolution,
-                 "Voxel edge (m) for sessions whose directory does not record one")
-      ->check(CLI::Range(0.01, 2.0))
-      ->capture_default_str();
-
-  bool as_json = false;
-  auto* list_cmd =
-      app.add_subcommand("list", "Sessions in the catalog (as the server last saw them)");
-  list_cmd->add_flag("--json", as_json, "JSON instead of a table");
-
-  app.add_subcommand("check",
-                     "Read every journal and snapshot; name each damaged record; exit 1 if any "
-                     "is damaged");
-
-  std::vector<std::string> repair_ids;
-  auto* repair_cmd = app.add_subcommand(
-      "repair",
-      "Rewrite damaged journals without their unreadable records (the original is kept beside "
-      "it as journal.smj.damaged-TIME); needs the store to itself");
-  repair_cmd->add_option("session", repair_ids, "Session ids (default: every damaged one)");
-
-  std::string id;
-  auto* show_cmd = app.add_subcommand("show", "Replay one session and print its status (JSON)");
-  show_cmd->add_option("session", id, "Session id")->required();
-
-  std::string format, out, vehicle;
-  double z_min = -1e9, z_max = 1e9;
-  int scale = 1;
-  auto* export_cmd = app.add_subcommand("export", "Replay one session and write a file");
-  export_cmd->add_option("session", id, "Session id")->required();
-  export_cmd->add_option("--format", format, "bt | ot | ply | png | tum")
-      ->required()
-      ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
-  export_cmd->add_option("--out", out, "Output file (default: SESSION.FORMAT)");
-  export_cmd->add_option("--zmin", z_min, "png: lowest voxel centre height, m");
-  export_cmd->add_option("--zmax", z_max, "png: highest voxel centre height, m");
-  export_cmd->add_option("--scale", scale, "png: pixels per voxel")->check(CLI::Range(1, 16));
-  export_cmd->add_option("--vehicle", vehicle, "tum: the vehicle (default: the first)");
-
-  auto* close_cmd = app.add_subcommand(
-      "close", "Save a session's map and trajectory and mark it closed (not loaded at start)");
-  close_cmd->add_option("session", id, "Session id")->required();
-
-  bool yes = false;
-  auto* delete_cmd = app.add_subcommand("delete", "Delete a session and its files");
-  delete_cmd->add_option("session", id, "Session id")->required();
-  delete_cmd->add_flag("--yes", yes, "Confirm: the session's journal and maps are removed");
-
-  std::string map_file;
-  auto* import_cmd = app.add_subcommand(
-      "import",
-      "Make an OctoMap file (.bt or .ot) a closed session of the store, at the file's own "
-      "resolution and without a trajectory (nothing is written if the file is damaged)");
-  import_cmd->add_option("file", map_file, "The .bt or .ot file")->required();
-  import_cmd->add_option("--session", id, "The new session's id")->required();
-
-  std::string first, second, into;
-  std::vector<double> transform;
-  auto* merge_cmd = app.add_subcommand(
-      "merge", "Merge two sessions into a new, closed one (the second moved by --transform)");
-  merge_cmd->add_option("first", first, "First session (its map frame is the result's)")
-      ->required();
-  merge_cmd->add_option("second", second, "Second session")->required();
-  merge_cmd->add_option("--into", into, "The new session's id")->required();
-  merge_cmd
-      ->add_option("--transform", transform,
-                   "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
-      ->delimiter(',')
-      ->expected(7);
-
+  Args args;
+  const auto commands = addCommands(app, args);
   if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   fusion::OctomapLogRoute octomap_log;  // after parsing: CLI11's errors stay on stderr
   spdlog::set_pattern("%^%l%$: %v");
   spdlog::set_level(spdlog::level::warn);
 
-  const bool writes = *close_cmd || *delete_cmd || *merge_cmd || *repair_cmd || *import_cmd;
-  if (*delete_cmd && !yes) return fail("delete is permanent: add --yes to delete '" + id + "'");
-  auto store = openStore(root, resolution, writes);
+  const auto& command = *std::find_if(commands.begin(), commands.end(),
+                                      [](const Command& c) { return c.app->parsed(); });
+  if (command.app->get_name() == "delete" && !args.yes) {
+    return fail("delete is permanent: add --yes to delete '" + args.id + "'");
+  }
+  auto store = openStore(args.root, args.resolution, command.writes);
   if (!store) return fail(store.error().message);
-  auto& admin = *store->admin;
-  if (*list_cmd) return list(*store, as_json);
-  if (app.got_subcommand("check")) return check(*store);
-  if (*import_cmd) {
-    std::printf("reading and checking %s...\n", map_file.c_str());
-    std::fflush(stdout);
-    auto imported = admin.importMap(map_file, id);
-    if (!imported) return fail(imported.error().message);
-    const auto status = store->server->find(id)->status();
-    std::printf("imported %s as session '%s': %zu occupied voxels at %g m, %zu tiles\n",
-                map_file.c_str(), id.c_str(), status.occupied_voxels, status.resolution,
-                store->server->find(id)->tiles().summary().tiles);
-    return 0;
-  }
-  if (*repair_cmd) {
-    if (repair_ids.empty()) {
-      for (const auto& stored : admin.storedIds()) {
-        auto replay = store::readJournal(admin.root() / stored / store::kJournalName);
-        if (!replay || !replay->problem.empty() || replay->version == 1)
-          repair_ids.push_back(stored);
-      }
-      if (repair_ids.empty()) std::printf("every journal is intact\n");
-    }
-    return repair(*store, repair_ids);
-  }
-
-  if (*show_cmd || *export_cmd) {
-    const bool was_closed = admin.isClosedOnDisk(id);
-    if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
-    const auto session = store->server->find(id);
-    if (*show_cmd) {  // the state in the store, not that of this tool's read-only copy
-      auto status = session->status();
-      status.read_only = false;
-      status.closed = was_closed;
-      std::cout << core::sessionJson(status) << "\n";
-      return 0;
-    }
-    const auto exported = core::exportSession(*session, id, {format, z_min, z_max, scale, vehicle});
-    if (!exported) return fail(exported.error().message);
-    const std::string& content = exported->content;
-    if (out.empty()) out = id + "." + format;
-    std::ofstream file(out, std::ios::binary | std::ios::trunc);
-    file.write(content.data(), static_cast<std::streamsize>(content.size()));
-    if (!file.flush()) return fail("cannot write " + out);
-    std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
-    return 0;
-  }
-  if (*close_cmd) {
-    if (admin.isClosedOnDisk(id)) return fail("session '" + id + "' is already closed");
-    if (auto opened = admin.open(id); !opened) return fail(opened.error().message);
-    if (auto closed = admin.close(id); !closed) return fail(closed.error().message);
-    std::printf("session '%s' closed\n", id.c_str());
-    return 0;
-  }
-  if (*delete_cmd) {
-    if (auto removed = admin.remove(id); !removed) return fail(removed.error().message);
-    std::printf("session '%s' deleted\n", id.c_str());
-    return 0;
-  }
-  core::MergeRequest request{first, second, into, common::Rigid3::identity()};
-  if (!transform.empty()) {
-    const auto T = common::rigidFromTxyzQxyzw(transform);
-    if (!T)
-      return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
-    request.T_first_second = *T;
-  }
-  if (auto merged = admin.merge(request); !merged) return fail(merged.error().message);
-  const auto status = store->server->find(into)->status();
-  if (auto closed = admin.close(into); !closed) return fail(closed.error().message);
-  std::printf(
-      "merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
-      first.c_str(), second.c_str(), into.c_str(),
-      static_cast<unsigned long long>(status.frames_fused), status.poses, status.occupied_voxels);
-  return 0;
+  return command.run(*store, args);
 }
