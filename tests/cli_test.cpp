@@ -1,0 +1,75 @@
+// Every stereomap binary as a newcomer meets it: --help answers and exits 0, bad usage says
+// what is wrong and exits 2 (STYLE.md). And stereomap-eval end to end on two small TUM files,
+// whose errors are known.
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include "tests/support/process.hpp"
+
+namespace stereomap::testing {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string binary(const std::string& name) { return std::string(STEREOMAP_BIN_DIR) + "/" + name; }
+
+TEST(Cli, EveryBinaryHelpsAndRefusesBadUsageWithExitTwo) {
+  for (const char* name :
+       {"stereomap-onboard", "stereomap-server", "stereomap-store", "stereomap-eval",
+        "stereomap-calibrate", "stereomap-depth", "stereomap-landing-eval"}) {
+    const auto help = runTool({binary(name), "--help"});
+    EXPECT_EQ(help.exit_code, 0) << name << ": " << help.output;
+    EXPECT_NE(help.output.find(name), std::string::npos) << help.output;
+    const auto bad = runTool({binary(name), "--no-such-flag"});
+    EXPECT_EQ(bad.exit_code, 2) << name << ": " << bad.output;
+    // What is wrong (the flag, or a missing subcommand or option, which CLI11 checks first).
+    EXPECT_NE(bad.output.find("Run with --help for more information"), std::string::npos)
+        << bad.output;
+  }
+}
+
+// The estimate is the truth moved 1 m along x and with every 10th pose 0.1 m off in y: the
+// ATE without alignment, the ATE after it and the RPE are known in closed form.
+TEST(Cli, EvalMeasuresWhatItIsGiven) {
+  const fs::path dir = makeTempDir("stereomap-cli");
+  std::ofstream gt(dir / "gt.tum"), est(dir / "est.tum");
+  for (int i = 0; i < 100; ++i) {
+    const double t = i * 0.1, x = i * 0.5;
+    gt << t << " " << x << " 0 0 0 0 0 1\n";
+    est << t << " " << x + 1.0 << " " << (i % 10 == 0 ? 0.1 : 0.0) << " 0 0 0 0 1\n";
+  }
+  gt.close();
+  est.close();
+  auto eval = [&](std::vector<std::string> args) {
+    args.insert(args.begin(), binary("stereomap-eval"));
+    args.insert(args.end(), {(dir / "gt.tum").string(), (dir / "est.tum").string(), "--json"});
+    const auto run = runTool(args);
+    EXPECT_EQ(run.exit_code, 0) << run.output;
+    return nlohmann::json::parse(run.output.substr(run.output.find('{')));
+  };
+  const auto raw = eval({"ate", "--no-align"});
+  EXPECT_EQ(raw["pairs"], 100);
+  // Each error is 1 m, or sqrt(1 + 0.01) m for every 10th pose.
+  EXPECT_NEAR(raw["translation_m"]["max"].get<double>(), std::sqrt(1.01), 1e-9);
+  EXPECT_NEAR(raw["translation_m"]["min"].get<double>(), 1.0, 1e-9);
+  // Aligned, the shift is gone: what stays is the y offsets' spread around their mean
+  // (0.01 m): sqrt(0.1 * 0.09^2 + 0.9 * 0.01^2) = 0.03 m.
+  const auto aligned = eval({"ate"});
+  EXPECT_NEAR(aligned["translation_m"]["rmse"].get<double>(), 0.03, 1e-3);
+  // Frame to frame, the off poses add 0.1 m going and 0.1 m coming back.
+  const auto rpe = eval({"rpe", "--delta", "1"});
+  EXPECT_NEAR(rpe["translation_m"]["max"].get<double>(), 0.1, 1e-9);
+  EXPECT_NEAR(rpe["translation_m"]["min"].get<double>(), 0.0, 1e-9);
+
+  const auto missing = runTool(
+      {binary("stereomap-eval"), "ate", (dir / "gt.tum").string(), (dir / "nope.tum").string()});
+  EXPECT_EQ(missing.exit_code, 2) << missing.output;  // CLI11's ExistingFile: bad usage
+  fs::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace stereomap::testing
