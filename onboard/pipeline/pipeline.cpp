@@ -216,73 +216,299 @@ proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
   return event;
 }
 
-PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publisher,
-                            const PipelineOptions& options, const common::Shutdown& shutdown) {
-  PipelineSummary summary;
-  stereo::DepthStep depth_step(source.camera(), options.stereo);
-  auto report = [&](const common::Status& status, const char* what) {
-    if (status.ok()) return;
-    ++summary.publish_errors;
-    spdlog::warn("could not publish {}: {}", what, status.error().message);
-  };
+namespace {
 
-  if (publisher != nullptr) {
-    if (!publisher->waitForServer(options.wait_for_server)) {
+// One run of the pipeline: the state that lives across frames, and each frame's steps in
+// order (pose, correction, landing, pose message, depth, cloud), then the summary.
+class PipelineRun {
+ public:
+  PipelineRun(camera::FrameSource& source, VehiclePublisher* publisher,
+              const PipelineOptions& options)
+      : source_(source),
+        publisher_(publisher),
+        options_(options),
+        depth_step_(source.camera(), options.stereo) {
+    if (options.pose_source == PoseSource::kOdometry) {
+      odometry_.emplace(source.camera(), options.odometry);
+    }
+    if (odometry_ && options.pose_graph) {
+      graph_.emplace(source.camera(), options.graph, /*background=*/true);
+    }
+    if (options.landing) landing_.emplace(source.camera(), *options.landing);
+    if (options.link) cloud_link_.emplace(*options.link);
+  }
+
+  // Waits for a server (a while), then says the session started.
+  void start() {
+    if (publisher_ == nullptr) return;
+    if (!publisher_->waitForServer(options_.wait_for_server)) {
       spdlog::warn(
           "no server has subscribed after {} ms; publishing anyway (the last frames "
           "stay available to a server that joins later)",
-          options.wait_for_server.count());
+          options_.wait_for_server.count());
     }
-    report(publisher->publish(
-               makeSessionEvent(options, source.camera(), proto::SessionEventKind::kStarted)),
-           "SessionEvent");
+    publish(makeSessionEvent(options_, source_.camera(), proto::SessionEventKind::kStarted),
+            "SessionEvent");
   }
 
-  std::vector<double> depth_ms, encode_ms, frame_ms, odometry_ms;
-  std::optional<odometry::StereoOdometry> odometry;
-  if (options.pose_source == PoseSource::kOdometry)
-    odometry.emplace(source.camera(), options.odometry);
-  std::optional<posegraph::GraphFollower> graph;
-  if (odometry && options.pose_graph) {
-    graph.emplace(source.camera(), options.graph, /*background=*/true);
-  }
-  std::optional<landing::LandingWatch> landing;
-  if (options.landing) landing.emplace(source.camera(), *options.landing);
-  std::vector<common::Rigid3> T_body_cameras;  // per frame, for the corrected trajectory
-  std::optional<common::Rigid3> anchor;        // T_map_camera of the odometry's world frame
-  // The graph's newest keyframe poses not yet sent, and when the last were.
-  std::vector<posegraph::KeyframePose> unsent_correction;
-  std::optional<Clock::time_point> last_correction;
-  // Sends the graph's newest correction, at most once per period (or now, at the end); the
-  // camera's mount is taken as fixed (the current frame's).
-  auto sendCorrection = [&](int64_t stamp_ns, const common::Rigid3& T_body_camera, bool now) {
-    if (!graph) return;
-    if (auto moved = graph->takeCorrection(); !moved.empty()) unsent_correction = std::move(moved);
-    if (unsent_correction.empty()) return;
-    if (!now && last_correction && Clock::now() - *last_correction < options.correction_period) {
+  void step(const camera::SourceFrame& frame, Clock::time_point frame_start) {
+    FrameReport report{frame.index, frame.stamp_ns};
+    report.T_map_body_truth = frame.T_map_body;
+    // The left camera's mount; a forward-looking camera when the source does not say.
+    const common::Rigid3 T_body_camera = frame.mount();
+    std::optional<odometry::VoEstimate> estimate;
+    const auto T_map_body = pose(frame, T_body_camera, report, estimate);
+    if (!T_map_body) {
+      spdlog::warn("frame {} has no ground-truth pose; skipped (use --vo fast)", frame.index);
       return;
     }
-    if (publisher != nullptr) {
-      report(publisher->publish(makePoseCorrectionMsg(options, summary.corrections, stamp_ns,
-                                                      unsent_correction, *anchor, T_body_camera)),
-             "PoseCorrection");
+    report.T_map_body = *T_map_body;
+    report.T_map_camera = *T_map_body * T_body_camera;
+    // Before this frame's pose: a correction may name keyframes up to the previous frame.
+    sendCorrection(frame.stamp_ns, T_body_camera, /*now=*/false);
+    last_T_body_camera_ = T_body_camera;
+    last_stamp_ = frame.stamp_ns;
+    const common::Vec3 velocity = velocityAt(frame.stamp_ns, *T_map_body);
+    watchLanding(frame, *T_map_body, T_body_camera);
+    // The pose goes first, whatever becomes of the cloud.
+    const auto pose_msg = makePoseMsg(options_, summary_.frames, frame.stamp_ns, *T_map_body,
+                                      velocity, estimate ? &*estimate : nullptr);
+    publish(pose_msg, "Pose");
+    summary_.wire_bytes += proto::wireBytes(pose_msg);
+    if (!first_stamp_) first_stamp_ = frame.stamp_ns;
+    summary_.stream_seconds = common::nsToSeconds(frame.stamp_ns - *first_stamp_);
+    // A lost frame's pose is a guess: it is published (so that operators see the state) but
+    // its cloud is not, and nothing is computed that only feeds the map.
+    const bool mapped =
+        options_.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
+    if (!mapped) {
+      depth_step_.reset();  // no pose to carry depth along
+    } else {
+      const auto cloud = depthOf(frame, report, estimate);
+      const double payload_kib = sendCloud(frame, report, cloud);
+      summary_.points += cloud.size();
+      if (options_.progress_every != 0 && (summary_.frames + 1) % options_.progress_every == 0) {
+        spdlog::info("frame {}: {} points, {:.1f} KiB sent, depth {:.1f} ms", summary_.frames + 1,
+                     cloud.size(), payload_kib, depth_ms_.back());
+      }
+    }
+    ++summary_.frames;
+    report.frame_ms = msSince(frame_start);
+    frame_ms_.push_back(report.frame_ms);
+    if (options_.on_frame) options_.on_frame(report);
+  }
+
+  // The graph's last word, the session's end (acknowledged, a while), and the summary.
+  PipelineSummary finish() {
+    if (graph_ && last_T_body_camera_) {
+      graph_->waitUntilCaughtUp();
+      sendCorrection(last_stamp_, *last_T_body_camera_, /*now=*/true);
+    }
+    if (publisher_ != nullptr) {
+      publish(makeSessionEvent(options_, source_.camera(), proto::SessionEventKind::kEnded),
+              "SessionEvent");
+      // Leaving at once would drop what the server has not acknowledged yet (the end event).
+      if (!publisher_->flush(options_.flush_timeout)) {
+        spdlog::warn(
+            "the server did not acknowledge the last samples within {} ms; it learns of "
+            "the end when the vehicle falls silent",
+            options_.flush_timeout.count());
+      }
+    }
+    if (cloud_link_) summary_.link = cloud_link_->stats();
+    summary_.median_depth_ms = common::median(depth_ms_).value_or(0.0);
+    summary_.image_noise_sigma = depth_step_.noiseSigma();
+    summary_.noisy_images = depth_step_.noisy();
+    summary_.median_encode_ms = common::median(encode_ms_).value_or(0.0);
+    summary_.median_frame_ms = common::median(frame_ms_).value_or(0.0);
+    summary_.median_odometry_ms = common::median(odometry_ms_).value_or(0.0);
+    if (graph_) {
+      const auto poses = graph_->finish();
+      for (size_t i = 0; i < poses.size(); ++i) {
+        summary_.corrected_T_map_body.push_back(*anchor_ * poses[i] * T_body_cameras_[i].inverse());
+      }
+      summary_.graph = graph_->stats();
+    }
+    return summary_;
+  }
+
+  PipelineSummary& summary() { return summary_; }
+
+ private:
+  template <typename Message>
+  void publish(const Message& message, const char* what) {
+    if (publisher_ == nullptr) return;
+    if (auto status = publisher_->publish(message); !status) {
+      ++summary_.publish_errors;
+      spdlog::warn("could not publish {}: {}", what, status.error().message);
+    }
+  }
+
+  // The body's pose: the odometry's (anchored at the source's first ground truth), or the
+  // source's ground truth; nullopt when there is none.
+  std::optional<common::Rigid3> pose(const camera::SourceFrame& frame,
+                                     const common::Rigid3& T_body_camera, FrameReport& report,
+                                     std::optional<odometry::VoEstimate>& estimate) {
+    if (!odometry_) {
+      if (frame.T_map_body) report.T_map_body_odometry = *frame.T_map_body;
+      return frame.T_map_body;
+    }
+    estimate = odometry_->track(frame.left, frame.right);
+    odometry_ms_.push_back(estimate->milliseconds);
+    if (!anchor_) anchor_ = frame.T_map_camera_truth();
+    report.T_map_body_odometry = *anchor_ * estimate->T_world_camera * T_body_camera.inverse();
+    // With the graph, the odometry's own poses are still what is published: the graph's
+    // corrections go separately (PoseCorrection), and the server applies them to every
+    // pose and cloud, earlier and later ones alike. Published poses corrected live would
+    // jump whenever the graph moved, which no correction of keyframes could undo between them.
+    if (graph_) {
+      graph_->follow({frame.stamp_ns, estimate->T_world_camera, estimate->covariance,
+                      estimate->keyframe, estimate->state == odometry::TrackingState::kLost,
+                      frame.left, frame.right});
+      T_body_cameras_.push_back(T_body_camera);
+    }
+    report.state = estimate->state;
+    report.odometry_ms = estimate->milliseconds;
+    summary_.lost_frames += estimate->state == odometry::TrackingState::kLost;
+    summary_.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
+    summary_.right_offset_px = estimate->right_offset_px;
+    summary_.right_gain = estimate->right_gain;
+    return report.T_map_body_odometry;
+  }
+
+  // Sends the graph's newest correction, at most once per period (or now, at the end); the
+  // camera's mount is taken as fixed (the current frame's).
+  void sendCorrection(int64_t stamp_ns, const common::Rigid3& T_body_camera, bool now) {
+    if (!graph_) return;
+    if (auto moved = graph_->takeCorrection(); !moved.empty()) {
+      unsent_correction_ = std::move(moved);
+    }
+    if (unsent_correction_.empty()) return;
+    if (!now && last_correction_ && Clock::now() - *last_correction_ < options_.correction_period) {
+      return;
+    }
+    if (publisher_ != nullptr) {
+      publish(makePoseCorrectionMsg(options_, summary_.corrections, stamp_ns, unsent_correction_,
+                                    *anchor_, T_body_camera),
+              "PoseCorrection");
       spdlog::info(
           "pose graph: sent the corrected poses of {} keyframes ({} loop closures, {} "
           "tracks joined so far)",
-          unsent_correction.size(), graph->stats().loops, graph->stats().joined_tracks);
+          unsent_correction_.size(), graph_->stats().loops, graph_->stats().joined_tracks);
     }
-    ++summary.corrections;
-    unsent_correction.clear();
-    last_correction = Clock::now();
-  };
-  std::optional<link::CloudLink> cloud_link;
-  if (options.link) cloud_link.emplace(*options.link);
-  uint64_t clouds_sent = 0;  // the clouds' seq: +1 per cloud sent
-  std::optional<int64_t> first_stamp;
-  std::optional<common::Rigid3> last_T_body_camera;
-  int64_t last_stamp = 0;
-  std::optional<common::Rigid3> previous_pose;
-  int64_t previous_stamp = 0;
+    ++summary_.corrections;
+    unsent_correction_.clear();
+    last_correction_ = Clock::now();
+  }
+
+  // The body's velocity in the map (the VO paper's eq. 10): a finite difference of the
+  // published positions, whichever source gave them.
+  common::Vec3 velocityAt(int64_t stamp_ns, const common::Rigid3& T_map_body) {
+    common::Vec3 velocity = common::Vec3::Zero();
+    if (previous_pose_ && stamp_ns > previous_stamp_) {
+      velocity = (T_map_body.translation - previous_pose_->translation) /
+                 common::nsToSeconds(stamp_ns - previous_stamp_);
+    }
+    previous_pose_ = T_map_body;
+    previous_stamp_ = stamp_ns;
+    return velocity;
+  }
+
+  void watchLanding(const camera::SourceFrame& frame, const common::Rigid3& T_map_body,
+                    const common::Rigid3& T_body_camera) {
+    if (!landing_) return;
+    const auto& seen = landing_->update(common::nsToSeconds(frame.stamp_ns), frame.left,
+                                        frame.right, T_map_body, T_body_camera);
+    summary_.landing_tracked += seen.state == landing::TrackState::kTracking;
+    summary_.landing_poses += seen.has_pose;
+    publish(makeLandingTargetMsg(options_, summary_.frames, frame.stamp_ns, seen,
+                                 options_.landing->pose.mode),
+            "LandingTarget");
+  }
+
+  // The frame's cloud in the camera frame, and the images' noise said when it changes.
+  common::PointCloud depthOf(const camera::SourceFrame& frame, const FrameReport& report,
+                             const std::optional<odometry::VoEstimate>& estimate) {
+    const auto depth_start = Clock::now();
+    const int was_level = depth_step_.level();
+    auto cloud = depth_step_.compute(frame.left, frame.right, report.T_map_camera,
+                                     estimate ? estimate->right_offset_px : 0.0,  // odometry.hpp
+                                     frame.raw_noise_sigma);
+    depth_ms_.push_back(msSince(depth_start));
+    if (depth_step_.level() != was_level || summary_.frames == 0) {
+      if (depth_step_.noisy()) {
+        spdlog::info(
+            "images are noisy (noise sigma {:.1f} grey levels, level {}): depth from smoothed "
+            "images, averaged over frames",
+            depth_step_.noiseSigma(), depth_step_.level());
+      } else {
+        spdlog::info("images are clean (noise sigma {:.1f} grey levels): depth frame by frame",
+                     depth_step_.noiseSigma());
+      }
+    }
+    return cloud;
+  }
+
+  // What of the cloud the link takes (thinned, or nothing when it brings nothing new),
+  // encoded and sent; the payload's KiB (0 when nothing went).
+  double sendCloud(const camera::SourceFrame& frame, const FrameReport& report,
+                   const common::PointCloud& cloud) {
+    const auto encode_start = Clock::now();
+    std::optional<common::PointCloud> thinned;
+    if (cloud_link_) thinned = cloud_link_->prepare(cloud, report.T_map_camera, frame.stamp_ns);
+    const common::PointCloud* to_send = cloud_link_ ? (thinned ? &*thinned : nullptr) : &cloud;
+    if (to_send == nullptr) return 0;
+    proto::CloudCodecOptions codec = options_.codec;
+    if (cloud_link_) {
+      codec.quantization_bits = cloud_link_->quantizationBits(*to_send, codec.quantization_bits);
+    }
+    auto cloud_msg = makeCloudFrameMsg(options_, codec, clouds_sent_, frame.stamp_ns,
+                                       report.T_map_camera, *to_send);
+    encode_ms_.push_back(msSince(encode_start));
+    if (!cloud_msg) {
+      spdlog::error("frame {}: cannot encode the cloud: {}", frame.index,
+                    cloud_msg.error().message);
+      return 0;
+    }
+    publish(*cloud_msg, "CloudFrame");
+    const size_t bytes = proto::wireBytes(*cloud_msg);
+    if (cloud_link_) cloud_link_->sent(frame.stamp_ns, bytes, cloud_msg->payload.size());
+    ++clouds_sent_;
+    summary_.wire_bytes += bytes;
+    summary_.payload_bytes += cloud_msg->payload.size();
+    return cloud_msg->payload.size() / 1024.0;
+  }
+
+  camera::FrameSource& source_;
+  VehiclePublisher* const publisher_;
+  const PipelineOptions& options_;
+  PipelineSummary summary_;
+  stereo::DepthStep depth_step_;
+  std::optional<odometry::StereoOdometry> odometry_;
+  std::optional<posegraph::GraphFollower> graph_;
+  std::optional<landing::LandingWatch> landing_;
+  std::optional<link::CloudLink> cloud_link_;
+  std::vector<double> depth_ms_, encode_ms_, frame_ms_, odometry_ms_;
+  std::vector<common::Rigid3> T_body_cameras_;  // per frame, for the corrected trajectory
+  std::optional<common::Rigid3> anchor_;        // T_map_camera of the odometry's world frame
+  // The graph's newest keyframe poses not yet sent, and when the last were.
+  std::vector<posegraph::KeyframePose> unsent_correction_;
+  std::optional<Clock::time_point> last_correction_;
+  uint64_t clouds_sent_ = 0;  // the clouds' seq: +1 per cloud sent
+  std::optional<int64_t> first_stamp_;
+  std::optional<common::Rigid3> last_T_body_camera_;
+  int64_t last_stamp_ = 0;
+  std::optional<common::Rigid3> previous_pose_;
+  int64_t previous_stamp_ = 0;
+};
+
+}  // namespace
+
+PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publisher,
+                            const PipelineOptions& options, const common::Shutdown& shutdown) {
+  PipelineRun run(source, publisher, options);
+  run.start();
+  // Frame i's slot is start + i * period; a frame begun past the next slot is late.
   const auto start = Clock::now();
   const auto period = options.rate_hz > 0
                           ? std::chrono::duration_cast<Clock::duration>(
@@ -291,185 +517,18 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
   for (uint64_t i = 0;; ++i) {
     const auto slot = start + period * static_cast<long>(i);
     if (shutdown.waitFor(slot - Clock::now())) {
-      summary.stopped = true;
+      run.summary().stopped = true;
       break;
     }
-    if (Clock::now() - slot > period && period > Clock::duration::zero()) ++summary.late_frames;
-
+    if (Clock::now() - slot > period && period > Clock::duration::zero()) {
+      ++run.summary().late_frames;
+    }
     const auto frame_start = Clock::now();
     auto frame = source.next();
     if (!frame) break;
-    FrameReport report_frame{frame->index, frame->stamp_ns};
-    report_frame.T_map_body_truth = frame->T_map_body;
-    std::optional<odometry::VoEstimate> estimate;
-    // The left camera's mount; a forward-looking camera when the source does not say.
-    const common::Rigid3 T_body_camera = frame->mount();
-    common::Rigid3 T_map_body;
-    if (odometry) {
-      estimate = odometry->track(frame->left, frame->right);
-      odometry_ms.push_back(estimate->milliseconds);
-      if (!anchor) anchor = frame->T_map_camera_truth();
-      report_frame.T_map_body_odometry =
-          *anchor * estimate->T_world_camera * T_body_camera.inverse();
-      // With the graph, the odometry's own poses are still what is published: the graph's
-      // corrections go separately (PoseCorrection), and the server applies them to every
-      // pose and cloud, earlier and later ones alike. Published poses corrected live would
-      // jump whenever the graph moved, which no correction of keyframes could undo between them.
-      if (graph) {
-        graph->follow({frame->stamp_ns, estimate->T_world_camera, estimate->covariance,
-                       estimate->keyframe, estimate->state == odometry::TrackingState::kLost,
-                       frame->left, frame->right});
-        T_body_cameras.push_back(T_body_camera);
-      }
-      T_map_body = report_frame.T_map_body_odometry;
-      report_frame.state = estimate->state;
-      report_frame.odometry_ms = estimate->milliseconds;
-      summary.lost_frames += estimate->state == odometry::TrackingState::kLost;
-      summary.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
-      summary.right_offset_px = estimate->right_offset_px;
-      summary.right_gain = estimate->right_gain;
-    } else if (frame->T_map_body) {
-      T_map_body = *frame->T_map_body;
-      report_frame.T_map_body_odometry = T_map_body;
-    } else {
-      spdlog::warn("frame {} has no ground-truth pose; skipped (use --vo fast)", frame->index);
-      continue;
-    }
-    report_frame.T_map_body = T_map_body;
-    report_frame.T_map_camera = T_map_body * T_body_camera;
-    // Before this frame's pose: a correction may name keyframes up to the previous frame.
-    sendCorrection(frame->stamp_ns, T_body_camera, /*now=*/false);
-    last_T_body_camera = T_body_camera;
-    last_stamp = frame->stamp_ns;
-    // The body's velocity in the map (the VO paper's eq. 10): a finite difference of the
-    // published positions, whichever source gave them.
-    common::Vec3 velocity = common::Vec3::Zero();
-    if (previous_pose && frame->stamp_ns > previous_stamp) {
-      velocity = (T_map_body.translation - previous_pose->translation) /
-                 common::nsToSeconds(frame->stamp_ns - previous_stamp);
-    }
-    previous_pose = T_map_body;
-    previous_stamp = frame->stamp_ns;
-    if (landing) {
-      const auto& seen = landing->update(common::nsToSeconds(frame->stamp_ns), frame->left,
-                                         frame->right, T_map_body, T_body_camera);
-      summary.landing_tracked += seen.state == landing::TrackState::kTracking;
-      summary.landing_poses += seen.has_pose;
-      if (publisher != nullptr) {
-        report(publisher->publish(makeLandingTargetMsg(options, summary.frames, frame->stamp_ns,
-                                                       seen, options.landing->pose.mode)),
-               "LandingTarget");
-      }
-    }
-    // A lost frame's pose is a guess: it is published (so that operators see the state) but
-    // its cloud is not, and nothing is computed that only feeds the map.
-    const bool mapped =
-        options.depth && (!estimate || estimate->state != odometry::TrackingState::kLost);
-    // The pose goes first, whatever becomes of the cloud.
-    const auto pose_msg = makePoseMsg(options, summary.frames, frame->stamp_ns, T_map_body,
-                                      velocity, estimate ? &*estimate : nullptr);
-    if (publisher != nullptr) report(publisher->publish(pose_msg), "Pose");
-    summary.wire_bytes += proto::wireBytes(pose_msg);
-    if (!first_stamp) first_stamp = frame->stamp_ns;
-    summary.stream_seconds = common::nsToSeconds(frame->stamp_ns - *first_stamp);
-    if (!mapped) {
-      depth_step.reset();  // no pose to carry depth along
-      ++summary.frames;
-      report_frame.frame_ms = msSince(frame_start);
-      frame_ms.push_back(report_frame.frame_ms);
-      if (options.on_frame) options.on_frame(report_frame);
-      continue;
-    }
-    const auto depth_start = Clock::now();
-    const int was_level = depth_step.level();
-    const auto cloud =
-        depth_step.compute(frame->left, frame->right, report_frame.T_map_camera,
-                           estimate ? estimate->right_offset_px : 0.0,  // see odometry.hpp
-                           frame->raw_noise_sigma);
-    depth_ms.push_back(msSince(depth_start));
-    if (depth_step.level() != was_level || summary.frames == 0) {
-      if (depth_step.noisy()) {
-        spdlog::info(
-            "images are noisy (noise sigma {:.1f} grey levels, level {}): depth from smoothed "
-            "images, averaged over frames",
-            depth_step.noiseSigma(), depth_step.level());
-      } else {
-        spdlog::info("images are clean (noise sigma {:.1f} grey levels): depth frame by frame",
-                     depth_step.noiseSigma());
-      }
-    }
-
-    // What of the cloud the link takes (thinned, or nothing when it brings nothing new).
-    const auto encode_start = Clock::now();
-    std::optional<common::PointCloud> thinned;
-    if (cloud_link)
-      thinned = cloud_link->prepare(cloud, report_frame.T_map_camera, frame->stamp_ns);
-    const common::PointCloud* to_send = cloud_link ? (thinned ? &*thinned : nullptr) : &cloud;
-    double payload_kib = 0;
-    if (to_send != nullptr) {
-      proto::CloudCodecOptions codec = options.codec;
-      if (cloud_link)
-        codec.quantization_bits = cloud_link->quantizationBits(*to_send, codec.quantization_bits);
-      auto cloud_msg = makeCloudFrameMsg(options, codec, clouds_sent, frame->stamp_ns,
-                                         report_frame.T_map_camera, *to_send);
-      encode_ms.push_back(msSince(encode_start));
-      if (!cloud_msg) {
-        spdlog::error("frame {}: cannot encode the cloud: {}", frame->index,
-                      cloud_msg.error().message);
-      } else {
-        if (publisher != nullptr) report(publisher->publish(*cloud_msg), "CloudFrame");
-        const size_t bytes = proto::wireBytes(*cloud_msg);
-        if (cloud_link) cloud_link->sent(frame->stamp_ns, bytes, cloud_msg->payload.size());
-        ++clouds_sent;
-        summary.wire_bytes += bytes;
-        summary.payload_bytes += cloud_msg->payload.size();
-        payload_kib = cloud_msg->payload.size() / 1024.0;
-      }
-    }
-    ++summary.frames;
-    summary.points += cloud.size();
-    report_frame.frame_ms = msSince(frame_start);
-    frame_ms.push_back(report_frame.frame_ms);
-    if (options.on_frame) options.on_frame(report_frame);
-
-    if (options.progress_every != 0 && summary.frames % options.progress_every == 0) {
-      spdlog::info("frame {}: {} points, {:.1f} KiB sent, depth {:.1f} ms", summary.frames,
-                   cloud.size(), payload_kib, depth_ms.back());
-    }
+    run.step(*frame, frame_start);
   }
-
-  // The graph's last word before the end: every keyframe it was handed, solved.
-  if (graph && last_T_body_camera) {
-    graph->waitUntilCaughtUp();
-    sendCorrection(last_stamp, *last_T_body_camera, /*now=*/true);
-  }
-  if (publisher != nullptr) {
-    report(publisher->publish(
-               makeSessionEvent(options, source.camera(), proto::SessionEventKind::kEnded)),
-           "SessionEvent");
-    // Leaving at once would drop what the server has not acknowledged yet (the end event).
-    if (!publisher->flush(options.flush_timeout)) {
-      spdlog::warn(
-          "the server did not acknowledge the last samples within {} ms; it learns of "
-          "the end when the vehicle falls silent",
-          options.flush_timeout.count());
-    }
-  }
-  if (cloud_link) summary.link = cloud_link->stats();
-  summary.median_depth_ms = common::median(depth_ms).value_or(0.0);
-  summary.image_noise_sigma = depth_step.noiseSigma();
-  summary.noisy_images = depth_step.noisy();
-  summary.median_encode_ms = common::median(encode_ms).value_or(0.0);
-  summary.median_frame_ms = common::median(frame_ms).value_or(0.0);
-  summary.median_odometry_ms = common::median(odometry_ms).value_or(0.0);
-  if (graph) {
-    const auto poses = graph->finish();
-    for (size_t i = 0; i < poses.size(); ++i) {
-      summary.corrected_T_map_body.push_back(*anchor * poses[i] * T_body_cameras[i].inverse());
-    }
-    summary.graph = graph->stats();
-  }
-  return summary;
+  return run.finish();
 }
 
 }  // namespace stereomap::pipeline

@@ -215,12 +215,10 @@ void FastTracker::adjustWindow(Rigid3& T_world_current) {
   }
 }
 
-VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
-  VoEstimate estimate;
-  std::vector<cv::Mat> pyramid;
+FastTracker::Pyramids FastTracker::pyramids(const cv::Mat& left, const cv::Mat& right) {
+  Pyramids pyramids;
   const cv::Size window(options_.klt_window, options_.klt_window);
-  cv::buildOpticalFlowPyramid(left, pyramid, window, options_.klt_levels + 1);
-  std::vector<cv::Mat> right_pyramid;  // for every stereo match of this frame
+  cv::buildOpticalFlowPyramid(left, pyramids.left, window, options_.klt_levels + 1);
   const cv::Mat* levelled = &right;
   // Levelled only beyond 3 %: KITTI's rig reads 0.98-0.99, and levelling by that (from 2 %, or
   // always) moved its excerpt's rotation drift from 2.62 to 2.68-2.85 deg/100 m and its shape
@@ -233,132 +231,140 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     right.convertTo(levelled_right_, -1, 1.0 / levelled_by_);  // the buffer lives on
     levelled = &levelled_right_;
   }
-  cv::buildOpticalFlowPyramid(*levelled, right_pyramid, window, options_.klt_levels + 1);
-  ++frame_;
-  if (!initialised_) {
-    restartWindow(Rigid3::identity());
-    makeKeyframe(pyramid, right_pyramid, left, {}, Rigid3::identity(),
-                 Eigen::Matrix<double, 6, 6>::Zero());
-    previous_pyramid_ = std::move(pyramid);
-    initialised_ = !keyframe_.points.empty();
-    estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
-    estimate.features = static_cast<int>(keyframe_.points.size());
-    estimate.keyframe = true;
-    estimate.right_offset_px = right_offset_;
-    estimate.right_gain = right_gain_;
-    return estimate;
-  }
+  cv::buildOpticalFlowPyramid(*levelled, pyramids.right, window, options_.klt_levels + 1);
+  return pyramids;
+}
 
-  // Temporal tracks from the previous frame, seeded by the constant-velocity prediction.
-  const Rigid3 predicted = motion_ * T_world_previous_.inverse() * keyframe_.T_world_keyframe;
-  std::vector<size_t> index;
-  std::vector<cv::Point2f> from, to;
+VoEstimate FastTracker::start(Pyramids& pyramids, const cv::Mat& left) {
+  VoEstimate estimate;
+  restartWindow(Rigid3::identity());
+  makeKeyframe(pyramids.left, pyramids.right, left, {}, Rigid3::identity(),
+               Eigen::Matrix<double, 6, 6>::Zero());
+  previous_pyramid_ = std::move(pyramids.left);
+  initialised_ = !keyframe_.points.empty();
+  estimate.state = initialised_ ? TrackingState::kOk : TrackingState::kLost;
+  estimate.features = static_cast<int>(keyframe_.points.size());
+  estimate.keyframe = true;
+  return estimate;
+}
+
+FastTracker::Followed FastTracker::follow(const std::vector<cv::Mat>& pyramid,
+                                          const Rigid3& predicted, const cv::Size& size) {
+  Followed followed;
+  std::vector<cv::Point2f> from;
   for (size_t i = 0; i < tracks_.size(); ++i) {
     if (!alive_[i]) continue;
     const auto guess = project(camera_, predicted * keyframe_.points[i]);
     if (!guess) continue;
-    index.push_back(i);
+    followed.point.push_back(i);
     from.push_back(tracks_[i]);
-    to.emplace_back(static_cast<float>(guess->x()), static_cast<float>(guess->y()));
+    followed.pixel.emplace_back(static_cast<float>(guess->x()), static_cast<float>(guess->y()));
   }
+  if (from.empty()) return followed;
+  const cv::Size window(options_.klt_window, options_.klt_window);
   std::vector<uchar> status, back_status;
   std::vector<float> error;
-  if (!from.empty()) {
-    cv::calcOpticalFlowPyrLK(previous_pyramid_, pyramid, from, to, status, error, window,
-                             options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
-    std::vector<cv::Point2f> back = from;
-    cv::calcOpticalFlowPyrLK(pyramid, previous_pyramid_, to, back, back_status, error, window,
-                             options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
-    for (size_t k = 0; k < from.size(); ++k) {
-      const bool inside =
-          to[k].x >= 0 && to[k].y >= 0 && to[k].x < left.cols - 1 && to[k].y < left.rows - 1;
-      if (!status[k] || !back_status[k] || !inside ||
-          cv::norm(back[k] - from[k]) > options_.forward_backward_px) {
-        alive_[index[k]] = false;
-      }
+  auto& to = followed.pixel;
+  cv::calcOpticalFlowPyrLK(previous_pyramid_, pyramid, from, to, status, error, window,
+                           options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+  std::vector<cv::Point2f> back = from;
+  cv::calcOpticalFlowPyrLK(pyramid, previous_pyramid_, to, back, back_status, error, window,
+                           options_.klt_levels, kKltCriteria, cv::OPTFLOW_USE_INITIAL_FLOW);
+  for (size_t k = 0; k < from.size(); ++k) {
+    const bool inside =
+        to[k].x >= 0 && to[k].y >= 0 && to[k].x < size.width - 1 && to[k].y < size.height - 1;
+    if (!status[k] || !back_status[k] || !inside ||
+        cv::norm(back[k] - from[k]) > options_.forward_backward_px) {
+      alive_[followed.point[k]] = false;
     }
   }
+  return followed;
+}
+
+std::optional<FastTracker::Solved> FastTracker::solve(const Followed& followed,
+                                                      const Rigid3& predicted, int& features) {
+  Solved solved{predicted, {}, {}};
   std::vector<cv::Point3f> object;
   std::vector<cv::Point2f> image;
-  std::vector<size_t> used;
-  for (size_t k = 0; k < index.size(); ++k) {
-    if (!alive_[index[k]]) continue;
-    const Vec3& p = keyframe_.points[index[k]];
+  std::vector<size_t> used;  // the object point's keyframe point
+  for (size_t k = 0; k < followed.point.size(); ++k) {
+    if (!alive_[followed.point[k]]) continue;
+    const Vec3& p = keyframe_.points[followed.point[k]];
     object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
                         static_cast<float>(p.z()));
-    image.push_back(to[k]);
-    used.push_back(k);
+    image.push_back(followed.pixel[k]);
+    used.push_back(followed.point[k]);
   }
-  estimate.features = static_cast<int>(object.size());
-
-  // 3D-2D RANSAC (P3P; OpenCV adapts the iterations to the inlier ratio), from the prediction.
-  Rigid3 T_current_keyframe = predicted;
+  features = static_cast<int>(object.size());
+  if (object.size() < 6) return std::nullopt;
+  const cv::Matx33d K(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+  cv::Mat rvec, tvec;
+  toRvecTvec(predicted, rvec, tvec);
   std::vector<int> inliers;
-  bool solved = false;
-  if (object.size() >= 6) {
-    const cv::Matx33d K(camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
-    cv::Mat rvec, tvec;
-    toRvecTvec(predicted, rvec, tvec);
-    solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, true, 300,
-                                static_cast<float>(options_.ransac_px), 0.999, inliers,
-                                cv::SOLVEPNP_P3P);
-    if (solved) T_current_keyframe = fromRvecTvec(rvec, tvec);
+  if (!cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, true, 300,
+                          static_cast<float>(options_.ransac_px), 0.999, inliers,
+                          cv::SOLVEPNP_P3P) ||
+      static_cast<int>(inliers.size()) < options_.degraded_inliers) {
+    return std::nullopt;
   }
-  if (!solved || static_cast<int>(inliers.size()) < options_.degraded_inliers) {
-    // Lost: keep moving as before, start again from this frame.
-    estimate.state = TrackingState::kLost;
-    const Rigid3 T_world_current = keyframe_.T_world_keyframe * predicted.inverse();
-    restartWindow(T_world_current);
-    makeKeyframe(pyramid, right_pyramid, left, {}, T_world_current, keyframe_.covariance);
-    previous_pyramid_ = std::move(pyramid);
-    estimate.T_world_camera = T_world_current;
-    estimate.keyframe = true;
-    estimate.covariance = keyframe_.covariance;
-    estimate.right_offset_px = right_offset_;
-    estimate.right_gain = right_gain_;
-    return estimate;
-  }
-
-  // Refine with both cameras: stereo matches of the inliers in the current pair.
-  std::vector<cv::Point2f> inlier_points;
-  std::vector<float> guess_disparity;
+  solved.T_current_keyframe = fromRvecTvec(rvec, tvec);
   for (int k : inliers) {
-    inlier_points.push_back(image[static_cast<size_t>(k)]);
-    const Vec3 p = T_current_keyframe * keyframe_.points[index[used[static_cast<size_t>(k)]]];
+    solved.inlier_points.push_back(image[static_cast<size_t>(k)]);
+    solved.inlier_point.push_back(used[static_cast<size_t>(k)]);
+  }
+  return solved;
+}
+
+VoEstimate FastTracker::lose(Pyramids& pyramids, const cv::Mat& left, const Rigid3& predicted) {
+  // Keep moving as before, start again from this frame.
+  VoEstimate estimate;
+  estimate.state = TrackingState::kLost;
+  const Rigid3 T_world_current = keyframe_.T_world_keyframe * predicted.inverse();
+  restartWindow(T_world_current);
+  makeKeyframe(pyramids.left, pyramids.right, left, {}, T_world_current, keyframe_.covariance);
+  previous_pyramid_ = std::move(pyramids.left);
+  estimate.T_world_camera = T_world_current;
+  estimate.keyframe = true;
+  estimate.covariance = keyframe_.covariance;
+  return estimate;
+}
+
+RefineResult FastTracker::refine(const Pyramids& pyramids, const Solved& solved,
+                                 const Rigid3& predicted, std::vector<Observation>& observations) {
+  std::vector<float> guess_disparity;
+  for (size_t j = 0; j < solved.inlier_point.size(); ++j) {
+    const Vec3 p = solved.T_current_keyframe * keyframe_.points[solved.inlier_point[j]];
     guess_disparity.push_back(
         static_cast<float>(camera_.disparityFromDepth(std::max(p.z(), 1e-3))));
   }
   const std::vector<cv::Point2f> right_matches =
-      matchRight(pyramid, right_pyramid, inlier_points, &guess_disparity);
-  std::vector<Observation> observations;
-  for (size_t j = 0; j < inliers.size(); ++j) {
-    Observation o{keyframe_.points[index[used[static_cast<size_t>(inliers[j])]]],
-                  Eigen::Vector2d(inlier_points[j].x, inlier_points[j].y), std::nullopt};
+      matchRight(pyramids.left, pyramids.right, solved.inlier_points, &guess_disparity);
+  for (size_t j = 0; j < solved.inlier_point.size(); ++j) {
+    Observation o{keyframe_.points[solved.inlier_point[j]],
+                  Eigen::Vector2d(solved.inlier_points[j].x, solved.inlier_points[j].y),
+                  std::nullopt};
     if (!std::isnan(right_matches[j].x))
       o.right = Eigen::Vector2d(right_matches[j].x, right_matches[j].y);
     observations.push_back(o);
   }
-  RefineOptions refine;
-  refine.prior_rotation_rad = 0.05;  // weak: a frame's motion rarely changes more than this
-  refine.prior_translation_m = 0.5;
-  const RefineResult refined =
-      refinePose(camera_, observations, T_current_keyframe, predicted, refine);
-  T_current_keyframe = refined.T_current_reference;
+  RefineOptions options;
+  options.prior_rotation_rad = 0.05;  // weak: a frame's motion rarely changes more than this
+  options.prior_translation_m = 0.5;
+  return refinePose(camera_, observations, solved.T_current_keyframe, predicted, options);
+}
 
-  // Inliers after refinement decide the state; their stereo in this pair refines the
-  // keyframe's points (the window's adjustment then replaces the points it refines: fusion
-  // covers the others, and runs where the window is off), and they join the window.
-  int good = 0;
+std::vector<bool> FastTracker::keepGood(const Solved& solved,
+                                        const std::vector<Observation>& observations,
+                                        const Rigid3& T_current_keyframe) {
   const Rigid3 T_keyframe_current = T_current_keyframe.inverse();
   window_.addFrame(frame_, keyframe_.T_world_keyframe * T_keyframe_current);
-  std::vector<bool> good_observation(observations.size(), false);
+  std::vector<bool> good(observations.size(), false);
   for (size_t j = 0; j < observations.size(); ++j) {
     const auto& o = observations[j];
     const auto pixel = project(camera_, T_current_keyframe * o.point);
-    good_observation[j] = pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
-    good += good_observation[j];
-    if (!good_observation[j]) continue;
-    const size_t i = index[used[static_cast<size_t>(inliers[j])]];
+    good[j] = pixel && (*pixel - o.left).norm() < 2.0 * options_.ransac_px;
+    if (!good[j]) continue;
+    const size_t i = solved.inlier_point[j];
     if (o.right) {
       const double disparity = o.left.x() - o.right->x();
       fuse(i, T_keyframe_current * stereoPoint(o.left.x(), o.left.y(), disparity), disparity);
@@ -366,40 +372,80 @@ VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
     window_.observe({keyframe_.ids[i], o.left, rawRight(o.right)},
                     keyframe_.T_world_keyframe * keyframe_.points[i]);
   }
+  return good;
+}
+
+VoEstimate FastTracker::track(const cv::Mat& left, const cv::Mat& right) {
+  Pyramids frame_pyramids = pyramids(left, right);
+  ++frame_;
+  VoEstimate estimate;
+  if (!initialised_) {
+    estimate = start(frame_pyramids, left);
+    estimate.right_offset_px = right_offset_;
+    estimate.right_gain = right_gain_;
+    return estimate;
+  }
+  // Temporal tracks from the previous frame, seeded by the constant-velocity prediction, then
+  // 3D-2D RANSAC (P3P; OpenCV adapts the iterations to the inlier ratio) from the prediction.
+  const Rigid3 predicted = motion_ * T_world_previous_.inverse() * keyframe_.T_world_keyframe;
+  const Followed followed = follow(frame_pyramids.left, predicted, left.size());
+  int features = 0;
+  const auto solved = solve(followed, predicted, features);
+  if (!solved) {
+    estimate = lose(frame_pyramids, left, predicted);
+    estimate.features = features;
+    estimate.right_offset_px = right_offset_;
+    estimate.right_gain = right_gain_;
+    return estimate;
+  }
+  estimate.features = features;
+
+  // Refine with both cameras: stereo matches of the inliers in the current pair. Inliers after
+  // refinement decide the state; their stereo in this pair refines the keyframe's points (the
+  // window's adjustment then replaces the points it refines: fusion covers the others, and
+  // runs where the window is off), and they join the window.
+  std::vector<Observation> observations;
+  const RefineResult refined = refine(frame_pyramids, *solved, predicted, observations);
+  const std::vector<bool> good_observation =
+      keepGood(*solved, observations, refined.T_current_reference);
+  const int good =
+      static_cast<int>(std::count(good_observation.begin(), good_observation.end(), true));
   estimate.inliers = good;
   estimate.state = good >= options_.ok_inliers         ? TrackingState::kOk
                    : good >= options_.degraded_inliers ? TrackingState::kDegraded
                                                        : TrackingState::kLost;
-  Rigid3 T_world_current = keyframe_.T_world_keyframe * T_keyframe_current;
+  Rigid3 T_world_current = keyframe_.T_world_keyframe * refined.T_current_reference.inverse();
   if (estimate.state == TrackingState::kLost) {
     // Too few inliers to trust: this frame starts the window again, as a failed RANSAC does.
     restartWindow(T_world_current);
   } else {
     adjustWindow(T_world_current);
   }
-  T_current_keyframe = T_world_current.inverse() * keyframe_.T_world_keyframe;
+  const Rigid3 T_current_keyframe = T_world_current.inverse() * keyframe_.T_world_keyframe;
   estimate.T_world_camera = T_world_current;
   estimate.covariance = keyframe_.covariance +
                         rotated(refined.covariance, T_world_current.rotation.toRotationMatrix());
   motion_ = T_world_current.inverse() * window_.pose(frame_ - 1).value_or(T_world_previous_);
   T_world_previous_ = T_world_current;
-  for (size_t k = 0; k < index.size(); ++k) tracks_[index[k]] = to[k];
+  for (size_t k = 0; k < followed.point.size(); ++k) tracks_[followed.point[k]] = followed.pixel[k];
 
+  // A new keyframe when this one's points run thin, carrying the good ones.
   const bool weak =
       good < options_.keyframe_inlier_share * static_cast<double>(keyframe_.points.size()) ||
       good < 2 * options_.ok_inliers;
   if (weak || estimate.state != TrackingState::kOk) {
     std::vector<Carried> carried;
-    for (size_t j = 0; j < inliers.size(); ++j) {
+    for (size_t j = 0; j < good_observation.size(); ++j) {
       if (!good_observation[j]) continue;
-      const size_t i = index[used[static_cast<size_t>(inliers[j])]];
-      carried.push_back({inlier_points[j], T_current_keyframe * keyframe_.points[i],
+      const size_t i = solved->inlier_point[j];
+      carried.push_back({solved->inlier_points[j], T_current_keyframe * keyframe_.points[i],
                          keyframe_.weight[i], keyframe_.ids[i]});
     }
-    makeKeyframe(pyramid, right_pyramid, left, carried, T_world_current, estimate.covariance);
+    makeKeyframe(frame_pyramids.left, frame_pyramids.right, left, carried, T_world_current,
+                 estimate.covariance);
     estimate.keyframe = true;
   }
-  previous_pyramid_ = std::move(pyramid);
+  previous_pyramid_ = std::move(frame_pyramids.left);
   estimate.right_offset_px = right_offset_;
   estimate.right_gain = right_gain_;
   return estimate;

@@ -5,6 +5,7 @@
 #include <optional>
 #include <vector>
 
+#include "onboard/odometry/detail/refine.hpp"
 #include "onboard/odometry/detail/window.hpp"
 #include "onboard/odometry/odometry.hpp"
 
@@ -36,6 +37,42 @@ class FastTracker {
     double weight = 0;
     int64_t id = 0;
   };
+  // One frame's image pyramids: the left, and the right levelled by the right camera's gain.
+  struct Pyramids {
+    std::vector<cv::Mat> left, right;
+  };
+  // Keyframe points followed from the previous frame into this one (their index in the
+  // keyframe, their pixel now); those lost on the way are marked in alive_.
+  struct Followed {
+    std::vector<size_t> point;
+    std::vector<cv::Point2f> pixel;
+  };
+  // The pose RANSAC found from the followed points, and its inliers (pixel, keyframe point).
+  struct Solved {
+    common::Rigid3 T_current_keyframe;
+    std::vector<cv::Point2f> inlier_points;
+    std::vector<size_t> inlier_point;
+  };
+
+  // track()'s steps, in order.
+  Pyramids pyramids(const cv::Mat& left, const cv::Mat& right);
+  VoEstimate start(Pyramids& pyramids, const cv::Mat& left);  // the first frame
+  Followed follow(const std::vector<cv::Mat>& pyramid, const common::Rigid3& predicted,
+                  const cv::Size& size);
+  // nullopt: too few points or inliers (`features`: the points RANSAC had).
+  std::optional<Solved> solve(const Followed& followed, const common::Rigid3& predicted,
+                              int& features);
+  // Lost: moves on as predicted and starts again from this frame.
+  VoEstimate lose(Pyramids& pyramids, const cv::Mat& left, const common::Rigid3& predicted);
+  // The inliers' stereo matches in this pair (as `observations`) and the pose refined on both
+  // images.
+  RefineResult refine(const Pyramids& pyramids, const Solved& solved,
+                      const common::Rigid3& predicted, std::vector<Observation>& observations);
+  // Which observations the refined pose keeps; those fuse into their points and join the
+  // window with this frame.
+  std::vector<bool> keepGood(const Solved& solved, const std::vector<Observation>& observations,
+                             const common::Rigid3& T_current_keyframe);
+
   // Stereo points of the current frame: the carried ones plus new FAST corners matched in
   // the right image.
   void makeKeyframe(const std::vector<cv::Mat>& pyramid, const std::vector<cv::Mat>& right_pyramid,
