@@ -13,7 +13,7 @@
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
 #include "tests/support/server_fixture.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 #include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {

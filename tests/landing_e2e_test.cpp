@@ -9,7 +9,7 @@
 #include "onboard/sim/deck.hpp"
 #include "proto/dds.hpp"
 #include "tests/support/server_fixture.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::testing {
 namespace {

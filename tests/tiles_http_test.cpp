@@ -11,7 +11,7 @@
 
 #include "proto/tiles/tile_codec.hpp"
 #include "server/fusion/occupancy_map.hpp"
-#include "tests/support/data.hpp"
+#include "testing/data.hpp"
 #include "tests/support/server_fixture.hpp"
 
 namespace stereomap::testing {

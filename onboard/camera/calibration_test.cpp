@@ -5,7 +5,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/video/tracking.hpp>
-#include "tests/support/data.hpp"
+#include "testing/data.hpp"
 
 #include <chrono>
 #include <fstream>

@@ -3,7 +3,7 @@
 #include <gtest/gtest.h>
 
 #include "onboard/camera/image_noise.hpp"
-#include "tests/support/data.hpp"
+#include "testing/data.hpp"
 
 #include <chrono>
 #include <fstream>

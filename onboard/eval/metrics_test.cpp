@@ -9,7 +9,7 @@
 
 #include <fstream>
 
-#include "tests/support/data.hpp"
+#include "testing/data.hpp"
 
 namespace stereomap::eval {
 namespace {

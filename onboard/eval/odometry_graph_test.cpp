@@ -5,8 +5,8 @@
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
-#include "tests/support/blackout_source.hpp"
-#include "tests/support/sim_flights.hpp"
+#include "testing/blackout_source.hpp"
+#include "testing/sim_flights.hpp"
 
 namespace stereomap::eval {
 namespace {

@@ -13,8 +13,8 @@
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
-#include "tests/support/data.hpp"
-#include "tests/support/sim_flights.hpp"
+#include "testing/data.hpp"
+#include "testing/sim_flights.hpp"
 
 namespace stereomap::odometry {
 namespace {

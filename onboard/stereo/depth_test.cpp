@@ -5,7 +5,7 @@
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/disparity_io.hpp"
-#include "tests/support/data.hpp"
+#include "testing/data.hpp"
 
 namespace stereomap::stereo {
 namespace {

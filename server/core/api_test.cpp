@@ -6,7 +6,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::core {
 namespace {

@@ -4,7 +4,7 @@
 
 #include <cstring>
 
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::core {
 namespace {

@@ -6,7 +6,7 @@
 
 #include "common/time.hpp"
 #include "proto/wire_size.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::core {
 namespace {

@@ -7,7 +7,7 @@
 #include <thread>
 #include <vector>
 
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::core {
 namespace {

@@ -7,9 +7,9 @@
 #include <set>
 #include <sstream>
 
-#include "tests/support/data.hpp"
-#include "tests/support/synthetic.hpp"
-#include "tests/support/tum.hpp"
+#include "testing/data.hpp"
+#include "testing/synthetic.hpp"
+#include "testing/tum.hpp"
 
 namespace stereomap::fusion {
 namespace {

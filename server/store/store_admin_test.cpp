@@ -10,7 +10,7 @@
 #include <thread>
 
 #include "server/core/exports.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::store {
 namespace {

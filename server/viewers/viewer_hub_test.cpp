@@ -8,7 +8,7 @@
 #include <map>
 
 #include "common/time.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::viewers {
 namespace {

@@ -19,7 +19,7 @@
 #include "onboard/stereo/depth.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "tests/support/timing.hpp"
-#include "tests/support/tum.hpp"
+#include "testing/tum.hpp"
 
 namespace {
 

@@ -12,7 +12,7 @@
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/posegraph/ground_test.hpp"
 #include "onboard/sim/sim_source.hpp"
-#include "tests/support/sim_flights.hpp"
+#include "testing/sim_flights.hpp"
 
 using namespace stereomap::posegraph;
 

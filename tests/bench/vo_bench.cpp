@@ -20,7 +20,7 @@
 #include "onboard/eval/metrics.hpp"
 #include "onboard/eval/odometry_run.hpp"
 #include "onboard/sim/sim_source.hpp"
-#include "tests/support/sim_flights.hpp"
+#include "testing/sim_flights.hpp"
 
 using namespace stereomap;
 

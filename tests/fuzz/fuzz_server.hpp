@@ -10,7 +10,7 @@
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
 #include "server/core/validate.hpp"
-#include "tests/support/synthetic.hpp"
+#include "testing/synthetic.hpp"
 
 namespace stereomap::fuzz {
 
