@@ -12,8 +12,8 @@
 
 #include "proto/cloud_codec.hpp"
 #include "proto/dds.hpp"
-#include "tests/support/server_fixture.hpp"
 #include "testing/synthetic.hpp"
+#include "tests/support/server_fixture.hpp"
 #include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {

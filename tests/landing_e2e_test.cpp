@@ -8,8 +8,8 @@
 #include "onboard/landing/deck_filter.hpp"
 #include "onboard/sim/deck.hpp"
 #include "proto/dds.hpp"
-#include "tests/support/server_fixture.hpp"
 #include "testing/synthetic.hpp"
+#include "tests/support/server_fixture.hpp"
 
 namespace stereomap::testing {
 namespace {

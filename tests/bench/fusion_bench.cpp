@@ -18,8 +18,8 @@
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
 #include "server/fusion/occupancy_map.hpp"
-#include "tests/support/timing.hpp"
 #include "testing/tum.hpp"
+#include "tests/support/timing.hpp"
 
 namespace {
 
