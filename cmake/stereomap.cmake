@@ -17,6 +17,8 @@ endfunction()
 # stereomap_test(NAME [SERIAL] SOURCES ... DEPS ...): a GoogleTest binary registered with
 # CTest, its test cases labelled NAME. SERIAL: its tests run alone (they measure time, which a test beside them on the
 # machine's two cores would spoil).
+# A test case's time limit (s): sanitised builds run several times slower (CMakePresets.json).
+set(STEREOMAP_TEST_TIMEOUT 300 CACHE STRING "Seconds before CTest stops a test case")
 function(stereomap_test name)
   cmake_parse_arguments(ARG "SERIAL" "" "SOURCES;DEPS" ${ARGN})
   add_executable(${name} ${ARG_SOURCES})
@@ -33,7 +35,7 @@ function(stereomap_test name)
   endif()
   # Each test case is labelled with its binary, so that a run can pick binaries (ctest -L).
   gtest_discover_tests(${name} DISCOVERY_TIMEOUT 60
-    PROPERTIES TIMEOUT 300 RUN_SERIAL ${serial} LABELS ${name})
+    PROPERTIES TIMEOUT ${STEREOMAP_TEST_TIMEOUT} RUN_SERIAL ${serial} LABELS ${name})
 endfunction()
 
 # stereomap_app(NAME SOURCES ... DEPS ...): a stereomap-<verb> binary in build/bin.
