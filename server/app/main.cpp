@@ -229,8 +229,9 @@ void recoverSessions(store::StoreAdmin& admin) {
           "say more)",
           session.id, session.problem, session.lost_records);
     }
-    spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses", session.id,
-                 session.frames, session.snapshot_frames, session.poses);
+    spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses, in {:.1f} s",
+                 session.id, session.frames, session.snapshot_frames, session.poses,
+                 session.seconds);
   }
 }
 

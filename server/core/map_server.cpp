@@ -315,7 +315,11 @@ std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
 
 bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
   FusionJob job;
-  const auto rejection = fusionJobFrom(frame, options_.limits, journal_number, job);
+  // A covered frame (in the restored snapshot) is counted and claimed, not fused: its payload
+  // is not decoded, which was most of a restart's time (measured: docs/BENCHMARKS.md).
+  const auto rejection = origin == Origin::kCovered
+                             ? validateCloudFrameFields(frame, options_.limits, job.T_map_camera)
+                             : fusionJobFrom(frame, options_.limits, journal_number, job);
   auto session = admit("CloudFrame", frame, rejection, origin);
   if (!session) return false;
   const auto logged = record("CloudFrame", frame, *session, origin);

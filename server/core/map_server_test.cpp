@@ -32,6 +32,27 @@ TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
             std::string::npos);
 }
 
+// A journaled frame a restored snapshot already holds is counted and claimed, not fused: its
+// payload is not even decoded (most of a restart's time went there). A live frame with the
+// same payload is refused.
+TEST(MapServer, ACoveredFrameIsCountedWithoutDecodingItsPayload) {
+  MapServer server({.resolution = 0.1});
+  auto frame = testing::wallFrame("a", 2.05);
+  frame.payload.resize(10);  // would not decode
+  EXPECT_TRUE(server.ingest(frame, Origin::kCovered, 1));
+  const auto status = server.find("a")->status();
+  EXPECT_EQ(status.frames_received, 1u);
+  EXPECT_EQ(status.frames_fused, 1u);                       // in the snapshot, so in the map
+  EXPECT_EQ(status.occupied_voxels, 0u);                    // but not inserted again
+  EXPECT_FALSE(server.ingest(frame, Origin::kCovered, 1));  // claimed: a duplicate now
+  frame.seq = 1;
+  frame.stamp_ns += 1;
+  EXPECT_FALSE(server.ingest(frame));  // live: decoded, refused
+  auto bad_pose = testing::wallFrame("a", 2.05, 2);
+  bad_pose.sensor_orientation = {0, 0, 0, 2};
+  EXPECT_FALSE(server.ingest(bad_pose, Origin::kCovered, 2));  // the fields are still checked
+}
+
 // What each vehicle's accepted samples took on the link, as the vehicle counts it.
 TEST(MapServer, CountsEachVehiclesBytes) {
   MapServer server({.resolution = 0.1});

@@ -49,8 +49,9 @@ bool isValidId(const std::string& id) {
   });
 }
 
-std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
-                                            const IngestLimits& limits, ValidCloud& out) {
+std::optional<Rejection> validateCloudFrameFields(const proto::CloudFrameMsg& frame,
+                                                  const IngestLimits& limits,
+                                                  common::Rigid3& T_map_camera) {
   if (auto bad = checkIds(frame.vehicle_id, frame.session_id)) return bad;
   if (frame.payload.size() > limits.max_payload_bytes) {
     return Rejection{"oversize", "payload of " + std::to_string(frame.payload.size()) +
@@ -66,10 +67,12 @@ std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
     return Rejection{"bad_range", "max_range " + std::to_string(frame.max_range) +
                                       " is not in (0, " + std::to_string(limits.max_range_m) + "]"};
   }
-  if (auto bad =
-          checkPose(frame.sensor_position, frame.sensor_orientation, "sensor", out.T_map_camera)) {
-    return bad;
-  }
+  return checkPose(frame.sensor_position, frame.sensor_orientation, "sensor", T_map_camera);
+}
+
+std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
+                                            const IngestLimits& limits, ValidCloud& out) {
+  if (auto bad = validateCloudFrameFields(frame, limits, out.T_map_camera)) return bad;
   auto cloud = proto::decodeCloud(frame.payload, proto::payloadInfo(frame));
   if (!cloud) {
     const bool miscounted = cloud.error().code == common::ErrorCode::kConflict;

@@ -41,6 +41,11 @@ bool isValidId(const std::string& id);
 
 std::optional<Rejection> validateCloudFrame(const proto::CloudFrameMsg& frame,
                                             const IngestLimits& limits, ValidCloud& out);
+// Everything validateCloudFrame checks but the payload (not decoded): for a journaled frame
+// that a snapshot already holds, which needs counting, not its points.
+std::optional<Rejection> validateCloudFrameFields(const proto::CloudFrameMsg& frame,
+                                                  const IngestLimits& limits,
+                                                  common::Rigid3& T_map_camera);
 std::optional<Rejection> validatePose(const proto::PoseMsg& pose, ValidPose& out);
 std::optional<Rejection> validateSessionEvent(const proto::SessionEventMsg& event);
 // A pose graph's correction: ids, at least one and at most kMaxCorrectedKeyframes keyframes,

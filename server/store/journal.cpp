@@ -454,11 +454,33 @@ common::Result<JournalReplay> visitJournal(const fs::path& path, uint64_t min_nu
   return replay;
 }
 
-common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path,
-                                                       uint64_t first_number) {
+namespace {
+
+// What Journal::open keeps of a reading: everything but the records, which it never needs.
+JournalReplay withoutRecords(const JournalReplay& read) {
+  JournalReplay kept;
+  kept.version = read.version;
+  kept.kept = read.kept;
+  kept.damage = read.damage;
+  kept.good_bytes = read.good_bytes;
+  kept.file_bytes = read.file_bytes;
+  kept.last_number = read.last_number;
+  kept.header_damaged = read.header_damaged;
+  kept.damaged_tail = read.damaged_tail;
+  kept.problem = read.problem;
+  return kept;
+}
+
+}  // namespace
+
+common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path, uint64_t first_number,
+                                                       const JournalReplay* scanned) {
   auto journal = std::unique_ptr<Journal>(new Journal());
   journal->path_ = path;
-  auto replay = readJournal(path);
+  // Every record is checked (a damaged one is found), none is kept: a long journal would
+  // otherwise sit in memory whole.
+  auto replay = scanned != nullptr ? common::Result<JournalReplay>(withoutRecords(*scanned))
+                                   : visitJournal(path, 0, [](JournalRecord&&, uint64_t) {});
   const bool exists = replay || replay.error().code != ErrorCode::kNotFound;
   if (replay) {
     journal->recovered_ = std::move(replay).value();

@@ -79,8 +79,11 @@ class Journal {
   // new journal. New records are numbered above every number the file holds
   // and at least `first_number` (callers pass one past their newest snapshot's).
   // A format 1 file is refused (kConflict): rewriteJournal() upgrades it.
+  // `scanned`: the file as readJournal() has just read it (recovery), so that it is not read
+  // again; open fails (kConflict) when the file has changed size since.
   static common::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& path,
-                                                       uint64_t first_number = 1);
+                                                       uint64_t first_number = 1,
+                                                       const JournalReplay* scanned = nullptr);
   ~Journal();
   Journal(const Journal&) = delete;
   Journal& operator=(const Journal&) = delete;
@@ -89,6 +92,7 @@ class Journal {
   // partial record is cut off again before anything else is written, and the error names
   // the cause; while it cannot be cut, every append fails.
   common::Result<uint64_t> append(const JournalRecord& record);
+  // What opening found (damage, the tail cut), without the records themselves.
   const JournalReplay& recovered() const { return recovered_; }
   uint64_t bytes() const { return bytes_; }
   uint64_t nextNumber() const { return next_number_; }

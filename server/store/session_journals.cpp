@@ -79,14 +79,20 @@ std::vector<std::string> removeLeftoverTemporaries(const fs::path& dir) {
   return removed;
 }
 
-uint64_t legacySnapshotNumber(const JournalReplay& replay, uint64_t frames) {
+uint64_t legacySnapshotNumber(const JournalReplay& replay,
+                              const std::vector<uint64_t>& frame_numbers, uint64_t frames) {
   if (replay.version != 1 || !replay.damage.empty() || frames == 0) return 0;
-  uint64_t clouds = 0;
+  return frames <= frame_numbers.size() ? frame_numbers[frames - 1] : 0;
+}
+
+std::vector<uint64_t> frameNumbers(const JournalReplay& replay) {
+  std::vector<uint64_t> numbers;
   for (size_t i = 0; i < replay.records.size(); ++i) {
-    clouds += std::holds_alternative<proto::CloudFrameMsg>(replay.records[i]);
-    if (clouds == frames) return replay.numbers[i];
+    if (std::holds_alternative<proto::CloudFrameMsg>(replay.records[i])) {
+      numbers.push_back(replay.numbers[i]);
+    }
   }
-  return 0;
+  return numbers;
 }
 
 common::Result<RepairReport> repairJournal(const fs::path& dir) {
@@ -115,8 +121,9 @@ common::Result<RepairReport> repairJournal(const fs::path& dir) {
   // labelled. Ones left out of sight by an upgrade that failed before are finished too (a
   // format 1 journal is never appended to, so their numbers still hold).
   if (replay->version == 1) {
+    const auto frame_numbers = frameNumbers(*replay);
     for (const auto& [frames, snapshot] : snapshotsIn(dir)) {
-      const uint64_t number = legacySnapshotNumber(*replay, frames);
+      const uint64_t number = legacySnapshotNumber(*replay, frame_numbers, frames);
       std::error_code ec;
       if (number == 0) {
         fs::remove(snapshot, ec);
@@ -218,7 +225,18 @@ common::Result<uint64_t> SessionJournals::appendTo(const std::string& session,
   return found->second->append(record);
 }
 
-common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(const std::string& session) {
+common::Status SessionJournals::openRecovered(const std::string& session,
+                                              const JournalReplay& scanned) {
+  std::lock_guard lock(mutex_);
+  if (journals_.count(session) != 0 || retired_.count(session) != 0) return common::Ok{};
+  auto opened = openJournal(session, &scanned);
+  if (!opened) return opened.error();
+  journals_.emplace(session, std::move(opened).value());
+  return common::Ok{};
+}
+
+common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(
+    const std::string& session, const JournalReplay* scanned) {
   const fs::path dir = root_ / session;  // ids are validated: no separators, no ".."
   std::error_code ec;
   if (fs::create_directories(dir, ec); ec) {
@@ -237,7 +255,7 @@ common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(const std:
   // never given to new records.
   const auto snapshots = snapshotsIn(dir);
   const uint64_t first_number = snapshots.empty() ? 1 : snapshots.front().first + 1;
-  auto opened = Journal::open(dir / kJournalName, first_number);
+  auto opened = Journal::open(dir / kJournalName, first_number, scanned);
   if (!opened && opened.error().code == ErrorCode::kConflict) {  // format 1: upgrade it
     if (auto repaired = repairJournal(dir); !repaired) return repaired.error();
     spdlog::info("session '{}': journal rewritten in format 2", session);

@@ -35,6 +35,10 @@ class SessionJournals : public core::IngestLog,
   // Written atomically (temporary file + rename); older snapshots are then removed.
   common::Status saveSnapshot(const std::string& session, uint64_t journal_number,
                               const std::string& ot) override;
+  // Opens a session's journal for appending now, from what recovery has just read of it
+  // (`scanned`), instead of at its first append: that would read the whole file again, on an
+  // ingest thread, holding every session's appends up meanwhile.
+  common::Status openRecovered(const std::string& session, const JournalReplay& scanned);
   // Closes a session's journal file (the session was closed or deleted).
   void release(const std::string& session);
   // While a session is deleted: its journal is closed and every append fails (a sample let
@@ -45,7 +49,8 @@ class SessionJournals : public core::IngestLog,
 
  private:
   common::Result<uint64_t> appendTo(const std::string& session, const JournalRecord& record);
-  common::Result<std::unique_ptr<Journal>> openJournal(const std::string& session);
+  common::Result<std::unique_ptr<Journal>> openJournal(const std::string& session,
+                                                       const JournalReplay* scanned = nullptr);
   std::filesystem::path root_;
   double resolution_;
   std::mutex mutex_;
@@ -61,9 +66,13 @@ std::filesystem::path snapshotPath(const std::filesystem::path& dir, uint64_t la
 std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(
     const std::filesystem::path& dir);
 
-// The record number a format 1 snapshot label (a count of cloud frames) stands for in
-// `replay` (format 1, numbered 1..n), or 0 when it cannot be told (damage, too few frames).
-uint64_t legacySnapshotNumber(const JournalReplay& replay, uint64_t frames);
+// The record number a format 1 snapshot label (a count of cloud frames) stands for in a
+// journal read as `replay` (format 1, numbered 1..n) whose cloud frames have the record
+// numbers `frame_numbers`, or 0 when it cannot be told (damage, too few frames).
+uint64_t legacySnapshotNumber(const JournalReplay& replay,
+                              const std::vector<uint64_t>& frame_numbers, uint64_t frames);
+// The record numbers of the cloud frames in `replay.records`.
+std::vector<uint64_t> frameNumbers(const JournalReplay& replay);
 
 struct RepairReport {
   uint64_t records_kept = 0, records_lost = 0;

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cstring>
 #include <fstream>
 #include <limits>
@@ -221,7 +222,16 @@ std::vector<RecoveredSession> StoreAdmin::recoverAll() {
       rememberClosed(status);
       continue;
     }
+    std::error_code ec;
+    const auto bytes = fs::file_size(root_ / id / kJournalName, ec);
+    spdlog::info("session '{}': recovering from its journal ({:.1f} MB)...", id,
+                 ec ? 0.0 : static_cast<double>(bytes) / 1e6);
+    const auto started = std::chrono::steady_clock::now();
     auto session = load(id, /*read_only=*/false);
+    if (session) {
+      session->seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+    }
     if (!session) {
       recovered.push_back({.id = id, .problem = session.error().message});
       continue;
@@ -283,7 +293,23 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
     return makeError(ErrorCode::kNotFound,
                      "no session '" + id + "' in the store " + root_.string());
   }
-  auto replay = readJournal(dir / kJournalName);
+  // One pass over the journal, in the usual case. Frames the newest snapshot holds are kept
+  // without their payloads (they are counted, never fused); the rest is kept whole: poses,
+  // corrections and events, and the frames after the snapshot (fewer than --snapshot-every
+  // per session). Reading every record whole, as it did, held a long flight's journal in
+  // memory twice. A second pass reads the frames again only when the newest snapshot cannot
+  // be used (damaged, older than a correction, or a format 1 label), or there is none.
+  const auto snapshots = snapshotsIn(dir);
+  const uint64_t assumed = snapshots.empty() ? 0 : snapshots.front().first;
+  JournalReplay kept;
+  auto replay = visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
+    if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+        frame != nullptr && (assumed == 0 || number <= assumed)) {
+      std::vector<uint8_t>().swap(frame->payload);
+    }
+    kept.records.push_back(std::move(record));
+    kept.numbers.push_back(number);
+  });
   if (!replay) return replay.error();
   for (const auto& name : removeLeftoverTemporaries(dir)) {
     spdlog::info("session '{}': removed {}, left by a write that did not finish", id, name);
@@ -297,14 +323,16 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   result.lost_records = replay->lostRecords();
   // Poses and pose corrections first: every frame is fused with its vehicle's newest
   // correction, which needs the poses it corrects.
-  const uint64_t newest_correction = replayPosesAndCorrections(
-      server_, *replay, std::numeric_limits<int64_t>::max(), result.poses);
+  const uint64_t newest_correction =
+      replayPosesAndCorrections(server_, kept, std::numeric_limits<int64_t>::max(), result.poses);
   // The newest snapshot that loads: it holds every frame up to its record number, even
   // ones the journal has lost since. Else a full replay. One older than the newest
   // correction holds frames where they were before it.
+  const auto frame_numbers = frameNumbers(kept);  // a format 1 journal's labels count frames
   uint64_t covered_up_to = 0;
-  for (const auto& [label, path] : snapshotsIn(dir)) {
-    const uint64_t number = replay->version == 1 ? legacySnapshotNumber(*replay, label) : label;
+  for (const auto& [label, path] : snapshots) {
+    const uint64_t number =
+        replay->version == 1 ? legacySnapshotNumber(*replay, frame_numbers, label) : label;
     if (replay->version == 1 && number == 0) continue;  // damage makes the label ambiguous
     if (number < newest_correction) continue;
     std::ifstream ot(path, std::ios::binary);
@@ -316,9 +344,8 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
                         " unusable (" + restored.error().message + ")";
     }
   }
-  for (size_t i = 0; i < replay->records.size(); ++i) {
-    const auto& record = replay->records[i];
-    const uint64_t number = replay->numbers[i];
+  // Frames and session events, in journal order.
+  auto ingest = [&](const JournalRecord& record, uint64_t number) {
     if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
       const bool covered = number <= covered_up_to;
       result.frames +=
@@ -327,8 +354,29 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
     } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
       server_.ingest(*event, core::Origin::kReplay);
     }
+  };
+  if (assumed > 0 && covered_up_to == assumed && replay->version != 1) {
+    for (size_t i = 0; i < kept.records.size(); ++i) ingest(kept.records[i], kept.numbers[i]);
+  } else {
+    kept = {};
+    const auto again =
+        visitJournal(dir / kJournalName, 0,
+                     [&](JournalRecord&& record, uint64_t number) { ingest(record, number); });
+    if (!again) {
+      result.problem += (result.problem.empty() ? "" : "; ") +
+                        std::string("the journal's frames could not be read again: ") +
+                        again.error().message;
+    }
   }
   session->waitUntilIdle();
+  if (!read_only && journals_ != nullptr) {
+    // Ready for appending now, from this reading: the first sample would otherwise read the
+    // whole journal again, holding every session's ingest up.
+    if (auto opened = journals_->openRecovered(id, *replay); !opened) {
+      spdlog::warn("session '{}': its journal will be opened at the first sample: {}", id,
+                   opened.error().message);
+    }
+  }
   return result;
 }
 

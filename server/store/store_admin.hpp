@@ -29,6 +29,7 @@ struct RecoveredSession {
   size_t frames = 0, poses = 0;
   uint64_t snapshot_frames = 0;  // frames restored from a snapshot rather than replayed
   uint64_t lost_records = 0;     // records the journal's damage cost
+  double seconds = 0;            // how long recovering it took
   std::string problem;           // what was damaged, cut or could not be used, if anything
 };
 

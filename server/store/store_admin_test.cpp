@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <fstream>
 #include <thread>
 
 #include "server/core/exports.hpp"
@@ -157,6 +158,32 @@ TEST_F(StoreAdminTest, RecoveryUsesEachSessionsOwnResolution) {
   EXPECT_DOUBLE_EQ(session->status().resolution, 0.05);
   EXPECT_FALSE(session->status().read_only);
   EXPECT_EQ(session->occupiedVoxels(), voxels);
+}
+
+// Recovery opens each live session's journal for appending from its own reading: a torn
+// tail is cut then, not at the first sample (which would read the whole journal again on an
+// ingest thread); the next sample appends after the last whole record.
+TEST_F(StoreAdminTest, RecoveryOpensTheJournalItRead) {
+  uint64_t whole_bytes = 0;
+  {
+    Server server(root_, 0.1);
+    fly(*server.map, "torn", 3);
+    whole_bytes = fs::file_size(root_ / "torn" / kJournalName);
+  }
+  {
+    std::ofstream tail(root_ / "torn" / kJournalName, std::ios::binary | std::ios::app);
+    tail << "SMRC";  // a record whose write was cut short
+  }
+  Server restarted(root_, 0.1);
+  const auto recovered = restarted.admin->recoverAll();
+  ASSERT_EQ(recovered.size(), 1u);
+  EXPECT_GT(recovered[0].seconds, 0.0);
+  EXPECT_EQ(fs::file_size(root_ / "torn" / kJournalName), whole_bytes);  // cut at recovery
+  ASSERT_TRUE(restarted.map->ingest(wallFrame("torn", 3)));
+  auto read = readJournal(root_ / "torn" / kJournalName);
+  ASSERT_TRUE(read.ok());
+  EXPECT_TRUE(read->problem.empty()) << read->problem;
+  EXPECT_EQ(read->numbers.back(), read->last_number);
 }
 
 TEST_F(StoreAdminTest, OnlyOneWriterPerStore) {
