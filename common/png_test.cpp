@@ -9,7 +9,7 @@ namespace {
 
 TEST(Png, OpenCvReadsBackEveryPixel) {
   const uint32_t width = 37, height = 11;  // odd sizes: no row padding assumed anywhere
-  std::vector<uint8_t> pixels(width * height);
+  std::vector<uint8_t> pixels(size_t{width} * height);
   for (size_t i = 0; i < pixels.size(); ++i) pixels[i] = static_cast<uint8_t>((i * 7919) % 256);
   const std::string png = encodeGreyPng(pixels, width, height);
   ASSERT_FALSE(png.empty());

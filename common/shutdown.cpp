@@ -34,8 +34,9 @@ Shutdown::~Shutdown() {
     std::lock_guard lock(mutex_);
     closing_ = true;
   }
-  // Wake the watcher's sigwait with a signal aimed at it alone.
-  pthread_kill(watcher_.native_handle(), SIGTERM);
+  // Wake the watcher's sigwait with a signal aimed at it alone (every thread blocks SIGTERM,
+  // so it kills nothing: the watcher takes it from sigwait and sees closing_).
+  pthread_kill(watcher_.native_handle(), SIGTERM);  // NOLINT(bugprone-bad-signal-to-kill-thread)
   watcher_.join();
 }
 
@@ -69,16 +70,14 @@ void Shutdown::wait() const {
 }
 
 void Shutdown::onStop(std::function<void()> callback) {
-  bool run_now = false;
   {
     std::lock_guard lock(mutex_);
-    if (stop_) {
-      run_now = true;
-    } else {
+    if (!stop_) {
       callbacks_.push_back(std::move(callback));
+      return;
     }
   }
-  if (run_now) callback();
+  callback();  // already stopping: now, outside the lock
 }
 
 int Shutdown::signal() const {

@@ -30,7 +30,7 @@ using tcp = asio::ip::tcp;
 
 namespace {
 
-constexpr size_t kMaxRequestBodyBytes = 64 * 1024;
+constexpr size_t kMaxRequestBodyBytes = size_t{64} * 1024;
 constexpr auto kIdleTimeout = std::chrono::seconds(60);
 
 std::string tokenFrom(const http::request<http::string_body>& request) {
@@ -70,7 +70,7 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
  public:
   WebSocketSession(tcp::socket socket, Hub& hub) : ws_(std::move(socket)), hub_(hub) {}
 
-  void start(http::request<http::string_body> request, bool authorised) {
+  void start(const http::request<http::string_body>& request, bool authorised) {
     ws_.set_option(websocket::stream_base::timeout::suggested(beast::role_type::server));
     ws_.read_message_max(kMaxRequestBodyBytes);
     ws_.async_accept(request, [self = shared_from_this(), authorised](beast::error_code ec) {
@@ -211,7 +211,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
       }
       stream_.expires_never();
       std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)
-          ->start(std::move(request), token_given);
+          ->start(request, token_given);
       return;
     }
     if (core::isAdminRequest(method, target)) {
@@ -299,7 +299,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
   }
 
   // `head_length`: the answer to HEAD states the length GET would have, with no body.
-  void write(std::shared_ptr<http::response<http::string_body>> response, bool keep_alive,
+  void write(const std::shared_ptr<http::response<http::string_body>>& response, bool keep_alive,
              std::optional<size_t> head_length = std::nullopt) {
     response->set(http::field::server, "stereomap");
     response->keep_alive(keep_alive);

@@ -13,7 +13,7 @@ fs::path freshDir(const char* name) {
   std::string leaf = "stereomap-catalog-";
   leaf += std::to_string(::getpid());
   leaf += name;
-  const fs::path dir = fs::temp_directory_path() / leaf;
+  fs::path dir = fs::temp_directory_path() / leaf;
   fs::remove_all(dir);
   fs::create_directories(dir);
   return dir;

@@ -42,7 +42,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   auto& server = fuzz::fusedServer();
   static fuzz::IdCheckingAdmin admin;
   http::request_parser<http::string_body> parser;
-  parser.body_limit(64 * 1024);  // http_server.cpp's kMaxRequestBodyBytes
+  parser.body_limit(uint64_t{64} * 1024);  // http_server.cpp's kMaxRequestBodyBytes
   parser.eager(true);
   boost::beast::error_code ec;
   parser.put(boost::asio::buffer(data, size), ec);

@@ -37,7 +37,7 @@ class RecordedSource : public FrameSource {
       : description_(std::move(description)),
         frames_(std::move(frames)),
         rectifier_(std::move(rectifier)),
-        T_body_camera_(T_body_camera),
+        T_body_camera_(std::move(T_body_camera)),
         clock_(clock) {}
 
   const StereoCamera& camera() const override { return rectifier_.camera(); }
@@ -92,7 +92,7 @@ Result<StereoCalibration> calibrationOr(const DatasetOptions& options,
   return own();
 }
 
-Result<std::unique_ptr<FrameSource>> makeRecorded(std::string description,
+Result<std::unique_ptr<FrameSource>> makeRecorded(const std::string& description,
                                                   std::vector<FrameFiles> frames,
                                                   const StereoCalibration& calibration,
                                                   std::optional<Rigid3> T_body_raw_left,

@@ -42,7 +42,8 @@ common::Result<StereoCalibration> calibrationOr(
 // A source over recorded pairs: read, rectified with `calibration`, unreadable frames skipped
 // (and said so). T_body_raw_left: the raw left camera's mount, when the data set gives it.
 common::Result<std::unique_ptr<FrameSource>> makeRecorded(
-    std::string description, std::vector<FrameFiles> frames, const StereoCalibration& calibration,
-    std::optional<common::Rigid3> T_body_raw_left, Clock clock, const DatasetOptions& options);
+    const std::string& description, std::vector<FrameFiles> frames,
+    const StereoCalibration& calibration, std::optional<common::Rigid3> T_body_raw_left,
+    Clock clock, const DatasetOptions& options);
 
 }  // namespace stereomap::camera::detail
