@@ -109,6 +109,18 @@ bool Session::enqueue(FusionJob job, bool wait_for_room) {
       queue_changed_.wait(lock, [this] { return queue_.size() < options_.queue_capacity; });
     }
     if (queue_.size() >= options_.queue_capacity) {
+      if (options_.reread_frames) {
+        if (deferred_.empty()) {
+          spdlog::warn(
+              "session '{}': fusion is behind ({} frames queued); frames are deferred and "
+              "fused from the journal once the queue drains",
+              id_, queue_.size());
+        }
+        deferred_.insert(job.journal_number);
+        std::lock_guard state(state_mutex_);
+        ++frames_deferred_;
+        return true;
+      }
       std::lock_guard state(state_mutex_);
       ++frames_dropped_;
       return false;
@@ -282,6 +294,8 @@ void Session::swapInRefused() {
     refused = std::move(*refused_);
     refused_.reset();
     tail.swap(tail_);
+    // The re-fused map read every journaled frame up to its last one, deferred ones included.
+    deferred_.erase(deferred_.begin(), deferred_.upper_bound(refused.up_to));
   }
   for (const auto& job : tail) {
     if (job.journal_number > refused.up_to) fuse(*refused.map, job, corrections(), nullptr);
@@ -328,15 +342,28 @@ void Session::run() {
       std::unique_lock lock(queue_mutex_);
       busy_ = false;
       queue_changed_.notify_all();
-      queue_changed_.wait(lock,
-                          [this] { return stopping_ || !queue_.empty() || refused_.has_value(); });
+      const auto refill = [this] {
+        return queue_.empty() && !deferred_.empty() && !refuse_wanted_ && !refusing_;
+      };
+      queue_changed_.wait(
+          lock, [&] { return stopping_ || !queue_.empty() || refused_.has_value() || refill(); });
       if (refused_) {
         busy_ = true;
         lock.unlock();
         swapInRefused();
         continue;
       }
-      if (queue_.empty()) return;  // stopping, and everything queued is fused
+      if (refill()) {
+        busy_ = true;
+        std::set<uint64_t> numbers;
+        numbers.swap(deferred_);
+        lock.unlock();
+        fuseDeferred(std::move(numbers));
+        continue;
+      }
+      // Stopping with everything queued fused (frames deferred behind a re-fusion stay in
+      // the journal: recovery fuses them, as no snapshot claims them).
+      if (queue_.empty()) return;
       job = std::move(queue_.front());
       queue_.pop_front();
       busy_ = true;
@@ -377,8 +404,44 @@ void Session::run() {
   }
 }
 
+void Session::fuseDeferred(std::set<uint64_t> numbers) {
+  const uint64_t first = *numbers.begin(), last = *numbers.rbegin();
+  spdlog::info("session '{}': fusing {} deferred frames from the journal", id_, numbers.size());
+  const auto corrections = this->corrections();
+  uint64_t fused = 0;
+  const auto read = options_.reread_frames(first - 1, last, [&](FusionJob&& job) {
+    if (numbers.erase(job.journal_number) == 0) return;
+    const auto start = std::chrono::steady_clock::now();
+    {
+      std::lock_guard lock(map_mutex_);
+      fuse(*map_, job, corrections, &changes_);
+    }
+    if (!tiles_.apply(changes_)) {
+      std::lock_guard lock(map_mutex_);
+      tiles_.rebuild(*map_);
+    }
+    std::lock_guard state(state_mutex_);
+    fused = ++frames_fused_;
+    fusion_seconds_ +=
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  });
+  if (!read || !numbers.empty()) {
+    // Not in the journal after all (damage): the map goes without them.
+    spdlog::error("session '{}': {} deferred frames could not be read from the journal{}", id_,
+                  numbers.size(), read ? "" : ": " + read.error().message);
+    std::lock_guard state(state_mutex_);
+    frames_dropped_ += numbers.size();
+  }
+  if (fused > 0) snapshotIfDue(fused);
+}
+
 void Session::snapshotIfDue(uint64_t fused) {
   if (!snapshot_writer_.joinable() || fused < snapshot_due_) return;
+  {
+    // Deferred frames are not in the map yet: a snapshot now would claim to hold them.
+    std::lock_guard lock(queue_mutex_);
+    if (!deferred_.empty()) return;
+  }
   {
     // A correction not yet in the map: a snapshot now would not hold it (see
     // announceCorrection()); the next frame after the swap takes it.
@@ -458,13 +521,14 @@ SessionStatus Session::status() const {
   status.resolution = options_.resolution;
   {
     std::lock_guard lock(queue_mutex_);
-    status.backlog = queue_.size() + (busy_ ? 1 : 0);
+    status.backlog = queue_.size() + deferred_.size() + (busy_ ? 1 : 0);
   }
   std::lock_guard state(state_mutex_);
   status.vehicles = vehicles_;
   status.frames_received = frames_received_;
   status.frames_fused = frames_fused_;
   status.frames_dropped = frames_dropped_;
+  status.frames_deferred = frames_deferred_;
   const auto map = tiles_.summary();
   status.occupied_voxels = map.occupied_voxels;
   status.bounds = map.bounds;
@@ -538,7 +602,7 @@ common::Result<std::string> Session::mapFull() const {
 
 void Session::waitUntilFused() const {
   std::unique_lock lock(queue_mutex_);
-  queue_changed_.wait(lock, [this] { return queue_.empty() && !busy_; });
+  queue_changed_.wait(lock, [this] { return queue_.empty() && deferred_.empty() && !busy_; });
 }
 
 void Session::waitUntilIdle() const {
@@ -546,7 +610,8 @@ void Session::waitUntilIdle() const {
     {
       std::unique_lock lock(queue_mutex_);
       queue_changed_.wait(lock, [this] {
-        return queue_.empty() && !busy_ && !refuse_wanted_ && !refusing_ && !refused_;
+        return queue_.empty() && deferred_.empty() && !busy_ && !refuse_wanted_ && !refusing_ &&
+               !refused_;
       });
     }
     {

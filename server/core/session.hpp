@@ -61,7 +61,9 @@ struct SessionStatus {
   double resolution = 0;
   uint64_t frames_received = 0;
   uint64_t frames_fused = 0;
-  uint64_t frames_dropped = 0;  // queue full: fusion fell behind
+  uint64_t frames_dropped = 0;  // queue full: fusion fell behind (without a journal: lost)
+  // Queue full, with a journal: fused later from the journal once the queue drains.
+  uint64_t frames_deferred = 0;
   size_t backlog = 0;
   size_t occupied_voxels = 0;
   common::Box3 bounds;
@@ -125,8 +127,10 @@ class Session {
   common::Status restore(std::istream& ot, uint64_t journal_number);
   // Counts a frame that the restored snapshot already holds (replayed, not fused again).
   void countCovered(const std::string& vehicle_id);
-  // Hands a frame to fusion; false (and counted) when the queue is full, unless
-  // `wait_for_room`, which blocks until the worker makes room (replay at start-up).
+  // Hands a frame to fusion. When the queue is full: with a journal (reread_frames), the
+  // frame is deferred, and fused from the journal once the queue has drained (no snapshot is
+  // taken meanwhile, since it would claim to hold the frame); without one, false (counted,
+  // dropped). `wait_for_room` blocks until the worker makes room instead (replay at start-up).
   bool enqueue(FusionJob job, bool wait_for_room = false);
   // True the first time a (topic, vehicle) sample with this seq and stamp is seen: false
   // when neither is newer than the last claimed one (a redelivered sample).
@@ -188,6 +192,8 @@ class Session {
 
  private:
   void run();
+  // On the worker, with the queue drained: the deferred frames, read from the journal.
+  void fuseDeferred(std::set<uint64_t> numbers);
   std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections() const;
   void refuseLoop();  // the re-fusion thread
   // On the worker, between frames: the re-fused map takes the frames fused since it was read
@@ -209,6 +215,9 @@ class Session {
   mutable std::mutex queue_mutex_;
   mutable std::condition_variable queue_changed_;
   std::deque<FusionJob> queue_;
+  // Journal numbers of frames a full queue deferred (enqueue()); fused by the worker once the
+  // queue is empty and no re-fusion is under way (a re-fused map holds those it read).
+  std::set<uint64_t> deferred_;
   bool busy_ = false;
   bool stopping_ = false;
 
@@ -229,7 +238,7 @@ class Session {
   std::vector<std::string> vehicles_;
   std::map<std::pair<std::string, std::string>, std::pair<uint64_t, int64_t>> last_claimed_;
   std::vector<PoseRecord> trajectory_;
-  uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0;
+  uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0, frames_deferred_ = 0;
   double fusion_seconds_ = 0;
   uint64_t snapshots_ = 0;
   double snapshot_stall_max_seconds_ = 0;

@@ -30,6 +30,7 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
   if (fields == SessionFields::kCatalog) return object;
   object.update(json{{"frames_received", s.frames_received},
                      {"dropped_frames", s.frames_dropped},
+                     {"deferred_frames", s.frames_deferred},
                      {"fusion_backlog", s.backlog},
                      {"poses", s.poses},
                      {"ended_by", textOrNull(s.ended_by)},

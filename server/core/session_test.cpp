@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <mutex>
+#include <sstream>
 #include <thread>
 #include <vector>
 
@@ -12,6 +13,7 @@
 namespace stereomap::core {
 namespace {
 
+// Without a journal there is nothing to fuse a frame from later: a full queue drops it.
 TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
   Session session("q", {.resolution = 0.1, .queue_capacity = 1});
   size_t accepted = 0;
@@ -30,6 +32,7 @@ TEST(Session, AFullQueueDropsAndCountsInsteadOfBlocking) {
   EXPECT_EQ(status.frames_dropped + status.frames_fused, 20u);
   EXPECT_EQ(status.frames_fused, accepted);
   EXPECT_GT(status.frames_dropped, 0u);
+  EXPECT_EQ(status.frames_deferred, 0u);
 }
 
 // Frames keep coming, faster than a correction's re-fusion reads the journal, so that it
@@ -95,6 +98,87 @@ TEST(Session, FramesArrivingDuringARefusionAreNotLost) {
   for (int i = 0; i < sent; ++i) ASSERT_TRUE(right.enqueue(job(i, 0), /*wait_for_room=*/true));
   right.waitUntilIdle();
   EXPECT_EQ(session.occupiedVoxels(), right.occupiedVoxels());
+}
+
+// With a journal, a full queue defers frames instead of dropping them: once the queue has
+// drained they are read from the journal and fused, so the map ends with every frame. No
+// snapshot is taken while one is deferred: it would claim to hold it, and recovery would then
+// never fuse it. Frames 1 and 2 are large (slow to fuse), far from the rest; frame 3 finds the
+// queue full; frame 4 is queued while 2 is being fused, so it is fused before 3 is: a snapshot
+// then would be labelled 4 without holding 3. Each frame is a patch of its own, so the order
+// of fusion does not change the map.
+TEST(Session, AFullQueueDefersFramesAndFusesThemFromTheJournal) {
+  auto job = [](int number) {
+    const bool large = number <= 2;
+    common::Rigid3 pose;
+    pose.translation = {0, large ? 10.0 : 0.0, 0.3 * number};
+    return FusionJob{"v",
+                     static_cast<uint64_t>(number),
+                     1000 + number,
+                     testing::planeCloud(2.0, large ? 1.0 : 0.04, large ? 0.002 : 0.02),
+                     pose,
+                     10,
+                     static_cast<uint64_t>(number)};
+  };
+  constexpr int kFrames = 30;
+  std::vector<FusionJob> journal;
+  for (int i = 1; i <= kFrames; ++i) journal.push_back(job(i));
+  Session::Options options{.resolution = 0.1, .queue_capacity = 1, .snapshot_every = 1};
+  options.reread_frames = [&](uint64_t after, uint64_t up_to,
+                              const std::function<void(FusionJob &&)>& fuse) {
+    for (const auto& frame : journal) {
+      if (frame.journal_number > after && frame.journal_number <= up_to) fuse(FusionJob(frame));
+    }
+    return common::Status(common::Ok{});
+  };
+  // Every snapshot must hold every frame numbered up to its label.
+  std::mutex snapshots_mutex;
+  std::vector<std::pair<uint64_t, size_t>> snapshots;  // label, frames missing from it
+  options.on_snapshot = [&](uint64_t label, const std::string& ot) {
+    std::istringstream in(ot);
+    auto map = fusion::OccupancyMap::load(in);
+    size_t missing = 0;
+    for (const auto& frame : journal) {
+      if (frame.journal_number > label || !map) continue;
+      missing += (*map)->query(frame.T_map_camera * common::Vec3(2.0, 0, 0)) !=
+                 fusion::Occupancy::kOccupied;
+    }
+    std::lock_guard lock(snapshots_mutex);
+    snapshots.emplace_back(label, map ? missing : journal.size());
+    return common::Status(common::Ok{});
+  };
+  Session session("d", options);
+  auto backlogReaches = [&](size_t backlog) {
+    for (int i = 0; i < 20000 && session.status().backlog != backlog; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    return session.status().backlog == backlog;
+  };
+  ASSERT_TRUE(session.enqueue(job(1)));
+  std::this_thread::sleep_for(
+      std::chrono::milliseconds(20));    // taken (1 M points: it fuses longer)
+  ASSERT_TRUE(session.enqueue(job(2)));  // queued while 1 is fused
+  ASSERT_TRUE(session.enqueue(job(3)));  // the queue is full: deferred
+  ASSERT_EQ(session.status().frames_deferred, 1u) << "frame 1 fused in under 20 ms";
+  // 2 taken (the queue empty, 3 deferred, the worker busy): the rest is queued behind it.
+  ASSERT_TRUE(backlogReaches(2));
+  for (int i = 4; i <= kFrames; ++i) EXPECT_TRUE(session.enqueue(job(i)));
+  session.waitUntilIdle();
+  const auto status = session.status();
+  EXPECT_GE(status.frames_deferred, 1u);
+  EXPECT_EQ(status.frames_dropped, 0u);
+  EXPECT_EQ(status.frames_fused, static_cast<uint64_t>(kFrames));
+  EXPECT_EQ(status.backlog, 0u);
+
+  Session reference("r", {.resolution = 0.1});
+  for (const auto& frame : journal) {
+    ASSERT_TRUE(reference.enqueue(FusionJob(frame), /*wait_for_room=*/true));
+  }
+  reference.waitUntilIdle();
+  EXPECT_EQ(session.occupiedVoxels(), reference.occupiedVoxels());
+  std::lock_guard lock(snapshots_mutex);
+  EXPECT_FALSE(snapshots.empty());
+  for (const auto& [label, missing] : snapshots) EXPECT_EQ(missing, 0u) << "snapshot " << label;
 }
 
 }  // namespace
