@@ -163,7 +163,9 @@ int main(int argc, char** argv) {
       s->waitUntilIdle();
       const auto status = s->status();
       received += status.frames_received;
-      dropped += status.frames_dropped;
+      // Deferred frames count too: the queue could not take them in time (they are fused
+      // from the journal later, which needs a store; dropped ones need none).
+      dropped += status.frames_dropped + status.frames_deferred;
       snapshots += status.snapshots;
       stall_max_s = std::max(stall_max_s, status.snapshot_stall_max_seconds);
     }
