@@ -27,6 +27,8 @@ constexpr std::array<std::pair<CloudEncoding, std::string_view>, 3> kNames = {{
 std::vector<uint8_t> encodeRaw(const PointCloud& cloud) {
   const size_t n = cloud.size();
   std::vector<uint8_t> payload(n * 12 + (cloud.hasIntensity() ? n : 0));
+  // Eigen's Vector3f is three packed floats: the points are 12 n contiguous bytes.
+  // NOLINTNEXTLINE(bugprone-undefined-memory-manipulation)
   if (n > 0) std::memcpy(payload.data(), cloud.points.data(), n * 12);
   if (cloud.hasIntensity())
     std::copy(cloud.intensity.begin(), cloud.intensity.end(), payload.begin() + n * 12);
@@ -42,6 +44,7 @@ Result<PointCloud> decodeRaw(std::span<const uint8_t> payload, const CloudPayloa
   }
   PointCloud cloud;
   cloud.points.resize(n);
+  // NOLINTNEXTLINE(bugprone-undefined-memory-manipulation): three packed floats each
   if (n > 0) std::memcpy(cloud.points.data(), payload.data(), n * 12);
   if (info.has_intensity) cloud.intensity.assign(payload.begin() + n * 12, payload.end());
   for (const auto& p : cloud.points) {

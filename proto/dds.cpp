@@ -423,7 +423,8 @@ template <typename T>
 Writer<T>::~Writer() = default;
 
 template <typename T>
-Result<std::unique_ptr<Writer<T>>> Writer<T>::create(std::shared_ptr<Participant> participant) {
+Result<std::unique_ptr<Writer<T>>> Writer<T>::create(
+    const std::shared_ptr<Participant>& participant) {
   auto impl = std::make_unique<Impl>();
   impl->participant = participant;
   auto topic = createTopic<T>(participant->handle());
@@ -488,7 +489,8 @@ template <typename T>
 Reader<T>::~Reader() = default;
 
 template <typename T>
-Result<std::unique_ptr<Reader<T>>> Reader<T>::create(std::shared_ptr<Participant> participant) {
+Result<std::unique_ptr<Reader<T>>> Reader<T>::create(
+    const std::shared_ptr<Participant>& participant) {
   auto impl = std::make_unique<Impl>();
   impl->participant = participant;
   auto topic = createTopic<T>(participant->handle());

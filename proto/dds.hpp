@@ -45,7 +45,8 @@ class Participant {
 template <typename T>
 class Writer {
  public:
-  static common::Result<std::unique_ptr<Writer>> create(std::shared_ptr<Participant> participant);
+  static common::Result<std::unique_ptr<Writer>> create(
+      const std::shared_ptr<Participant>& participant);
   ~Writer();
   // Copies `message` into a DDS sample and writes it; fails (without throwing) on a bound
   // violation or a DDS error.
@@ -68,7 +69,8 @@ class Writer {
 template <typename T>
 class Reader {
  public:
-  static common::Result<std::unique_ptr<Reader>> create(std::shared_ptr<Participant> participant);
+  static common::Result<std::unique_ptr<Reader>> create(
+      const std::shared_ptr<Participant>& participant);
   ~Reader();
   // Waits up to `timeout` for samples (or wake()), then appends every available valid sample
   // to `out`. Returns the number appended. Thread-safe against wake() only.

@@ -25,7 +25,7 @@ std::string readFile(const fs::path& path) {
 
 // A viewer folder with files, a dot file, and links that leave the folder.
 fs::path makeWebRoot() {
-  const fs::path root = makeTempDir("stereomap-web");
+  fs::path root = makeTempDir("stereomap-web");
   fs::create_directories(root / "assets");
   std::ofstream(root / "index.html") << "<html>viewer index</html>";
   std::ofstream(root / "assets" / "app.js") << "console.log('viewer app');";

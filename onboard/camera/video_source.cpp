@@ -17,10 +17,11 @@ namespace {
 // Two live cameras grabbed together (grab both, then retrieve, to keep them close in time).
 class VideoSource : public FrameSource {
  public:
-  VideoSource(cv::VideoCapture left, cv::VideoCapture right, Rectifier rectifier,
+  // (cv::VideoCapture cannot be moved: copies share the device.)
+  VideoSource(const cv::VideoCapture& left, const cv::VideoCapture& right, Rectifier rectifier,
               std::string description, uint64_t max_frames)
-      : left_(std::move(left)),
-        right_(std::move(right)),
+      : left_(left),
+        right_(right),
         rectifier_(std::move(rectifier)),
         description_(std::move(description)),
         max_frames_(max_frames) {}

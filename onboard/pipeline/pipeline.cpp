@@ -27,7 +27,7 @@ common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
 }  // namespace
 
 common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
-    std::shared_ptr<proto::Participant> participant) {
+    const std::shared_ptr<proto::Participant>& participant) {
   auto publisher = std::unique_ptr<VehiclePublisher>(new VehiclePublisher());
   auto events = makeWriter<proto::SessionEventMsg>(participant);
   if (!events) return events.error();

@@ -111,7 +111,7 @@ struct PipelineSummary {
 class VehiclePublisher {
  public:
   static common::Result<std::unique_ptr<VehiclePublisher>> create(
-      std::shared_ptr<proto::Participant> participant);
+      const std::shared_ptr<proto::Participant>& participant);
   common::Status publish(const proto::SessionEventMsg& event);
   common::Status publish(const proto::PoseMsg& pose);
   common::Status publish(const proto::CloudFrameMsg& frame);

@@ -26,7 +26,7 @@ GraphFollower::~GraphFollower() {
   if (worker_.joinable()) worker_.join();
 }
 
-void GraphFollower::process(Pending pending) {
+void GraphFollower::process(const Pending& pending) {
   const auto added =
       graph_.add(pending.frame.stamp_ns, pending.frame.T_world_camera, pending.frame.covariance,
                  pending.frame.left, pending.frame.right, pending.new_track);
@@ -62,7 +62,7 @@ void GraphFollower::work() {
       pending = std::move(queue_.front());
       queue_.pop_front();
     }
-    process(std::move(pending));
+    process(pending);
   }
 }
 
@@ -83,7 +83,7 @@ Rigid3 GraphFollower::follow(const FollowedFrame& frame) {
       }
       changed_.notify_all();
     } else {
-      process(std::move(pending));
+      process(pending);
     }
   }
   through_.push_back(submitted_ - 1);

@@ -66,7 +66,7 @@ class GraphFollower {
     bool new_track;
   };
   void work();
-  void process(Pending pending);
+  void process(const Pending& pending);
 
   KeyframeGraph graph_;
   const bool background_;

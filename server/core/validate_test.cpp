@@ -52,7 +52,7 @@ TEST(Validate, PoseCorrectionsAreCheckedKeyframeByKeyframe) {
   EXPECT_EQ(out[2].stamp_ns, 200);
   EXPECT_DOUBLE_EQ(out[2].T_map_body.translation.x(), 2.0);
 
-  auto reason = [&](proto::PoseCorrectionMsg bad) {
+  auto reason = [&](const proto::PoseCorrectionMsg& bad) {
     const auto rejection = validatePoseCorrection(bad, out);
     EXPECT_TRUE(out.empty());
     return rejection ? rejection->reason : std::string("accepted");

@@ -17,8 +17,10 @@ common::Rigid3 poseAt(int frame) {
 // Points 2-8 m ahead on a grid; landmark id = index.
 std::vector<common::Vec3> points() {
   std::vector<common::Vec3> p;
-  for (int i = 0; i < 60; ++i)
-    p.emplace_back(-1.5 + 0.3 * (i % 10), -0.5 + 0.2 * (i / 10), 2.0 + 0.1 * i);
+  for (int i = 0; i < 60; ++i) {
+    const int column = i % 10, row = i / 10;  // a grid of 10 columns
+    p.emplace_back(-1.5 + 0.3 * column, -0.5 + 0.2 * row, 2.0 + 0.1 * i);
+  }
   return p;
 }
 
