@@ -126,8 +126,9 @@ Result<std::string> ForkedWrite::finish(std::optional<std::chrono::milliseconds>
       const int ready = left > 0 ? ::poll(&readable, 1, static_cast<int>(left)) : 0;
       if (ready < 0 && errno == EINTR) continue;
       if (ready < 0) {
-        read_error = errno;
-        break;
+        const int error = errno;
+        abandon();  // a child that may never finish is not waited for
+        return makeError(ErrorCode::kIo, "waiting for the forked child: " + systemError(error));
       }
       if (ready == 0) {
         abandon();  // kills and reaps the child

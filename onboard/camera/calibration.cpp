@@ -98,7 +98,9 @@ common::Status parsesInTime(const fs::path& path) {
 Result<cv::FileStorage> openStorage(const fs::path& path) {
   std::error_code error;
   if (!fs::is_regular_file(path, error)) {
-    return makeError(ErrorCode::kNotFound, path.string() + ": no such calibration file");
+    return error && error != std::errc::no_such_file_or_directory
+               ? makeError(ErrorCode::kIo, path.string() + ": cannot read: " + error.message())
+               : makeError(ErrorCode::kNotFound, path.string() + ": no such calibration file");
   }
   if (const auto bytes = fs::file_size(path, error); !error && bytes > kMaxCalibrationBytes) {
     return makeError(ErrorCode::kTooLarge,

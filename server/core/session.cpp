@@ -11,6 +11,10 @@
 namespace stereomap::core {
 
 namespace {
+
+// serialiseForked's answer when a snapshot would claim a deferred frame.
+constexpr const char* kFramesDeferred = "frames are deferred";
+
 void noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle) {
   if (std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
     vehicles.push_back(vehicle);
@@ -295,7 +299,11 @@ void Session::swapInRefused() {
     refused_.reset();
     tail.swap(tail_);
     // The re-fused map read every journaled frame up to its last one, deferred ones included.
-    deferred_.erase(deferred_.begin(), deferred_.upper_bound(refused.up_to));
+    const auto held = deferred_.upper_bound(refused.up_to);
+    const auto taken = static_cast<uint64_t>(std::distance(deferred_.begin(), held));
+    deferred_.erase(deferred_.begin(), held);
+    std::lock_guard state(state_mutex_);
+    frames_fused_ += taken;
   }
   for (const auto& job : tail) {
     if (job.journal_number > refused.up_to) fuse(*refused.map, job, corrections(), nullptr);
@@ -415,10 +423,17 @@ void Session::fuseDeferred(std::set<uint64_t> numbers) {
     {
       std::lock_guard lock(map_mutex_);
       fuse(*map_, job, corrections, &changes_);
+      // The map holds every frame up to here once nothing is deferred (snapshots wait).
+      last_fused_number_ = std::max<uint64_t>(last_fused_number_, job.journal_number);
     }
     if (!tiles_.apply(changes_)) {
       std::lock_guard lock(map_mutex_);
       tiles_.rebuild(*map_);
+    }
+    {
+      // A re-fusion begun meanwhile takes this frame from the tail, as run()'s.
+      std::lock_guard lock(queue_mutex_);
+      if (keep_tail_) tail_.push_back(std::move(job));
     }
     std::lock_guard state(state_mutex_);
     fused = ++frames_fused_;
@@ -471,6 +486,12 @@ void Session::writeSnapshots() {
     uint64_t journal_number = 0;
     double stall_seconds = 0;
     auto ot = serialiseForked(/*full=*/true, &journal_number, &stall_seconds);
+    if (!ot && ot.error().code == common::ErrorCode::kUnavailable &&
+        ot.error().message == kFramesDeferred) {
+      std::lock_guard lock(snapshot_mutex_);
+      snapshot_writing_ = false;
+      continue;
+    }
     common::Status saved =
         ot ? options_.on_snapshot(journal_number, *ot) : common::Status(ot.error());
     {
@@ -492,6 +513,14 @@ common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journa
   std::optional<common::ForkedWrite> job;
   {
     std::lock_guard lock(map_mutex_);  // the map and its journal place, as of one frame
+    if (journal_number != nullptr) {
+      // A frame deferred since the snapshot was asked for is not in the map: the label would
+      // claim it (recovery would then never fuse it). The next snapshot is taken instead.
+      std::lock_guard queue(queue_mutex_);
+      if (!deferred_.empty()) {
+        return common::makeError(common::ErrorCode::kUnavailable, kFramesDeferred);
+      }
+    }
     const auto locked = std::chrono::steady_clock::now();
     auto started = common::ForkedWrite::start([this, full](std::ostream& out) {
       return full ? map_->writeFull(out) : map_->writeBinary(out);
@@ -508,11 +537,17 @@ common::Result<std::string> Session::serialiseForked(bool full, uint64_t* journa
 }
 
 common::Result<std::pair<uint64_t, std::string>> Session::snapshotNow() const {
-  waitUntilIdle();
-  uint64_t journal_number = 0;
-  auto ot = serialiseForked(/*full=*/true, &journal_number, nullptr);
-  if (!ot) return ot.error();
-  return std::pair{journal_number, std::move(*ot)};
+  for (;;) {
+    waitUntilIdle();
+    uint64_t journal_number = 0;
+    auto ot = serialiseForked(/*full=*/true, &journal_number, nullptr);
+    if (!ot && ot.error().code == common::ErrorCode::kUnavailable &&
+        ot.error().message == kFramesDeferred) {
+      continue;  // deferred since it was idle: fused next, then the snapshot
+    }
+    if (!ot) return ot.error();
+    return std::pair{journal_number, std::move(*ot)};
+  }
 }
 
 SessionStatus Session::status() const {
@@ -602,7 +637,12 @@ common::Result<std::string> Session::mapFull() const {
 
 void Session::waitUntilFused() const {
   std::unique_lock lock(queue_mutex_);
-  queue_changed_.wait(lock, [this] { return queue_.empty() && deferred_.empty() && !busy_; });
+  // Frames deferred behind a re-fusion stay in the journal (no snapshot claims them): a
+  // shutdown does not wait for the re-fusion.
+  queue_changed_.wait(lock, [this] {
+    return queue_.empty() && !busy_ &&
+           (deferred_.empty() || refuse_wanted_ || refusing_ || refused_.has_value());
+  });
 }
 
 void Session::waitUntilIdle() const {
