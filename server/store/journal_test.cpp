@@ -1,4 +1,5 @@
 #include "server/store/journal.hpp"
+#include "server/store/format_one.hpp"
 #include "server/store/session_journals.hpp"
 
 #include <gtest/gtest.h>
@@ -64,24 +65,6 @@ class JournalTest : public ::testing::Test {
       }
     }
     return sizes;
-  }
-  // The format 1 journal holding the same records as the format 2 one at `path`.
-  static std::string formatOneOf(const fs::path& path, std::vector<size_t>* starts) {
-    std::ifstream in(path, std::ios::binary);
-    const std::string v2((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    std::string v1 = "SMJOURN1";
-    for (size_t at = 8; at < v2.size();) {
-      uint32_t length;
-      std::memcpy(&length, &v2[at + 4], 4);
-      const std::string payload = v2.substr(at + 24, length);
-      const uint32_t crc = crc32(reinterpret_cast<const uint8_t*>(payload.data()), payload.size());
-      if (starts) starts->push_back(v1.size());
-      v1.append(reinterpret_cast<const char*>(&length), 4);
-      v1.append(reinterpret_cast<const char*>(&crc), 4);
-      v1 += payload;
-      at += 24 + length;
-    }
-    return v1;
   }
   fs::path dir_, path_;
 };
@@ -353,7 +336,7 @@ TEST_F(JournalTest, AHeaderCutShortByAFailedFirstWriteIsAnEmptyJournal) {
 TEST_F(JournalTest, FormatOneIsReadWithResynchronisation) {
   writeFive();
   std::vector<size_t> starts;
-  std::string v1 = formatOneOf(path_, &starts);
+  std::string v1 = testing::formatOneOf(path_, &starts);
   const fs::path old = dir_ / "old.smj";
   std::ofstream(old, std::ios::binary) << v1;
   auto replay = readJournal(old);
@@ -389,7 +372,7 @@ TEST_F(JournalTest, ForeignFilesAreRefusedNotOverwritten) {
 // number the format 1 journal does not mean; the next upgrade finishes the job.
 TEST_F(JournalTest, UpgradingFormatOneNeverLeavesASnapshotMislabelled) {
   writeFive();  // cloud frames are records 1, 3 and 5
-  const std::string v1 = formatOneOf(path_, nullptr);
+  const std::string v1 = testing::formatOneOf(path_);
   std::ofstream(path_, std::ios::binary | std::ios::trunc) << v1;
   std::ofstream(snapshotPath(dir_, 2)) << "the map after two frames";
 

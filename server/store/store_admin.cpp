@@ -298,19 +298,37 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   // corrections and events, and the frames after the snapshot (fewer than --snapshot-every
   // per session). Reading every record whole, as it did, held a long flight's journal in
   // memory twice. A second pass reads the frames again only when the newest snapshot cannot
-  // be used (damaged, older than a correction, or a format 1 label), or there is none.
-  const auto snapshots = snapshotsIn(dir);
-  const uint64_t assumed = snapshots.empty() ? 0 : snapshots.front().first;
+  // be used (damaged, or older than a correction), or there is none.
+  std::vector<std::pair<uint64_t, fs::path>> snapshots;
   JournalReplay kept;
-  auto replay = visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
-    if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
-        frame != nullptr && (assumed == 0 || number <= assumed)) {
-      std::vector<uint8_t>().swap(frame->payload);
-    }
-    kept.records.push_back(std::move(record));
-    kept.numbers.push_back(number);
-  });
+  auto read = [&] {
+    snapshots = snapshotsIn(dir);
+    const uint64_t assumed = snapshots.empty() ? 0 : snapshots.front().first;
+    kept = {};
+    return visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
+      if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+          frame != nullptr && (assumed == 0 || number <= assumed)) {
+        std::vector<uint8_t>().swap(frame->payload);
+      }
+      kept.records.push_back(std::move(record));
+      kept.numbers.push_back(number);
+    });
+  };
+  auto replay = read();
   if (!replay) return replay.error();
+  if (replay->version == 1) {
+    // A format 1 journal (a store from before issue 13) is upgraded before it is replayed:
+    // the replay brings snapshots due, labelled with record numbers, which the upgrade would
+    // read as its frame counts and move past frames they do not hold.
+    if (auto upgraded = repairJournal(dir); !upgraded) {
+      return makeError(upgraded.error().code, "session '" + id +
+                                                  "': its format 1 journal cannot be upgraded: " +
+                                                  upgraded.error().message);
+    }
+    spdlog::info("session '{}': journal rewritten in format 2", id);
+    replay = read();
+    if (!replay) return replay.error();
+  }
   for (const auto& name : removeLeftoverTemporaries(dir)) {
     spdlog::info("session '{}': removed {}, left by a write that did not finish", id, name);
   }
@@ -328,12 +346,8 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   // The newest snapshot that loads: it holds every frame up to its record number, even
   // ones the journal has lost since. Else a full replay. One older than the newest
   // correction holds frames where they were before it.
-  const auto frame_numbers = frameNumbers(kept);  // a format 1 journal's labels count frames
   uint64_t covered_up_to = 0;
-  for (const auto& [label, path] : snapshots) {
-    const uint64_t number =
-        replay->version == 1 ? legacySnapshotNumber(*replay, frame_numbers, label) : label;
-    if (replay->version == 1 && number == 0) continue;  // damage makes the label ambiguous
+  for (const auto& [number, path] : snapshots) {
     if (number < newest_correction) continue;
     std::ifstream ot(path, std::ios::binary);
     if (auto restored = session->restore(ot, number); restored) {
@@ -355,7 +369,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
       server_.ingest(*event, core::Origin::kReplay);
     }
   };
-  if (assumed > 0 && covered_up_to == assumed && replay->version != 1) {
+  if (!snapshots.empty() && covered_up_to == snapshots.front().first) {
     for (size_t i = 0; i < kept.records.size(); ++i) ingest(kept.records[i], kept.numbers[i]);
   } else {
     kept = {};

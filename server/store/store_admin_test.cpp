@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "server/core/exports.hpp"
+#include "server/store/format_one.hpp"
 #include "testing/synthetic.hpp"
 
 namespace stereomap::store {
@@ -184,6 +185,46 @@ TEST_F(StoreAdminTest, RecoveryOpensTheJournalItRead) {
   ASSERT_TRUE(read.ok());
   EXPECT_TRUE(read->problem.empty()) << read->problem;
   EXPECT_EQ(read->numbers.back(), read->last_number);
+}
+
+// Review of issue 17: a format 1 journal (a store written before issue 13) is upgraded
+// before it is replayed. Replaying it brings snapshots due, labelled with record numbers;
+// the upgrade, run after, read those labels as frame counts and moved each snapshot to a
+// later record than it holds: the frames between were lost from the map at the next start.
+TEST_F(StoreAdminTest, AFormatOneJournalIsUpgradedBeforeItIsReplayed) {
+  std::vector<fusion::VoxelIndex> voxels;
+  {
+    Server server(root_, 0.1);
+    fly(*server.map, "old", 10);  // frames are records 1, 3, ..., 19
+    voxels = server.map->find("old")->occupiedVoxels();
+  }
+  const fs::path dir = root_ / "old";
+  for (const auto& [label, snapshot] : snapshotsIn(dir)) fs::remove(snapshot);
+  const std::string v1 = testing::formatOneOf(dir / kJournalName);
+  std::ofstream(dir / kJournalName, std::ios::binary | std::ios::trunc) << v1;
+  ASSERT_EQ(readJournal(dir / kJournalName)->version, 1);
+  {
+    Server upgraded(root_, 0.1);  // snapshot every 4 frames: due twice while replaying
+    const auto recovered = upgraded.admin->recoverAll();
+    ASSERT_EQ(recovered.size(), 1u);
+    EXPECT_TRUE(recovered[0].problem.empty()) << recovered[0].problem;
+    EXPECT_EQ(recovered[0].frames, 10u);
+    EXPECT_EQ(upgraded.map->find("old")->occupiedVoxels(), voxels);
+  }
+  const auto journal = readJournal(dir / kJournalName);
+  ASSERT_TRUE(journal.ok());
+  EXPECT_EQ(journal->version, 2);
+  const auto snapshots = snapshotsIn(dir);
+  ASSERT_FALSE(snapshots.empty());
+  for (const auto& [label, snapshot] : snapshots) {
+    EXPECT_EQ(label % 2, 1u) << snapshot;  // a frame's record number
+    EXPECT_GE(label, 7u) << snapshot;      // at least the 4th frame's
+  }
+  Server restarted(root_, 0.1);  // from the snapshot: the same map
+  const auto recovered = restarted.admin->recoverAll();
+  ASSERT_EQ(recovered.size(), 1u);
+  EXPECT_GE(recovered[0].snapshot_frames, 4u);
+  EXPECT_EQ(restarted.map->find("old")->occupiedVoxels(), voxels);
 }
 
 TEST_F(StoreAdminTest, OnlyOneWriterPerStore) {
