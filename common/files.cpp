@@ -41,7 +41,9 @@ Status syncDirectory(const fs::path& dir) {
   return Ok{};
 }
 
-Result<std::vector<uint8_t>> readWholeFile(const fs::path& path) {
+Result<std::vector<uint8_t>> readWholeFile(const fs::path& path) { return readFileFrom(path, 0); }
+
+Result<std::vector<uint8_t>> readFileFrom(const fs::path& path, uint64_t offset) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) {
     const int error = errno;
@@ -50,6 +52,11 @@ Result<std::vector<uint8_t>> readWholeFile(const fs::path& path) {
   }
   std::vector<uint8_t> bytes;
   uint8_t buffer[1 << 16];
+  if (offset > 0 && ::lseek(fd, static_cast<off_t>(offset), SEEK_SET) < 0) {
+    const int error = errno;
+    ::close(fd);
+    return makeError(ErrorCode::kIo, "cannot read " + path.string() + ": " + systemError(error));
+  }
   for (;;) {
     const ssize_t n = ::read(fd, buffer, sizeof(buffer));
     if (n < 0 && errno == EINTR) continue;

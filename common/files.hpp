@@ -26,6 +26,8 @@ Status syncDirectory(const std::filesystem::path& dir);
 // other failure (permissions, EIO while reading) is kIo, so callers never take an unreadable
 // file for a missing one.
 Result<std::vector<uint8_t>> readWholeFile(const std::filesystem::path& path);
+// The same from byte `offset` to the end (empty when the file is shorter).
+Result<std::vector<uint8_t>> readFileFrom(const std::filesystem::path& path, uint64_t offset);
 
 // The entries of `dir` (files, folders, links; unsorted). kNotFound or kIo naming the folder.
 Result<std::vector<std::filesystem::path>> directoryEntries(const std::filesystem::path& dir);

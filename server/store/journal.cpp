@@ -419,7 +419,21 @@ common::Result<JournalReplay> readJournal(const fs::path& path) {
 }
 
 common::Result<JournalReplay> visitJournal(const fs::path& path, uint64_t min_number,
-                                           const JournalVisitor& visit) {
+                                           const JournalVisitor& visit, uint64_t from_offset) {
+  if (from_offset > kMagicBytes) {
+    auto tail = common::readFileFrom(path, from_offset);
+    if (!tail) return tail.error();
+    JournalReplay replay;
+    readV2(*tail, 0, replay, visit, min_number);
+    replay.file_bytes = from_offset + tail->size();
+    replay.good_bytes += from_offset;
+    for (auto& damage : replay.damage) {
+      damage.begin += from_offset;
+      damage.end += from_offset;
+    }
+    replay.problem = summary(replay);
+    return replay;
+  }
   auto read = common::readWholeFile(path);
   if (!read) return read.error();
   const std::vector<uint8_t>& bytes = *read;
@@ -590,8 +604,15 @@ common::Result<uint64_t> Journal::append(const JournalRecord& record) {
     return makeError(ErrorCode::kIo,
                      path_.string() + ": journal write failed: " + common::systemError(error));
   }
+  if (appended_++ % kMarkEvery == 0) marks_.emplace_back(next_number_, bytes_);
   bytes_ += bytes.size();
   return next_number_++;
+}
+
+uint64_t Journal::offsetBefore(uint64_t number) const {
+  const auto after = std::upper_bound(marks_.begin(), marks_.end(), number,
+                                      [](uint64_t n, const auto& mark) { return n < mark.first; });
+  return after == marks_.begin() ? kMagicBytes : std::prev(after)->second;
 }
 
 common::Status rewriteJournal(const fs::path& path, const std::vector<JournalRecord>& records,

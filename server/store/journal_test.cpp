@@ -400,6 +400,58 @@ TEST_F(JournalTest, UpgradingFormatOneNeverLeavesASnapshotMislabelled) {
   EXPECT_EQ(replay->numbers, (std::vector<uint64_t>{1, 2, 3, 4, 5}));
 }
 
+// A recent record (a deferred frame) is read from the journal's nearest mark: the bytes
+// before it are not read at all, so a long flight's journal costs its tail, not its length.
+TEST_F(JournalTest, ARecentRecordIsReadFromTheNearestMarkNotFromTheStart) {
+  std::vector<uint64_t> starts;  // where each record starts
+  {
+    auto journal = Journal::open(path_);
+    ASSERT_TRUE(journal.ok());
+    EXPECT_EQ((*journal)->offsetBefore(1), 8u);  // nothing appended: the first record
+    for (uint64_t i = 0; i < 300; ++i) {
+      starts.push_back((*journal)->bytes());
+      ASSERT_TRUE((*journal)->append(frame(i)).ok());
+    }
+    EXPECT_EQ((*journal)->offsetBefore(1), starts[0]);
+    EXPECT_EQ((*journal)->offsetBefore(64), starts[0]);
+    EXPECT_EQ((*journal)->offsetBefore(65), starts[64]);  // marks: records 1, 65, 129, ...
+    EXPECT_EQ((*journal)->offsetBefore(250), starts[192]);
+    EXPECT_EQ((*journal)->offsetBefore(1000), starts[256]);
+  }
+  {  // spoil the first record: a whole reading finds it, one from the mark does not
+    std::fstream file(path_, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(static_cast<std::streamoff>(starts[0] + 30));
+    file.put('\x7f');
+  }
+  std::vector<uint64_t> seen;
+  auto read = visitJournal(
+      path_, 251, [&](JournalRecord&&, uint64_t number) { seen.push_back(number); }, starts[192]);
+  ASSERT_TRUE(read.ok());
+  EXPECT_TRUE(read->damage.empty()) << read->problem;
+  EXPECT_EQ(read->kept, 300u - 192u);
+  EXPECT_EQ(read->good_bytes, fs::file_size(path_));
+  EXPECT_EQ(read->file_bytes, fs::file_size(path_));
+  EXPECT_EQ(seen.size(), 50u);
+  EXPECT_EQ(seen.front(), 251u);
+  auto whole = visitJournal(path_, 251, [](JournalRecord&&, uint64_t) {});
+  ASSERT_TRUE(whole.ok());
+  ASSERT_EQ(whole->damage.size(), 1u);
+  EXPECT_EQ(whole->damage[0].begin, starts[0]);
+
+  // The store's frame archive reads from there too, and only frames in (after, up_to].
+  SessionJournals journals(dir_, 0.1);
+  for (uint64_t i = 0; i < 100; ++i) ASSERT_TRUE(journals.append(frame(i)).ok());
+  seen.clear();
+  ASSERT_TRUE(journals
+                  .forEachFrame("s", 90, 95,
+                                [&](const proto::CloudFrameMsg& f, uint64_t number) {
+                                  EXPECT_EQ(f.seq + 1, number);
+                                  seen.push_back(number);
+                                })
+                  .ok());
+  EXPECT_EQ(seen, (std::vector<uint64_t>{91, 92, 93, 94, 95}));
+}
+
 // Review of issue 13: while a session is being deleted, a sample let in just before must not
 // reopen its journal (it would write into a deleted file, or recreate the folder).
 TEST_F(JournalTest, ARetiredSessionRecordsNothingUntilReadmitted) {

@@ -203,12 +203,23 @@ common::Status SessionJournals::forEachFrame(
     const std::string& session, uint64_t after, uint64_t up_to,
     const std::function<void(const proto::CloudFrameMsg& frame, uint64_t number)>& visit) const {
   // Read beside the appends: a record being written is a torn tail here, and numbered above
-  // anything fused (`up_to`).
-  const auto read = visitJournal(root_ / session / kJournalName, after + 1,
-                                 [&](JournalRecord&& record, uint64_t number) {
-                                   const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
-                                   if (frame != nullptr && number <= up_to) visit(*frame, number);
-                                 });
+  // anything fused (`up_to`). From the open journal's nearest mark: deferred frames are
+  // recent, and reading the whole file for them would cost seconds on a long flight, each
+  // time fusion falls behind.
+  uint64_t from_offset = 0;
+  {
+    std::lock_guard lock(mutex_);
+    if (const auto open = journals_.find(session); open != journals_.end()) {
+      from_offset = open->second->offsetBefore(after + 1);
+    }
+  }
+  const auto read = visitJournal(
+      root_ / session / kJournalName, after + 1,
+      [&](JournalRecord&& record, uint64_t number) {
+        const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+        if (frame != nullptr && number <= up_to) visit(*frame, number);
+      },
+      from_offset);
   if (!read) return read.error();
   return common::Ok{};
 }

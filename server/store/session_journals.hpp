@@ -53,7 +53,7 @@ class SessionJournals : public core::IngestLog,
                                                        const JournalReplay* scanned = nullptr);
   std::filesystem::path root_;
   double resolution_;
-  std::mutex mutex_;
+  mutable std::mutex mutex_;
   std::map<std::string, std::unique_ptr<Journal>> journals_;
   std::set<std::string> retired_;
 };
