@@ -401,7 +401,14 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
   if (!core::isValidId(id) || !fs::exists(dir / kJournalName, ec)) {
     return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store");
   }
-  auto replayed = readJournal(dir / kJournalName);
+  // Poses and corrections first (frames kept without their payloads), then the frames
+  // streamed: one cloud in memory at a time, not the whole flight's.
+  JournalReplay kept;
+  auto replayed = visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
+    if (std::holds_alternative<proto::CloudFrameMsg>(record)) return;
+    kept.records.push_back(std::move(record));
+    kept.numbers.push_back(number);
+  });
   if (!replayed) return replayed.error();
   // A scratch server does the fusing, through the same ingest path as recovery; the session
   // outlives it.
@@ -410,13 +417,16 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
   auto created = scratch.createSession(id, resolution, /*read_only=*/true);
   if (!created) return created.error();
   size_t poses = 0;
-  replayPosesAndCorrections(scratch, *replayed, until_ns, poses);
-  for (size_t i = 0; i < replayed->records.size(); ++i) {
-    const auto* frame = std::get_if<proto::CloudFrameMsg>(&replayed->records[i]);
-    if (frame != nullptr && frame->stamp_ns <= until_ns) {
-      scratch.ingest(*frame, core::Origin::kReplay, replayed->numbers[i]);
-    }
-  }
+  replayPosesAndCorrections(scratch, kept, until_ns, poses);
+  kept = {};
+  const auto frames =
+      visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
+        const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+        if (frame != nullptr && frame->stamp_ns <= until_ns) {
+          scratch.ingest(*frame, core::Origin::kReplay, number);
+        }
+      });
+  if (!frames) return frames.error();
   (*created)->waitUntilIdle();
   return scratch.unload(id);
 }
