@@ -376,40 +376,42 @@ void Session::run() {
       queue_.pop_front();
       busy_ = true;
     }
-    const auto start = std::chrono::steady_clock::now();
-    const auto corrections = this->corrections();
-    {
-      std::lock_guard lock(map_mutex_);
-      fuse(*map_, job, corrections, &changes_);
-      last_fused_number_ = job.journal_number;
-    }
-    // The tiles follow the frame's changes without the map; only changes they cannot take
-    // (a block larger than a tile) need a walk of the map.
-    if (!tiles_.apply(changes_)) {
-      std::lock_guard lock(map_mutex_);
-      tiles_.rebuild(*map_);
-    }
-    {
-      std::lock_guard lock(queue_mutex_);
-      if (keep_tail_) {
-        tail_.push_back(std::move(job));
-        // Bounded while nobody waits to take it: the re-fusion reads further instead.
-        while (tail_.size() > kMaxTail && tail_bounded_ && !refused_) {
-          tail_floor_ = tail_.front().journal_number;
-          tail_.pop_front();
-        }
+    snapshotIfDue(fuseIntoMap(std::move(job), corrections()));
+  }
+}
+
+uint64_t Session::fuseIntoMap(FusionJob&& job, const Corrections& corrections) {
+  const auto start = std::chrono::steady_clock::now();
+  {
+    std::lock_guard lock(map_mutex_);
+    fuse(*map_, job, corrections, &changes_);
+    // Deferred frames come after newer ones: the map holds every frame up to here once
+    // nothing is deferred (snapshots wait until then).
+    last_fused_number_ = std::max<uint64_t>(last_fused_number_, job.journal_number);
+  }
+  // The tiles follow the frame's changes without the map; only changes they cannot take
+  // (a block larger than a tile) need a walk of the map.
+  if (!tiles_.apply(changes_)) {
+    std::lock_guard lock(map_mutex_);
+    tiles_.rebuild(*map_);
+  }
+  {
+    // A re-fusion begun meanwhile takes this frame from the tail.
+    std::lock_guard lock(queue_mutex_);
+    if (keep_tail_) {
+      tail_.push_back(std::move(job));
+      // Bounded while nobody waits to take it: the re-fusion reads further instead.
+      while (tail_.size() > kMaxTail && tail_bounded_ && !refused_) {
+        tail_floor_ = tail_.front().journal_number;
+        tail_.pop_front();
       }
     }
-    const double seconds =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    uint64_t fused;
-    {
-      std::lock_guard state(state_mutex_);
-      fused = ++frames_fused_;
-      fusion_seconds_ += seconds;
-    }
-    snapshotIfDue(fused);
   }
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::lock_guard state(state_mutex_);
+  fusion_seconds_ += seconds;
+  return ++frames_fused_;
 }
 
 void Session::fuseDeferred(std::set<uint64_t> numbers) {
@@ -418,27 +420,7 @@ void Session::fuseDeferred(std::set<uint64_t> numbers) {
   const auto corrections = this->corrections();
   uint64_t fused = 0;
   const auto read = options_.reread_frames(first - 1, last, [&](FusionJob&& job) {
-    if (numbers.erase(job.journal_number) == 0) return;
-    const auto start = std::chrono::steady_clock::now();
-    {
-      std::lock_guard lock(map_mutex_);
-      fuse(*map_, job, corrections, &changes_);
-      // The map holds every frame up to here once nothing is deferred (snapshots wait).
-      last_fused_number_ = std::max<uint64_t>(last_fused_number_, job.journal_number);
-    }
-    if (!tiles_.apply(changes_)) {
-      std::lock_guard lock(map_mutex_);
-      tiles_.rebuild(*map_);
-    }
-    {
-      // A re-fusion begun meanwhile takes this frame from the tail, as run()'s.
-      std::lock_guard lock(queue_mutex_);
-      if (keep_tail_) tail_.push_back(std::move(job));
-    }
-    std::lock_guard state(state_mutex_);
-    fused = ++frames_fused_;
-    fusion_seconds_ +=
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (numbers.erase(job.journal_number) != 0) fused = fuseIntoMap(std::move(job), corrections);
   });
   if (!read || !numbers.empty()) {
     // Not in the journal after all (damage): the map goes without them.

@@ -194,7 +194,10 @@ class Session {
   void run();
   // On the worker, with the queue drained: the deferred frames, read from the journal.
   void fuseDeferred(std::set<uint64_t> numbers);
-  std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections() const;
+  using Corrections = std::map<std::string, std::shared_ptr<const PoseCorrection>>;
+  // One frame into the map, the tiles and a re-fusion's tail: the frames fused so far.
+  uint64_t fuseIntoMap(FusionJob&& job, const Corrections& corrections);
+  Corrections corrections() const;
   void refuseLoop();  // the re-fusion thread
   // On the worker, between frames: the re-fused map takes the frames fused since it was read
   // from the journal (the tail) and replaces the live one.
