@@ -520,7 +520,7 @@ common::Result<std::unique_ptr<Journal>> Journal::open(const fs::path& path, uin
   struct stat opened {};
   if (::fstat(journal->fd_, &opened) != 0 ||
       static_cast<uint64_t>(opened.st_size) != recovered.file_bytes) {
-    return makeError(ErrorCode::kConflict,
+    return makeError(ErrorCode::kUnavailable,
                      path.string() + ": the journal changed while it was being opened");
   }
   if (recovered.damaged_tail) {

@@ -83,7 +83,7 @@ class Journal {
   // and at least `first_number` (callers pass one past their newest snapshot's).
   // A format 1 file is refused (kConflict): rewriteJournal() upgrades it.
   // `scanned`: the file as readJournal() has just read it (recovery), so that it is not read
-  // again; open fails (kConflict) when the file has changed size since.
+  // again; open fails (kUnavailable) when the file has changed size since.
   static common::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& path,
                                                        uint64_t first_number = 1,
                                                        const JournalReplay* scanned = nullptr);

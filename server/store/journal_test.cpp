@@ -452,6 +452,47 @@ TEST_F(JournalTest, ARecentRecordIsReadFromTheNearestMarkNotFromTheStart) {
   EXPECT_EQ(seen, (std::vector<uint64_t>{91, 92, 93, 94, 95}));
 }
 
+// Recovery's reading of a journal is not trusted once the file has changed since: the
+// journal is read again and opened as it is. (Before, the refusal looked like a format 1
+// journal's, so a journal with damage inside was rewritten without it.)
+TEST_F(JournalTest, AJournalThatChangedSinceRecoveryReadItIsReadAgain) {
+  SessionJournals journals(dir_, 0.1);
+  const fs::path path = dir_ / "s" / kJournalName;
+  uint64_t second = 0;  // where the second record starts
+  {
+    fs::create_directories(dir_ / "s");
+    auto writer = Journal::open(path);
+    ASSERT_TRUE(writer.ok());
+    for (uint64_t i = 0; i < 3; ++i) {
+      if (i == 1) second = (*writer)->bytes();
+      ASSERT_TRUE((*writer)->append(frame(i)).ok());
+    }
+  }
+  {  // damage inside: the second record's body
+    std::fstream file(path, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(static_cast<std::streamoff>(second + 24 + 60));
+    file.put('\x55');
+  }
+  const auto scanned = readJournal(path);
+  ASSERT_TRUE(scanned.ok());
+  ASSERT_EQ(scanned->damage.size(), 1u);
+  {  // the file grows after that reading
+    auto writer = Journal::open(path);
+    ASSERT_TRUE(writer.ok());
+    ASSERT_TRUE((*writer)->append(frame(3)).ok());
+  }
+  ASSERT_TRUE(journals.openRecovered("s", *scanned).ok());
+  ASSERT_TRUE(journals.append(frame(4)).ok());
+  const auto read = readJournal(path);
+  ASSERT_TRUE(read.ok());
+  EXPECT_EQ(read->numbers, (std::vector<uint64_t>{1, 3, 4, 5}));
+  EXPECT_EQ(read->damage.size(), 1u);  // left for readers and `stereomap-store repair`
+  for (const auto& entry : fs::directory_iterator(dir_ / "s")) {
+    EXPECT_EQ(entry.path().filename().string().find(".damaged-"), std::string::npos)
+        << entry.path();
+  }
+}
+
 // Review of issue 13: while a session is being deleted, a sample let in just before must not
 // reopen its journal (it would write into a deleted file, or recreate the folder).
 TEST_F(JournalTest, ARetiredSessionRecordsNothingUntilReadmitted) {

@@ -271,6 +271,10 @@ common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(
   const auto snapshots = snapshotsIn(dir);
   const uint64_t first_number = snapshots.empty() ? 1 : snapshots.front().first + 1;
   auto opened = Journal::open(dir / kJournalName, first_number, scanned);
+  if (!opened && opened.error().code == ErrorCode::kUnavailable && scanned != nullptr) {
+    // The file changed since it was read: that reading cannot say where appending goes.
+    opened = Journal::open(dir / kJournalName, first_number);
+  }
   if (!opened && opened.error().code == ErrorCode::kConflict) {  // format 1: upgrade it
     if (auto repaired = repairJournal(dir); !repaired) return repaired.error();
     spdlog::info("session '{}': journal rewritten in format 2", session);
