@@ -363,8 +363,7 @@ void Session::run() {
       }
       if (refill()) {
         busy_ = true;
-        std::set<uint64_t> numbers;
-        numbers.swap(deferred_);
+        std::set<uint64_t> numbers = deferred_;  // each stays deferred until it is in the map
         lock.unlock();
         fuseDeferred(std::move(numbers));
         continue;
@@ -420,12 +419,22 @@ void Session::fuseDeferred(std::set<uint64_t> numbers) {
   const auto corrections = this->corrections();
   uint64_t fused = 0;
   const auto read = options_.reread_frames(first - 1, last, [&](FusionJob&& job) {
-    if (numbers.erase(job.journal_number) != 0) fused = fuseIntoMap(std::move(job), corrections);
+    const uint64_t number = job.journal_number;
+    if (numbers.erase(number) == 0) return;
+    fused = fuseIntoMap(std::move(job), corrections);
+    // Only now: a snapshot taken while a deferred frame is on its way into the map would
+    // claim it (its label is the newest frame fused, which queued frames have passed).
+    std::lock_guard lock(queue_mutex_);
+    deferred_.erase(number);
   });
   if (!read || !numbers.empty()) {
     // Not in the journal after all (damage): the map goes without them.
     spdlog::error("session '{}': {} deferred frames could not be read from the journal{}", id_,
                   numbers.size(), read ? "" : ": " + read.error().message);
+    {
+      std::lock_guard lock(queue_mutex_);
+      for (const uint64_t number : numbers) deferred_.erase(number);
+    }
     std::lock_guard state(state_mutex_);
     frames_dropped_ += numbers.size();
   }

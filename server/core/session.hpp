@@ -219,7 +219,8 @@ class Session {
   mutable std::condition_variable queue_changed_;
   std::deque<FusionJob> queue_;
   // Journal numbers of frames a full queue deferred (enqueue()); fused by the worker once the
-  // queue is empty and no re-fusion is under way (a re-fused map holds those it read).
+  // queue is empty and no re-fusion is under way (a re-fused map holds those it read). Each
+  // leaves the set once it is in the map: snapshots wait while any is here.
   std::set<uint64_t> deferred_;
   bool busy_ = false;
   bool stopping_ = false;
