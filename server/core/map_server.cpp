@@ -73,8 +73,8 @@ void MapServer::reject(const char* topic, const Rejection& rejection, const std:
   }
 }
 
-Session::Options MapServer::sessionOptions(const std::string& id, double resolution,
-                                           bool read_only) const {
+Session::Options MapServer::sessionOptions(const std::string& id, double resolution, bool read_only,
+                                           bool snapshots) const {
   Session::Options session_options{resolution, options_.queue_capacity, read_only};
   session_options.pool = pool_;
   if (options_.archive != nullptr) {
@@ -89,7 +89,7 @@ Session::Options MapServer::sessionOptions(const std::string& id, double resolut
                                    });
     };
   }
-  if (options_.snapshots != nullptr) {
+  if (options_.snapshots != nullptr && snapshots) {
     session_options.snapshot_every = options_.snapshot_every;
     session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t journal_number,
                                                                   const std::string& ot) {
@@ -124,8 +124,8 @@ std::shared_ptr<Session> MapServer::sessionFor(const std::string& id, const char
 }
 
 common::Result<std::shared_ptr<Session>> MapServer::createSession(const std::string& id,
-                                                                  double resolution,
-                                                                  bool read_only) {
+                                                                  double resolution, bool read_only,
+                                                                  bool snapshots) {
   using common::ErrorCode;
   if (!isValidId(id))
     return common::makeError(ErrorCode::kInvalidArgument, "bad session id '" + id + "'");
@@ -138,7 +138,8 @@ common::Result<std::shared_ptr<Session>> MapServer::createSession(const std::str
                              std::to_string(options_.max_sessions) + " sessions is the limit");
   }
   closed_.erase(id);
-  auto session = std::make_shared<Session>(id, sessionOptions(id, resolution, read_only));
+  auto session =
+      std::make_shared<Session>(id, sessionOptions(id, resolution, read_only, snapshots));
   sessions_.emplace(id, session);
   order_.push_back(id);
   return session;

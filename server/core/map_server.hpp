@@ -110,8 +110,9 @@ class MapServer {
 
   // Creates session `id` (recovery, or opening a stored session read-only) at its own
   // resolution; fails when it is already loaded or the session limit is reached.
+  // `snapshots` false: none is taken (its journal's record numbers cannot be trusted yet).
   common::Result<std::shared_ptr<Session>> createSession(const std::string& id, double resolution,
-                                                         bool read_only);
+                                                         bool read_only, bool snapshots = true);
   // Unloads a session that was closed into the store and returns it: later samples for it
   // are refused (reason session_closed) until it is opened again or forgotten.
   std::shared_ptr<Session> unload(const std::string& id);
@@ -140,7 +141,8 @@ class MapServer {
   // The session, created on first sight; nullptr with `refusal` set when it cannot be.
   std::shared_ptr<Session> sessionFor(const std::string& id, const char* topic,
                                       std::optional<Rejection>& refusal);
-  Session::Options sessionOptions(const std::string& id, double resolution, bool read_only) const;
+  Session::Options sessionOptions(const std::string& id, double resolution, bool read_only,
+                                  bool snapshots = true) const;
   // Counts the sample (and a live one's bytes, by vehicle) and returns its session, or
   // nullptr (counted, logged) when rejected.
   template <typename Message>

@@ -47,16 +47,20 @@ std::vector<std::pair<uint64_t, fs::path>> numberedFiles(const fs::path& dir,
   return found;
 }
 
-// The record number a format 1 snapshot label (a count of cloud frames) stands for in a
-// journal read as `replay` (format 1, numbered 1..n) whose cloud frames have the record
-// numbers `frame_numbers`, or 0 when it cannot be told (damage, too few frames).
+}  // namespace
+
+std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
+  auto found = numberedFiles(dir, "snapshot-");
+  std::sort(found.rbegin(), found.rend());
+  return found;
+}
+
 uint64_t legacySnapshotNumber(const JournalReplay& replay,
                               const std::vector<uint64_t>& frame_numbers, uint64_t frames) {
   if (replay.version != 1 || !replay.damage.empty() || frames == 0) return 0;
   return frames <= frame_numbers.size() ? frame_numbers[frames - 1] : 0;
 }
 
-// The record numbers of the cloud frames in `replay.records`.
 std::vector<uint64_t> frameNumbers(const JournalReplay& replay) {
   std::vector<uint64_t> numbers;
   for (size_t i = 0; i < replay.records.size(); ++i) {
@@ -65,14 +69,6 @@ std::vector<uint64_t> frameNumbers(const JournalReplay& replay) {
     }
   }
   return numbers;
-}
-
-}  // namespace
-
-std::vector<std::pair<uint64_t, fs::path>> snapshotsIn(const fs::path& dir) {
-  auto found = numberedFiles(dir, "snapshot-");
-  std::sort(found.rbegin(), found.rend());
-  return found;
 }
 
 std::vector<std::string> removeLeftoverTemporaries(const fs::path& dir) {

@@ -66,6 +66,14 @@ std::filesystem::path snapshotPath(const std::filesystem::path& dir, uint64_t la
 std::vector<std::pair<uint64_t, std::filesystem::path>> snapshotsIn(
     const std::filesystem::path& dir);
 
+// The record number a format 1 snapshot label (a count of cloud frames) stands for in a
+// journal read as `replay` (format 1, numbered 1..n) whose cloud frames have the record
+// numbers `frame_numbers`, or 0 when it cannot be told (damage, too few frames).
+uint64_t legacySnapshotNumber(const JournalReplay& replay,
+                              const std::vector<uint64_t>& frame_numbers, uint64_t frames);
+// The record numbers of the cloud frames in `replay.records`.
+std::vector<uint64_t> frameNumbers(const JournalReplay& replay);
+
 struct RepairReport {
   uint64_t records_kept = 0, records_lost = 0;
   std::string problem;             // what was wrong (JournalReplay::problem)

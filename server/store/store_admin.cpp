@@ -298,7 +298,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   // corrections and events, and the frames after the snapshot (fewer than --snapshot-every
   // per session). Reading every record whole, as it did, held a long flight's journal in
   // memory twice. A second pass reads the frames again only when the newest snapshot cannot
-  // be used (damaged, or older than a correction), or there is none.
+  // be used (damaged, older than a correction, or a format 1 label), or there is none.
   std::vector<std::pair<uint64_t, fs::path>> snapshots;
   JournalReplay kept;
   auto read = [&] {
@@ -316,29 +316,43 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   };
   auto replay = read();
   if (!replay) return replay.error();
-  if (replay->version == 1) {
-    // A format 1 journal (a store from before issue 13) is upgraded before it is replayed:
-    // the replay brings snapshots due, labelled with record numbers, which the upgrade would
-    // read as its frame counts and move past frames they do not hold.
-    if (auto upgraded = repairJournal(dir); !upgraded) {
-      return makeError(upgraded.error().code, "session '" + id +
-                                                  "': its format 1 journal cannot be upgraded: " +
-                                                  upgraded.error().message);
+  // A format 1 journal (a store from before issue 13) is upgraded before it is replayed: the
+  // replay brings snapshots due, labelled with record numbers, which the upgrade would read
+  // as frame counts. A store opened only for reading (stereomap-store show, beside a running
+  // server) takes no snapshots and writes nothing: it reads the journal as it is.
+  std::string upgrade_problem;
+  uint64_t upgrade_lost = 0;
+  bool snapshots_allowed = true;
+  if (replay->version == 1 && options_.writable) {
+    if (auto upgraded = repairJournal(dir); upgraded) {
+      spdlog::info("session '{}': journal rewritten in format 2", id);
+      if (!upgraded->problem.empty()) {
+        upgrade_problem = "format 1 journal upgraded without its damage (" + upgraded->problem +
+                          "), the original kept as " + upgraded->original.filename().string();
+        upgrade_lost = upgraded->records_lost;
+      }
+      replay = read();
+      if (!replay) return replay.error();
+    } else {
+      upgrade_problem = "its format 1 journal cannot be upgraded (" + upgraded.error().message +
+                        "): served without snapshots until the next start";
+      snapshots_allowed = false;
+      spdlog::warn("session '{}': {}", id, upgrade_problem);
     }
-    spdlog::info("session '{}': journal rewritten in format 2", id);
-    replay = read();
-    if (!replay) return replay.error();
   }
   for (const auto& name : removeLeftoverTemporaries(dir)) {
     spdlog::info("session '{}': removed {}, left by a write that did not finish", id, name);
   }
-  auto created =
-      server_.createSession(id, resolutionOf(dir, options_.default_resolution), read_only);
+  auto created = server_.createSession(id, resolutionOf(dir, options_.default_resolution),
+                                       read_only, snapshots_allowed);
   if (!created) return created.error();
   const auto& session = *created;
   RecoveredSession result{id};
-  result.problem = replay->problem;
-  result.lost_records = replay->lostRecords();
+  result.problem = upgrade_problem;
+  if (!replay->problem.empty()) {
+    result.problem += (result.problem.empty() ? "" : "; ") + replay->problem;
+  }
+  result.lost_records = upgrade_lost + replay->lostRecords();
   // Poses and pose corrections first: every frame is fused with its vehicle's newest
   // correction, which needs the poses it corrects.
   const uint64_t newest_correction =
@@ -346,8 +360,12 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   // The newest snapshot that loads: it holds every frame up to its record number, even
   // ones the journal has lost since. Else a full replay. One older than the newest
   // correction holds frames where they were before it.
+  const auto frame_numbers = frameNumbers(kept);  // a format 1 journal's labels count frames
   uint64_t covered_up_to = 0;
-  for (const auto& [number, path] : snapshots) {
+  for (const auto& [label, path] : snapshots) {
+    const uint64_t number =
+        replay->version == 1 ? legacySnapshotNumber(*replay, frame_numbers, label) : label;
+    if (replay->version == 1 && number == 0) continue;  // damage makes the label ambiguous
     if (number < newest_correction) continue;
     std::ifstream ot(path, std::ios::binary);
     if (auto restored = session->restore(ot, number); restored) {
@@ -369,7 +387,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
       server_.ingest(*event, core::Origin::kReplay);
     }
   };
-  if (!snapshots.empty() && covered_up_to == snapshots.front().first) {
+  if (!snapshots.empty() && covered_up_to == snapshots.front().first && replay->version != 1) {
     for (size_t i = 0; i < kept.records.size(); ++i) ingest(kept.records[i], kept.numbers[i]);
   } else {
     kept = {};

@@ -3,10 +3,12 @@
 #include "server/store/store_admin.hpp"
 
 #include <gtest/gtest.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <atomic>
 #include <chrono>
+#include <csignal>
 #include <fstream>
 #include <thread>
 
@@ -202,6 +204,34 @@ TEST_F(StoreAdminTest, AFormatOneJournalIsUpgradedBeforeItIsReplayed) {
   for (const auto& [label, snapshot] : snapshotsIn(dir)) fs::remove(snapshot);
   const std::string v1 = testing::formatOneOf(dir / kJournalName);
   std::ofstream(dir / kJournalName, std::ios::binary | std::ios::trunc) << v1;
+  ASSERT_EQ(readJournal(dir / kJournalName)->version, 1);
+  {  // a store opened only for reading (stereomap-store show) reads it and writes nothing
+    core::MapServer map({.resolution = 0.1});
+    auto reader = StoreAdmin::create(root_, map, nullptr, {.writable = false});
+    ASSERT_TRUE(reader.ok()) << reader.error().message;
+    ASSERT_TRUE((*reader)->open("old").ok());
+    EXPECT_EQ(map.find("old")->occupiedVoxels(), voxels);
+    EXPECT_EQ(readJournal(dir / kJournalName)->version, 1);
+  }
+  {  // the upgrade cannot be written: served as it is, without snapshots, and said so
+    Server server(root_, 0.1);
+    std::signal(SIGXFSZ, SIG_IGN);
+    rlimit saved{};
+    ASSERT_EQ(::getrlimit(RLIMIT_FSIZE, &saved), 0);
+    rlimit limited = saved;
+    limited.rlim_cur = fs::file_size(dir / kJournalName) / 2;
+    ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &limited), 0);
+    const auto recovered = server.admin->recoverAll();
+    ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &saved), 0);
+    std::signal(SIGXFSZ, SIG_DFL);
+    ASSERT_EQ(recovered.size(), 1u);
+    EXPECT_NE(recovered[0].problem.find("cannot be upgraded"), std::string::npos)
+        << recovered[0].problem;
+    EXPECT_EQ(recovered[0].frames, 10u);
+    EXPECT_EQ(server.map->find("old")->occupiedVoxels(), voxels);
+    EXPECT_EQ(server.map->find("old")->status().snapshots, 0u);
+  }
+  EXPECT_TRUE(snapshotsIn(dir).empty());
   ASSERT_EQ(readJournal(dir / kJournalName)->version, 1);
   {
     Server upgraded(root_, 0.1);  // snapshot every 4 frames: due twice while replaying
