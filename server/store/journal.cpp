@@ -604,15 +604,8 @@ common::Result<uint64_t> Journal::append(const JournalRecord& record) {
     return makeError(ErrorCode::kIo,
                      path_.string() + ": journal write failed: " + common::systemError(error));
   }
-  if (appended_++ % kMarkEvery == 0) marks_.emplace_back(next_number_, bytes_);
   bytes_ += bytes.size();
   return next_number_++;
-}
-
-uint64_t Journal::offsetBefore(uint64_t number) const {
-  const auto after = std::upper_bound(marks_.begin(), marks_.end(), number,
-                                      [](uint64_t n, const auto& mark) { return n < mark.first; });
-  return after == marks_.begin() ? kMagicBytes : std::prev(after)->second;
 }
 
 common::Status rewriteJournal(const fs::path& path, const std::vector<JournalRecord>& records,

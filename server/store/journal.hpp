@@ -65,9 +65,9 @@ common::Result<JournalReplay> readJournal(const std::filesystem::path& path);
 // The same, streamed: each intact record numbered at least `min_number` goes to `visit` in
 // file order and is not kept (the result's `records` stay empty); records below it are
 // checked but not decoded. For reading a long journal again (re-fusing a session's frames).
-// `from_offset` > 0: where a record of a format 2 file starts (Journal::offsetBefore()); only
-// the bytes from there are read (and counted in `kept` and `damage`); byte offsets in the
-// result still count from the file's start.
+// `from_offset` > 0: where a record of a format 2 file starts (SessionJournals::offsetBefore());
+// only the bytes from there are read. Byte offsets in the result still count from the file's
+// start; `kept` and the record numbers of damage count only what was read.
 using JournalVisitor = std::function<void(JournalRecord&& record, uint64_t number)>;
 common::Result<JournalReplay> visitJournal(const std::filesystem::path& path, uint64_t min_number,
                                            const JournalVisitor& visit, uint64_t from_offset = 0);
@@ -99,11 +99,6 @@ class Journal {
   const JournalReplay& recovered() const { return recovered_; }
   uint64_t bytes() const { return bytes_; }
   uint64_t nextNumber() const { return next_number_; }
-  // Where a whole record numbered at most `number` starts, for visitJournal(): reading a
-  // recent record (a deferred frame) then costs its distance from the end, not the file.
-  // Exact to within kMarkEvery records among those this Journal appended; else the first.
-  uint64_t offsetBefore(uint64_t number) const;
-  static constexpr uint64_t kMarkEvery = 64;
 
  private:
   Journal() = default;
@@ -117,8 +112,6 @@ class Journal {
   uint64_t bytes_ = 0;
   uint64_t next_number_ = 1;
   bool needs_cut_ = false;
-  uint64_t appended_ = 0;
-  std::vector<std::pair<uint64_t, uint64_t>> marks_;  // (record number, offset), growing
 };
 
 // Writes `records` (with their numbers, which must grow) as a new format 2 journal at

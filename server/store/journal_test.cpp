@@ -403,53 +403,57 @@ TEST_F(JournalTest, UpgradingFormatOneNeverLeavesASnapshotMislabelled) {
 // A recent record (a deferred frame) is read from the journal's nearest mark: the bytes
 // before it are not read at all, so a long flight's journal costs its tail, not its length.
 TEST_F(JournalTest, ARecentRecordIsReadFromTheNearestMarkNotFromTheStart) {
-  std::vector<uint64_t> starts;  // where each record starts
+  SessionJournals journals(dir_, 0.1);
+  const fs::path path = dir_ / "s" / kJournalName;
+  EXPECT_EQ(journals.offsetBefore("s", 1), 0u);  // nothing appended yet: the whole file
+  std::vector<uint64_t> starts;                  // where each record starts
+  for (uint64_t i = 0; i < 300; ++i) {           // frame(i) is record i + 1
+    starts.push_back(fs::exists(path) ? fs::file_size(path) : 8);
+    ASSERT_TRUE(journals.append(frame(i)).ok());
+  }
+  EXPECT_EQ(journals.offsetBefore("s", 1), starts[0]);
+  EXPECT_EQ(journals.offsetBefore("s", 64), starts[0]);
+  EXPECT_EQ(journals.offsetBefore("s", 65), starts[64]);  // marks: records 1, 65, 129, ...
+  EXPECT_EQ(journals.offsetBefore("s", 250), starts[192]);
+  EXPECT_EQ(journals.offsetBefore("s", 1000), starts[256]);
+
+  // Over record 1, another frame numbered 295: a reading from the file's start meets it
+  // among records 291-300; one from the mark (record 257) never does.
   {
-    auto journal = Journal::open(path_);
-    ASSERT_TRUE(journal.ok());
-    EXPECT_EQ((*journal)->offsetBefore(1), 8u);  // nothing appended: the first record
-    for (uint64_t i = 0; i < 300; ++i) {
-      starts.push_back((*journal)->bytes());
-      ASSERT_TRUE((*journal)->append(frame(i)).ok());
-    }
-    EXPECT_EQ((*journal)->offsetBefore(1), starts[0]);
-    EXPECT_EQ((*journal)->offsetBefore(64), starts[0]);
-    EXPECT_EQ((*journal)->offsetBefore(65), starts[64]);  // marks: records 1, 65, 129, ...
-    EXPECT_EQ((*journal)->offsetBefore(250), starts[192]);
-    EXPECT_EQ((*journal)->offsetBefore(1000), starts[256]);
+    auto planted = frame(999);
+    planted.payload.resize(10);
+    ASSERT_TRUE(rewriteJournal(dir_ / "planted.smj", {planted}, {295}).ok());
+    std::ifstream in(dir_ / "planted.smj", std::ios::binary);
+    const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    ASSERT_LE(bytes.size() - 8, starts[1] - starts[0]);
+    std::fstream file(path, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(static_cast<std::streamoff>(starts[0]));
+    file.write(bytes.data() + 8, static_cast<std::streamsize>(bytes.size() - 8));
   }
-  {  // spoil the first record: a whole reading finds it, one from the mark does not
-    std::fstream file(path_, std::ios::in | std::ios::out | std::ios::binary);
-    file.seekp(static_cast<std::streamoff>(starts[0] + 30));
-    file.put('\x7f');
-  }
-  std::vector<uint64_t> seen;
+  auto seqs = [&](const SessionJournals& store) {
+    std::vector<uint64_t> seen;
+    EXPECT_TRUE(
+        store
+            .forEachFrame("s", 290, 300,
+                          [&](const proto::CloudFrameMsg& f, uint64_t) { seen.push_back(f.seq); })
+            .ok());
+    return seen;
+  };
+  const auto from_mark = seqs(journals);
+  EXPECT_EQ(from_mark.size(), 10u);
+  EXPECT_EQ(std::count(from_mark.begin(), from_mark.end(), 999u), 0);
+  const SessionJournals unopened(dir_, 0.1);  // no marks: the whole file
+  const auto whole = seqs(unopened);
+  EXPECT_EQ(std::count(whole.begin(), whole.end(), 999u), 1);
+
+  // Byte figures count from the file's start.
   auto read = visitJournal(
-      path_, 251, [&](JournalRecord&&, uint64_t number) { seen.push_back(number); }, starts[192]);
+      path, 251, [](JournalRecord&&, uint64_t) {}, starts[192]);
   ASSERT_TRUE(read.ok());
   EXPECT_TRUE(read->damage.empty()) << read->problem;
   EXPECT_EQ(read->kept, 300u - 192u);
-  EXPECT_EQ(read->good_bytes, fs::file_size(path_));
-  EXPECT_EQ(read->file_bytes, fs::file_size(path_));
-  EXPECT_EQ(seen.size(), 50u);
-  EXPECT_EQ(seen.front(), 251u);
-  auto whole = visitJournal(path_, 251, [](JournalRecord&&, uint64_t) {});
-  ASSERT_TRUE(whole.ok());
-  ASSERT_EQ(whole->damage.size(), 1u);
-  EXPECT_EQ(whole->damage[0].begin, starts[0]);
-
-  // The store's frame archive reads from there too, and only frames in (after, up_to].
-  SessionJournals journals(dir_, 0.1);
-  for (uint64_t i = 0; i < 100; ++i) ASSERT_TRUE(journals.append(frame(i)).ok());
-  seen.clear();
-  ASSERT_TRUE(journals
-                  .forEachFrame("s", 90, 95,
-                                [&](const proto::CloudFrameMsg& f, uint64_t number) {
-                                  EXPECT_EQ(f.seq + 1, number);
-                                  seen.push_back(number);
-                                })
-                  .ok());
-  EXPECT_EQ(seen, (std::vector<uint64_t>{91, 92, 93, 94, 95}));
+  EXPECT_EQ(read->good_bytes, fs::file_size(path));
+  EXPECT_EQ(read->file_bytes, fs::file_size(path));
 }
 
 // Recovery's reading of a journal is not trusted once the file has changed since: the

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <iterator>
 
 #include "common/files.hpp"
 #include "common/time.hpp"
@@ -166,12 +167,29 @@ common::Status SessionJournals::saveSnapshot(const std::string& session, uint64_
 void SessionJournals::release(const std::string& session) {
   std::lock_guard lock(mutex_);
   journals_.erase(session);
+  forgetMarks(session);
 }
 
 void SessionJournals::retire(const std::string& session) {
   std::lock_guard lock(mutex_);
   journals_.erase(session);
+  forgetMarks(session);
   retired_.insert(session);
+}
+
+void SessionJournals::forgetMarks(const std::string& session) {
+  std::lock_guard marks(marks_mutex_);
+  marks_.erase(session);
+}
+
+uint64_t SessionJournals::offsetBefore(const std::string& session, uint64_t number) const {
+  std::lock_guard lock(marks_mutex_);
+  const auto found = marks_.find(session);
+  if (found == marks_.end()) return 0;
+  const auto& at = found->second.at;
+  const auto after = std::upper_bound(at.begin(), at.end(), number,
+                                      [](uint64_t n, const auto& mark) { return n < mark.first; });
+  return after == at.begin() ? 0 : std::prev(after)->second;
 }
 
 void SessionJournals::readmit(const std::string& session) {
@@ -202,13 +220,7 @@ common::Status SessionJournals::forEachFrame(
   // anything fused (`up_to`). From the open journal's nearest mark: deferred frames are
   // recent, and reading the whole file for them would cost seconds on a long flight, each
   // time fusion falls behind.
-  uint64_t from_offset = 0;
-  {
-    std::lock_guard lock(mutex_);
-    if (const auto open = journals_.find(session); open != journals_.end()) {
-      from_offset = open->second->offsetBefore(after + 1);
-    }
-  }
+  const uint64_t from_offset = offsetBefore(session, after + 1);
   const auto read = visitJournal(
       root_ / session / kJournalName, after + 1,
       [&](JournalRecord&& record, uint64_t number) {
@@ -233,7 +245,14 @@ common::Result<uint64_t> SessionJournals::appendTo(const std::string& session,
     if (!opened) return opened.error();
     found = journals_.emplace(session, std::move(opened).value()).first;
   }
-  return found->second->append(record);
+  const uint64_t offset = found->second->bytes();  // where this record goes
+  auto appended = found->second->append(record);
+  if (appended) {
+    std::lock_guard marks(marks_mutex_);
+    auto& kept = marks_[session];
+    if (kept.appended++ % kMarkEvery == 0) kept.at.emplace_back(*appended, offset);
+  }
+  return appended;
 }
 
 common::Status SessionJournals::openRecovered(const std::string& session,
@@ -266,6 +285,7 @@ common::Result<std::unique_ptr<Journal>> SessionJournals::openJournal(
   // never given to new records.
   const auto snapshots = snapshotsIn(dir);
   const uint64_t first_number = snapshots.empty() ? 1 : snapshots.front().first + 1;
+  forgetMarks(session);  // an upgrade or repair below moves records
   auto opened = Journal::open(dir / kJournalName, first_number, scanned);
   if (!opened && opened.error().code == ErrorCode::kUnavailable && scanned != nullptr) {
     // The file changed since it was read: that reading cannot say where appending goes.

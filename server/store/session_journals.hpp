@@ -11,6 +11,7 @@
 #include <mutex>
 #include <set>
 #include <string>
+#include <vector>
 
 #include "server/core/map_server.hpp"
 #include "server/store/journal.hpp"
@@ -39,6 +40,12 @@ class SessionJournals : public core::IngestLog,
   // (`scanned`), instead of at its first append: that would read the whole file again, on an
   // ingest thread, holding every session's appends up meanwhile.
   common::Status openRecovered(const std::string& session, const JournalReplay& scanned);
+  // Where a whole record of the session's journal numbered at most `number` starts, for
+  // visitJournal(): reading a recent record (a deferred frame) then costs its distance from
+  // the end, not the file. One mark per kMarkEvery records appended since the journal was
+  // opened; 0 (the whole file) before the first.
+  uint64_t offsetBefore(const std::string& session, uint64_t number) const;
+  static constexpr uint64_t kMarkEvery = 64;
   // Closes a session's journal file (the session was closed or deleted).
   void release(const std::string& session);
   // While a session is deleted: its journal is closed and every append fails (a sample let
@@ -53,9 +60,20 @@ class SessionJournals : public core::IngestLog,
                                                        const JournalReplay* scanned = nullptr);
   std::filesystem::path root_;
   double resolution_;
-  mutable std::mutex mutex_;
+  // Forgets the session's marks (its journal was opened again, closed or retired).
+  void forgetMarks(const std::string& session);
+  std::mutex mutex_;
   std::map<std::string, std::unique_ptr<Journal>> journals_;
   std::set<std::string> retired_;
+  // Record offsets, apart from mutex_ (held through every append's fdatasync and a journal's
+  // opening): readers of deferred frames never wait behind another session's disk. Taken
+  // alone, or inside mutex_.
+  struct Marks {
+    uint64_t appended = 0;
+    std::vector<std::pair<uint64_t, uint64_t>> at;  // (record number, offset), growing
+  };
+  mutable std::mutex marks_mutex_;
+  std::map<std::string, Marks> marks_;
 };
 
 // <dir>/snapshot-<label>.ot. Label 0: an imported map (it covers no journal record).
