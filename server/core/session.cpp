@@ -15,10 +15,12 @@ namespace {
 // serialiseForked's answer when a snapshot would claim a deferred frame.
 constexpr const char* kFramesDeferred = "frames are deferred";
 
-void noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle) {
-  if (std::find(vehicles.begin(), vehicles.end(), vehicle) == vehicles.end()) {
-    vehicles.push_back(vehicle);
-  }
+// The vehicle's index in `vehicles` (added when new; never removed, so indices hold).
+uint32_t noteVehicle(std::vector<std::string>& vehicles, const std::string& vehicle) {
+  const auto found = std::find(vehicles.begin(), vehicles.end(), vehicle);
+  if (found != vehicles.end()) return static_cast<uint32_t>(found - vehicles.begin());
+  vehicles.push_back(vehicle);
+  return static_cast<uint32_t>(vehicles.size() - 1);
 }
 
 // Fuses one frame into `map`, moved by its vehicle's correction in `corrections` if any.
@@ -152,10 +154,23 @@ void Session::countCovered(const std::string& vehicle_id) {
   ++frames_fused_;
 }
 
-void Session::addPose(PoseRecord pose) {
+void Session::addPose(const PoseRecord& pose) {
   std::lock_guard lock(state_mutex_);
-  noteVehicle(vehicles_, pose.vehicle_id);
-  trajectory_.push_back(std::move(pose));
+  const auto& q = pose.T_map_body.rotation;
+  const auto& t = pose.T_map_body.translation;
+  trajectory_.push_back({pose.stamp_ns,
+                         {t.x(), t.y(), t.z()},
+                         {q.x(), q.y(), q.z(), q.w()},
+                         noteVehicle(vehicles_, pose.vehicle_id)});
+}
+
+PoseRecord Session::poseRecord(const StoredPose& stored) const {
+  PoseRecord pose{vehicles_[stored.vehicle], stored.stamp_ns, {}};
+  const auto& [x, y, z, w] = stored.rotation;
+  pose.T_map_body.rotation = common::Quat(w, x, y, z);
+  pose.T_map_body.translation =
+      common::Vec3(stored.translation[0], stored.translation[1], stored.translation[2]);
+  return pose;
 }
 
 void Session::announceCorrection() {
@@ -173,8 +188,12 @@ common::Result<std::shared_ptr<const PoseCorrection>> Session::correctionFor(
   std::vector<StampedBodyPose> sent;
   {
     std::lock_guard lock(state_mutex_);
-    for (const auto& pose : trajectory_) {
-      if (pose.vehicle_id == vehicle) sent.push_back({pose.stamp_ns, pose.T_map_body});
+    const auto index = static_cast<uint32_t>(
+        std::find(vehicles_.begin(), vehicles_.end(), vehicle) - vehicles_.begin());
+    for (const auto& stored : trajectory_) {
+      if (stored.vehicle == index) {
+        sent.push_back({stored.stamp_ns, poseRecord(stored).T_map_body});
+      }
     }
   }
   auto correction = PoseCorrection::create(std::move(sent), std::move(keyframes));
@@ -608,7 +627,12 @@ std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
 std::vector<PoseRecord> Session::trajectory(size_t from) const {
   std::lock_guard state(state_mutex_);
   if (from >= trajectory_.size()) return {};
-  std::vector<PoseRecord> poses(trajectory_.begin() + static_cast<long>(from), trajectory_.end());
+  std::vector<PoseRecord> poses;
+  poses.reserve(trajectory_.size() - from);
+  for (auto stored = trajectory_.begin() + static_cast<long>(from); stored != trajectory_.end();
+       ++stored) {
+    poses.push_back(poseRecord(*stored));
+  }
   for (auto& pose : poses) {
     const auto correction = corrections_.find(pose.vehicle_id);
     if (correction == corrections_.end()) continue;

@@ -13,6 +13,7 @@
 // mapBinary() from any thread; the fusion worker and the re-fusion thread are the session's.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <condition_variable>
 #include <deque>
@@ -140,7 +141,7 @@ class Session {
             int64_t stamp_ns) const;
   // Why a sample could not be journaled; "" when one was journaled again.
   void noteStoreError(const std::string& error);
-  void addPose(PoseRecord pose);
+  void addPose(const PoseRecord& pose);
   // Before a correction is journaled: from now until the re-fusion that takes it has swapped
   // its map in, no snapshot is taken (so a snapshot numbered after a correction always holds
   // it). withdrawCorrection() when it could not be journaled.
@@ -241,7 +242,18 @@ class Session {
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
   std::map<std::pair<std::string, std::string>, std::pair<uint64_t, int64_t>> last_claimed_;
-  std::vector<PoseRecord> trajectory_;
+  // A pose as the session keeps it, for as long as it is loaded: 72 bytes (a PoseRecord,
+  // with its id string and padded Eigen types, is 112), in a deque, which grows by blocks
+  // where a vector would double and copy (the soak's RSS after warm-up: docs/BENCHMARKS.md).
+  struct StoredPose {
+    int64_t stamp_ns;
+    std::array<double, 3> translation;
+    std::array<double, 4> rotation;  // x, y, z, w
+    uint32_t vehicle;                // index in vehicles_
+  };
+  static_assert(sizeof(StoredPose) == 72);
+  PoseRecord poseRecord(const StoredPose& stored) const;  // under state_mutex_
+  std::deque<StoredPose> trajectory_;
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0, frames_deferred_ = 0;
   double fusion_seconds_ = 0;
   uint64_t snapshots_ = 0;
