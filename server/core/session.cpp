@@ -164,13 +164,13 @@ void Session::addPose(const PoseRecord& pose) {
                          noteVehicle(vehicles_, pose.vehicle_id)});
 }
 
+common::Rigid3 Session::StoredPose::body() const {
+  const auto& [x, y, z, w] = rotation;
+  return {common::Quat(w, x, y, z), common::Vec3(translation[0], translation[1], translation[2])};
+}
+
 PoseRecord Session::poseRecord(const StoredPose& stored) const {
-  PoseRecord pose{vehicles_[stored.vehicle], stored.stamp_ns, {}};
-  const auto& [x, y, z, w] = stored.rotation;
-  pose.T_map_body.rotation = common::Quat(w, x, y, z);
-  pose.T_map_body.translation =
-      common::Vec3(stored.translation[0], stored.translation[1], stored.translation[2]);
-  return pose;
+  return {vehicles_[stored.vehicle], stored.stamp_ns, stored.body()};
 }
 
 void Session::announceCorrection() {
@@ -192,7 +192,7 @@ common::Result<std::shared_ptr<const PoseCorrection>> Session::correctionFor(
         std::find(vehicles_.begin(), vehicles_.end(), vehicle) - vehicles_.begin());
     for (const auto& stored : trajectory_) {
       if (stored.vehicle == index) {
-        sent.push_back({stored.stamp_ns, poseRecord(stored).T_map_body});
+        sent.push_back({stored.stamp_ns, stored.body()});
       }
     }
   }

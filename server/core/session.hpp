@@ -250,6 +250,7 @@ class Session {
     std::array<double, 3> translation;
     std::array<double, 4> rotation;  // x, y, z, w
     uint32_t vehicle;                // index in vehicles_
+    common::Rigid3 body() const;     // T_map_body, exactly as it came
   };
   static_assert(sizeof(StoredPose) == 72);
   PoseRecord poseRecord(const StoredPose& stored) const;  // under state_mutex_
