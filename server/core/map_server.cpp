@@ -6,6 +6,7 @@
 
 #include <algorithm>
 
+#include "common/heap.hpp"
 #include "common/time.hpp"
 #include "proto/wire_size.hpp"
 
@@ -57,6 +58,13 @@ MapServer::MapServer(const MapServerOptions& options)
                     "Frames waiting for fusion, by session");
   metrics_.describe("stereomap_session_fusion_seconds", "gauge",
                     "Total seconds spent fusing clouds, by session");
+  if (common::heapStats()) {  // only when the server runs on jemalloc
+    metrics_.describe("stereomap_heap_allocated_bytes", "gauge",
+                      "Bytes the allocator has handed out and not got back: live data");
+    metrics_.describe("stereomap_heap_resident_bytes", "gauge",
+                      "Bytes of the allocator's pages in memory: live data and pages kept "
+                      "for reuse");
+  }
 }
 
 void MapServer::reject(const char* topic, const Rejection& rejection, const std::string& from) {
@@ -458,6 +466,10 @@ std::string MapServer::metricsText() const {
                  static_cast<double>(status.occupied_voxels));
     metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));
     metrics_.set("stereomap_session_fusion_seconds", labels, status.fusion_seconds);
+  }
+  if (const auto heap = common::heapStats()) {
+    metrics_.set("stereomap_heap_allocated_bytes", {}, static_cast<double>(heap->allocated));
+    metrics_.set("stereomap_heap_resident_bytes", {}, static_cast<double>(heap->resident));
   }
   std::unique_lock lock(mutex_);
   for (const auto& [key, link] : links_) {

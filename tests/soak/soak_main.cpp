@@ -16,6 +16,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <limits>
@@ -89,6 +90,15 @@ int64_t rssKiB(pid_t pid) {
     status.ignore(256, '\n');
   }
   return 0;
+}
+
+// The server's live heap (jemalloc's stats.allocated, from /metrics); 0 when not reported.
+int64_t heapAllocatedKiB(const ServerProcess& server) {
+  const auto reply = server.get("/metrics");
+  const std::string key = "\nstereomap_heap_allocated_bytes ";
+  const auto at = reply.status == 200 ? reply.body.find(key) : std::string::npos;
+  if (at == std::string::npos) return 0;
+  return static_cast<int64_t>(std::strtod(reply.body.c_str() + at + key.size(), nullptr)) / 1024;
 }
 
 json sessionStatus(const ServerProcess& server, const std::string& session) {
@@ -291,6 +301,7 @@ int run(const Options& o) {
   int recoveries_failed = 0;
   auto life_start = start;
   int64_t warm_rss = 0, last_rss = 0, peak_rss = 0;
+  int64_t warm_heap = 0, last_heap = 0;  // live data, to tell growth of it from the allocator's
   bool all_exited = false;
   while (!all_exited) {
     std::this_thread::sleep_for(1s);
@@ -298,7 +309,10 @@ int run(const Options& o) {
     const pid_t pid = server->process().pid();
     last_rss = rssKiB(pid);
     peak_rss = std::max(peak_rss, last_rss);
-    if (warm_rss == 0 && now - life_start > 60s) warm_rss = last_rss;
+    if (warm_rss == 0 && now - life_start > 60s) {
+      warm_rss = last_rss;
+      warm_heap = last_heap = heapAllocatedKiB(*server);
+    }
     all_exited =
         std::all_of(vehicles.begin(), vehicles.end(), [](auto& v) { return !v->running(); });
     // (No kill in the last 90 s: the last server must live past its warm-up.)
@@ -335,6 +349,7 @@ int run(const Options& o) {
     warm_rss = 0;
     peak_rss = 0;
   }
+  if (warm_rss > 0) last_heap = heapAllocatedKiB(*server);
   std::this_thread::sleep_for(5s);  // the viewers see the last pushes
   std::vector<Viewer::Figures> seen;
   for (const auto& viewer : viewers) seen.push_back(viewer->figures());
@@ -384,6 +399,11 @@ int run(const Options& o) {
       "peak %lld KiB\n",
       static_cast<long long>(warm_rss), static_cast<long long>(last_rss), growth,
       static_cast<long long>(peak_rss));
+  if (warm_heap > 0) {
+    std::printf("soak: its live heap (jemalloc) %lld KiB after warm-up -> %lld KiB (%+.1f %%)\n",
+                static_cast<long long>(warm_heap), static_cast<long long>(last_heap),
+                100.0 * (last_heap - warm_heap) / warm_heap);
+  }
   std::printf("soak: viewers %d of %zu connected at the end, longest away %.1f s, %llu messages\n",
               connected, seen.size(), longest_away, static_cast<unsigned long long>(messages));
   for (const auto& problem : accounting.problems) std::printf("soak: %s\n", problem.c_str());

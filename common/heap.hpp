@@ -1,0 +1,20 @@
+// The allocator's own account of this process's heap, when the allocator is jemalloc (the
+// server's and stereomap-store's; CMakeLists.txt): what is live, and what it keeps in memory.
+// The difference is pages the allocator holds for reuse, which RSS alone cannot tell apart
+// from a leak.
+#pragma once
+
+#include <cstddef>
+#include <optional>
+
+namespace stereomap::common {
+
+struct HeapStats {
+  size_t allocated = 0;  // bytes handed out and not yet freed
+  size_t resident = 0;   // bytes of the allocator's pages in memory (a part of RSS)
+};
+
+// Fresh figures; empty when the process does not run on jemalloc (sanitizer builds, tests).
+std::optional<HeapStats> heapStats();
+
+}  // namespace stereomap::common
