@@ -11,7 +11,7 @@ namespace stereomap::common {
 
 struct HeapStats {
   size_t allocated = 0;  // bytes handed out and not yet freed
-  size_t resident = 0;   // bytes of the allocator's pages in memory (a part of RSS)
+  size_t resident = 0;   // at most this many bytes of the allocator's pages are in memory
 };
 
 // Fresh figures; empty when the process does not run on jemalloc (sanitizer builds, tests).

@@ -63,6 +63,7 @@ void Metrics::removeSeries(const std::string& label, const std::string& value) {
 std::string Metrics::render() const {
   std::lock_guard lock(mutex_);
   std::ostringstream out;
+  out.precision(15);  // byte counts exact (the default 6 digits printed 3.81235e+07)
   for (const auto& [name, family] : families_) {
     if (!family.help.empty()) out << "# HELP " << name << " " << family.help << "\n";
     if (!family.type.empty()) out << "# TYPE " << name << " " << family.type << "\n";

@@ -22,6 +22,14 @@ TEST(Metrics, RendersFamiliesWithTheirHelpTypeAndSeries) {
             "frames_total{session=\"a\"} 3\n");
 }
 
+// Byte counts and totals are exact, not rounded to six digits.
+TEST(Metrics, RendersLargeCountsExactly) {
+  Metrics metrics;
+  metrics.set("bytes", {}, 38123520);
+  metrics.set("seconds", {}, 0.1 + 0.2);
+  EXPECT_EQ(metrics.render(), "bytes 38123520\nseconds 0.3\n");
+}
+
 // Label values come from outside (session and vehicle ids, rejection details): a quote, a
 // backslash or a line break must not end the value or the line.
 TEST(Metrics, EscapesLabelValuesAsTheExpositionFormatSays) {

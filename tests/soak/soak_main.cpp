@@ -348,6 +348,7 @@ int run(const Options& o) {
     life_start = Clock::now();
     warm_rss = 0;
     peak_rss = 0;
+    warm_heap = last_heap = 0;
   }
   if (warm_rss > 0) last_heap = heapAllocatedKiB(*server);
   std::this_thread::sleep_for(5s);  // the viewers see the last pushes
@@ -399,7 +400,9 @@ int run(const Options& o) {
       "peak %lld KiB\n",
       static_cast<long long>(warm_rss), static_cast<long long>(last_rss), growth,
       static_cast<long long>(peak_rss));
-  if (warm_heap > 0) {
+  if (warm_heap == 0 || last_heap == 0) {
+    std::printf("soak: its live heap: not reported (a server without jemalloc?)\n");
+  } else {
     std::printf("soak: its live heap (jemalloc) %lld KiB after warm-up -> %lld KiB (%+.1f %%)\n",
                 static_cast<long long>(warm_heap), static_cast<long long>(last_heap),
                 100.0 * (last_heap - warm_heap) / warm_heap);
