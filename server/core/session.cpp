@@ -624,13 +624,19 @@ std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
   return voxels;
 }
 
-std::vector<PoseRecord> Session::trajectory(size_t from) const {
+size_t Session::poseCount() const {
   std::lock_guard state(state_mutex_);
-  if (from >= trajectory_.size()) return {};
+  return trajectory_.size();
+}
+
+std::vector<PoseRecord> Session::trajectory(size_t from, size_t until) const {
+  std::lock_guard state(state_mutex_);
+  until = std::min(until, trajectory_.size());
+  if (from >= until) return {};
   std::vector<PoseRecord> poses;
-  poses.reserve(trajectory_.size() - from);
-  for (auto stored = trajectory_.begin() + static_cast<long>(from); stored != trajectory_.end();
-       ++stored) {
+  poses.reserve(until - from);
+  for (auto stored = trajectory_.begin() + static_cast<long>(from);
+       stored != trajectory_.begin() + static_cast<long>(until); ++stored) {
     poses.push_back(poseRecord(*stored));
   }
   for (auto& pose : poses) {

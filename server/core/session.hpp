@@ -16,6 +16,7 @@
 #include <array>
 #include <atomic>
 #include <condition_variable>
+#include <cstdint>
 #include <deque>
 #include <functional>
 #include <istream>
@@ -175,8 +176,9 @@ class Session {
   const tiles::TileSet& tiles() const { return tiles_; }
   // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
   std::vector<fusion::VoxelIndex> occupiedVoxels() const;
-  // Poses [from, end) in arrival order.
-  std::vector<PoseRecord> trajectory(size_t from = 0) const;
+  // Poses [from, until) in arrival order (as corrected); poseCount() of them in all.
+  std::vector<PoseRecord> trajectory(size_t from = 0, size_t until = SIZE_MAX) const;
+  size_t poseCount() const;
   // OctoMap binary of the map as it is now (after the frame being fused, if any), written by a
   // forked child; an error when the fork or the child failed.
   common::Result<std::string> mapBinary() const;

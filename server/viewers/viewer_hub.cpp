@@ -85,10 +85,12 @@ std::array<double, 3> triple(const json& message, const char* name) {
   return {(*found)[0].get<double>(), (*found)[1].get<double>(), (*found)[2].get<double>()};
 }
 
-// One "poses" message per vehicle and up to kPosesPerMessage poses, in arrival order.
+// "poses" messages, one per vehicle and up to kPosesPerMessage poses, in arrival order. With
+// `reset`, the first message of each vehicle not yet in it tells the viewer to replace what it
+// holds of that vehicle (and the vehicle is added).
 std::vector<Text> poseMessages(const std::string& session,
-                               const std::vector<core::PoseRecord>& poses, bool reset,
-                               const std::string& only_vehicle = "") {
+                               const std::vector<core::PoseRecord>& poses,
+                               const std::string& only_vehicle, std::set<std::string>* reset) {
   std::map<std::string, std::vector<json>> by_vehicle;
   std::vector<std::string> order;
   for (const auto& pose : poses) {
@@ -109,13 +111,35 @@ std::vector<Text> poseMessages(const std::string& session,
           textOf({{"type", "poses"},
                   {"session", session},
                   {"vehicle", vehicle},
-                  {"reset", reset && begin == 0},
+                  {"reset", reset != nullptr && reset->insert(vehicle).second},
                   {"poses", json(std::vector<json>(all.begin() + static_cast<long>(begin),
                                                    all.begin() + static_cast<long>(end)))}}));
     }
   }
   return out;
 }
+
+// Poses [next, until) of a session still to send, made into messages only when the viewer's
+// queue reaches them, kPosesPerMessage at a time: a long flight's trajectory (about 220 bytes
+// a pose as JSON; 47 MB for three hours of 4 vehicles at 5 Hz) is never built whole, and the
+// viewer's cap on unsent messages holds.
+struct PoseStream {
+  std::weak_ptr<const core::Session> session;  // gone: the rest is dropped
+  std::string session_id, only_vehicle;
+  size_t next = 0, until = 0;
+  bool reset = false;             // each vehicle's first message replaces what the viewer holds
+  std::set<std::string> started;  // vehicles whose first message has been made
+  Text done;                      // sent after the last poses, when set
+
+  // The next poses' messages (none when the session is gone); advances `next`.
+  std::vector<Text> take() {
+    const auto source = session.lock();
+    const size_t end = std::min(until, next + kPosesPerMessage);
+    const auto poses = source ? source->trajectory(next, end) : std::vector<core::PoseRecord>{};
+    next = poses.size() == end - next ? end : until;  // fewer: gone (a trajectory only grows)
+    return poseMessages(session_id, poses, only_vehicle, reset ? &started : nullptr);
+  }
+};
 
 }  // namespace
 
@@ -124,8 +148,9 @@ struct ViewerHub::Viewer {
   int64_t connected_ns = 0;
   size_t bad_messages = 0;
   std::optional<CloseOrder> close;
-  // Sent first, in order: JSON texts and live tile changes (as keys, coalesced).
-  std::deque<std::variant<Text, TileKey>> queue;
+  // Sent first, in order: JSON texts, live tile changes (as keys, coalesced) and poses (as
+  // streams, made into texts when their turn comes).
+  std::deque<std::variant<Text, TileKey, std::unique_ptr<PoseStream>>> queue;
   std::set<TileKey> queued_tiles;
   size_t queued_bytes = 0;
   // Then the current view's tiles, in plan order (coarse pass, then refinements).
@@ -259,6 +284,26 @@ struct ViewerHub::Impl {
     viewer.queue.emplace_back(std::move(text));
   }
 
+  // Poses [from, until) of `session`, as a stream (PoseStream), then `done` if set.
+  void queuePoses(Viewer& viewer, const std::shared_ptr<const core::Session>& session, size_t from,
+                  size_t until, bool reset, const std::string& only_vehicle = "",
+                  Text done = nullptr) {
+    if (viewer.close) return;
+    if (from < until) {
+      auto stream = std::make_unique<PoseStream>();
+      stream->session = session;
+      stream->session_id = session->id();
+      stream->only_vehicle = only_vehicle;
+      stream->next = from;
+      stream->until = until;
+      stream->reset = reset;
+      stream->done = std::move(done);
+      viewer.queue.emplace_back(std::move(stream));
+    } else if (done) {
+      queueText(viewer, std::move(done), false);
+    }
+  }
+
   void bad(Viewer& viewer, const std::string& message) {
     ++viewer.bad_messages;
     queueText(viewer, textOf({{"type", "error"}, {"message", message}}), false);
@@ -335,7 +380,7 @@ struct ViewerHub::Impl {
     if (created) {
       feed->second.version = summary.version;
       feed->second.trajectory_version = session->trajectoryVersion();
-      feed->second.poses = session->trajectory(0).size();
+      feed->second.poses = session->poseCount();
     }
     queueText(viewer,
               textOf({{"type", "subscribed"},
@@ -350,10 +395,7 @@ struct ViewerHub::Impl {
                       {"bounds", core::boundsJson(summary.bounds)},
                       {"status", core::sessionObject(session->status())}}),
               false);
-    auto poses = session->trajectory(0);
-    poses.resize(std::min(poses.size(), feed->second.poses));  // the rest comes as pushes
-    for (auto& text : poseMessages(session_id, poses, true))
-      queueText(viewer, std::move(text), false);
+    queuePoses(viewer, session, 0, feed->second.poses, true);  // the rest comes as pushes
   }
 
   void unsubscribe(Viewer& viewer) {
@@ -426,9 +468,7 @@ struct ViewerHub::Impl {
                         {"voxels", summary.occupied_voxels},
                         {"bounds", core::boundsJson(summary.bounds)}}),
                 false);
-      for (auto& text : poseMessages(done.id, viewer.replay->trajectory(0), true)) {
-        queueText(viewer, std::move(text), false);
-      }
+      queuePoses(viewer, viewer.replay, 0, viewer.replay->poseCount(), true);
       if (view) planFor(viewer, *viewer.replay, *view, view_id);
     }
   }
@@ -557,16 +597,12 @@ struct ViewerHub::Impl {
     }
     const auto session = session_id == viewer.session ? sessionOf(viewer) : server.find(session_id);
     if (!session) return bad(viewer, "trajectory: no loaded session '" + session_id + "'");
-    auto poses = session->trajectory(from);
-    for (auto& text : poseMessages(session_id, poses, from == 0, vehicle)) {
-      queueText(viewer, std::move(text), false);
-    }
-    queueText(viewer,
-              textOf({{"type", "trajectory_done"},
-                      {"session", session_id},
-                      {"from", from},
-                      {"poses", poses.size()}}),
-              false);
+    const size_t until = session->poseCount();
+    queuePoses(viewer, session, from, until, from == 0, vehicle,
+               textOf({{"type", "trajectory_done"},
+                       {"session", session_id},
+                       {"from", from},
+                       {"poses", until > from ? until - from : 0}}));
   }
 
   void receive(Id id, Viewer& viewer, std::string_view text) {
@@ -635,6 +671,18 @@ struct ViewerHub::Impl {
       if (auto* text = std::get_if<Text>(&item)) {
         viewer.queued_bytes -= (*text)->size();
         return Outgoing{std::move(*text), false};
+      }
+      if (auto* pending = std::get_if<std::unique_ptr<PoseStream>>(&item)) {
+        PoseStream& stream = **pending;
+        auto texts = stream.take();
+        const bool more = stream.next < stream.until;
+        if (!more && stream.done) texts.push_back(stream.done);
+        if (more) viewer.queue.push_front(std::move(item));  // the stream stays first
+        for (auto text = texts.rbegin(); text != texts.rend(); ++text) {
+          viewer.queued_bytes += (*text)->size();
+          viewer.queue.push_front(std::move(*text));
+        }
+        continue;
       }
       const TileKey key = std::get<TileKey>(item);
       viewer.queued_tiles.erase(key);
@@ -732,17 +780,20 @@ struct ViewerHub::Impl {
           queueText(*viewer, marker);
         }
       }
-      // A pose correction changed poses already pushed: every pose again, replacing them.
+      // A pose correction changed poses already pushed: every pose again, replacing them (a
+      // stream: a long flight's would pass the cap on unsent pushes).
       const uint64_t trajectory_version = session->trajectoryVersion();
-      const bool corrected = trajectory_version != feed->second.trajectory_version;
-      if (corrected) {
+      if (trajectory_version != feed->second.trajectory_version) {
         feed->second.trajectory_version = trajectory_version;
-        feed->second.poses = 0;
+        feed->second.poses = session->poseCount();
+        for (Viewer* viewer : subscribers[feed->first]) {
+          queuePoses(*viewer, session, 0, feed->second.poses, true);
+        }
       }
       const auto poses = session->trajectory(feed->second.poses);
       if (!poses.empty()) {
         feed->second.poses += poses.size();
-        const auto messages = poseMessages(feed->first, poses, corrected);
+        const auto messages = poseMessages(feed->first, poses, "", nullptr);
         for (Viewer* viewer : subscribers[feed->first]) {
           for (const auto& text : messages) queueText(*viewer, text);
         }

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include <algorithm>
 #include <map>
 
 #include "common/time.hpp"
@@ -173,6 +174,94 @@ TEST_F(OneWall, ACorrectedTrajectoryIsSentAgainWhole) {
   Received quiet;
   drain(hub, id, quiet);
   EXPECT_EQ(posesIn(quiet), 0u);  // once
+}
+
+// Poses of each vehicle in what a viewer was sent: stamps in order, and how many messages
+// replaced what it held (reset), which must be the vehicle's first.
+struct VehiclePoses {
+  std::vector<double> stamps;
+  size_t resets = 0;
+  bool reset_first = false;
+};
+std::map<std::string, VehiclePoses> posesByVehicle(const Received& got) {
+  std::map<std::string, VehiclePoses> out;
+  for (const auto& m : got.ofType("poses")) {
+    auto& v = out[m["vehicle"].get<std::string>()];
+    if (m["reset"].get<bool>()) {
+      v.reset_first = v.reset_first || v.stamps.empty();
+      ++v.resets;
+    }
+    for (const auto& p : m["poses"]) v.stamps.push_back(p[0].get<double>());
+  }
+  return out;
+}
+
+// A long flight's trajectory is several times the cap on a viewer's unsent messages. It is
+// made into messages as the viewer reads them: a subscribe gets it whole, in order, and a
+// correction (every pose again) does not close the viewer for being too slow.
+TEST(ViewerHub, ALongTrajectoryIsStreamedWithinTheCap) {
+  core::MapServer server({.resolution = 0.1});
+  constexpr int kPoses = 15'000;  // per vehicle: 30,000 poses, about 3 MB of JSON
+  for (int seq = 1; seq <= kPoses; ++seq) {
+    for (const char* vehicle : {"v1", "v2"}) {
+      auto msg = pose("s", seq);
+      msg.vehicle_id = vehicle;
+      ASSERT_TRUE(server.ingest(msg));
+    }
+  }
+  ViewerHub hub(server, nullptr, {.max_queued_bytes = 1u << 20});
+  const auto id = hub.connect(true, 0);
+  hub.receive(id, kHello, 0);
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  for (const char* vehicle : {"v1", "v2"}) {  // pushed while the stream is unsent: after it
+    auto msg = pose("s", kPoses + 1);
+    msg.vehicle_id = vehicle;
+    ASSERT_TRUE(server.ingest(msg));
+  }
+  hub.poll(common::nowNs());
+  Received got;
+  drain(hub, id, got);
+  ASSERT_FALSE(hub.closing(id));
+  for (const auto& [vehicle, poses] : posesByVehicle(got)) {
+    SCOPED_TRACE(vehicle);
+    ASSERT_EQ(poses.stamps.size(), static_cast<size_t>(kPoses + 1));
+    EXPECT_TRUE(std::is_sorted(poses.stamps.begin(), poses.stamps.end()));
+    EXPECT_EQ(poses.resets, 1u);
+    EXPECT_TRUE(poses.reset_first);
+  }
+  EXPECT_EQ(posesByVehicle(got).size(), 2u);
+
+  proto::PoseCorrectionMsg correction;
+  correction.vehicle_id = "v1";
+  correction.session_id = "s";
+  correction.seq = 1;
+  correction.stamp_ns = pose("s", kPoses + 1).stamp_ns;
+  correction.keyframes.push_back({pose("s", 2).stamp_ns, {0.2, 1.0, 0}, {0, 0, 0, 1}});
+  ASSERT_TRUE(server.ingest(correction));
+  server.find("s")->waitUntilIdle();
+  hub.poll(common::nowNs());
+  ASSERT_FALSE(hub.closing(id)) << hub.closing(id)->reason;
+  Received again;
+  drain(hub, id, again);
+  const auto resent = posesByVehicle(again);
+  ASSERT_EQ(resent.size(), 2u);
+  for (const auto& [vehicle, poses] : resent) {
+    SCOPED_TRACE(vehicle);
+    EXPECT_EQ(poses.stamps.size(), static_cast<size_t>(kPoses + 1));
+    EXPECT_EQ(poses.resets, 1u);
+    EXPECT_TRUE(poses.reset_first);
+  }
+  // The trajectory on request, one vehicle from an index: its poses and the count asked.
+  hub.receive(id, R"({"type": "trajectory", "vehicle": "v2", "from": 100})", 0);
+  Received asked;
+  drain(hub, id, asked);
+  const auto v2 = posesByVehicle(asked);
+  ASSERT_EQ(v2.size(), 1u);
+  EXPECT_EQ(v2.at("v2").stamps.size(), static_cast<size_t>(kPoses + 1 - 50));
+  EXPECT_EQ(v2.at("v2").resets, 0u);
+  ASSERT_EQ(asked.ofType("trajectory_done").size(), 1u);
+  EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2 * (kPoses + 1) - 100);
+  EXPECT_EQ(asked.texts.back()["type"], "trajectory_done");
 }
 
 TEST_F(OneWall, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {
