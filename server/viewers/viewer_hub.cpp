@@ -120,24 +120,38 @@ std::vector<Text> poseMessages(const std::string& session,
 }
 
 // Poses [next, until) of a session still to send, made into messages only when the viewer's
-// queue reaches them, kPosesPerMessage at a time: a long flight's trajectory (about 220 bytes
-// a pose as JSON; 47 MB for three hours of 4 vehicles at 5 Hz) is never built whole, and the
-// viewer's cap on unsent messages holds.
+// queue reaches them, kPosesPerMessage at a time: a long flight's trajectory (about 150 bytes
+// a pose as JSON: 32 MB for three hours of 4 vehicles at 5 Hz) is never built whole, and the
+// viewer's unsent messages hold one message of it at most.
 struct PoseStream {
   std::weak_ptr<const core::Session> session;  // gone: the rest is dropped
   std::string session_id, only_vehicle;
-  size_t next = 0, until = 0;
+  size_t from = 0, next = 0, until = 0, sent = 0;
   bool reset = false;             // each vehicle's first message replaces what the viewer holds
   std::set<std::string> started;  // vehicles whose first message has been made
-  Text done;                      // sent after the last poses, when set
+  // An answer to a "trajectory" request: ends with trajectory_done (if the session lasts).
+  // Otherwise a subscription's (or a correction's) poses, dropped when a newer one replaces
+  // them or the viewer leaves the subscription.
+  bool requested = false;
+  bool cut = false;  // the session went before every pose was made
 
-  // The next poses' messages (none when the session is gone); advances `next`.
+  // The next poses' messages, then trajectory_done when it is the last of a request; advances
+  // `next`.
   std::vector<Text> take() {
     const auto source = session.lock();
     const size_t end = std::min(until, next + kPosesPerMessage);
     const auto poses = source ? source->trajectory(next, end) : std::vector<core::PoseRecord>{};
-    next = poses.size() == end - next ? end : until;  // fewer: gone (a trajectory only grows)
-    return poseMessages(session_id, poses, only_vehicle, reset ? &started : nullptr);
+    cut = poses.size() != end - next;  // a trajectory only grows: the session has gone
+    next = cut ? until : end;
+    auto texts = poseMessages(session_id, poses, only_vehicle, reset ? &started : nullptr);
+    for (const auto& pose : poses) sent += only_vehicle.empty() || pose.vehicle_id == only_vehicle;
+    if (requested && next == until && !cut) {
+      texts.push_back(textOf({{"type", "trajectory_done"},
+                              {"session", session_id},
+                              {"from", from},
+                              {"poses", sent}}));
+    }
+    return texts;
   }
 };
 
@@ -284,24 +298,43 @@ struct ViewerHub::Impl {
     viewer.queue.emplace_back(std::move(text));
   }
 
-  // Poses [from, until) of `session`, as a stream (PoseStream), then `done` if set.
-  void queuePoses(Viewer& viewer, const std::shared_ptr<const core::Session>& session, size_t from,
-                  size_t until, bool reset, const std::string& only_vehicle = "",
-                  Text done = nullptr) {
-    if (viewer.close) return;
-    if (from < until) {
-      auto stream = std::make_unique<PoseStream>();
-      stream->session = session;
-      stream->session_id = session->id();
-      stream->only_vehicle = only_vehicle;
-      stream->next = from;
-      stream->until = until;
-      stream->reset = reset;
-      stream->done = std::move(done);
-      viewer.queue.emplace_back(std::move(stream));
-    } else if (done) {
-      queueText(viewer, std::move(done), false);
-    }
+  // A subscription's poses [0, until) of `session` (replacing what the viewer holds), as a
+  // stream; one still queued is dropped (this one resends all it would have).
+  void queuePoses(Viewer& viewer, const std::shared_ptr<const core::Session>& session,
+                  size_t until) {
+    dropPoseStreams(viewer);
+    auto stream = std::make_unique<PoseStream>();
+    stream->reset = true;
+    queueStream(viewer, session, 0, until, std::move(stream));
+  }
+
+  // The answer to a "trajectory" request: poses [from, until) (of one vehicle if set), then
+  // trajectory_done.
+  void queueRequestedPoses(Viewer& viewer, const std::shared_ptr<const core::Session>& session,
+                           size_t from, size_t until, const std::string& only_vehicle) {
+    auto stream = std::make_unique<PoseStream>();
+    stream->requested = true;
+    stream->reset = from == 0;
+    stream->only_vehicle = only_vehicle;
+    queueStream(viewer, session, from, std::max(from, until), std::move(stream));
+  }
+
+  void queueStream(Viewer& viewer, const std::shared_ptr<const core::Session>& session,
+                   size_t from, size_t until, std::unique_ptr<PoseStream> stream) {
+    if (viewer.close || (from == until && !stream->requested)) return;
+    stream->session = session;
+    stream->session_id = session->id();
+    stream->from = stream->next = from;
+    stream->until = until;
+    viewer.queue.emplace_back(std::move(stream));
+  }
+
+  // Drops the viewer's queued subscription poses (not the answers to its requests).
+  static void dropPoseStreams(Viewer& viewer) {
+    std::erase_if(viewer.queue, [](const auto& item) {
+      const auto* stream = std::get_if<std::unique_ptr<PoseStream>>(&item);
+      return stream != nullptr && !(*stream)->requested;
+    });
   }
 
   void bad(Viewer& viewer, const std::string& message) {
@@ -395,10 +428,11 @@ struct ViewerHub::Impl {
                       {"bounds", core::boundsJson(summary.bounds)},
                       {"status", core::sessionObject(session->status())}}),
               false);
-    queuePoses(viewer, session, 0, feed->second.poses, true);  // the rest comes as pushes
+    queuePoses(viewer, session, feed->second.poses);  // the rest comes as pushes
   }
 
   void unsubscribe(Viewer& viewer) {
+    dropPoseStreams(viewer);
     viewer.session.clear();
     viewer.replay.reset();
     ++viewer.replay_request;  // a replay still being made is no longer wanted
@@ -468,7 +502,7 @@ struct ViewerHub::Impl {
                         {"voxels", summary.occupied_voxels},
                         {"bounds", core::boundsJson(summary.bounds)}}),
                 false);
-      queuePoses(viewer, viewer.replay, 0, viewer.replay->poseCount(), true);
+      queuePoses(viewer, viewer.replay, viewer.replay->poseCount());
       if (view) planFor(viewer, *viewer.replay, *view, view_id);
     }
   }
@@ -597,12 +631,7 @@ struct ViewerHub::Impl {
     }
     const auto session = session_id == viewer.session ? sessionOf(viewer) : server.find(session_id);
     if (!session) return bad(viewer, "trajectory: no loaded session '" + session_id + "'");
-    const size_t until = session->poseCount();
-    queuePoses(viewer, session, from, until, from == 0, vehicle,
-               textOf({{"type", "trajectory_done"},
-                       {"session", session_id},
-                       {"from", from},
-                       {"poses", until > from ? until - from : 0}}));
+    queueRequestedPoses(viewer, session, from, session->poseCount(), vehicle);
   }
 
   void receive(Id id, Viewer& viewer, std::string_view text) {
@@ -675,9 +704,7 @@ struct ViewerHub::Impl {
       if (auto* pending = std::get_if<std::unique_ptr<PoseStream>>(&item)) {
         PoseStream& stream = **pending;
         auto texts = stream.take();
-        const bool more = stream.next < stream.until;
-        if (!more && stream.done) texts.push_back(stream.done);
-        if (more) viewer.queue.push_front(std::move(item));  // the stream stays first
+        if (stream.next < stream.until) viewer.queue.push_front(std::move(item));  // stays first
         for (auto text = texts.rbegin(); text != texts.rend(); ++text) {
           viewer.queued_bytes += (*text)->size();
           viewer.queue.push_front(std::move(*text));
@@ -787,7 +814,7 @@ struct ViewerHub::Impl {
         feed->second.trajectory_version = trajectory_version;
         feed->second.poses = session->poseCount();
         for (Viewer* viewer : subscribers[feed->first]) {
-          queuePoses(*viewer, session, 0, feed->second.poses, true);
+          queuePoses(*viewer, session, feed->second.poses);
         }
       }
       const auto poses = session->trajectory(feed->second.poses);

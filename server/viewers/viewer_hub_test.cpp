@@ -201,7 +201,7 @@ std::map<std::string, VehiclePoses> posesByVehicle(const Received& got) {
 // correction (every pose again) does not close the viewer for being too slow.
 TEST(ViewerHub, ALongTrajectoryIsStreamedWithinTheCap) {
   core::MapServer server({.resolution = 0.1});
-  constexpr int kPoses = 15'000;  // per vehicle: 30,000 poses, about 3 MB of JSON
+  constexpr int kPoses = 15'000;  // per vehicle: 30,000 poses, about 1.6 MB of JSON
   for (int seq = 1; seq <= kPoses; ++seq) {
     for (const char* vehicle : {"v1", "v2"}) {
       auto msg = pose("s", seq);
@@ -260,8 +260,49 @@ TEST(ViewerHub, ALongTrajectoryIsStreamedWithinTheCap) {
   EXPECT_EQ(v2.at("v2").stamps.size(), static_cast<size_t>(kPoses + 1 - 50));
   EXPECT_EQ(v2.at("v2").resets, 0u);
   ASSERT_EQ(asked.ofType("trajectory_done").size(), 1u);
-  EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2 * (kPoses + 1) - 100);
+  EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], kPoses + 1 - 50);  // those sent
   EXPECT_EQ(asked.texts.back()["type"], "trajectory_done");
+}
+
+// Corrections that come while a viewer has not yet read the trajectory replace what is
+// queued instead of piling up copies of it; leaving the subscription drops it.
+TEST(ViewerHub, CorrectionsWhileATrajectoryIsUnsentReplaceIt) {
+  core::MapServer server({.resolution = 0.1});
+  constexpr int kPoses = 25'000;  // more than one message's worth
+  for (int seq = 1; seq <= kPoses; ++seq) ASSERT_TRUE(server.ingest(pose("s", seq)));
+  ViewerHub hub(server, nullptr, {});
+  const auto id = hub.connect(true, 0);
+  hub.receive(id, kHello, 0);
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  for (uint64_t seq = 1; seq <= 3; ++seq) {
+    proto::PoseCorrectionMsg correction;
+    correction.vehicle_id = "v1";
+    correction.session_id = "s";
+    correction.seq = seq;
+    correction.stamp_ns = pose("s", kPoses).stamp_ns;
+    correction.keyframes.push_back(
+        {pose("s", 2).stamp_ns, {0.2, 0.5 * static_cast<double>(seq), 0}, {0, 0, 0, 1}});
+    ASSERT_TRUE(server.ingest(correction));
+    server.find("s")->waitUntilIdle();
+    hub.poll(common::nowNs());
+  }
+  Received got;
+  drain(hub, id, got);
+  const auto poses = posesByVehicle(got);
+  ASSERT_EQ(poses.size(), 1u);
+  EXPECT_EQ(poses.at("v1").stamps.size(), static_cast<size_t>(kPoses));  // once, not 4 times
+  EXPECT_EQ(poses.at("v1").resets, 1u);
+  EXPECT_DOUBLE_EQ(got.ofType("poses").back()["poses"].back()[2].get<double>(), 1.5);  // newest
+
+  hub.receive(id, R"({"type": "subscribe", "session": "s"})", 0);
+  ASSERT_TRUE(hub.next(id, common::nowNs()));  // "subscribed"
+  hub.written(id);
+  ASSERT_TRUE(hub.next(id, common::nowNs()));  // the first poses
+  hub.written(id);
+  hub.receive(id, R"({"type": "unsubscribe"})", 0);
+  Received after;
+  drain(hub, id, after);
+  EXPECT_EQ(posesIn(after), 0u);
 }
 
 TEST_F(OneWall, ATileChangedManyTimesWhileUnsentIsSentOnceAtItsNewestVersion) {

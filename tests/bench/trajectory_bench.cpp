@@ -4,14 +4,17 @@
 // --viewers ViewerHub viewers, run as the network thread runs them:
 //   subscribe:  every viewer subscribes; the time the hub took (the network thread is blocked
 //               for it) and the live heap it left (jemalloc's, as the server's /metrics);
-//   drain:      every message taken and "written", viewer by viewer: time, bytes, the live
-//               heap's peak above what it was before the subscribes;
+//   drain:      every message taken and "written", a message of each viewer in turn (as the
+//               network thread writes to its connections): time, the longest single next()
+//               (what one message costs the network thread), bytes, and the live heap's peak
+//               above what it was before the subscribes;
 //   correction: one correction of one vehicle, a poll, then the drain again; viewers closed
 //               (a viewer whose unsent messages pass the hub's 4 MiB cap is closed).
 //   stereomap-bench-trajectory [--poses N] [--vehicles V] [--viewers W]
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <string>
 #include <vector>
@@ -31,24 +34,28 @@ double liveMegabytes() {
 }
 
 struct Drained {
-  double ms = 0, megabytes = 0, peak_live_mb = 0;
+  double ms = 0, longest_ms = 0, megabytes = 0, peak_live_mb = 0;
   size_t messages = 0, closed = 0;
 };
 
-// Takes every viewer's messages as the network thread would write them.
+// Takes every viewer's messages as the network thread would write them: one of each viewer in
+// turn while any has one.
 Drained drain(viewers::ViewerHub& hub, const std::vector<viewers::ViewerHub::Id>& ids) {
   Drained d;
   d.peak_live_mb = liveMegabytes();
+  for (const auto id : ids) d.closed += hub.closing(id).has_value();
   const auto start = bench::Clock::now();
-  for (const auto id : ids) {
-    if (hub.closing(id)) {
-      ++d.closed;
-      continue;
-    }
-    while (auto message = hub.next(id, common::nowNs())) {
+  for (bool any = true; any;) {
+    any = false;
+    for (const auto id : ids) {
+      if (hub.closing(id)) continue;
+      const auto one = bench::Clock::now();
+      const auto message = hub.next(id, common::nowNs());
+      d.longest_ms = std::max(d.longest_ms, bench::msSince(one));
+      if (!message) continue;
+      any = true;
       d.megabytes += static_cast<double>(message->bytes->size()) / (1 << 20);
-      ++d.messages;
-      if (d.messages % 4 == 0) d.peak_live_mb = std::max(d.peak_live_mb, liveMegabytes());
+      if (++d.messages % 4 == 0) d.peak_live_mb = std::max(d.peak_live_mb, liveMegabytes());
       hub.written(id);
     }
   }
@@ -76,7 +83,10 @@ int main(int argc, char** argv) {
       pose.session_id = "flight";
       pose.seq = i;
       pose.stamp_ns = 1'000'000'000 + static_cast<int64_t>(i) * 200'000'000;
-      pose.position = {0.01 * static_cast<double>(i), 1.0 * v, 2.0};
+      // Full-precision numbers, as a vehicle's are (short ones would make shorter JSON).
+      const double t = 0.0123456789 * static_cast<double>(i) + 0.1 * v;
+      pose.position = {std::cos(t) * 20.0, std::sin(t) * 20.0, 2.0 + 0.1 * std::sin(3 * t)};
+      pose.orientation = {0, 0, std::sin(t / 2), std::cos(t / 2)};
       if (!server.ingest(pose)) {
         std::fprintf(stderr, "pose %zu of v%d was rejected\n", i, v + 1);
         return 1;
@@ -119,14 +129,17 @@ int main(int argc, char** argv) {
 
   std::printf(
       "trajectory: %d viewers of %zu poses (%d vehicles): subscribe %.0f ms, live heap +%.1f MB "
-      "after it, drain %.0f ms (%.1f MB in %zu messages, live heap peak +%.1f MB)\n",
+      "after it, drain %.0f ms (longest message %.1f ms; %.1f MB in %zu messages, live heap peak "
+      "+%.1f MB)\n",
       viewer_count, poses * vehicles, vehicles, subscribe_ms, live_after_subscribe, subscribed.ms,
-      subscribed.megabytes, subscribed.messages, subscribed.peak_live_mb - live_before);
+      subscribed.longest_ms, subscribed.megabytes, subscribed.messages,
+      subscribed.peak_live_mb - live_before);
   std::printf(
       "trajectory: a correction: poll %.0f ms, live heap +%.1f MB after it, %zu of %d viewers "
-      "closed, drain %.0f ms (%.1f MB in %zu messages, live heap peak +%.1f MB)\n",
-      poll_ms, live_after_poll, corrected.closed, viewer_count, corrected.ms, corrected.megabytes,
-      corrected.messages, corrected.peak_live_mb - live_before);
+      "closed, drain %.0f ms (longest message %.1f ms; %.1f MB in %zu messages, live heap peak "
+      "+%.1f MB)\n",
+      poll_ms, live_after_poll, corrected.closed, viewer_count, corrected.ms, corrected.longest_ms,
+      corrected.megabytes, corrected.messages, corrected.peak_live_mb - live_before);
   std::printf("trajectory: process RSS %.0f MB\n", bench::residentMegabytes());
   return 0;
 }
