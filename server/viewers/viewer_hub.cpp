@@ -27,8 +27,8 @@ using nlohmann::json;
 using tiles::TileKey;
 
 constexpr int kProtocol = 2;
-constexpr size_t kPosesPerMessage = 10'000;
-constexpr int kMaxNesting = 8;  // our messages nest 3 deep; deeper is hostile
+constexpr size_t kPosesPerMessage = 2'000;  // about 10 ms of the network thread each
+constexpr int kMaxNesting = 8;              // our messages nest 3 deep; deeper is hostile
 
 using Text = std::shared_ptr<const std::string>;
 
@@ -120,9 +120,10 @@ std::vector<Text> poseMessages(const std::string& session,
 }
 
 // Poses [next, until) of a session still to send, made into messages only when the viewer's
-// queue reaches them, kPosesPerMessage at a time: a long flight's trajectory (about 150 bytes
-// a pose as JSON: 32 MB for three hours of 4 vehicles at 5 Hz) is never built whole, and the
-// viewer's unsent messages hold one message of it at most.
+// queue reaches them, kPosesPerMessage at a time: a long flight's trajectory (about 110 bytes
+// a pose as JSON: 24 MB for three hours of 4 vehicles at 5 Hz, and several times that while
+// it is built) is never built whole, and the viewer's unsent messages hold one message of it
+// at most.
 struct PoseStream {
   std::weak_ptr<const core::Session> session;  // gone: the rest is dropped
   std::string session_id, only_vehicle;
@@ -146,10 +147,8 @@ struct PoseStream {
     auto texts = poseMessages(session_id, poses, only_vehicle, reset ? &started : nullptr);
     for (const auto& pose : poses) sent += only_vehicle.empty() || pose.vehicle_id == only_vehicle;
     if (requested && next == until && !cut) {
-      texts.push_back(textOf({{"type", "trajectory_done"},
-                              {"session", session_id},
-                              {"from", from},
-                              {"poses", sent}}));
+      texts.push_back(textOf(
+          {{"type", "trajectory_done"}, {"session", session_id}, {"from", from}, {"poses", sent}}));
     }
     return texts;
   }
@@ -319,8 +318,8 @@ struct ViewerHub::Impl {
     queueStream(viewer, session, from, std::max(from, until), std::move(stream));
   }
 
-  void queueStream(Viewer& viewer, const std::shared_ptr<const core::Session>& session,
-                   size_t from, size_t until, std::unique_ptr<PoseStream> stream) {
+  void queueStream(Viewer& viewer, const std::shared_ptr<const core::Session>& session, size_t from,
+                   size_t until, std::unique_ptr<PoseStream> stream) {
     if (viewer.close || (from == until && !stream->requested)) return;
     stream->session = session;
     stream->session_id = session->id();
