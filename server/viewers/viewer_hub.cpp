@@ -27,7 +27,7 @@ using nlohmann::json;
 using tiles::TileKey;
 
 constexpr int kProtocol = 2;
-constexpr size_t kPosesPerMessage = 2'000;  // about 10 ms of the network thread each
+constexpr size_t kPosesPerMessage = 2'000;  // about 1 ms of the network thread each
 constexpr int kMaxNesting = 8;              // our messages nest 3 deep; deeper is hostile
 
 using Text = std::shared_ptr<const std::string>;
@@ -134,7 +134,6 @@ struct PoseStream {
   // Otherwise a subscription's (or a correction's) poses, dropped when a newer one replaces
   // them or the viewer leaves the subscription.
   bool requested = false;
-  bool cut = false;  // the session went before every pose was made
 
   // The next poses' messages, then trajectory_done when it is the last of a request; advances
   // `next`.
@@ -142,7 +141,7 @@ struct PoseStream {
     const auto source = session.lock();
     const size_t end = std::min(until, next + kPosesPerMessage);
     const auto poses = source ? source->trajectory(next, end) : std::vector<core::PoseRecord>{};
-    cut = poses.size() != end - next;  // a trajectory only grows: the session has gone
+    const bool cut = poses.size() != end - next;  // a trajectory only grows: the session went
     next = cut ? until : end;
     auto texts = poseMessages(session_id, poses, only_vehicle, reset ? &started : nullptr);
     for (const auto& pose : poses) sent += only_vehicle.empty() || pose.vehicle_id == only_vehicle;
