@@ -21,6 +21,10 @@ std::optional<HeapStats> heapStats() {
       mallctl("stats.resident", &stats.resident, &size, nullptr, 0) != 0) {
     return std::nullopt;
   }
+  size = sizeof(stats.background_thread);
+  if (mallctl("opt.background_thread", &stats.background_thread, &size, nullptr, 0) != 0) {
+    return std::nullopt;
+  }
   return stats;
 }
 

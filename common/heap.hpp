@@ -12,6 +12,9 @@ namespace stereomap::common {
 struct HeapStats {
   size_t allocated = 0;  // bytes handed out and not yet freed
   size_t resident = 0;   // at most this many bytes of the allocator's pages are in memory
+  // Whether jemalloc's own threads return freed pages (common/jemalloc_options.cpp asks for
+  // it; a misspelt option would be ignored without a word).
+  bool background_thread = false;
 };
 
 // Fresh figures; empty when the process does not run on jemalloc (sanitizer builds, tests).

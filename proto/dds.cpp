@@ -80,8 +80,8 @@ std::string readId(const char (&in)[kMaxIdLength + 1]) {
 }
 
 template <typename E>
-Result<E> checkedEnum(int value, int count, const char* field) {
-  if (value < 0 || value >= count) {
+Result<E> checkedEnum(uint32_t value, uint32_t count, const char* field) {
+  if (value >= count) {
     return makeError(ErrorCode::kInvalidArgument,
                      std::string(field) + " has unknown value " + std::to_string(value));
   }
@@ -108,8 +108,8 @@ struct Topic<PoseMsg> {
     std::copy(m.orientation.begin(), m.orientation.end(), c.orientation);
     std::copy(m.velocity.begin(), m.velocity.end(), c.velocity);
     std::copy(m.covariance.begin(), m.covariance.end(), c.covariance);
-    c.tracking_state = static_cast<stereomap_msg_TrackingState>(m.tracking_state);
-    c.source = static_cast<stereomap_msg_PoseSource>(m.source);
+    c.tracking_state = static_cast<uint32_t>(m.tracking_state);
+    c.source = static_cast<uint32_t>(m.source);
     return common::Ok{};
   }
   static Result<PoseMsg> fromC(const C& c) {
@@ -155,7 +155,7 @@ struct Topic<CloudFrameMsg> {
     std::copy(m.sensor_orientation.begin(), m.sensor_orientation.end(), c.sensor_orientation);
     c.max_range = m.max_range;
     c.point_count = m.point_count;
-    c.encoding = static_cast<stereomap_msg_CloudEncoding>(m.encoding);
+    c.encoding = static_cast<uint32_t>(m.encoding);
     c.quantization_bits = m.quantization_bits;
     c.has_intensity = m.has_intensity;
     c.payload._maximum = c.payload._length = static_cast<uint32_t>(m.payload.size());
@@ -252,8 +252,8 @@ struct Topic<LandingTargetMsg> {
     }
     c.seq = m.seq;
     c.stamp_ns = m.stamp_ns;
-    c.state = static_cast<stereomap_msg_LandingState>(m.state);
-    c.mode = static_cast<stereomap_msg_LandingMode>(m.mode);
+    c.state = static_cast<uint32_t>(m.state);
+    c.mode = static_cast<uint32_t>(m.mode);
     std::memcpy(c.reason, m.reason.data(), m.reason.size());
     c.reason[m.reason.size()] = '\0';
     c.has_pose = m.has_pose;
@@ -271,17 +271,17 @@ struct Topic<LandingTargetMsg> {
     return common::Ok{};
   }
   static Result<LandingTargetMsg> fromC(const C& c) {
-    if (static_cast<int>(c.state) < 0 || static_cast<int>(c.state) > 2 ||
-        static_cast<int>(c.mode) < 0 || static_cast<int>(c.mode) > 1) {
-      return makeError(ErrorCode::kInvalidArgument, "landing state or mode out of range");
-    }
+    auto state = checkedEnum<LandingState>(c.state, 3, "state");
+    if (!state) return state.error();
+    auto mode = checkedEnum<LandingMode>(c.mode, 2, "mode");
+    if (!mode) return mode.error();
     LandingTargetMsg m;
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
     m.seq = c.seq;
     m.stamp_ns = c.stamp_ns;
-    m.state = static_cast<LandingState>(c.state);
-    m.mode = static_cast<LandingMode>(c.mode);
+    m.state = *state;
+    m.mode = *mode;
     m.reason.assign(c.reason, strnlen(c.reason, kMaxLandingReason));
     m.has_pose = c.has_pose;
     std::copy(std::begin(c.camera_position), std::end(c.camera_position),
@@ -316,7 +316,7 @@ struct Topic<SessionEventMsg> {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
     if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
     c.stamp_ns = m.stamp_ns;
-    c.kind = static_cast<stereomap_msg_SessionEventKind>(m.kind);
+    c.kind = static_cast<uint32_t>(m.kind);
     c.width = m.width;
     c.height = m.height;
     c.fx = m.fx;
@@ -511,7 +511,8 @@ Result<std::unique_ptr<Reader<T>>> Reader<T>::create(
 }
 
 template <typename T>
-size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout) {
+size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout,
+                       std::vector<RefusedSample>* refused) {
   dds_waitset_wait(impl_->waitset, nullptr, 0,
                    std::chrono::duration_cast<std::chrono::nanoseconds>(timeout).count());
   bool woken = false;
@@ -526,13 +527,17 @@ size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout) {
     if (n <= 0) break;
     for (dds_return_t i = 0; i < n; ++i) {
       if (!infos[i].valid_data) continue;
-      // Cyclone has already checked the IDL bounds and the enums' ranges when it normalised the
-      // received sample (0.10's read_normalize_enum drops it, silently): fromC's checks are a
-      // second line, for samples that did not come through the wire.
-      auto message = Topic<T>::fromC(*static_cast<const typename Topic<T>::C*>(samples[i]));
+      // Cyclone has already checked the IDL bounds (strings, sequences); the enumerations are
+      // plain integers on the wire (stereomap.idl), checked here.
+      const auto& c = *static_cast<const typename Topic<T>::C*>(samples[i]);
+      auto message = Topic<T>::fromC(c);
       if (message) {
         out.push_back(std::move(message).value());
         ++appended;
+      } else if (refused != nullptr) {
+        // Topic names are "stereomap_" and the IDL type's name.
+        refused->push_back({std::string(Topic<T>::kName).substr(std::strlen("stereomap_")),
+                            readId(c.vehicle_id), readId(c.session_id), message.error().message});
       }
     }
     dds_return_loan(impl_->reader, samples, n);

@@ -1,4 +1,4 @@
-// RAII wrappers over Cyclone DDS's C API for stereomap's three topics: a Participant on a
+// RAII wrappers over Cyclone DDS's C API for stereomap's topics: a Participant on a
 // domain (configured from an XML file, never multicast by default), typed Writers and
 // Readers whose take() waits on a WaitSet (no sleep-polling) and can be woken for shutdown.
 // Cyclone's return codes become common::Error values; nothing of Cyclone leaks out.
@@ -66,6 +66,16 @@ class Writer {
 };
 
 // One reader of topic T with T's QoS preset.
+// A received sample that its type's checks refused (an enumeration's value out of range):
+// its IDL type ("Pose", "CloudFrame", ...), who sent it as far as its ids say, and what was
+// wrong.
+struct RefusedSample {
+  std::string type;
+  std::string vehicle_id;
+  std::string session_id;
+  std::string detail;
+};
+
 template <typename T>
 class Reader {
  public:
@@ -73,8 +83,10 @@ class Reader {
       const std::shared_ptr<Participant>& participant);
   ~Reader();
   // Waits up to `timeout` for samples (or wake()), then appends every available valid sample
-  // to `out`. Returns the number appended. Thread-safe against wake() only.
-  size_t take(std::vector<T>& out, std::chrono::milliseconds timeout);
+  // to `out`, and each one refused by its type's checks to `refused` when given. Returns the
+  // number appended. Thread-safe against wake() only.
+  size_t take(std::vector<T>& out, std::chrono::milliseconds timeout,
+              std::vector<RefusedSample>* refused = nullptr);
   // Makes a blocked take() return now (for shutdown). Callable from any thread.
   void wake();
   int matchedWriters() const;

@@ -2,8 +2,10 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <thread>
+#include <typeinfo>
 
 namespace stereomap::proto {
 namespace {
@@ -30,12 +32,30 @@ std::vector<T> takeAtLeast(Reader<T>& reader, size_t count) {
   return out;
 }
 
+// A reader and a writer of T on `participant` that have met; null ones (with a failure
+// reported) when they could not be made or did not meet.
+template <typename T>
+struct Link {
+  std::unique_ptr<Reader<T>> reader;
+  std::unique_ptr<Writer<T>> writer;
+  bool ok() const { return reader && writer; }
+};
+
+template <typename T>
+Link<T> connect(const std::shared_ptr<Participant>& participant) {
+  auto reader = Reader<T>::create(participant);
+  auto writer = Writer<T>::create(participant);
+  if (!reader.ok() || !writer.ok() || !(*writer)->waitForReaders(1, 5s)) {
+    ADD_FAILURE() << "no " << typeid(T).name() << " reader and writer that met";
+    return {};
+  }
+  return {std::move(reader).value(), std::move(writer).value()};
+}
+
 TEST(Dds, PoseRoundTripsEveryField) {
   auto participant = makeParticipant();
-  auto reader = Reader<PoseMsg>::create(participant);
-  auto writer = Writer<PoseMsg>::create(participant);
-  ASSERT_TRUE(reader.ok() && writer.ok());
-  ASSERT_TRUE((*writer)->waitForReaders(1, 5s));
+  auto link = connect<PoseMsg>(participant);
+  ASSERT_TRUE(link.ok());
 
   PoseMsg pose;
   pose.vehicle_id = "uav-7";
@@ -48,9 +68,9 @@ TEST(Dds, PoseRoundTripsEveryField) {
   for (size_t i = 0; i < 36; ++i) pose.covariance[i] = static_cast<double>(i) * 0.01;
   pose.tracking_state = TrackingState::kDegraded;
   pose.source = PoseSource::kVisualOdometry;
-  ASSERT_TRUE((*writer)->write(pose).ok());
+  ASSERT_TRUE(link.writer->write(pose).ok());
 
-  auto got = takeAtLeast(**reader, 1);
+  auto got = takeAtLeast(*link.reader, 1);
   ASSERT_EQ(got.size(), 1u);
   EXPECT_EQ(got[0].vehicle_id, pose.vehicle_id);
   EXPECT_EQ(got[0].session_id, pose.session_id);
@@ -66,10 +86,8 @@ TEST(Dds, PoseRoundTripsEveryField) {
 
 TEST(Dds, CloudFramePayloadOfFourMegabytesArrivesIntact) {
   auto participant = makeParticipant();
-  auto reader = Reader<CloudFrameMsg>::create(participant);
-  auto writer = Writer<CloudFrameMsg>::create(participant);
-  ASSERT_TRUE(reader.ok() && writer.ok());
-  ASSERT_TRUE((*writer)->waitForReaders(1, 5s));
+  auto link = connect<CloudFrameMsg>(participant);
+  ASSERT_TRUE(link.ok());
 
   CloudFrameMsg frame;
   frame.vehicle_id = "v";
@@ -82,9 +100,9 @@ TEST(Dds, CloudFramePayloadOfFourMegabytesArrivesIntact) {
   for (size_t i = 0; i < frame.payload.size(); ++i) frame.payload[i] = static_cast<uint8_t>(i * 31);
   for (uint64_t seq = 0; seq < 3; ++seq) {
     frame.seq = seq;
-    ASSERT_TRUE((*writer)->write(frame).ok());
+    ASSERT_TRUE(link.writer->write(frame).ok());
   }
-  auto got = takeAtLeast(**reader, 3);
+  auto got = takeAtLeast(*link.reader, 3);
   ASSERT_EQ(got.size(), 3u);
   for (uint64_t seq = 0; seq < 3; ++seq) {
     EXPECT_EQ(got[seq].seq, seq);
@@ -205,6 +223,47 @@ TEST(Dds, LandingTargetRoundTripsEveryField) {
   EXPECT_EQ(got[0].bearing_deg, -12);
   target.reason.assign(kMaxLandingReason + 1, 'x');
   EXPECT_FALSE((*writer)->write(target).ok());
+}
+
+// Enumerations travel as integers (stereomap.idl): a sample with an unknown value reaches the
+// reader, which refuses it and says who sent it and what was wrong (the server counts it).
+TEST(Dds, AnUnknownEnumerationIsRefusedWithItsSenderAndField) {
+  auto participant = makeParticipant();
+  auto link = connect<PoseMsg>(participant);
+  ASSERT_TRUE(link.ok());
+  PoseMsg pose;
+  pose.vehicle_id = "uav-bad-enum";
+  pose.session_id = "flight-9";
+  pose.orientation = {0, 0, 0, 1};
+  pose.tracking_state = static_cast<TrackingState>(9);
+  ASSERT_TRUE(link.writer->write(pose).ok());
+  pose.seq = 1;
+  pose.tracking_state = TrackingState::kOk;
+  pose.source = static_cast<PoseSource>(3);
+  ASSERT_TRUE(link.writer->write(pose).ok());
+  pose.seq = 2;
+  pose.source = PoseSource::kExternal;
+  ASSERT_TRUE(link.writer->write(pose).ok());
+
+  std::vector<PoseMsg> got;
+  std::vector<RefusedSample> refused;
+  const auto deadline = std::chrono::steady_clock::now() + 10s;
+  auto mine = [&] {
+    return std::count_if(got.begin(), got.end(),
+                         [](const PoseMsg& p) { return p.vehicle_id == "uav-bad-enum"; });
+  };
+  while ((refused.size() < 2 || mine() < 1) && std::chrono::steady_clock::now() < deadline) {
+    link.reader->take(got, 500ms, &refused);
+  }
+  ASSERT_EQ(refused.size(), 2u);
+  EXPECT_EQ(mine(), 1);  // the good one after them
+  for (const auto& sample : refused) {
+    EXPECT_EQ(sample.type, "Pose");
+    EXPECT_EQ(sample.vehicle_id, "uav-bad-enum");
+    EXPECT_EQ(sample.session_id, "flight-9");
+  }
+  EXPECT_EQ(refused[0].detail, "tracking_state has unknown value 9");
+  EXPECT_EQ(refused[1].detail, "source has unknown value 3");
 }
 
 TEST(Dds, WakeReturnsABlockedTakeAtOnce) {

@@ -68,6 +68,14 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   tilted.sensor_orientation = {0.5, 0.5, 0.5, 0.9};
   ASSERT_TRUE((*clouds)->write(tilted).ok());
 
+  // Enumerations are integers on the wire: unknown values reach the server, which counts them.
+  auto unknown_encoding = wallFrame(5, 2.55);
+  unknown_encoding.encoding = static_cast<proto::CloudEncoding>(7);
+  ASSERT_TRUE((*clouds)->write(unknown_encoding).ok());
+  auto unknown_state = goodPose(3);
+  unknown_state.tracking_state = static_cast<proto::TrackingState>(9);
+  ASSERT_TRUE((*poses)->write(unknown_state).ok());
+
   ASSERT_TRUE((*clouds)->write(wallFrame(4, 3.05)).ok());
   ASSERT_TRUE((*poses)->write(goodPose(2)).ok());
 
@@ -94,6 +102,12 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
                 "stereomap_samples_rejected_total{topic=\"CloudFrame\",reason=\"bad_quaternion\"}"),
             1);
   EXPECT_EQ(seriesValue(metrics, "stereomap_samples_accepted_total{topic=\"CloudFrame\"}"), 2);
+  for (const char* topic : {"CloudFrame", "Pose"}) {
+    EXPECT_EQ(seriesValue(metrics, std::string("stereomap_samples_rejected_total{topic=\"") +
+                                       topic + "\",reason=\"bad_enum\"}"),
+              1)
+        << topic;
+  }
 
   // The good frames are in the map: both walls, nothing of the rejected ones at x = 2.55.
   const auto session = nlohmann::json::parse(server.get("/api/sessions/" + kSession).body);
@@ -105,6 +119,8 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   EXPECT_NE(log.find("Draco payload does not decode"), std::string::npos) << log;
   EXPECT_NE(log.find("pose position is not finite"), std::string::npos) << log;
   EXPECT_NE(log.find("exceeds the limit"), std::string::npos) << log;
+  EXPECT_NE(log.find("tracking_state has unknown value 9"), std::string::npos) << log;
+  EXPECT_NE(log.find("encoding has unknown value 7"), std::string::npos) << log;
 
   EXPECT_EQ(server.get("/healthz").status, 200);
   EXPECT_TRUE(server.process().running());

@@ -153,7 +153,7 @@ TEST(CrashRecovery, AKillInTheMiddleOfASnapshotWriteUsesThePreviousSnapshot) {
     ASSERT_GE(watch, 0);
     ASSERT_GE(::inotify_add_watch(watch, dir.c_str(), IN_CREATE), 0);
     bool seen = false;
-    const auto deadline = std::chrono::steady_clock::now() + 30s;
+    const auto deadline = std::chrono::steady_clock::now() + scaledTimeout(30s);
     while (!seen && std::chrono::steady_clock::now() < deadline) {
       pollfd p{watch, POLLIN, 0};
       if (::poll(&p, 1, 100) <= 0) continue;

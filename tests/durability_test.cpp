@@ -129,6 +129,8 @@ TEST(Durability, AFullDiskLosesNoAcknowledgedFrameAndIsReportedUntilSpaceIsFreed
     const std::string metrics = server.get("/metrics").body;
     EXPECT_EQ(metric(metrics, "stereomap_store_healthy"), 0.0) << metrics;
     EXPECT_GT(metric(metrics, "stereomap_store_write_errors_total{topic=\"CloudFrame\"}"), 0.0);
+    EXPECT_NE(server.log().find("store degraded: "), std::string::npos) << server.log();
+    EXPECT_NE(server.log().find("No space left on device"), std::string::npos);
     const int acknowledged_when_full = count(status(server, session), "frames_received");
     std::this_thread::sleep_for(2s);  // still full: nothing more is taken
 
@@ -137,6 +139,7 @@ TEST(Durability, AFullDiskLosesNoAcknowledgedFrameAndIsReportedUntilSpaceIsFreed
     ASSERT_TRUE(waitUntil(30s, [&] { return server.get("/healthz").status == 200; }))
         << server.log();
     ASSERT_EQ(onboard.waitExit(120s).value_or(-1), 0);
+    EXPECT_NE(server.log().find("store writable again"), std::string::npos) << server.log();
     before_restart = settled(server, session);
     EXPECT_TRUE(before_restart["store_error"].is_null()) << before_restart.dump();
     EXPECT_GT(count(before_restart, "frames_received"), acknowledged_when_full)

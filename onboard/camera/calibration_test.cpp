@@ -10,6 +10,7 @@
 #include <chrono>
 #include <fstream>
 
+#include "common/statistics.hpp"
 #include "onboard/camera/chessboard.hpp"
 #include "onboard/camera/rectifier.hpp"
 
@@ -206,10 +207,7 @@ TEST(Rectifier, EurocMatchesLieOnTheSameRow) {
     ASSERT_TRUE(rectifier->rectify(left, right, left_rect, right_rect).ok());
     track(left_rect, right_rect, rectified_dy);
   }
-  auto median = [](std::vector<double> v) {
-    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-    return v[v.size() / 2];
-  };
+  auto median = [](std::vector<double> v) { return common::median(std::move(v)).value_or(0.0); };
   ASSERT_GT(rectified_dy.size(), 1000u);
   std::printf("EuRoC vertical disparity: median %.3f px raw, %.3f px rectified (%zu tracks)\n",
               median(raw_dy), median(rectified_dy), rectified_dy.size());

@@ -1,16 +1,13 @@
 #include "onboard/eval/odometry_run.hpp"
 
-#include <algorithm>
 #include <optional>
+
+#include "common/statistics.hpp"
 
 namespace stereomap::eval {
 
 double OdometryRun::medianMilliseconds() const {
-  if (milliseconds.empty()) return 0;
-  auto sorted = milliseconds;
-  std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2),
-                   sorted.end());
-  return sorted[sorted.size() / 2];
+  return common::median(milliseconds).value_or(0.0);
 }
 
 namespace {

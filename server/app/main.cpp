@@ -200,12 +200,15 @@ class DdsIngest {
   static void pump(proto::Reader<T>& reader, core::MapServer& server,
                    const common::Shutdown& shutdown) {
     std::vector<T> batch;
+    std::vector<proto::RefusedSample> refused;
     bool last_round = false;
     while (!last_round) {
       last_round = shutdown.stopRequested();  // after a stop: one more round for what arrived
       batch.clear();
-      reader.take(batch,
-                  last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500));
+      refused.clear();
+      reader.take(batch, last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500),
+                  &refused);
+      for (const auto& sample : refused) server.refuse(sample);
       for (const auto& sample : batch) server.ingest(sample);
     }
   }

@@ -376,6 +376,12 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
   return true;
 }
 
+void MapServer::refuse(const proto::RefusedSample& sample) {
+  metrics_.add(kReceived, {{"topic", sample.type}});
+  reject(sample.type.c_str(), Rejection{"bad_enum", sample.detail},
+         sample.vehicle_id + "/" + sample.session_id);
+}
+
 bool MapServer::ingest(const proto::LandingTargetMsg& target) {
   auto rejection = validateLandingTarget(target);
   if (!rejection && !find(target.session_id)) {

@@ -16,6 +16,7 @@
 
 #include "common/result.hpp"
 #include "common/worker_pool.hpp"
+#include "proto/dds.hpp"
 #include "proto/messages.hpp"
 #include "server/core/metrics.hpp"
 #include "server/core/session.hpp"
@@ -107,6 +108,10 @@ class MapServer {
   // journaled. Refused (reason "unknown_session") when the session does not exist: a
   // landing target alone does not make one.
   bool ingest(const proto::LandingTargetMsg& target);
+  // A sample DDS delivered that its type's checks refused (proto::Reader::take: an
+  // enumeration out of range): counted as received and rejected (reason "bad_enum") under its
+  // type, and logged like every rejection.
+  void refuse(const proto::RefusedSample& sample);
 
   // Creates session `id` (recovery, or opening a stored session read-only) at its own
   // resolution; fails when it is already loaded or the session limit is reached.

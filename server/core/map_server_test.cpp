@@ -32,6 +32,18 @@ TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
             std::string::npos);
 }
 
+// A sample proto's reader refused (an unknown enumeration) is counted under its type and
+// makes no session.
+TEST(MapServer, CountsSamplesTheReaderRefused) {
+  MapServer server({.resolution = 0.1});
+  server.refuse({"Pose", "uav-1", "a", "tracking_state has unknown value 9"});
+  EXPECT_EQ(server.metrics().get("stereomap_samples_rejected_total",
+                                 {{"topic", "Pose"}, {"reason", "bad_enum"}}),
+            1.0);
+  EXPECT_EQ(server.metrics().get("stereomap_samples_received_total", {{"topic", "Pose"}}), 1.0);
+  EXPECT_EQ(server.find("a"), nullptr);
+}
+
 // A journaled frame a restored snapshot already holds is counted and claimed, not fused: its
 // payload is not even decoded (most of a restart's time went there). A live frame with the
 // same payload is refused.

@@ -35,7 +35,12 @@ struct OccupancyMap::Impl {
     tree.setClampingThresMin(options.clamp_min);
     tree.setClampingThresMax(options.clamp_max);
     tree.setOccupancyThres(options.occupancy_threshold);
+    if (options.insertion == Insertion::kFast && options.threads >= 2 && options.pool == nullptr) {
+      own_pool = std::make_unique<common::WorkerPool>(1);
+      this->options.pool = own_pool.get();
+    }
   }
+  std::unique_ptr<common::WorkerPool> own_pool;  // when the options bring none
   Options options;
   detail::BulkOcTree tree;
 };

@@ -57,7 +57,7 @@ class OccupancyMap {
     Insertion insertion = Insertion::kFast;
     unsigned threads = 2;  // ray casting threads of the fast path
     // Where the fast path runs its second thread (not owned; it outlives the map); null: a
-    // thread of its own per step.
+    // pool of one thread that lives with the map (no thread is started per frame).
     common::WorkerPool* pool = nullptr;
 
     // OctoMap's defaults (above).

@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "common/cli.hpp"
+#include "common/statistics.hpp"
 #include "onboard/link/cloud_link.hpp"
 #include "proto/cloud_codec.hpp"
 #include "proto/wire_size.hpp"
@@ -48,9 +49,7 @@ size_t poseBytes() {
 }
 
 double median(std::vector<double> values) {
-  if (values.empty()) return 0;
-  std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
-  return values[values.size() / 2];
+  return common::median(std::move(values)).value_or(0.0);
 }
 
 struct Run {

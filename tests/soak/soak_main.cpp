@@ -31,6 +31,7 @@
 #include <vector>
 
 #include "common/cli.hpp"
+#include "common/statistics.hpp"
 #include "common/time.hpp"
 #include "server/store/journal.hpp"
 #include "tests/support/server_fixture.hpp"
@@ -107,9 +108,7 @@ int64_t medianKiB(const std::vector<std::pair<double, int64_t>>& samples, double
   std::vector<int64_t> in;
   for (const auto& [t, kib] : samples)
     if (t >= from && t < to) in.push_back(kib);
-  if (in.empty()) return 0;
-  std::nth_element(in.begin(), in.begin() + static_cast<long>(in.size() / 2), in.end());
-  return in[in.size() / 2];
+  return common::median(std::move(in)).value_or(0);
 }
 
 json sessionStatus(const ServerProcess& server, const std::string& session) {

@@ -51,7 +51,7 @@ bool ChildProcess::running() { return !waitExit(std::chrono::milliseconds(0)).ha
 
 std::optional<int> ChildProcess::waitExit(std::chrono::milliseconds timeout) {
   if (status_) return status_;
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  const auto deadline = std::chrono::steady_clock::now() + scaledTimeout(timeout);
   for (;;) {
     int status = 0;
     const pid_t done = waitpid(pid_, &status, WNOHANG);
@@ -151,12 +151,27 @@ ToolRun runTool(const std::vector<std::string>& argv, std::chrono::milliseconds 
 
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,
                std::chrono::milliseconds step) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  const auto deadline = std::chrono::steady_clock::now() + scaledTimeout(timeout);
   while (!done()) {
     if (std::chrono::steady_clock::now() >= deadline) return false;
     std::this_thread::sleep_for(step);  // polling a remote process: nothing to wait on
   }
   return true;
+}
+
+std::chrono::milliseconds scaledTimeout(std::chrono::milliseconds timeout) {
+  static const int scale = [] {
+    const char* text = std::getenv("STEREOMAP_TEST_TIME_SCALE");
+    if (text == nullptr || *text == '\0') return 1;
+    char* end = nullptr;
+    const long value = std::strtol(text, &end, 10);
+    if (*end != '\0' || value < 1 || value > 100)
+      throw std::invalid_argument(std::string("STEREOMAP_TEST_TIME_SCALE must be a whole number "
+                                              "from 1 to 100, not '") +
+                                  text + "'");
+    return static_cast<int>(value);
+  }();
+  return timeout * scale;
 }
 
 std::string makeTempDir(const std::string& prefix) {

@@ -1,5 +1,10 @@
 // Helpers for cross-process tests: a child process that is always cleaned up (SIGTERM, then
 // SIGKILL), a plain HTTP GET against the server on loopback, and waiting with a deadline.
+//
+// Deadlines that bound waiting for work to finish (waitExit, waitUntil, runTool, a server's
+// start) are stretched by STEREOMAP_TEST_TIME_SCALE (a whole number 1-100, default 1):
+// scripts/sanitize sets it, as an instrumented vehicle runs 10-20 times slower. A test that
+// measures against a time budget must not rely on these for its measurement.
 #pragma once
 
 #include <chrono>
@@ -60,6 +65,10 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
 // Calls `done` until it returns true or `timeout` passes; true when it did.
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,
                std::chrono::milliseconds step = std::chrono::milliseconds(200));
+
+// `timeout` times STEREOMAP_TEST_TIME_SCALE; throws std::invalid_argument naming the variable
+// when it is set to anything but a whole number from 1 to 100.
+std::chrono::milliseconds scaledTimeout(std::chrono::milliseconds timeout);
 
 // A fresh empty directory under $TMPDIR, removed by the caller.
 std::string makeTempDir(const std::string& prefix);

@@ -8,6 +8,7 @@
 #include <tuple>
 #include <vector>
 
+#include "common/statistics.hpp"
 #include "onboard/sim/sim_source.hpp"
 #include "tests/support/seen_voxels.hpp"
 
@@ -48,10 +49,7 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
   SimMapAccuracy result;
   result.noise_sigma = depth.noiseSigma();
   result.level = depth.level();
-  if (!depth_ms.empty()) {
-    std::nth_element(depth_ms.begin(), depth_ms.begin() + depth_ms.size() / 2, depth_ms.end());
-    result.depth_ms = depth_ms[depth_ms.size() / 2];
-  }
+  result.depth_ms = common::median(std::move(depth_ms)).value_or(0.0);
   const auto occupied = map.occupiedVoxels();
   const double half_diagonal = resolution * std::sqrt(3.0) / 2;
   size_t correct = 0, within_1 = 0, within_2 = 0;

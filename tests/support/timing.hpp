@@ -1,10 +1,11 @@
 // Timing for the benchmark binaries: the median wall time of repeated runs.
 #pragma once
 
-#include <algorithm>
 #include <chrono>
 #include <functional>
 #include <vector>
+
+#include "common/statistics.hpp"
 
 namespace stereomap::testing {
 
@@ -16,8 +17,7 @@ inline double medianMs(int runs, const std::function<void()>& work) {
     ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
                      .count());
   }
-  std::nth_element(ms.begin(), ms.begin() + ms.size() / 2, ms.end());
-  return ms[ms.size() / 2];
+  return common::median(std::move(ms)).value_or(0.0);
 }
 
 }  // namespace stereomap::testing

@@ -6,7 +6,6 @@
 #include <cassert>
 #include <cmath>
 #include <limits>
-#include <thread>
 
 namespace stereomap::fusion::detail {
 
@@ -207,9 +206,8 @@ uint8_t occupancyByte(float log_odds) {
 void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
             const std::function<void()>& second) {
   if (pool != nullptr) return pool->runPair(first, second);
-  std::thread helper(second);
-  first();
-  helper.join();
+  first();  // no helper to run it on: both halves here, one after the other
+  second();
 }
 
 uint64_t mortonCode(const OcTreeKey& key) { return mortonOfKeys(key[0], key[1], key[2]); }

@@ -23,7 +23,7 @@ namespace stereomap::fusion::detail {
 // round(255 * P) for log-odds L (P = 1 / (1 + e^-L)).
 uint8_t occupancyByte(float log_odds);
 
-// Runs two halves of a step: on the pool when there is one, else on a thread of their own.
+// Runs two halves of a step: on the pool when there is one, else one after the other here.
 void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
             const std::function<void()>& second);
 
