@@ -5,6 +5,16 @@ function(stereomap_target_defaults target)
   target_compile_options(${target} PRIVATE -Wall -Wextra -Werror -Wno-missing-field-initializers)
 endfunction()
 
+# Every binary (test, app, bench): under ThreadSanitizer, OpenCV runs serially
+# (common/tsan_serial_opencv.cpp says why).
+function(stereomap_binary_defaults target)
+  stereomap_target_defaults(${target})
+  if(STEREOMAP_SANITIZE MATCHES "thread")
+    target_sources(${target} PRIVATE ${PROJECT_SOURCE_DIR}/common/tsan_serial_opencv.cpp)
+    target_link_libraries(${target} PRIVATE opencv_core)
+  endif()
+endfunction()
+
 # stereomap_library(NAME SOURCES ... DEPS ...): one library per concern, explicit sources.
 function(stereomap_library name)
   cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;PRIVATE_DEPS" ${ARGN})
@@ -28,7 +38,7 @@ function(stereomap_test name)
     STEREOMAP_DDS_CONFIG="${STEREOMAP_DDS_CONFIG}"
     STEREOMAP_BIN_DIR="${CMAKE_RUNTIME_OUTPUT_DIRECTORY}")
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
-  stereomap_target_defaults(${name})
+  stereomap_binary_defaults(${name})
   set(serial FALSE)
   if(ARG_SERIAL)
     set(serial TRUE)
@@ -43,7 +53,7 @@ function(stereomap_app name)
   cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
   add_executable(${name} ${ARG_SOURCES})
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} CLI11::CLI11)
-  stereomap_target_defaults(${name})
+  stereomap_binary_defaults(${name})
 endfunction()
 
 # stereomap_bench(NAME SOURCES ... DEPS ... [DATA] [JEMALLOC]): the benchmark binary
@@ -60,5 +70,5 @@ function(stereomap_bench name)
   if(ARG_JEMALLOC)
     stereomap_use_jemalloc(${target})
   endif()
-  stereomap_target_defaults(${target})
+  stereomap_binary_defaults(${target})
 endfunction()
