@@ -35,12 +35,17 @@ struct OccupancyMap::Impl {
     tree.setClampingThresMin(options.clamp_min);
     tree.setClampingThresMax(options.clamp_max);
     tree.setOccupancyThres(options.occupancy_threshold);
-    if (options.insertion == Insertion::kFast && options.threads >= 2 && options.pool == nullptr) {
-      own_pool = std::make_unique<common::WorkerPool>(1);
-      this->options.pool = own_pool.get();
-    }
   }
-  std::unique_ptr<common::WorkerPool> own_pool;  // when the options bring none
+  // The fast path's second thread: the options' pool, else one of the map's own, started at
+  // the first insertion (a map that is only loaded, queried or exported starts none).
+  common::WorkerPool* pool() {
+    if (options.pool == nullptr && options.threads >= 2) {
+      own_pool = std::make_unique<common::WorkerPool>(1);
+      options.pool = own_pool.get();
+    }
+    return options.pool;
+  }
+  std::unique_ptr<common::WorkerPool> own_pool;
   Options options;
   detail::BulkOcTree tree;
 };
@@ -80,8 +85,8 @@ void OccupancyMap::insertCloud(const common::PointCloud& cloud_sensor,
     // Scratch buffers (several MB) live with the thread, so that a fusion worker reuses
     // them across frames and maps instead of faulting fresh pages in every time.
     thread_local detail::BulkInserter inserter;
-    inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads,
-                    impl_->options.pool, changes != nullptr ? &changes->voxels : nullptr);
+    inserter.insert(impl_->tree, points, origin, max_range_m, impl_->options.threads, impl_->pool(),
+                    changes != nullptr ? &changes->voxels : nullptr);
     if (changes != nullptr) changes->complete = true;
   } else {
     if (changes != nullptr) *changes = {.complete = false, .voxels = {}};

@@ -57,7 +57,8 @@ class OccupancyMap {
     Insertion insertion = Insertion::kFast;
     unsigned threads = 2;  // ray casting threads of the fast path
     // Where the fast path runs its second thread (not owned; it outlives the map); null: a
-    // pool of one thread that lives with the map (no thread is started per frame).
+    // pool of one thread that lives with the map from its first insertion (no thread is
+    // started per frame).
     common::WorkerPool* pool = nullptr;
 
     // OctoMap's defaults (above).
