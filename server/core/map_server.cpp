@@ -241,7 +241,9 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const Message& mess
   if (origin == Origin::kLive) {
     std::optional<int64_t> pose_stamp_ns;
     if constexpr (std::is_same_v<Message, proto::PoseMsg>) pose_stamp_ns = message.stamp_ns;
-    noteTraffic(topic, session_id, vehicle_id, proto::wireBytes(message), pose_stamp_ns);
+    const size_t bytes = proto::wireBytes(message);
+    noteTraffic(topic, session_id, vehicle_id, bytes, pose_stamp_ns);
+    session->noteLive(common::nowNs(), bytes);
   }
   return session;
 }
@@ -251,7 +253,6 @@ std::optional<uint64_t> MapServer::record(const char* topic, const Message& mess
                                           Session& session, Origin origin) {
   uint64_t seq = 0;  // session events carry no seq: their stamp tells them apart
   if constexpr (requires { message.seq; }) seq = message.seq;
-  if (origin == Origin::kLive) session.noteLive(common::nowNs());
   if (origin != Origin::kLive || options_.log == nullptr) {
     if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
       metrics_.add(kDuplicates, {{"topic", topic}});
@@ -390,7 +391,6 @@ bool MapServer::ingest(const proto::LandingTargetMsg& target) {
   }
   auto session = admit("LandingTarget", target, rejection, Origin::kLive);
   if (!session) return false;
-  session->noteLive(common::nowNs());
   session->setLandingTarget(target);
   return true;
 }

@@ -148,8 +148,8 @@ class MapServer {
                                       std::optional<Rejection>& refusal);
   Session::Options sessionOptions(const std::string& id, double resolution, bool read_only,
                                   bool snapshots = true) const;
-  // Counts the sample (and a live one's bytes, by vehicle) and returns its session, or
-  // nullptr (counted, logged) when rejected.
+  // Counts the sample (a live one's bytes by vehicle and in its session, which it keeps live)
+  // and returns its session, or nullptr (counted, logged) when rejected.
   template <typename Message>
   std::shared_ptr<Session> admit(const char* topic, const Message& message,
                                  std::optional<Rejection> rejection, Origin origin);

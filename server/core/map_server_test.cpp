@@ -106,6 +106,52 @@ TEST(MapServer, CountsEachVehiclesBytes) {
   EXPECT_EQ(server.metricsText().find("session=\"a\""), std::string::npos);
 }
 
+// A session's own counts of what its vehicles sent, which the viewer turns into poses/s,
+// clouds/s and the link's kB/s: the clouds and poses taken, and the bytes of every live sample
+// taken for it (each topic, duplicates too: they crossed the link), the sum of its vehicles'
+// series in /metrics. Replayed samples crossed no link now; rejected ones were not taken.
+TEST(MapServer, ASessionCountsTheCloudsPosesAndLinkBytesItsVehiclesSent) {
+  MapServer server({.resolution = 0.1});
+  proto::SessionEventMsg started;
+  started.vehicle_id = "v1";
+  started.session_id = "a";
+  started.stamp_ns = 1'000'000'000;
+  ASSERT_TRUE(server.ingest(started));
+  const auto frame = testing::wallFrame("a", 2.05);
+  ASSERT_TRUE(server.ingest(frame));
+  auto pose = testing::poseAt("a", 0.5, 1'000'000'000);
+  ASSERT_TRUE(server.ingest(pose));
+  EXPECT_FALSE(server.ingest(pose));  // a duplicate: on the link, but no new pose
+  pose.vehicle_id = "v2";
+  ASSERT_TRUE(server.ingest(pose));
+  proto::LandingTargetMsg target;
+  target.vehicle_id = "v1";
+  target.session_id = "a";
+  ASSERT_TRUE(server.ingest(target));
+  auto bad = frame;
+  bad.payload.resize(10);
+  EXPECT_FALSE(server.ingest(bad));  // rejected
+  auto replayed = testing::poseAt("a", 0.6, 2'000'000'000);
+  ASSERT_TRUE(server.ingest(replayed, Origin::kReplay));
+  ASSERT_TRUE(server.ingest(testing::wallFrame("b", 2.05)));  // another session's
+
+  const auto status = server.find("a")->status();
+  EXPECT_EQ(status.frames_received, 1u);
+  EXPECT_EQ(status.poses, 3u);  // v1's, v2's and the replayed one
+  const size_t link_bytes = proto::wireBytes(started) + proto::wireBytes(frame) +
+                            3 * proto::wireBytes(pose) + proto::wireBytes(target);
+  EXPECT_EQ(status.bytes_received, link_bytes);
+  double in_metrics = 0;
+  for (const char* vehicle : {"v1", "v2"}) {
+    for (const char* topic : {"SessionEvent", "CloudFrame", "Pose", "LandingTarget"}) {
+      in_metrics +=
+          server.metrics().get("stereomap_vehicle_received_bytes_total",
+                               {{"session", "a"}, {"vehicle", vehicle}, {"topic", topic}});
+    }
+  }
+  EXPECT_EQ(in_metrics, static_cast<double>(link_bytes));
+}
+
 // A journal that keeps everything but pose corrections (a disk that fills up just then).
 class NoRoomForCorrections : public IngestLog {
  public:

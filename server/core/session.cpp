@@ -348,9 +348,10 @@ void Session::markEnded() {
   ended_by_ = "vehicle";
 }
 
-void Session::noteLive(int64_t now_ns) {
+void Session::noteLive(int64_t now_ns, size_t bytes) {
   std::lock_guard lock(state_mutex_);
   last_live_ns_ = std::max(last_live_ns_, now_ns);
+  bytes_received_ += bytes;
   if (ended_by_ == "silence") ended_ = false, ended_by_.clear();
 }
 
@@ -581,6 +582,7 @@ SessionStatus Session::status() const {
   status.snapshots = snapshots_;
   status.snapshot_stall_max_seconds = snapshot_stall_max_seconds_;
   status.poses = trajectory_.size();
+  status.bytes_received = bytes_received_;
   status.ended = ended_;
   status.ended_by = ended_by_;
   status.read_only = options_.read_only;

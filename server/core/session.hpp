@@ -61,7 +61,7 @@ struct SessionStatus {
   std::string id;
   std::vector<std::string> vehicles;  // in order of first appearance
   double resolution = 0;
-  uint64_t frames_received = 0;
+  uint64_t frames_received = 0;  // clouds taken: fused, waiting, deferred or dropped
   uint64_t frames_fused = 0;
   uint64_t frames_dropped = 0;  // queue full: fusion fell behind (without a journal: lost)
   // Queue full, with a journal: fused later from the journal once the queue drains.
@@ -69,7 +69,10 @@ struct SessionStatus {
   size_t backlog = 0;
   size_t occupied_voxels = 0;
   common::Box3 bounds;
-  size_t poses = 0;
+  size_t poses = 0;  // poses taken (the trajectory's length)
+  // What the live samples taken for it (every topic, duplicates too) took on the link from its
+  // vehicles, as this server counted them since it loaded the session (proto/wire_size.hpp).
+  uint64_t bytes_received = 0;
   bool ended = false;
   // Who ended it: "vehicle" (its end event) or "silence" (no samples for the server's
   // --vehicle-timeout: the vehicle stopped unseen, e.g. while the server was down).
@@ -159,9 +162,9 @@ class Session {
   void correct(const std::string& vehicle, std::shared_ptr<const PoseCorrection> correction,
                bool refuse);
   void markEnded();  // by its vehicle's end event
-  // A live sample arrived (a new one or DDS history): the vehicle is there. Revives a
-  // session that silence had ended.
-  void noteLive(int64_t now_ns);
+  // A live sample of `bytes` on the link arrived (a new one or DDS history): the vehicle is
+  // there. Revives a session that silence had ended.
+  void noteLive(int64_t now_ns, size_t bytes);
   // Ends a live session whose vehicles sent nothing for `timeout_ns`; true when it did now.
   bool endIfSilent(int64_t now_ns, int64_t timeout_ns);
 
@@ -264,6 +267,7 @@ class Session {
   bool ended_ = false;
   std::string ended_by_;
   int64_t last_live_ns_ = 0;  // the last live sample (or the session's creation)
+  uint64_t bytes_received_ = 0;
   std::string store_error_;
   uint64_t samples_refused_ = 0;
   std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections_;  // by vehicle

@@ -33,6 +33,7 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                      {"deferred_frames", s.frames_deferred},
                      {"fusion_backlog", s.backlog},
                      {"poses", s.poses},
+                     {"bytes_received", s.bytes_received},
                      {"ended_by", textOrNull(s.ended_by)},
                      {"store_error", textOrNull(s.store_error)},
                      {"samples_refused", s.samples_refused},
@@ -75,6 +76,7 @@ SessionStatus sessionFromJson(const std::string& id, const json& doc) {
   s.frames_dropped = count("dropped_frames");
   s.occupied_voxels = count("occupied_voxels");
   s.poses = count("poses");
+  s.bytes_received = count("bytes_received");
   s.samples_refused = count("samples_refused");
   s.corrections = count("corrections");
   s.refusions = count("refusions");

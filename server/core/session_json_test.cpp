@@ -19,6 +19,7 @@ SessionStatus sample() {
   s.bounds.extend({-1, -2, -3});
   s.bounds.extend({4, 5, 6});
   s.poses = 99;
+  s.bytes_received = 5'000'000'000;  // past 32 bits
   s.ended = true;
   s.ended_by = "silence";
   s.samples_refused = 3;
@@ -33,6 +34,10 @@ TEST(SessionJson, WhatIsWrittenReadsBack) {
   EXPECT_EQ(object["state"], "ended");
   EXPECT_EQ(object["vehicle"], "v1");
   EXPECT_EQ(object["store_error"], nullptr);
+  // The cumulative counts a viewer derives clouds/s, poses/s and the link's kB/s from.
+  EXPECT_EQ(object["frames_received"], 12u);
+  EXPECT_EQ(object["poses"], 99u);
+  EXPECT_EQ(object["bytes_received"], 5'000'000'000u);
   const SessionStatus read = sessionFromJson("flight-1", object);
   EXPECT_EQ(read.vehicles, written.vehicles);
   EXPECT_EQ(read.resolution, written.resolution);
@@ -41,6 +46,7 @@ TEST(SessionJson, WhatIsWrittenReadsBack) {
   EXPECT_EQ(read.frames_dropped, written.frames_dropped);
   EXPECT_EQ(read.occupied_voxels, written.occupied_voxels);
   EXPECT_EQ(read.poses, written.poses);
+  EXPECT_EQ(read.bytes_received, written.bytes_received);
   EXPECT_EQ(read.ended_by, written.ended_by);
   EXPECT_EQ(read.samples_refused, written.samples_refused);
   EXPECT_EQ(read.corrections, written.corrections);

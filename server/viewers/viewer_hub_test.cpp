@@ -9,6 +9,7 @@
 #include <map>
 
 #include "common/time.hpp"
+#include "proto/wire_size.hpp"
 #include "testing/synthetic.hpp"
 
 namespace stereomap::viewers {
@@ -145,6 +146,41 @@ TEST_F(OneWall, EarlyAndLateViewersHoldExactlyTheServersMap) {
   ASSERT_EQ(asked.ofType("poses").size(), 1u);
   EXPECT_EQ(asked.ofType("poses")[0]["poses"].size(), 2u);
   EXPECT_EQ(asked.ofType("trajectory_done")[0]["poses"], 2);
+}
+
+// A viewer's poses/s, clouds/s and link kB/s come from its session's counts over time: the
+// poll after each live sample brings every viewer the status with the counts as they are then,
+// so the last one received holds until another comes; a poll after nothing new sends none.
+TEST_F(OneWall, ThePollAfterEachLiveSampleBringsTheSessionsCounts) {
+  Received got;
+  const auto id = watchEverything(hub, got);
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  const auto statusNow = [&] {
+    got.texts.clear();
+    hub.poll(common::nowNs());
+    drain(hub, id, got);
+    const auto statuses = got.ofType("session");
+    return statuses.size() == 1 ? statuses[0] : json();
+  };
+  size_t link_bytes = proto::wireBytes(wallFrame("s", 0));
+  for (int seq = 1; seq <= 3; ++seq) {
+    ASSERT_TRUE(server.ingest(pose("s", seq)));
+    link_bytes += proto::wireBytes(pose("s", seq));
+    const json status = statusNow();
+    ASSERT_TRUE(status.is_object()) << "pose " << seq << ": no single status after it";
+    EXPECT_EQ(status["poses"], seq);
+    EXPECT_EQ(status["frames_received"], 1);
+    EXPECT_EQ(status["bytes_received"], link_bytes);
+  }
+  ASSERT_TRUE(server.ingest(wallFrame("s", 1)));
+  link_bytes += proto::wireBytes(wallFrame("s", 1));
+  server.find("s")->waitUntilIdle();
+  const json status = statusNow();
+  ASSERT_TRUE(status.is_object());
+  EXPECT_EQ(status["frames_received"], 2);
+  EXPECT_EQ(status["bytes_received"], link_bytes);
+  EXPECT_TRUE(statusNow().is_null());  // nothing changed
 }
 
 // A vehicle's pose correction changes poses the viewer already has: every pose comes again,

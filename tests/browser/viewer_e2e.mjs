@@ -1,11 +1,12 @@
 #!/usr/bin/env node
 // End-to-end test of the browser viewer: a real stereomap-server and stereomap-onboard (sim
 // source) over DDS on loopback, the built viewer in headless Debian chromium. Checks that the
-// page ends up drawing exactly the server's occupied voxels, frame count and trajectory; then
-// (with ../shared/data) the imported Freiburg campus map at the levels the server chose, tile
-// by tile against GET /api/sessions/campus/tiles; the time slider replaying the flight to its
-// middle and back; switching sessions; and a page that
-// reconnects by itself after the server restarts. Screenshots sit beside --screenshot.
+// page shows the live rates while the vehicle flies and ends up drawing exactly the server's
+// occupied voxels, frame count and trajectory; then (with ../shared/data) the imported
+// Freiburg campus map at the levels the server chose, tile by tile against
+// GET /api/sessions/campus/tiles; the time slider replaying the flight to its middle and back;
+// switching sessions; and a page that reconnects by itself after the server restarts.
+// Screenshots sit beside --screenshot.
 //
 // Usage: viewer_e2e.mjs --bin-dir DIR --web-root DIR --dds-config FILE --domain N
 //                       --screenshot FILE [--port P] [--frames 60]
@@ -241,6 +242,24 @@ async function run(options, resources, progress) {
   }, onboardHealthy);
   const firstPoses = first.h.poses;
   console.log(`first voxels on the page: ${first.h.voxels} voxels, trajectory ${firstPoses} poses, session ${first.h.session}`);
+
+  progress.step = 'reading the live rates on the status line';
+  // The vehicle sends at --rate 10: each rate is above 0 and, smoothed over spans of at least
+  // 1 s, not far above 10 even when DDS delivers in bursts.
+  const ratesPattern = /(\d+\.\d) poses\/s · (\d+\.\d) clouds\/s · link ([\d.,]+) kB\/s · viewer ([\d.,]+) kB\/s/;
+  const rates = await waitUntil('the status line to show "N poses/s · N clouds/s · link N kB/s · viewer N kB/s" while the vehicle flies',
+    (frames / 10) * 1000 + 60_000, 250, async () => {
+      const text = await page.textContent('#status');
+      const [poses, clouds, link, viewer] = (ratesPattern.exec(text) ?? []).slice(1).map((v) => Number(v.replace(/,/g, '')));
+      if (poses === undefined && onboard.exit !== null) throw new TestFailure(`expected the live rates on the status line before the flight ended, seen "${text}"`);
+      return { ok: poses > 0 && clouds > 0 && link > 0 && viewer > 0, seen: `"${text}"`, text, poses, clouds };
+    }, onboardHealthy);
+  console.log(`status line while flying: ${rates.text}`);
+  const liveShot = options.screenshot.replace(/\.png$/, '') + '_live.png';
+  await mkdir(path.dirname(liveShot), { recursive: true });
+  await page.screenshot({ path: liveShot });
+  console.log(`screenshot: ${liveShot}`);
+  if (!(rates.poses <= 15 && rates.clouds <= 15)) throw new TestFailure(`expected at most 15 poses/s and clouds/s from a vehicle at --rate 10, seen "${rates.text}"`);
 
   progress.step = 'waiting for stereomap-onboard to finish';
   // At --rate 10 the frames take frames / 10 s; the rest is start-up and DDS discovery.

@@ -5,10 +5,11 @@
 // window.__stereomap for the end-to-end test.
 
 import { rampCssGradient } from './core/colour_ramp.js';
-import { statusText } from './core/format.js';
+import { ratesText, statusText } from './core/format.js';
 import { landingText, padOutline } from './core/landing.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
 import { ProtocolError, dropMessage, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
+import { RateMeter } from './core/rate_meter.js';
 import { TileFormatError, decodeTile } from './core/tile_codec.js';
 import { MapView } from './three/map_view.js';
 
@@ -29,9 +30,13 @@ const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-bu
   .map((id) => [id, document.getElementById(id)]));
 
 const store = new MapStore(kCacheBytes);
-const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0, bytesPerSecond: 0,
+// `bytes`: what this page's connections received, in all.
+const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0,
   received: 0, applied: 0, lastMessageMs: null };
-const rate = { frames: null, atMs: 0, perSecond: 0 }; // the subscribed session's fused frames per second
+// Rates for the status line: the live session's (`sessionId`) poses and clouds taken and its
+// vehicles' link bytes, from its statuses' counts; this page's connection from link.bytes.
+const meters = { sessionId: null, poses: new RateMeter(), clouds: new RateMeter(), linkBytes: new RateMeter(),
+  viewerBytes: new RateMeter() };
 let pinnedSessionId = params.get('session'); // null: follow the latest
 let dataChanged = false; // messages arrived since the view was last synchronised
 let viewId = 0;
@@ -104,6 +109,13 @@ function updateTimeline() {
   elements['live-button'].disabled = session.replayUntil === null;
 }
 
+// The session shown, when it is live and shown as it is now (not a replay); else null.
+function liveSession() {
+  const session = store.subscribed;
+  const live = session?.id === displayedSessionId() && session.status?.state === 'live' && session.replayUntil === null;
+  return live ? session : null;
+}
+
 function updateStatus() {
   const id = displayedSessionId();
   const session = store.subscribed?.id === id ? store.subscribed : null;
@@ -119,9 +131,14 @@ function updateStatus() {
     corrections: session?.status?.corrections ?? 0,
     refusing: session?.status?.refusing ?? false,
   });
-  const live = session?.status?.state === 'live' && session.replayUntil === null;
-  if (live) text += ` · ${rate.perSecond.toFixed(1)} frames/s`;
-  if (link.connected) text += ` · ${(link.bytesPerSecond / 1024).toFixed(0)} kB/s`;
+  const live = liveSession() !== null;
+  const rates = ratesText({
+    poses: live ? meters.poses.perSecond : null,
+    clouds: live ? meters.clouds.perSecond : null,
+    linkBytes: live ? meters.linkBytes.perSecond : null,
+    viewerBytes: link.connected ? meters.viewerBytes.perSecond : null,
+  });
+  if (rates) text += ` · ${rates}`;
   // Lag: from the server's change of the map to its tiles here (the same clock only on one host).
   if (live && store.lastLatency !== null) text += ` · lag ${Math.max(0, store.lastLatency).toFixed(0)} ms`;
   if (session?.replayUntil != null) text += ` · replay at ${formatClock(session.replayUntil)} UTC`;
@@ -188,7 +205,6 @@ async function receive(data) {
     if (typeof data === 'string') {
       receiveText(data);
     } else {
-      link.bytes += data.byteLength;
       store.applyTile(await decodeTile(new Uint8Array(data)));
       const mine = store.subscribed;
       if (mine?.evicted.length > 0) send(dropMessage(mine.id, mine.evicted.splice(0)));
@@ -218,7 +234,7 @@ function connect() {
   socket.onmessage = (event) => {
     link.received += 1;
     link.lastMessageMs = Date.now();
-    if (typeof event.data === 'string') link.bytes += event.data.length;
+    link.bytes += typeof event.data === 'string' ? event.data.length : event.data.byteLength;
     // A failure nobody foresaw is reported and the chain goes on with the next message.
     inbox = inbox.then(() => receive(event.data)).catch((error) => console.error(`stereomap: ${error.stack ?? error}`));
   };
@@ -357,16 +373,21 @@ window.__stereomap = {
   timeRange: () => store.subscribed?.timeRange ?? null,
   frames: () => (store.subscribed?.id === displayedSessionId() ? store.subscribed.frames : 0),
 };
+// The counts as they stand now go to the rates: the server sends a session's status within
+// 25 ms of each live sample, so the last one received holds until another comes.
 setInterval(() => {
-  link.bytesPerSecond = (link.bytes * 1000) / kStatusRefreshMs;
-  link.bytes = 0;
-  const frames = store.subscribed?.frames ?? null;
-  const nowMs = Date.now();
-  if (frames !== null && rate.frames !== null && frames >= rate.frames) {
-    const current = ((frames - rate.frames) * 1000) / (nowMs - rate.atMs);
-    rate.perSecond = 0.7 * rate.perSecond + 0.3 * current; // smoothed over a few seconds
+  const nowMs = performance.now();
+  meters.viewerBytes.add(link.bytes, nowMs);
+  const live = liveSession();
+  if ((live?.id ?? null) !== meters.sessionId) {
+    for (const meter of [meters.poses, meters.clouds, meters.linkBytes]) meter.reset();
+    meters.sessionId = live?.id ?? null;
   }
-  Object.assign(rate, { frames, atMs: nowMs });
+  if (live) {
+    meters.poses.add(live.status.poses, nowMs);
+    meters.clouds.add(live.status.framesReceived, nowMs);
+    meters.linkBytes.add(live.status.bytesReceived, nowMs);
+  }
   updateStatus();
 }, kStatusRefreshMs);
 updateSessionList();

@@ -14,6 +14,30 @@ export function formatCount(n) {
   return Math.round(n).toString().replace(/\B(?=(\d{3})+(?!\d))/g, ',');
 }
 
+/**
+ * Bytes per second as kB/s, 1 kB = 1000 bytes (so that 8 × is the kbit/s of link budgets):
+ * "0.4 kB/s", "9.9 kB/s", "28 kB/s", "1,234 kB/s".
+ */
+export function formatKilobytesPerSecond(bytesPerSecond) {
+  const kB = Math.max(0, bytesPerSecond) / 1000;
+  return `${kB < 9.95 ? kB.toFixed(1) : formatCount(kB)} kB/s`;
+}
+
+/**
+ * The rates on the status line, each per second or null (not measured: left out).
+ * `poses`, `clouds`: what a live session's vehicles sent that the server took, all vehicles
+ * together; `linkBytes`: those vehicles' samples on their link into the server; `viewerBytes`:
+ * what this page's connection received. "10.0 poses/s · 3.2 clouds/s · link 28 kB/s · viewer 12 kB/s".
+ */
+export function ratesText({ poses = null, clouds = null, linkBytes = null, viewerBytes = null }) {
+  const parts = [];
+  if (poses !== null) parts.push(`${poses.toFixed(1)} poses/s`);
+  if (clouds !== null) parts.push(`${clouds.toFixed(1)} clouds/s`);
+  if (linkBytes !== null) parts.push(`link ${formatKilobytesPerSecond(linkBytes)}`);
+  if (viewerBytes !== null) parts.push(`viewer ${formatKilobytesPerSecond(viewerBytes)}`);
+  return parts.join(' · ');
+}
+
 function plural(n, word) {
   return `${formatCount(n)} ${word}${n === 1 ? '' : 's'}`;
 }

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { formatAge, formatCount, statusText } from './format.js';
+import { formatAge, formatCount, formatKilobytesPerSecond, ratesText, statusText } from './format.js';
 
 describe('formatAge', () => {
   it.each([
@@ -32,5 +32,21 @@ describe('statusText', () => {
 
   it('groups thousands', () => {
     expect([0, 999, 1000, 1234567].map(formatCount)).toEqual(['0', '999', '1,000', '1,234,567']);
+  });
+});
+
+describe('ratesText', () => {
+  it('says poses/s and clouds/s apart, and the vehicles\' link apart from this page\'s', () => {
+    expect(ratesText({ poses: 10, clouds: 3.24, linkBytes: 28_400, viewerBytes: 12_000 }))
+      .toBe('10.0 poses/s · 3.2 clouds/s · link 28 kB/s · viewer 12 kB/s');
+  });
+  it('leaves out what is not measured (yet, or at all: not live)', () => {
+    expect(ratesText({ viewerBytes: 512 })).toBe('viewer 0.5 kB/s');
+    expect(ratesText({ poses: 0, clouds: null, linkBytes: 0 })).toBe('0.0 poses/s · link 0.0 kB/s');
+    expect(ratesText({})).toBe('');
+  });
+  it('gives kB/s of 1000 bytes, a decimal below 10', () => {
+    expect([0, 49, 9_949, 9_950, 28_499, 1_234_400, -5].map(formatKilobytesPerSecond))
+      .toEqual(['0.0 kB/s', '0.0 kB/s', '9.9 kB/s', '10 kB/s', '28 kB/s', '1,234 kB/s', '0.0 kB/s']);
   });
 });

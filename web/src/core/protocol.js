@@ -35,7 +35,7 @@ function field(message, name, isValid, expected, { optional = false, fallback } 
 
 const requireId = (m, name) => field(m, name, (v) => isString(v) && v.length > 0, 'a non-empty string');
 const count = (m, name) => field(m, name, isCount, 'a count');
-const optionalCount = (m, name) => field(m, name, isCount, 'a count', { optional: true, fallback: 0 });
+const optionalCount = (m, name, fallback = 0) => field(m, name, isCount, 'a count', { optional: true, fallback });
 
 function isPoint(v) {
   return Array.isArray(v) && v.length === 3 && v.every(isFiniteNumber);
@@ -73,6 +73,9 @@ function status(m) {
     frames: count(m, 'frames'),
     occupiedVoxels: count(m, 'occupied_voxels'),
     poses: optionalCount(m, 'poses'),
+    // Clouds taken and the vehicles' link bytes, cumulative: null from a server that does not say.
+    framesReceived: optionalCount(m, 'frames_received', null),
+    bytesReceived: optionalCount(m, 'bytes_received', null),
     droppedFrames: optionalCount(m, 'dropped_frames'),
     backlog: optionalCount(m, 'fusion_backlog'),
     corrections: optionalCount(m, 'corrections'),

@@ -10,6 +10,10 @@ describe('parseMessage', () => {
     expect(list.sessions[0]).toMatchObject({ id: 's1', occupiedVoxels: 40, state: 'live', corrections: 0, refusing: false });
     const corrected = parseMessage(JSON.stringify({ type: 'session', ...status, corrections: 3, refusing: true }));
     expect(corrected).toMatchObject({ corrections: 3, refusing: true });
+    expect(list.sessions[0]).toMatchObject({ poses: 2, framesReceived: null, bytesReceived: null }); // not said: unknown
+    const counted = parseMessage(JSON.stringify({ type: 'session', ...status, frames_received: 4, bytes_received: 5_000_000_000 }));
+    expect(counted).toMatchObject({ poses: 2, framesReceived: 4, bytesReceived: 5_000_000_000 });
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, bytes_received: -1 }))).toThrow(/"bytes_received"/);
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, refusing: 'yes' }))).toThrow(/"refusing"/);
     const subscribed = parseMessage(JSON.stringify({ type: 'subscribed', session: 's1', resolution: 0.1, version: 4, voxels: 40, tiles: 2,
       bounds: { min: [0, 0, 0], max: [1, 1, 1] }, status }));
