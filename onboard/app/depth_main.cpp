@@ -18,7 +18,8 @@ int main(int argc, char** argv) {
   std::string left_path, right_path, calib_path, disparity_out, cloud_out, colorized_out;
   std::string preset = "accurate";
   int max_disparity = 0;
-  double max_range = 20.0;
+  std::string max_range = "auto";
+  double map_resolution = 0.1;
   app.add_option("--left", left_path, "Left image")->required()->check(CLI::ExistingFile);
   app.add_option("--right", right_path, "Right image")->required()->check(CLI::ExistingFile);
   app.add_option("--calib", calib_path,
@@ -35,8 +36,16 @@ int main(int argc, char** argv) {
       ->required();
   app.add_option("--cloud-out", cloud_out, "PLY point cloud in the left camera frame");
   app.add_option("--colorized", colorized_out, "Colour picture of the disparity");
-  app.add_option("--max-range", max_range, "Cloud range limit, metres")
-      ->check(CLI::PositiveNumber)
+  app.add_option("--max-range", max_range,
+                 "Cloud range limit, metres, or auto (with --calib: where a disparity error "
+                 "moves a point by less than a voxel of --map-resolution, as the vehicle's; "
+                 "without: 20)")
+      ->check(CLI::IsMember({"auto"}) | CLI::PositiveNumber)
+      ->capture_default_str();
+  app.add_option("--map-resolution", map_resolution,
+                 "With --calib: the map's voxel, for the automatic range and disparity search "
+                 "(the vehicle's: stereomap-onboard --map-resolution)")
+      ->check(CLI::Range(0.001, 10.0))
       ->capture_default_str();
   if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
   if (!cloud_out.empty() && calib_path.empty()) {
@@ -79,7 +88,20 @@ int main(int argc, char** argv) {
 
   stereo::MatcherOptions options =
       preset == "fast" ? stereo::MatcherOptions::fast() : stereo::MatcherOptions::accurate();
-  if (max_disparity > 0) options.num_disparities = stereo::disparitiesFor(max_disparity);
+  double range_m = max_range == "auto" ? 20.0 : std::stod(max_range);
+  if (max_disparity > 0) {
+    options.num_disparities = stereo::disparitiesFor(max_disparity);
+  } else if (rectifier) {
+    // The vehicle's search: the rig's range and its pyramid of windows (rig_range.hpp).
+    const auto range =
+        stereo::rigRange(rectifier->camera(), {.map_resolution_m = map_resolution,
+                                               .precision_px = options.precision_px,
+                                               .window_disparities = options.num_disparities,
+                                               .far_m = max_range == "auto" ? 0.0 : range_m});
+    options = stereo::fitToWindows(options, range.windows);
+    range_m = range.far_m;
+    std::printf("range: %s\n", range.explain().c_str());
+  }
   const stereo::StereoMatcher matcher(options);
   const auto start = std::chrono::steady_clock::now();
   const cv::Mat disparity = matcher.compute(left, right);
@@ -102,8 +124,8 @@ int main(int argc, char** argv) {
     std::printf("written: %s\n", colorized_out.c_str());
   }
   if (!cloud_out.empty()) {
-    const auto cloud = stereo::cloudFromDisparity(disparity, left, rectifier->camera(),
-                                                  {.max_range_m = max_range});
+    const auto cloud =
+        stereo::cloudFromDisparity(disparity, left, rectifier->camera(), {.max_range_m = range_m});
     if (auto status = stereo::writePly(cloud_out, cloud); !status) {
       std::fprintf(stderr, "%s\n", status.error().message.c_str());
       return 1;

@@ -25,6 +25,10 @@ namespace {
 
 using namespace stereomap;
 
+// The server's default map resolution: the depth range's when clouds go whole (--map-resolution
+// 0) and the vehicle does not know the map's.
+constexpr double kMapResolution = 0.1;
+
 std::string defaultSessionName() {
   const std::time_t now = std::time(nullptr);
   char text[32];
@@ -51,6 +55,7 @@ struct Flags {
   double paper_resolution = 0;
   std::string landing_mode = "off";
   std::string link_budget = "off";
+  std::string max_range = "auto", disparities = "auto";
 };
 
 void addFlags(CLI::App& app, Flags& f) {
@@ -82,8 +87,26 @@ void addFlags(CLI::App& app, Flags& f) {
                  "clean images)")
       ->check(CLI::IsMember({"auto", "on", "off"}))
       ->capture_default_str();
-  app.add_option("--max-range", f.pipeline.stereo.cloud.max_range_m, "Cloud range limit, metres")
-      ->check(CLI::Range(0.5, 100.0))
+  app.add_option("--max-range", f.max_range,
+                 "Farthest depth mapped, metres, or auto: from the calibration, the map's "
+                 "resolution and the matcher's precision (where a disparity error moves a point "
+                 "by less than a voxel); said at the start")
+      ->check(CLI::IsMember({"auto"}) | CLI::Range(0.5, 100.0))
+      ->capture_default_str();
+  app.add_option("--disparities", f.disparities,
+                 "Disparity search, a multiple of 16 from the far limit's disparity, or auto: a "
+                 "pyramid of windows from the far limit to the rig's nearest depth (a quarter of "
+                 "the image width of disparity), nearer ones on halved images")
+      ->check(CLI::IsMember({"auto"}) |
+              (CLI::Range(16, 1024) & CLI::Validator(
+                                          [](std::string& v) {
+                                            return std::stoi(v) % 16 == 0 ? std::string()
+                                                                          : std::string(
+                                                                                "must be a "
+                                                                                "multiple of "
+                                                                                "16");
+                                          },
+                                          "MULTIPLE OF 16")))
       ->capture_default_str();
   app.add_option("--codec", f.codec,
                  "Cloud encoding: auto (the smallest, docs/BENCHMARKS.md: draco for clouds "
@@ -196,6 +219,17 @@ bool pipelineOptions(Flags& f) {
   options.rate_hz = f.rate_hz;
   options.stereo.matcher = f.stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
                                                          : stereo::MatcherOptions::fast();
+  // The range and the disparity search: from the rig unless given (explicit flags win).
+  if (f.disparities != "auto") {
+    options.stereo.range.reset();
+    options.stereo.matcher.num_disparities = std::stoi(f.disparities);  // checked by CLI11
+    // A far limit given, or the rig's (adaptToSource, once the camera is known).
+    if (f.max_range != "auto") options.stereo.cloud.max_range_m = std::stod(f.max_range);
+  } else {
+    options.stereo.range = stereo::AutoRange{
+        .map_resolution_m = link.map_resolution_m > 0 ? link.map_resolution_m : kMapResolution,
+        .far_m = f.max_range == "auto" ? 0.0 : std::stod(f.max_range)};
+  }
   options.stereo.noise = f.noise_handling == "on"    ? stereo::NoiseHandling::kOn
                          : f.noise_handling == "off" ? stereo::NoiseHandling::kOff
                                                      : stereo::NoiseHandling::kAuto;
@@ -232,14 +266,24 @@ void adaptToSource(const CLI::App& app, const sources::OpenedSource& opened, Fla
   options.pose_source =
       f.vo == "gt" ? pipeline::PoseSource::kGroundTruth : pipeline::PoseSource::kOdometry;
   options.odometry.mode = f.vo == "paper" ? odometry::VoMode::kPaper : odometry::VoMode::kFast;
+  const auto& camera = opened.source->camera();
+  if (!options.stereo.range && f.max_range == "auto") {
+    options.stereo.cloud.max_range_m = stereo::farthestMappable(
+        camera,
+        options.link->map_resolution_m > 0 ? options.link->map_resolution_m : kMapResolution,
+        options.stereo.matcher.precision_px);
+  }
   if (f.paper_resolution > 0) {
-    const auto& camera = opened.source->camera();
-    options.stereo.matcher.min_disparity =
+    const int min_disparity =
         stereo::minimumDisparity(camera.baseline, camera.fx, f.paper_resolution);
-    spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels",
-                 options.stereo.matcher.min_disparity,
-                 camera.depthFromDisparity(options.stereo.matcher.min_disparity),
-                 f.paper_resolution);
+    // The paper's rule as the far limit: the rig's windows, or the matcher's own, start there.
+    if (options.stereo.range) {
+      options.stereo.range->far_m = camera.depthFromDisparity(min_disparity);
+    } else {
+      options.stereo.matcher.min_disparity = min_disparity;
+    }
+    spdlog::info("minimum disparity {} px (depth up to {:.2f} m) for {} m voxels", min_disparity,
+                 camera.depthFromDisparity(min_disparity), f.paper_resolution);
   }
 }
 
@@ -354,6 +398,7 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
                  summary.landing_tracked, summary.frames, summary.landing_poses);
   }
   if (f.no_publish) return 0;
+  if (!summary.depth_range.empty()) spdlog::info("depth range: {}", summary.depth_range);
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), depth {:.1f} ms, encode {:.1f} ms, frame "
       "{:.1f} ms (medians), {} late, {} publish errors; images {} (noise sigma {:.1f} grey "
@@ -366,10 +411,11 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
   const auto& sent = summary.link;
   spdlog::info(
       "link: sent {:.0f} kbit/s (clouds and poses), {} of {} clouds ({} skipped with nothing new, "
-      "{} over the budget, {} thinner for it), {:.0f} points and {:.1f} KiB per cloud sent",
+      "{} empty, {} over the budget, {} thinner for it), {:.0f} points and {:.1f} KiB per cloud "
+      "sent",
       summary.stream_seconds > 0 ? summary.wire_bytes * 8 / summary.stream_seconds / 1000 : 0.0,
-      sent.sent, sent.offered, sent.skipped_known, sent.skipped_budget, sent.thinned_budget,
-      sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
+      sent.sent, sent.offered, sent.skipped_known, sent.skipped_empty, sent.skipped_budget,
+      sent.thinned_budget, sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
       sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
   return summary.publish_errors == 0 ? 0 : 1;
 }

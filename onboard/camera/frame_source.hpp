@@ -20,6 +20,11 @@ struct SourceFrame {
   cv::Mat right;                                // CV_8UC1, rectified
   std::optional<common::Rigid3> T_map_body;     // ground truth, when the source knows it
   std::optional<common::Rigid3> T_body_camera;  // the left camera's mount on the body
+  // The map frame in an outer world, when the map moves in it: a ship's deck, mapped in its own
+  // frame (what stands on a moving deck stays put there), while the deck's own motion is
+  // measured in the world. The vehicle's navigation in the world is T_world_map * T_map_body.
+  // Unset: the map frame is the world.
+  std::optional<common::Rigid3> T_world_map;
   // The mount, or a forward-looking camera at the body's origin when the source does not say.
   common::Rigid3 mount() const {
     return T_body_camera.value_or(

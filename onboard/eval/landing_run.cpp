@@ -45,8 +45,9 @@ std::vector<LandingFrameScore> runLanding(sim::DeckSource& source,
     score.corners_in_view = truth.corners_in_view;
     // The body pose from the vehicle's navigation: the sim's truth stands in for GPS/INS, as
     // in the patent.
-    const landing::LandingReport& seen = watch.update(truth.t_s, frame->left, frame->right,
-                                                      *frame->T_map_body, *frame->T_body_camera);
+    const landing::LandingReport& seen =
+        watch.update(truth.t_s, frame->left, frame->right, *frame->T_map_body,
+                     *frame->T_body_camera, frame->T_world_map.value_or(common::Rigid3{}));
     score.track_ms = seen.track_ms;
     score.state = seen.state;
     score.detected = seen.left.detected;

@@ -17,7 +17,8 @@ LandingWatch::LandingWatch(const camera::StereoCamera& camera, LandingWatchOptio
       deck_(options.deck) {}
 
 const LandingReport& LandingWatch::update(double t_s, const cv::Mat& left, const cv::Mat& right,
-                                          const Rigid3& T_map_body, const Rigid3& T_body_camera) {
+                                          const Rigid3& T_map_body, const Rigid3& T_body_camera,
+                                          const Rigid3& T_world_map) {
   LandingReport report;
   report.t_s = t_s;
   auto start = std::chrono::steady_clock::now();
@@ -38,6 +39,9 @@ const LandingReport& LandingWatch::update(double t_s, const cv::Mat& left, const
       report.has_pose = true;
       const Rigid3 T_map_camera = T_map_body * T_body_camera;
       report.T_map_pad = T_map_camera * report.pose.T_camera_pad;
+      // The deck's motion is the world's: where the map is the deck's own frame, the pad sits
+      // still in it.
+      const Rigid3 T_world_camera = T_world_map * T_map_camera;
       // The patent's linear pose has no covariance: its reprojection error stands in (one
       // pixel at the pad's distance, in every direction).
       Mat6 covariance = report.pose.covariance;
@@ -49,7 +53,9 @@ const LandingReport& LandingWatch::update(double t_s, const cv::Mat& left, const
       }
       report.map_covariance =
           padCovarianceInMap(T_map_camera, report.pose.T_camera_pad, covariance);
-      report.deck = deck_.update(t_s, report.T_map_pad, report.map_covariance);
+      report.deck =
+          deck_.update(t_s, T_world_camera * report.pose.T_camera_pad,
+                       padCovarianceInMap(T_world_camera, report.pose.T_camera_pad, covariance));
       report.bearing = bearingFrom(T_map_body, report.T_map_pad * padCentre());
     } else {
       report.reason = report.pose.reason;

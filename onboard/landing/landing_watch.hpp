@@ -32,7 +32,9 @@ struct LandingReport {
   PadPose pose;           // in the left camera
   common::Rigid3 T_map_pad;
   Mat6 map_covariance = Mat6::Zero();  // (rotation, pad centre) in the map frame
-  DeckEstimate deck;                   // valid while tracking (and for a moment after)
+  // Valid while tracking (and for a moment after); in the world (update()'s T_world_map), where
+  // the deck moves, also when the map is the deck's own frame.
+  DeckEstimate deck;
   PadBearing bearing;
   double track_ms = 0, pose_ms = 0;
 };
@@ -40,9 +42,11 @@ struct LandingReport {
 class LandingWatch {
  public:
   LandingWatch(const camera::StereoCamera& camera, LandingWatchOptions options = {});
+  // T_world_map: the map frame in the world when the map moves (SourceFrame::T_world_map);
+  // identity when the map is the world.
   const LandingReport& update(double t_s, const cv::Mat& left, const cv::Mat& right,
-                              const common::Rigid3& T_map_body,
-                              const common::Rigid3& T_body_camera);
+                              const common::Rigid3& T_map_body, const common::Rigid3& T_body_camera,
+                              const common::Rigid3& T_world_map = {});
   const LandingReport& last() const { return report_; }
 
  private:

@@ -47,6 +47,7 @@ struct CloudLinkOptions {
 struct CloudLinkStats {
   uint64_t offered = 0;         // clouds given to prepare()
   uint64_t sent = 0;            // clouds sent
+  uint64_t skipped_empty = 0;   // skipped: no point (nothing in range), nothing for the map
   uint64_t skipped_known = 0;   // skipped: nothing new for the map
   uint64_t skipped_budget = 0;  // skipped: over the byte budget
   uint64_t thinned_budget = 0;  // sent with a share of their voxels, for the budget

@@ -92,6 +92,18 @@ TEST(CloudLink, AHoveringVehicleSendsOnlyOncePerMaxInterval) {
   EXPECT_EQ(link.stats().offered, 30u);
 }
 
+TEST(CloudLink, AnEmptyCloudIsNeverSent) {
+  // A descent still above the depth range: no point, so no ray for the map, whatever is due.
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0, .max_interval_s = 1.0});
+  for (int i = 0; i < 30; ++i) EXPECT_FALSE(link.prepare(PointCloud{}, pose(), i * kFrameNs));
+  EXPECT_EQ(link.stats().skipped_empty, 30u);
+  EXPECT_EQ(link.stats().sent, 0u);
+  // Whole clouds (no thinning) alike.
+  CloudLink whole({.map_resolution_m = 0, .min_new_share = 0});
+  EXPECT_FALSE(whole.prepare(PointCloud{}, pose(), 0));
+  EXPECT_TRUE(whole.prepare(wall(), pose(), 0));
+}
+
 TEST(CloudLink, NewCoverageIsSentAtOnce) {
   CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0.1, .max_interval_s = 10.0});
   int sent = 0;

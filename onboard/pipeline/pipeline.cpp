@@ -179,15 +179,14 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
                                                        const proto::CloudCodecOptions& codec,
                                                        uint64_t seq, int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
-                                                       const common::PointCloud& cloud_camera) {
+                                                       const common::PointCloud& cloud_camera,
+                                                       double max_range_m) {
   auto payload = proto::encodeCloud(cloud_camera, codec);
   if (!payload) return payload.error();
   proto::CloudFrameMsg frame;
   address(frame, options, seq, stamp_ns);
   proto::fieldsFromRigid(T_map_camera, frame.sensor_position, frame.sensor_orientation);
-  frame.max_range =
-      stereo::farthestPoint(cloud_camera, static_cast<float>(options.stereo.cloud.max_range_m)) *
-      1.001f;
+  frame.max_range = stereo::farthestPoint(cloud_camera, static_cast<float>(max_range_m)) * 1.001f;
   frame.point_count = static_cast<uint32_t>(cloud_camera.size());
   frame.encoding = codec.encoding;
   frame.quantization_bits = static_cast<uint8_t>(codec.quantization_bits);
@@ -236,6 +235,10 @@ class PipelineRun {
     }
     if (options.landing) landing_.emplace(source.camera(), *options.landing);
     if (options.link) cloud_link_.emplace(*options.link);
+    if (options.depth && depth_step_.range()) {
+      summary_.depth_range = depth_step_.range()->explain();
+      spdlog::info("depth range from the rig: {}", summary_.depth_range);
+    }
   }
 
   // Waits for a server (a while), then says the session started.
@@ -417,8 +420,9 @@ class PipelineRun {
   void watchLanding(const camera::SourceFrame& frame, const common::Rigid3& T_map_body,
                     const common::Rigid3& T_body_camera) {
     if (!landing_) return;
-    const auto& seen = landing_->update(common::nsToSeconds(frame.stamp_ns), frame.left,
-                                        frame.right, T_map_body, T_body_camera);
+    const auto& seen =
+        landing_->update(common::nsToSeconds(frame.stamp_ns), frame.left, frame.right, T_map_body,
+                         T_body_camera, frame.T_world_map.value_or(common::Rigid3{}));
     summary_.landing_tracked += seen.state == landing::TrackState::kTracking;
     summary_.landing_poses += seen.has_pose;
     publish(makeLandingTargetMsg(options_, summary_.frames, frame.stamp_ns, seen,
@@ -463,7 +467,7 @@ class PipelineRun {
       codec.quantization_bits = cloud_link_->quantizationBits(*to_send, codec.quantization_bits);
     }
     auto cloud_msg = makeCloudFrameMsg(options_, codec, clouds_sent_, frame.stamp_ns,
-                                       report.T_map_camera, *to_send);
+                                       report.T_map_camera, *to_send, depth_step_.maxRange());
     encode_ms_.push_back(msSince(encode_start));
     if (!cloud_msg) {
       spdlog::error("frame {}: cannot encode the cloud: {}", frame.index,

@@ -88,6 +88,7 @@ struct PipelineSummary {
   uint64_t publish_errors = 0;
   uint64_t late_frames = 0;      // frames that started after their slot (the rate was not kept)
   double median_depth_ms = 0;    // disparity + cloud
+  std::string depth_range;       // what the depth step searched and why (RigRange::explain)
   double image_noise_sigma = 0;  // the depth step's last image noise estimate, grey levels
   bool noisy_images = false;     // whether it treated the images as noisy
   double median_encode_ms = 0;
@@ -138,7 +139,8 @@ common::Result<proto::CloudFrameMsg> makeCloudFrameMsg(const PipelineOptions& op
                                                        const proto::CloudCodecOptions& codec,
                                                        uint64_t seq, int64_t stamp_ns,
                                                        const common::Rigid3& T_map_camera,
-                                                       const common::PointCloud& cloud_camera);
+                                                       const common::PointCloud& cloud_camera,
+                                                       double max_range_m);
 // The pose graph's keyframe poses (odometry world frame, left camera) as the server takes
 // them: T_map_body by stamp, through `anchor` (T_map_world) and the camera's mount.
 proto::PoseCorrectionMsg makePoseCorrectionMsg(

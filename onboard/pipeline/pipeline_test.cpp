@@ -23,7 +23,8 @@ TEST(Pipeline, MessagesCarryTheCloudAndTheSensorPose) {
                                                 frame->left, source.camera(), options.stereo.cloud);
   ASSERT_GT(cloud.size(), 5000u);
   const auto T_map_camera = *frame->T_map_body * *frame->T_body_camera;
-  auto msg = makeCloudFrameMsg(options, options.codec, 4, frame->stamp_ns, T_map_camera, cloud);
+  auto msg = makeCloudFrameMsg(options, options.codec, 4, frame->stamp_ns, T_map_camera, cloud,
+                               options.stereo.cloud.max_range_m);
   ASSERT_TRUE(msg.ok());
   EXPECT_EQ(msg->point_count, cloud.size());
   EXPECT_EQ(msg->seq, 4u);

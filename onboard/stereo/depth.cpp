@@ -64,13 +64,14 @@ MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& ca
   return options;
 }
 
-struct StereoMatcher::Impl {
-  MatcherOptions options;
-  cv::Ptr<cv::StereoMatcher> matcher;
-  cv::Ptr<cv::StereoMatcher> right_matcher;  // for the WLS filter
-  cv::Ptr<cv::ximgproc::DisparityWLSFilter> wls;
-  cv::Mat fixed_point;  // reused between frames: a fresh 0.6 MB buffer costs page faults
-};
+MatcherOptions fitToWindows(MatcherOptions options, const std::vector<DisparityWindow>& windows) {
+  CV_Assert(!windows.empty() && windows.front().downscale == 1);
+  options.min_disparity = windows.front().min_px;
+  options.num_disparities = windows.front().num_px;
+  options.downscale = 1;
+  options.nearer.assign(windows.begin() + 1, windows.end());
+  return options;
+}
 
 namespace {
 
@@ -88,41 +89,6 @@ int sgbmMode(SemiGlobalMode mode) {
   return cv::StereoSGBM::MODE_SGBM_3WAY;
 }
 
-}  // namespace
-
-StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_unique<Impl>()) {
-  CV_Assert(options.num_disparities > 0 && options.num_disparities % 16 == 0);
-  CV_Assert(options.block_size % 2 == 1 && options.downscale >= 1 && options.row_groups >= 1);
-  impl_->options = options;
-  const int levels = options.num_disparities / options.downscale;
-  const int num_disparities = disparitiesFor(levels);
-  const int min_disparity = options.min_disparity / options.downscale;
-  if (options.kind == MatcherKind::kBlockMatching) {
-    auto bm = cv::StereoBM::create(num_disparities, options.block_size);
-    bm->setMinDisparity(min_disparity);
-    bm->setUniquenessRatio(options.uniqueness_ratio);
-    bm->setTextureThreshold(options.texture_threshold);
-    bm->setPreFilterCap(std::min(options.prefilter_cap, 63));
-    bm->setDisp12MaxDiff(options.left_right_max_diff);
-    impl_->matcher = bm;
-  } else {
-    const int area = options.block_size * options.block_size;
-    impl_->matcher = cv::StereoSGBM::create(min_disparity, num_disparities, options.block_size,
-                                            options.p1 * area, options.p2 * area,
-                                            options.left_right_max_diff, options.prefilter_cap,
-                                            options.uniqueness_ratio, 0, 0, sgbmMode(options.mode));
-  }
-  impl_->matcher->setSpeckleWindowSize(options.speckle_window);
-  impl_->matcher->setSpeckleRange(options.speckle_range);
-  if (options.wls_lambda > 0) {
-    impl_->wls = cv::ximgproc::createDisparityWLSFilter(impl_->matcher);
-    impl_->wls->setLambda(options.wls_lambda);
-    impl_->wls->setSigmaColor(options.wls_sigma);
-    impl_->right_matcher = cv::ximgproc::createRightMatcher(impl_->matcher);
-  }
-}
-
-namespace {
 // Laplacian of Gaussian, mapped to 8 bits around 128 (the paper's prefilter).
 cv::Mat laplacianOfGaussian(const cv::Mat& image, double sigma) {
   cv::Mat blurred, laplacian, out;
@@ -131,7 +97,172 @@ cv::Mat laplacianOfGaussian(const cv::Mat& image, double sigma) {
   laplacian.convertTo(out, CV_8U, -4.0, 128.0);
   return out;
 }
+
+// A window's match on its far edge (the surface lies farther), and a pixel two windows
+// disagree on; both invalid (negative) in the disparity returned.
+constexpr float kFarEdge = -3.0f;
+constexpr float kConflict = -2.0f;
+constexpr int kNearerUniqueness = 30;  // percent, see StereoMatcher's constructor
+constexpr int kNearerSpeckle = 50;     // pixels of the reduced image, likewise
+
+// One window's matcher: OpenCV's, with what it needs between frames.
+struct WindowMatcher {
+  MatcherOptions options;      // this window's: its downscale, disparities and smoothing
+  bool keep_far_edge = true;   // the first window's far edge is cut by the cloud's range
+  bool keep_near_edge = true;  // the last window's near edge is the rig's nearest depth
+  cv::Ptr<cv::StereoMatcher> matcher;
+  cv::Ptr<cv::StereoMatcher> right_matcher;  // for the WLS filter
+  cv::Ptr<cv::ximgproc::DisparityWLSFilter> wls;
+  cv::Mat fixed_point;  // reused between frames: a fresh 0.6 MB buffer costs page faults
+
+  explicit WindowMatcher(const MatcherOptions& o) : options(o) {
+    const int levels = o.num_disparities / o.downscale;
+    const int num_disparities = disparitiesFor(levels);
+    const int min_disparity = o.min_disparity / o.downscale;
+    if (o.kind == MatcherKind::kBlockMatching) {
+      auto bm = cv::StereoBM::create(num_disparities, o.block_size);
+      bm->setMinDisparity(min_disparity);
+      bm->setUniquenessRatio(o.uniqueness_ratio);
+      bm->setTextureThreshold(o.texture_threshold);
+      bm->setPreFilterCap(std::min(o.prefilter_cap, 63));
+      bm->setDisp12MaxDiff(o.left_right_max_diff);
+      matcher = bm;
+    } else {
+      const int area = o.block_size * o.block_size;
+      matcher = cv::StereoSGBM::create(min_disparity, num_disparities, o.block_size, o.p1 * area,
+                                       o.p2 * area, o.left_right_max_diff, o.prefilter_cap,
+                                       o.uniqueness_ratio, 0, 0, sgbmMode(o.mode));
+    }
+    matcher->setSpeckleWindowSize(o.speckle_window);
+    matcher->setSpeckleRange(o.speckle_range);
+    if (o.wls_lambda > 0) {
+      wls = cv::ximgproc::createDisparityWLSFilter(matcher);
+      wls->setLambda(o.wls_lambda);
+      wls->setSigmaColor(o.wls_sigma);
+      right_matcher = cv::ximgproc::createRightMatcher(matcher);
+    }
+  }
+
+  // Disparity of the full-size left image in pixels (CV_32FC1, < 0 invalid).
+  cv::Mat compute(const cv::Mat& left, const cv::Mat& right) {
+    const MatcherOptions& o = options;
+    cv::Mat l = left, r = right;
+    if (o.downscale > 1) {
+      const cv::Size small((left.cols + o.downscale - 1) / o.downscale,
+                           (left.rows + o.downscale - 1) / o.downscale);
+      cv::resize(left, l, small, 0, 0, cv::INTER_AREA);
+      cv::resize(right, r, small, 0, 0, cv::INTER_AREA);
+    }
+    const cv::Size matched = l.size();
+    if (o.row_groups > 1) {
+      const cv::Size grouped(l.cols, (l.rows + o.row_groups - 1) / o.row_groups);
+      cv::resize(l, l, grouped, 0, 0, cv::INTER_AREA);
+      cv::resize(r, r, grouped, 0, 0, cv::INTER_AREA);
+    }
+    if (o.smooth_sigma_px > 0) {
+      cv::Mat smoothed_left, smoothed_right;
+      // Grouped rows are smoothed along the rows only: the grouping has averaged them already,
+      // and more vertical smoothing cost precision (typical camera 0.957 -> 0.943, measured).
+      const cv::Size kernel =
+          o.row_groups > 1 ? cv::Size(cvRound(o.smooth_sigma_px * 6 + 1) | 1, 1) : cv::Size();
+      cv::GaussianBlur(l, smoothed_left, kernel, o.smooth_sigma_px);
+      cv::GaussianBlur(r, smoothed_right, kernel, o.smooth_sigma_px);
+      l = smoothed_left;
+      r = smoothed_right;
+    }
+    if (o.prefilter == Prefilter::kLoG) {
+      l = laplacianOfGaussian(l, o.log_sigma_px);
+      r = laplacianOfGaussian(r, o.log_sigma_px);
+    }
+    // Without padding the matchers leave the first num_disparities columns empty; with it a
+    // pixel there finds its match whenever the match is inside the right image.
+    const int pad = o.pad_left ? matcher->getNumDisparities() + matcher->getMinDisparity() : 0;
+    if (pad > 0) {
+      cv::copyMakeBorder(l, l, 0, 0, pad, 0, cv::BORDER_REPLICATE);
+      cv::copyMakeBorder(r, r, 0, 0, pad, 0, cv::BORDER_REPLICATE);
+    }
+    matcher->compute(l, r, fixed_point);  // CV_16S, 4 fractional bits
+    if (wls) {
+      cv::Mat right_disparity, filtered;
+      right_matcher->compute(r, l, right_disparity);
+      // The filter's default region of interest leaves the left band empty: use all of it.
+      wls->filter(fixed_point, l, filtered, right_disparity, cv::Rect(0, 0, l.cols, l.rows), r);
+      fixed_point = filtered;
+    }
+    const int invalid_below = matcher->getMinDisparity() * 16;
+    // Matches on an inner edge of the window: the true disparity may well lie beyond it. One
+    // on the far edge says the surface lies farther than this window (kFarEdge).
+    const int far_edge = keep_far_edge ? invalid_below : invalid_below + 16;
+    const int last = (matcher->getMinDisparity() + matcher->getNumDisparities() - 1) * 16;
+    const int near_edge = keep_near_edge ? last : last - 16;
+    // With padding, a match counts only when the whole matching window lies inside the right
+    // image (x - d >= half the block): windows reaching into the padding give biased matches.
+    const int inside = o.block_size / 2;
+    const float scale = static_cast<float>(o.downscale) / 16.0f;
+    cv::Mat disparity(matched, CV_32FC1);
+    for (int v = 0; v < disparity.rows; ++v) {
+      const int16_t* in = fixed_point.ptr<int16_t>(v / o.row_groups) + pad;
+      float* out = disparity.ptr<float>(v);
+      for (int u = 0; u < disparity.cols; ++u) {
+        const bool valid =
+            in[u] >= far_edge && in[u] <= near_edge && (pad == 0 || in[u] <= (u - inside) * 16);
+        out[u] = valid                                        ? in[u] * scale
+                 : in[u] >= invalid_below && in[u] < far_edge ? kFarEdge
+                                                              : -1.0f;
+      }
+    }
+    if (o.downscale > 1) {
+      cv::Mat full;
+      cv::resize(disparity, full, left.size(), 0, 0, cv::INTER_NEAREST);  // keeps invalid apart
+      disparity = full;
+    }
+    return disparity;
+  }
+};
+
 }  // namespace
+
+struct StereoMatcher::Impl {
+  MatcherOptions options;
+  std::vector<WindowMatcher> windows;  // the first at options' own window, then `nearer`
+};
+
+StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_unique<Impl>()) {
+  CV_Assert(options.num_disparities > 0 && options.num_disparities % 16 == 0);
+  CV_Assert(options.block_size % 2 == 1 && options.downscale >= 1 && options.row_groups >= 1);
+  impl_->options = options;
+  impl_->windows.emplace_back(options);
+  for (const DisparityWindow& w : options.nearer) {
+    CV_Assert(w.downscale >= 1 && w.num_px > 0 && w.num_px % (16 * w.downscale) == 0 &&
+              w.min_px % w.downscale == 0);
+    MatcherOptions o = options;
+    o.nearer.clear();
+    o.downscale = w.downscale;
+    o.min_disparity = w.min_px;
+    o.num_disparities = w.num_px;
+    // Reduced images have averaged their rows and smoothed already.
+    o.row_groups = w.downscale > 1 ? 1 : options.row_groups;
+    o.smooth_sigma_px = options.smooth_sigma_px / w.downscale;
+    // Stricter on reduced images: a left-right check, a higher uniqueness and no speckles.
+    // Foliage beyond the range repeats within their wide windows and gave near points in the
+    // trees (KITTI); a near surface is large in the image, a false match small. Speckles cost
+    // little on a reduced image (7.5 ms at 640x480, a quarter of it here).
+    if (w.downscale > 1) {
+      o.left_right_max_diff = o.left_right_max_diff < 0 ? 1 : o.left_right_max_diff;
+      o.uniqueness_ratio = std::max(o.uniqueness_ratio, kNearerUniqueness);
+      o.speckle_window = std::max(o.speckle_window, kNearerSpeckle);
+      o.speckle_range = std::max(o.speckle_range, 2);
+    }
+    impl_->windows.emplace_back(o);
+  }
+  // With several windows every far edge tells the nearer windows off (compute()); the first
+  // one's lies beyond the range anyway (fitToRange's rounding down).
+  for (size_t i = 0; i + 1 < impl_->windows.size(); ++i) {
+    impl_->windows[i].keep_near_edge = false;
+    impl_->windows[i].keep_far_edge = false;
+  }
+  if (impl_->windows.size() > 1) impl_->windows.back().keep_far_edge = false;
+}
 
 StereoMatcher::~StereoMatcher() = default;
 StereoMatcher::StereoMatcher(StereoMatcher&&) noexcept = default;
@@ -140,71 +271,30 @@ const MatcherOptions& StereoMatcher::options() const { return impl_->options; }
 
 cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const {
   CV_Assert(left.type() == CV_8UC1 && right.type() == CV_8UC1 && left.size() == right.size());
-  const MatcherOptions& o = impl_->options;
-  cv::Mat l = left, r = right;
-  if (o.downscale > 1) {
-    const cv::Size small((left.cols + o.downscale - 1) / o.downscale,
-                         (left.rows + o.downscale - 1) / o.downscale);
-    cv::resize(left, l, small, 0, 0, cv::INTER_AREA);
-    cv::resize(right, r, small, 0, 0, cv::INTER_AREA);
-  }
-  const cv::Size matched = l.size();
-  if (o.row_groups > 1) {
-    const cv::Size grouped(l.cols, (l.rows + o.row_groups - 1) / o.row_groups);
-    cv::resize(l, l, grouped, 0, 0, cv::INTER_AREA);
-    cv::resize(r, r, grouped, 0, 0, cv::INTER_AREA);
-  }
-  if (o.smooth_sigma_px > 0) {
-    cv::Mat smoothed_left, smoothed_right;
-    // Grouped rows are smoothed along the rows only: the grouping has averaged them already,
-    // and more vertical smoothing cost precision (typical camera 0.957 -> 0.943, measured).
-    const cv::Size kernel =
-        o.row_groups > 1 ? cv::Size(cvRound(o.smooth_sigma_px * 6 + 1) | 1, 1) : cv::Size();
-    cv::GaussianBlur(l, smoothed_left, kernel, o.smooth_sigma_px);
-    cv::GaussianBlur(r, smoothed_right, kernel, o.smooth_sigma_px);
-    l = smoothed_left;
-    r = smoothed_right;
-  }
-  if (o.prefilter == Prefilter::kLoG) {
-    l = laplacianOfGaussian(l, o.log_sigma_px);
-    r = laplacianOfGaussian(r, o.log_sigma_px);
-  }
-  // Without padding the matchers leave the first num_disparities columns empty; with it a
-  // pixel there finds its match whenever the match is inside the right image.
-  const int pad =
-      o.pad_left ? impl_->matcher->getNumDisparities() + impl_->matcher->getMinDisparity() : 0;
-  if (pad > 0) {
-    cv::copyMakeBorder(l, l, 0, 0, pad, 0, cv::BORDER_REPLICATE);
-    cv::copyMakeBorder(r, r, 0, 0, pad, 0, cv::BORDER_REPLICATE);
-  }
-  cv::Mat& fixed_point = impl_->fixed_point;  // CV_16S, 4 fractional bits
-  impl_->matcher->compute(l, r, fixed_point);
-  if (impl_->wls) {
-    cv::Mat right_disparity, filtered;
-    impl_->right_matcher->compute(r, l, right_disparity);
-    // The filter's default region of interest leaves the left band empty: use all of it.
-    impl_->wls->filter(fixed_point, l, filtered, right_disparity, cv::Rect(0, 0, l.cols, l.rows),
-                       r);
-    fixed_point = filtered;
-  }
-  const int invalid_below = impl_->matcher->getMinDisparity() * 16;
-  // With padding, a match counts only when the whole matching window lies inside the right
-  // image (x - d >= half the block): windows reaching into the padding give biased matches.
-  const int inside = o.block_size / 2;
-  const float scale = static_cast<float>(o.downscale) / 16.0f;
-  cv::Mat disparity(matched, CV_32FC1);
-  for (int v = 0; v < disparity.rows; ++v) {
-    const int16_t* in = fixed_point.ptr<int16_t>(v / o.row_groups) + pad;
-    float* out = disparity.ptr<float>(v);
-    for (int u = 0; u < disparity.cols; ++u) {
-      const bool valid = in[u] >= invalid_below && (pad == 0 || in[u] <= (u - inside) * 16);
-      out[u] = valid ? in[u] * scale : -1.0f;
+  cv::Mat disparity = impl_->windows.front().compute(left, right);
+  for (size_t i = 1; i < impl_->windows.size(); ++i) {
+    const cv::Mat nearer = impl_->windows[i].compute(left, right);
+    // Far to near. A pixel a farther window saw beyond its far edge lies farther still: what a
+    // nearer window matches there is a repeated texture (foliage), not the surface. Two windows
+    // that both matched must agree (within the coarser one's pixel, where they overlap);
+    // otherwise neither can be trusted.
+    const float tolerance = static_cast<float>(impl_->windows[i].options.downscale);
+    for (int v = 0; v < disparity.rows; ++v) {
+      float* out = disparity.ptr<float>(v);
+      const float* in = nearer.ptr<float>(v);
+      for (int u = 0; u < disparity.cols; ++u) {
+        if (out[u] == kFarEdge || out[u] == kConflict) continue;
+        if (in[u] >= 0) {
+          if (out[u] < 0) {
+            out[u] = in[u];
+          } else if (std::abs(out[u] - in[u]) > tolerance) {
+            out[u] = kConflict;
+          }
+        } else if (in[u] == kFarEdge && out[u] < 0) {
+          out[u] = kFarEdge;
+        }
+      }
     }
-  }
-  if (o.downscale > 1) {
-    cv::Mat full;
-    cv::resize(disparity, full, left.size(), 0, 0, cv::INTER_NEAREST);  // keeps invalid apart
-    disparity = full;
   }
   return disparity;
 }
@@ -217,6 +307,7 @@ BlockDisparity blockDisparity(const cv::Mat& disparity, const cv::Mat& left,
   const double min_disparity = camera.disparityFromDepth(options.max_range_m);
   const double max_disparity = camera.disparityFromDepth(options.min_range_m);
   const float offset = static_cast<float>(options.disparity_offset_px);
+  const float bf = static_cast<float>(camera.baseline * camera.fx);
   const int block_pixels = options.block_cols * options.block_rows;
   const int grid_rows = disparity.rows / options.block_rows;
   const int grid_cols = disparity.cols / options.block_cols;
@@ -253,7 +344,10 @@ BlockDisparity blockDisparity(const cv::Mat& disparity, const cv::Mat& left,
         }
       }
       if (count == 0 || 2 * count < block_pixels) continue;
-      if (hi - lo > options.max_block_span_px) continue;
+      if (hi - lo > options.max_block_span_px &&
+          !(bf / lo - bf / hi <= options.max_block_depth_span_m)) {
+        continue;
+      }
       // One surface (values within 1 px): their mean; otherwise the median, so that a block
       // on a depth edge takes one side instead of a point in the air between them.
       float value = sum / static_cast<float>(count);

@@ -8,12 +8,14 @@
 #pragma once
 
 #include <memory>
+#include <vector>
 
 #include <opencv2/core.hpp>
 
 #include "common/geometry.hpp"
 #include "common/point_cloud.hpp"
 #include "onboard/camera/stereo_camera.hpp"
+#include "onboard/stereo/rig_range.hpp"
 
 namespace stereomap::stereo {
 
@@ -64,6 +66,16 @@ struct MatcherOptions {
   // Middlebury than the accurate preset (docs/BENCHMARKS.md), so off by default.
   double wls_lambda = 0;
   double wls_sigma = 1.5;
+  // Nearer disparities searched on reduced images (RigRange's windows after the first), each
+  // with this matcher's settings at its own scale. A pixel takes the finest window's match;
+  // matches on a window's inner edges (a disparity beyond the window lands there) and pixels
+  // where two windows disagree give none.
+  std::vector<DisparityWindow> nearer;
+  // The disparity error of the points this preset's clouds keep (full-image pixels), as the
+  // depth range's rule needs it (RigRangeOptions::precision_px): the median absolute error of
+  // the block disparities on Middlebury's pairs with sub-pixel truth (stereomap-bench-realrigs,
+  // docs/BENCHMARKS.md).
+  double precision_px = 0.1;
 
   // Real time on board: <= 15 ms per 640x480 frame with rectification and cloud, one core.
   static MatcherOptions fast();
@@ -84,6 +96,9 @@ int minimumDisparity(double baseline_m, double fx_px, double resolution_m, doubl
 // baseline * fx / (min_disparity + num_disparities).
 MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& camera,
                           double max_range_m);
+// The matcher searching a rig's windows: the first as min_disparity / num_disparities at full
+// resolution (downscale 1), the rest as `nearer`.
+MatcherOptions fitToWindows(MatcherOptions options, const std::vector<DisparityWindow>& windows);
 
 class StereoMatcher {
  public:
@@ -120,6 +135,10 @@ struct CloudOptions {
   // mismatch, whose points would land between or behind surfaces (at 0.05 m voxels: precision
   // 0.949 without, 0.966 with 0.5, on the sim; docs/BENCHMARKS.md).
   double max_block_span_px = 0.5;
+  // ... unless its depths lie within this much (metres; 0: off; the depth step sets the map's
+  // voxel): a near surface slanted to the camera (a road, a floor) spans pixels of disparity in
+  // a block and is still one surface within a voxel.
+  double max_block_depth_span_m = 0;
   // Added to every valid disparity before anything else: the right image's offset against its
   // calibration (raw minus calibrated column), as the odometry estimates it.
   double disparity_offset_px = 0;

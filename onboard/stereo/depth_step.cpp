@@ -1,5 +1,7 @@
 #include "onboard/stereo/depth_step.hpp"
 
+#include <cmath>
+
 #include "onboard/camera/image_noise.hpp"
 
 namespace stereomap::stereo {
@@ -16,7 +18,33 @@ MatcherOptions levelMatcher(const MatcherOptions& base, const NoiseLevel& level)
 DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& options)
     : camera_(camera), options_(options), matchers_(options.levels.size() + 1) {
   CV_Assert(options.noise_every >= 1);
-  options_.matcher = fitToRange(options.matcher, camera, options.cloud.max_range_m);
+  if (options.range) {
+    const RigRangeOptions rig{.map_resolution_m = options.range->map_resolution_m,
+                              .precision_px = options.matcher.precision_px,
+                              .window_disparities = options.matcher.num_disparities,
+                              .far_m = options.range->far_m};
+    range_ = rigRange(camera, rig);
+    options_.cloud.max_range_m = range_->far_m;
+    options_.cloud.max_block_depth_span_m = options.range->map_resolution_m;
+    options_.cloud.min_range_m = std::min(options_.cloud.min_range_m, range_->near_m);
+    options_.matcher = fitToWindows(options.matcher, range_->windows);
+    noisy_matcher_ = options_.matcher;
+    noisy_max_range_m_ = range_->far_m;
+    if (options.temporal && rig.far_m <= 0) {
+      // Noisy images' depth is averaged over up to max_frames frames along the poses: the
+      // matchers of the noise levels search as far as such a mean stays within a voxel, and
+      // the filter keeps each block to what its own count allows.
+      RigRangeOptions averaged = rig;
+      averaged.precision_px /= std::sqrt(options.temporal->max_frames);
+      const RigRange noisy = rigRange(camera, averaged);
+      noisy_matcher_ = fitToWindows(options.matcher, noisy.windows);
+      noisy_max_range_m_ = noisy.far_m;
+    }
+  } else {
+    options_.matcher = fitToRange(options.matcher, camera, options.cloud.max_range_m);
+    noisy_matcher_ = options_.matcher;
+    noisy_max_range_m_ = options_.cloud.max_range_m;
+  }
   for (size_t i = 0; i < options.levels.size(); ++i) {
     CV_Assert(options.levels[i].from_sigma > 0 && options.levels[i].block_size % 2 == 1 &&
               (i == 0 || options.levels[i].from_sigma > options.levels[i - 1].from_sigma));
@@ -32,6 +60,10 @@ void DepthStep::setLevel(int level) {
   if (level >= 0 && options_.temporal) {
     TemporalFilterOptions temporal = *options_.temporal;
     temporal.interior_px = options_.levels[static_cast<size_t>(level)].interior_px;
+    if (range_) {
+      temporal.gate_depth_m = range_->options.map_resolution_m;
+      temporal.far_disparity_px = range_->far_disparity_px;
+    }
     filter_.emplace(camera_, temporal);
   }
 }
@@ -57,7 +89,7 @@ StereoMatcher& DepthStep::matcher() {
   if (!slot) {
     slot = std::make_unique<StereoMatcher>(
         level_ < 0 ? options_.matcher
-                   : levelMatcher(options_.matcher, options_.levels[static_cast<size_t>(level_)]));
+                   : levelMatcher(noisy_matcher_, options_.levels[static_cast<size_t>(level_)]));
   }
   return *slot;
 }
@@ -81,8 +113,12 @@ common::PointCloud DepthStep::compute(const cv::Mat& left, const cv::Mat& right,
   cloud.disparity_offset_px = disparity_offset_px;
   const cv::Mat disparity = matcher().compute(left, right);
   if (level_ < 0) return cloudFromDisparity(disparity, left, camera_, cloud);
+  // Blocks as far as an average may reach; the filter keeps each to its own count's range,
+  // and without it (no pose) the one frame's range holds.
+  const bool averaged = filter_ && T_world_camera;
+  if (averaged) cloud.max_range_m = noisy_max_range_m_;
   auto blocks = blockDisparity(disparity, left, camera_, cloud);
-  if (filter_ && T_world_camera) {
+  if (averaged) {
     filter_->apply(blocks, *T_world_camera);
   } else {
     reset();

@@ -9,6 +9,7 @@
 //   depth.reset();                                 // tracking lost: forget the past frames
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <memory>
 #include <optional>
@@ -18,6 +19,7 @@
 #include "common/point_cloud.hpp"
 #include "onboard/camera/stereo_camera.hpp"
 #include "onboard/stereo/depth.hpp"
+#include "onboard/stereo/rig_range.hpp"
 #include "onboard/stereo/temporal_filter.hpp"
 
 namespace stereomap::stereo {
@@ -43,9 +45,20 @@ struct NoiseLevel {
   double interior_px = 0.5;  // TemporalFilterOptions::interior_px at this level
 };
 
+// The depth range from the rig (RigRange): how far depth stays within a voxel of this map,
+// with the matcher's precision, and windows that search from there to the rig's nearest depth.
+struct AutoRange {
+  double map_resolution_m = 0.1;
+  double far_m = 0;  // > 0: this far limit instead of the rule's (the windows still reach near)
+};
+
 struct DepthOptions {
   MatcherOptions matcher = MatcherOptions::fast();
   CloudOptions cloud;
+  // By default the range and the disparity search come from the rig, replacing
+  // cloud.max_range_m and the matcher's window; nullopt: those as set (the window moved to the
+  // range by fitToRange).
+  std::optional<AutoRange> range = AutoRange{};
   NoiseHandling noise = NoiseHandling::kAuto;
   // Noisy images: the levels by rising noise (kOn uses the first). Images count as noisy from
   // the first level's from_sigma, and each level holds down to 0.8 of it, so that a camera
@@ -97,6 +110,11 @@ class DepthStep {
   // The latest image noise estimate (grey levels), whether images count as noisy and at which
   // level (index into DepthOptions::levels; -1: clean).
   double noiseSigma() const { return noise_sigma_; }
+  // The rig's range and windows (nullopt when DepthOptions::range was), and the farthest depth
+  // a point may have, either way.
+  const std::optional<RigRange>& range() const { return range_; }
+  double maxRange() const { return std::max(options_.cloud.max_range_m, noisy_max_range_m_); }
+  const CloudOptions& cloudOptions() const { return options_.cloud; }  // as in effect
   bool noisy() const { return level_ >= 0; }
   int level() const { return level_; }
 
@@ -107,6 +125,11 @@ class DepthStep {
 
   camera::StereoCamera camera_;
   DepthOptions options_;
+  std::optional<RigRange> range_;
+  // The noise levels' matcher before their own settings (levelMatcher), and their farthest
+  // depth: averaged depth may reach farther than one frame's.
+  MatcherOptions noisy_matcher_;
+  double noisy_max_range_m_ = 0;
   // The clean matcher, then one per level; each made when first needed.
   std::vector<std::unique_ptr<StereoMatcher>> matchers_;
   std::optional<TemporalFilter> filter_;

@@ -16,6 +16,18 @@ TemporalFilter::TemporalFilter(const camera::StereoCamera& camera,
 
 void TemporalFilter::reset() { has_previous_ = false; }
 
+float TemporalFilter::nearestFar(int count) const {
+  // The mean of n measurements errs by 1/sqrt(n) of one, and the rule's far limit grows with
+  // the square root of the precision: its disparity shrinks as n^(-1/4).
+  return static_cast<float>(options_.far_disparity_px / std::sqrt(std::sqrt(count)));
+}
+
+bool TemporalFilter::agree(float a, float b) const {
+  if (std::abs(a - b) <= options_.gate_px) return true;
+  const double bf = camera_.baseline * camera_.fx;
+  return std::abs(bf / a - bf / b) <= options_.gate_depth_m;
+}
+
 float TemporalFilter::disparityAt(const Frame& frame, int x, int y, double gx, double gy) const {
   const int rows = frame.disparity.rows, cols = frame.disparity.cols;
   if (x < 0 || y < 0 || x >= cols || y >= rows) return 0;
@@ -26,7 +38,7 @@ float TemporalFilter::disparityAt(const Frame& frame, int x, int y, double gx, d
     auto at = [&](int xi, int yi) {
       if (xi < 0 || yi < 0 || xi >= cols || yi >= rows) return 0.0f;
       const float v = frame.disparity.at<float>(yi, xi);
-      return v > 0 && std::abs(v - d) <= options_.gate_px ? v : 0.0f;
+      return v > 0 && agree(v, d) ? v : 0.0f;
     };
     const float before = at(x - dx, y - dy), after = at(x + dx, y + dy);
     if (before > 0 && after > 0) return (after - before) / 2;
@@ -64,7 +76,7 @@ bool TemporalFilter::carry(const Frame& frame, const Transforms& transforms,
   const float denominator = r.x() * ax + r.y() * ay + r.z() + transforms.current_previous_z_fb * d;
   if (denominator <= 0) return false;
   carried = d / denominator;
-  if (std::abs(measured - carried) > options_.gate_px) return false;
+  if (!agree(measured, carried)) return false;
   count = frame.count.at<int>(y, x);
   return true;
 }
@@ -119,7 +131,7 @@ void TemporalFilter::apply(BlockDisparity& blocks, const common::Rigid3& T_world
       }
       next_d[bx] = value;
       next_n[bx] = count;
-      m_row[bx] = count >= options_.min_frames ? value : 0.0f;
+      m_row[bx] = count >= options_.min_frames && value >= nearestFar(count) ? value : 0.0f;
     }
   }
   if (options_.interior_px > 0) {
@@ -140,7 +152,7 @@ void TemporalFilter::apply(BlockDisparity& blocks, const common::Rigid3& T_world
             interior = n > 0 && std::abs(n - v) <= limit;
           }
         }
-        if (interior) m_row[bx] = v;
+        if (interior && v >= nearestFar(1)) m_row[bx] = v;
       }
     }
   }

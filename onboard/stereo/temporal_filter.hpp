@@ -23,6 +23,14 @@ struct TemporalFilterOptions {
   int min_frames = 2;    // a block gives a point once seen consistently this many times
   int max_frames = 8;    // the running mean's memory (then exponential, weight 1 / max)
   double gate_px = 1.0;  // a measurement this far from the carried disparity starts afresh
+  // ... unless their depths lie within this much (metres; 0: off; the depth step sets the map's
+  // voxel): near points move by pixels of disparity with a pose's small error and still agree
+  // within a voxel.
+  double gate_depth_m = 0;
+  // The depth range's rule (rig_range.hpp) for one frame's disparity, > 0: a block averaged
+  // over n frames gives its point only from far_disparity_px / n^(1/4) on (its mean is sqrt(n)
+  // times as precise, so it may lie farther); 0: no limit here.
+  double far_disparity_px = 0;
   // Unconfirmed blocks inside a smooth surface (all 8 neighbours within this many pixels)
   // give their point at once; 0: off.
   double interior_px = 0;
@@ -58,6 +66,10 @@ class TemporalFilter {
   // with that frame's count.
   bool carry(const Frame& frame, const Transforms& transforms, const Eigen::Vector3f& ray,
              float measured, const BlockDisparity& blocks, float& carried, int& count) const;
+  // Two disparities of one surface: within gate_px, or within gate_depth_m in depth.
+  bool agree(float a, float b) const;
+  // The smallest disparity a block averaged over `count` frames may have (far_disparity_px).
+  float nearestFar(int count) const;
   // Block (x, y)'s disparity moved to grid position (gx, gy) along its surface; 0: none.
   float disparityAt(const Frame& frame, int x, int y, double gx, double gy) const;
 

@@ -74,6 +74,32 @@ TEST(TemporalFilter, NoiseIsAveragedOverFrames) {
   EXPECT_LT(std::sqrt(squares / count), 0.08);
 }
 
+TEST(TemporalFilter, AveragedBlocksReachFartherTheMoreFramesTheyAverage) {
+  // One frame's far limit at 20 px: a wall at 13.5 px (2/3 of it) needs a mean of n frames
+  // with n^(1/4) >= 20 / 13.5, n >= 4.8: its points come from the fifth frame on.
+  TemporalFilter filter(kCamera, {.min_frames = 2, .max_frames = 8, .far_disparity_px = 20});
+  const double z = kCamera.depthFromDisparity(13.5);
+  for (int frame = 1; frame <= 6; ++frame) {
+    auto blocks = planeBlocks(Vec3(0, 0, 1.0 / z));
+    filter.apply(blocks, Rigid3::identity());
+    EXPECT_EQ(pointsOf(blocks) > 0, frame >= 5) << "frame " << frame;
+  }
+}
+
+TEST(TemporalFilter, NearBlocksAgreeWithinAVoxelOfDepth) {
+  // At 0.5 m (118 px) a pose error of 1 % moves the disparity by more than the 1 px gate, and
+  // the depth by 5 mm: within a 0.1 m voxel it is the same surface.
+  TemporalFilter pixels(kCamera, {.min_frames = 2, .gate_px = 1.0});
+  TemporalFilter voxel(kCamera, {.min_frames = 2, .gate_px = 1.0, .gate_depth_m = 0.1});
+  for (TemporalFilter* filter : {&pixels, &voxel}) {
+    auto first = planeBlocks(Vec3(0, 0, 1.0 / 0.5));
+    filter->apply(first, Rigid3::identity());
+    auto second = planeBlocks(Vec3(0, 0, 1.0 / 0.505));
+    filter->apply(second, Rigid3::identity());
+    EXPECT_EQ(pointsOf(second) > 0, filter == &voxel);
+  }
+}
+
 TEST(TemporalFilter, CarriedDepthFollowsTheCameraOverASlantedPlane) {
   TemporalFilter filter(kCamera, {.min_frames = 2, .max_frames = 8, .gate_px = 1.0});
   // A floor-like plane, steep in the image (disparity changes by 0.05 px per pixel), seen

@@ -32,7 +32,8 @@ std::vector<proto::CloudFrameMsg> simFrames(size_t count) {
     const common::Rigid3 T_map_camera =
         frame->T_map_body.value() * frame->T_body_camera.value_or(common::Rigid3{});
     frames.push_back(pipeline::makeCloudFrameMsg(options, options.codec, frames.size(),
-                                                 frame->stamp_ns, T_map_camera, cloud)
+                                                 frame->stamp_ns, T_map_camera, cloud,
+                                                 options.stereo.cloud.max_range_m)
                          .value());
   }
   return frames;

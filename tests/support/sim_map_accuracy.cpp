@@ -26,10 +26,13 @@ SimMapAccuracy measureSimMap(const SimMapSetup& setup) {
   const auto& scene = source.scene();
   const camera::StereoCamera& camera = source.camera();
   const double resolution = setup.map.resolution;
-  const double max_range = setup.depth.cloud.max_range_m;
   const double seen_range = setup.seen_range_m;
   OccupancyMap map(setup.map);
-  stereo::DepthStep depth(camera, setup.depth);
+  // The vehicle is told the map's resolution, and its depth range follows (rig_range.hpp).
+  stereo::DepthOptions depth_options = setup.depth;
+  if (depth_options.range) depth_options.range->map_resolution_m = resolution;
+  stereo::DepthStep depth(camera, depth_options);
+  const double max_range = depth.maxRange();
   std::vector<common::Rigid3> poses;
   std::vector<double> depth_ms;
   while (auto frame = source.next()) {

@@ -1,0 +1,172 @@
+#include "onboard/stereo/rig_range.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+
+#include "onboard/sim/renderer.hpp"
+#include "onboard/stereo/depth.hpp"
+#include "onboard/stereo/disparity_io.hpp"
+#include "testing/data.hpp"
+
+namespace stereomap::stereo {
+namespace {
+
+using common::Vec3;
+
+camera::StereoCamera rig(int width, int height, double fx, double baseline) {
+  camera::StereoCamera camera;
+  camera.width = width;
+  camera.height = height;
+  camera.fx = camera.fy = fx;
+  camera.cx = width / 2.0;
+  camera.cy = height / 2.0;
+  camera.baseline = baseline;
+  return camera;
+}
+
+// The sim's camera, KITTI's, EuRoC's and a wide aerial rig.
+const camera::StereoCamera kRigs[] = {camera::StereoCamera{}, rig(1241, 376, 718.856, 0.5372),
+                                      rig(752, 480, 458.0, 0.110), rig(2048, 1536, 2200, 1.0)};
+
+TEST(RigRange, TheFarLimitIsWhereOneDisparityErrorMovesAPointByAVoxel) {
+  for (const auto& camera : kRigs) {
+    for (const double resolution : {0.05, 0.1, 0.2}) {
+      const RigRange range =
+          rigRange(camera, {.map_resolution_m = resolution, .precision_px = 0.1});
+      // dz = z^2 dd / (b f) (the mapping paper's eq. 4) equals the voxel at the far limit.
+      const double bf = camera.baseline * camera.fx;
+      EXPECT_NEAR(range.far_m * range.far_m * 0.1 / bf, resolution, 1e-9);
+      EXPECT_TRUE(range.far_from_rule);
+      // Near: a quarter of the image's width of disparity.
+      EXPECT_NEAR(range.near_disparity_px, 0.25 * camera.width, 1e-9);
+      EXPECT_LT(range.near_m, range.far_m);
+    }
+  }
+}
+
+TEST(RigRange, WindowsCoverEveryDisparityFromFarToNearAwayFromTheirInnerEdges) {
+  for (const auto& camera : kRigs) {
+    const RigRange range = rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1});
+    ASSERT_FALSE(range.windows.empty());
+    EXPECT_EQ(range.windows.front().downscale, 1);
+    EXPECT_LE(range.windows.front().min_px, range.far_disparity_px);
+    EXPECT_GE(range.windows.back().maxPx(), range.near_disparity_px);
+    for (size_t i = 0; i < range.windows.size(); ++i) {
+      const auto& w = range.windows[i];
+      // A matcher's window at its own scale: whole pixels, a multiple of 16 disparities.
+      EXPECT_EQ(w.min_px % w.downscale, 0);
+      EXPECT_EQ(w.num_px % (16 * w.downscale), 0);
+      if (i == 0) continue;
+      const auto& farther = range.windows[i - 1];
+      EXPECT_EQ(w.downscale, 2 * farther.downscale);
+      // Each side drops its inner edge's pixel (one of its own): the overlap covers both.
+      EXPECT_LE(w.min_px + w.downscale, farther.maxPx() - 1 - farther.downscale);
+      // A coarser window only where its coarser disparity still puts points within a voxel:
+      // dz grows with the pixel's size and falls with d^2.
+      EXPECT_GE(w.min_px, range.far_disparity_px * std::sqrt(w.downscale) - 1e-9)
+          << range.explain();
+    }
+  }
+}
+
+TEST(RigRange, AGivenFarLimitIsKeptAndSaidSo) {
+  const RigRange range = rigRange(kRigs[1], {.map_resolution_m = 0.1, .far_m = 40});
+  EXPECT_DOUBLE_EQ(range.far_m, 40);
+  EXPECT_FALSE(range.far_from_rule);
+  EXPECT_NE(range.explain().find("as given"), std::string::npos) << range.explain();
+  EXPECT_LE(range.windows.front().min_px, kRigs[1].disparityFromDepth(40));
+}
+
+// A textured wall straight ahead at `z` metres, rendered exactly.
+sim::StereoFrame wallAt(double z) {
+  const sim::Scene scene({{Vec3(-20, -20, z), Vec3(20, 20, z + 0.2), 0.6f}});
+  return sim::Renderer(scene, camera::StereoCamera{}).render(common::Rigid3{});
+}
+
+// Of the pixels with a disparity in [from, to): the share of all pixels, and the share of those
+// within `tolerance` of `truth`.
+struct Matched {
+  double share = 0, right = 0;
+};
+Matched matched(const cv::Mat& disparity, double from, double to, double truth, double tolerance) {
+  int in = 0, right = 0;
+  for (int v = 0; v < disparity.rows; ++v) {
+    for (int u = 0; u < disparity.cols; ++u) {
+      const float d = disparity.at<float>(v, u);
+      if (d < from || d >= to) continue;
+      ++in;
+      right += std::abs(d - truth) <= tolerance;
+    }
+  }
+  return {in / static_cast<double>(disparity.total()), in > 0 ? right / double(in) : 1.0};
+}
+
+TEST(StereoMatcher, ThePyramidFindsNearSurfacesOnRealImages) {
+  // Middlebury's aloe (full size, truth 43-211 px) seen by a rig whose far limit is its farthest
+  // surface: the nearer windows, on halved and quartered images, find what lies beyond the
+  // first window, and find it right.
+  const auto dir = testing::kDataDir / "middlebury" / "aloe";
+  STEREOMAP_SKIP_WITHOUT(dir);
+  const auto pair = loadMiddleburyPair(dir);
+  ASSERT_TRUE(pair.ok()) << pair.error().message;
+  camera::StereoCamera camera = rig(pair->left.cols, pair->left.rows, pair->left.cols, 1.0);
+  camera.baseline = 0.1 * 43 * 43 / 0.1 / camera.fx;  // far = b f / 43 at 0.1 m, 0.1 px
+  const RigRange range =
+      rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1, .window_disparities = 48});
+  ASSERT_GE(range.windows.size(), 3u) << range.explain();
+  const double first_max = range.windows.front().maxPx();
+  auto score = [&](const MatcherOptions& options) {
+    const cv::Mat d = StereoMatcher(options).compute(pair->left, pair->right);
+    // Over the evaluated pixels whose truth lies beyond the first window: found, and right.
+    int beyond = 0, found = 0, right = 0;
+    for (int v = 0; v < d.rows; ++v) {
+      for (int u = 0; u < d.cols; ++u) {
+        const float truth = pair->ground_truth.at<float>(v, u);
+        if (pair->evaluated.at<uint8_t>(v, u) == 0 || truth < first_max + 2) continue;
+        ++beyond;
+        const float got = d.at<float>(v, u);
+        if (got < 0) continue;
+        ++found;
+        right += std::abs(got - truth) <= 2.0f;  // the truth is whole pixels; two at half size
+      }
+    }
+    return std::pair{found / double(beyond), right / std::max(1.0, double(found))};
+  };
+  const auto [one_found, one_right] =
+      score(fitToRange(MatcherOptions::fast(), camera, range.far_m));
+  const auto [found, right] = score(fitToWindows(MatcherOptions::fast(), range.windows));
+  EXPECT_LT(one_found * one_right, 0.05);
+  // Measured: found 0.552, right 0.906; one window 0.119, 0.000.
+  EXPECT_GT(found, 0.5);
+  EXPECT_GT(right, 0.9);
+}
+
+TEST(StereoMatcher, ThePyramidsNearerWindowsLeaveSurfacesBeyondTheRangeAlone) {
+  const camera::StereoCamera camera;
+  const RigRange range = rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1});
+  const StereoMatcher pyramid(fitToWindows(MatcherOptions::fast(), range.windows));
+  // A textured wall at 30 m (2 px, four times the far limit): the nearer windows' wide searches
+  // find some match in its texture, unless the first window's far edge tells them off.
+  const auto frame = wallAt(30.0);
+  const Matched nearer =
+      matched(pyramid.compute(frame.left, frame.right), range.windows.front().maxPx(), 1e9, 0, 0);
+  EXPECT_LT(nearer.share, 0.002) << 100 * nearer.share << " % of pixels came out near";
+}
+
+TEST(StereoMatcher, OneWindowBehavesAsBefore) {
+  // fitToWindows with one window is fitToRange's matcher: the same disparities.
+  const camera::StereoCamera camera;
+  const auto frame = wallAt(3.0);
+  const MatcherOptions fitted = fitToRange(MatcherOptions::fast(), camera, 6.0);
+  const StereoMatcher a(fitted);
+  const StereoMatcher b(fitToWindows(
+      MatcherOptions::fast(),
+      {{.downscale = 1, .min_px = fitted.min_disparity, .num_px = fitted.num_disparities}}));
+  const cv::Mat da = a.compute(frame.left, frame.right), db = b.compute(frame.left, frame.right);
+  EXPECT_EQ(cv::countNonZero(da != db), 0);
+}
+
+}  // namespace
+}  // namespace stereomap::stereo
