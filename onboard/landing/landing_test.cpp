@@ -135,8 +135,9 @@ std::vector<Seen> follow(sim::DeckSourceOptions options) {
   std::vector<Seen> out;
   while (const auto frame = source.next()) {
     const auto& truth = source.truth();
-    const LandingReport& seen = watch.update(truth.t_s, frame->left, frame->right,
-                                             *frame->T_map_body, *frame->T_body_camera);
+    const LandingReport& seen =
+        watch.update(truth.t_s, frame->left, frame->right, *frame->T_map_body,
+                     *frame->T_body_camera, frame->T_world_map.value_or(Rigid3{}));
     Seen s{seen.state, seen.reason};
     s.distance_m = truth.distance_m;
     if (seen.state == TrackState::kTracking) {

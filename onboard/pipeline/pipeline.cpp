@@ -236,7 +236,7 @@ class PipelineRun {
     if (options.landing) landing_.emplace(source.camera(), *options.landing);
     if (options.link) cloud_link_.emplace(*options.link);
     if (options.depth && depth_step_.range()) {
-      summary_.depth_range = depth_step_.range()->explain();
+      summary_.depth_range = depth_step_.describeRange();
       spdlog::info("depth range from the rig: {}", summary_.depth_range);
     }
   }

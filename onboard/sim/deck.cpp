@@ -88,6 +88,13 @@ Scene makeDeckScene(uint32_t seed, const DeckMarkings& markings) {
   std::vector<SceneBox> boxes = {
       {Vec3(-20, -8, -1), Vec3(20, 8, 0), 0.6f},         // the deck
       {Vec3(-300, -300, -6), Vec3(300, 300, -5), 0.3f},  // the sea
+      // What stands on it, clear of the pad (within 2.5 m of the deck's origin): the
+      // superstructure at the bow, two containers astern, two crates beside the pad.
+      {Vec3(13, -5, 0), Vec3(19, 5, 4), 0.7f},
+      {Vec3(-14, 3.5, 0), Vec3(-8, 6, 2.6), 0.5f},
+      {Vec3(-14, -6, 0), Vec3(-8, -3.5, 2.6), 0.55f},
+      {Vec3(4, -4.5, 0), Vec3(5, -3.5, 1), 0.45f},
+      {Vec3(-4.5, 3.5, 0), Vec3(-3.5, 4.5, 1.2), 0.5f},
   };
   Scene scene(std::move(boxes), seed);
   // Pad-frame outlines onto the deck's top (shifted along the pad's x by `dx` metres).
@@ -151,17 +158,19 @@ std::optional<camera::SourceFrame> DeckSource::next() {
   camera::SourceFrame frame;
   frame.index = index_++;
   frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t * 1e9));
-  frame.T_map_body = flight_.T_world_body(t);
-  frame.T_body_camera = LandingFlight::T_body_camera();
   truth_ = truthAt(t);
+  // The map is the deck's frame (what stands on the deck stays put in it), the navigation
+  // relative to the ship; the deck's pose in the world goes along for its motion.
+  frame.T_world_map = truth_.T_world_deck;
+  frame.T_map_body = truth_.T_world_deck.inverse() * flight_.T_world_body(t);
+  frame.T_body_camera = LandingFlight::T_body_camera();
   // The scene is rigid in the deck's frame: render the camera's pose there.
   const auto T_deck_camera_at = [&](double time) {
     return truthAt(time).T_world_deck.inverse() * flight_.T_world_body(time) *
            LandingFlight::T_body_camera();
   };
   const double half_exposure = 0.5 * options_.render.camera.exposure_s;
-  const Rigid3 T_deck_camera =
-      truth_.T_world_deck.inverse() * *frame.T_map_body * *frame.T_body_camera;
+  const Rigid3 T_deck_camera = *frame.T_map_body * *frame.T_body_camera;
   StereoFrame rendered = renderer_.render(
       T_deck_camera,
       Renderer::Exposure{T_deck_camera_at(t - half_exposure), T_deck_camera_at(t + half_exposure)});

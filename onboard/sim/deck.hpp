@@ -2,7 +2,9 @@
 // textured deck with the black T-shaped pad, moving as a ship does (forward speed, heave,
 // roll, pitch, a slow turn), and a vehicle above it descending with a downward-looking
 // camera. The scene is rigid in the deck's frame, so it is rendered there: exact images, and
-// exact truth of the pad's pose in the camera and of the deck's motion.
+// exact truth of the pad's pose in the camera and of the deck's motion. Frames are in the
+// deck's frame (SourceFrame::T_map_body relative to the ship, as a ship-relative navigation
+// gives it), with the deck's pose in the world beside (SourceFrame::T_world_map).
 //
 //   DeckSource source({.seed = 1});             // 640x480 at 10 Hz, the typical camera
 //   while (auto frame = source.next()) { const DeckTruth& truth = source.truth(); ... }
@@ -80,7 +82,8 @@ struct DeckMarkings {
 };
 
 // The deck scene in the deck frame: the deck (40 x 16 m, its top at z = 0) with the T painted
-// on it, and the sea below.
+// on it, what stands on it (a superstructure, two containers, two crates; none within 2.5 m
+// of the pad's centre), and the sea below.
 Scene makeDeckScene(uint32_t seed, const DeckMarkings& markings = {});
 
 struct DeckTruth {

@@ -38,8 +38,8 @@ Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) 
       .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
   applyCameraModel(options, deck.render.camera);
   return OpenedSource{std::make_unique<sim::DeckSource>(deck),
-                      "sim:deck: poses from the sim's navigation (stands in for GPS/INS; odometry "
-                      "would follow the moving deck)"};
+                      "sim:deck: mapped in the deck's frame, poses from the sim's navigation "
+                      "relative to the ship (stands in for a ship-relative GPS/INS)"};
 }
 
 // A data set's opener as a row's.

@@ -1,6 +1,7 @@
 #include "onboard/stereo/depth_step.hpp"
 
 #include <cmath>
+#include <cstdio>
 
 #include "onboard/camera/image_noise.hpp"
 
@@ -66,6 +67,18 @@ void DepthStep::setLevel(int level) {
     }
     filter_.emplace(camera_, temporal);
   }
+}
+
+std::string DepthStep::describeRange() const {
+  if (!range_) return {};
+  std::string text = range_->explain();
+  if (noisy_max_range_m_ > range_->far_m) {
+    char more[96];
+    std::snprintf(more, sizeof(more), "; noisy images' depth averaged over frames up to %.3g m",
+                  noisy_max_range_m_);
+    text += more;
+  }
+  return text;
 }
 
 DepthStep::~DepthStep() = default;

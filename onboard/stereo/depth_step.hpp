@@ -115,6 +115,9 @@ class DepthStep {
   const std::optional<RigRange>& range() const { return range_; }
   double maxRange() const { return std::max(options_.cloud.max_range_m, noisy_max_range_m_); }
   const CloudOptions& cloudOptions() const { return options_.cloud; }  // as in effect
+  // The range in a line (RigRange::explain, and how far averaged depth reaches); empty when
+  // DepthOptions::range was nullopt.
+  std::string describeRange() const;
   bool noisy() const { return level_ >= 0; }
   int level() const { return level_; }
 

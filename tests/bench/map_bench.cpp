@@ -162,8 +162,16 @@ int main(int argc, char** argv) {
       }
       if (downscale > 0) depth.matcher.downscale = downscale;
       if (block_rows > 0) depth.cloud.block_rows = block_rows;
-      if (disparities > 0) depth.matcher.num_disparities = disparities;
-      if (max_range > 0) depth.cloud.max_range_m = max_range;
+      // As the vehicle's flags: a disparity count given searches one window from the range
+      // (given, or the rig's rule), a range given moves the rig's far limit.
+      if (disparities > 0) {
+        depth.matcher.num_disparities = disparities;
+        depth.range.reset();
+      }
+      if (max_range > 0) {
+        depth.cloud.max_range_m = max_range;
+        if (depth.range) depth.range->far_m = max_range;
+      }
       if (min_range > 0) depth.cloud.min_range_m = min_range;
       if (span >= 0) depth.cloud.max_block_span_px = span;
       if (hit > 0) setup.map.prob_hit = hit;

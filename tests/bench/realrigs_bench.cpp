@@ -20,11 +20,17 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <map>
 #include <set>
 #include <string>
 #include <tuple>
 #include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include <regex>
 
 #include "common/cli.hpp"
 #include "common/statistics.hpp"
@@ -32,6 +38,8 @@
 #include "onboard/stereo/depth_step.hpp"
 #include "onboard/stereo/disparity_io.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "tests/support/map_score.hpp"
+#include "tests/support/server_fixture.hpp"
 
 namespace {
 
@@ -136,7 +144,7 @@ MiddleburyMap middleburyMap(const stereo::MiddleburyPair& pair, double resolutio
   const VoxelSet ours_map = occupiedOf(ours, resolution, depth.maxRange());
   const VoxelSet truth_map = occupiedOf(truth, resolution, depth.maxRange());
   const VoxelSet sampled_map = occupiedOf(truth_blocks, resolution, depth.maxRange());
-  MiddleburyMap m{pair.name, bf, depth.maxRange(), bf / nearest_truth};
+  MiddleburyMap m{pair.name, bf, depth.range()->far_m, bf / nearest_truth};
   m.ours = ours_map.size();
   m.truth = sampled_map.size();
   m.correct = inOrNear(ours_map, truth_map, 0);
@@ -186,6 +194,119 @@ std::vector<double> blockErrors(const stereo::MiddleburyPair& pair, stereo::Nois
   return errors;
 }
 
+// One flight as a new user makes it: a real stereomap-server and stereomap-onboard --source
+// SOURCE with no other flag but where DDS runs (`extra`: for comparisons). What the server
+// holds once it has fused everything, and what the vehicle's summary says it sent.
+struct Flight {
+  bool ok = false;
+  size_t voxels = 0;
+  double points_per_cloud = 0, kbit_s = 0;
+  uint64_t clouds_sent = 0, clouds_offered = 0, clouds_empty = 0;
+  std::string depth_range, map_bt, log;
+};
+
+Flight fly(const std::string& source, int domain, const std::vector<std::string>& extra = {}) {
+  using namespace std::chrono_literals;
+  Flight flight;
+  testing::ServerProcess server(domain);
+  const std::string session = "realrigs";
+  std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard",
+                                   "--source",
+                                   source,
+                                   "--session",
+                                   session,
+                                   "--dds-config",
+                                   STEREOMAP_DDS_CONFIG,
+                                   "--domain",
+                                   std::to_string(domain)};
+  argv.insert(argv.end(), extra.begin(), extra.end());
+  const std::string log_path = server.logPath() + ".onboard";
+  testing::ChildProcess onboard(argv, log_path);
+  const auto code = onboard.waitExit(600s);
+  {
+    std::ifstream in(log_path);
+    flight.log.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  if (!code || *code != 0) {
+    std::fprintf(stderr, "%s: the vehicle failed (%s)\n%s\n", source.c_str(), log_path.c_str(),
+                 flight.log.c_str());
+    return flight;
+  }
+  std::smatch m;
+  if (std::regex_search(flight.log, m, std::regex(R"(link: sent (\d+) kbit/s)"))) {
+    flight.kbit_s = std::stod(m[1]);
+  }
+  if (std::regex_search(
+          flight.log, m,
+          std::regex(R"((\d+) of (\d+) clouds \((\d+) skipped with nothing new, (\d+) empty)"))) {
+    flight.clouds_sent = std::stoull(m[1]);
+    flight.clouds_offered = std::stoull(m[2]);
+    flight.clouds_empty = std::stoull(m[4]);
+  }
+  if (std::regex_search(flight.log, m,
+                        std::regex(R"(([\d.]+) points and [\d.]+ KiB per cloud sent)"))) {
+    flight.points_per_cloud = std::stod(m[1]);
+  }
+  if (std::regex_search(flight.log, m, std::regex(R"(depth range: ([^\n]*))"))) {
+    flight.depth_range = m[1];
+  }
+  // Fused: the session ended, nothing waiting.
+  nlohmann::json status;
+  const bool fused = testing::waitUntil(120s, [&] {
+    const auto reply = server.get("/api/sessions/" + session);
+    if (reply.status != 200) return false;
+    status = nlohmann::json::parse(reply.body, nullptr, false);
+    return status.is_object() && status.value("state", "") == "ended" &&
+           status.value("fusion_backlog", 1) == 0 && status.value("deferred_frames", 1) == 0 &&
+           status.value("frames", uint64_t{0}) == status.value("frames_received", uint64_t{1});
+  });
+  if (!fused) {
+    std::fprintf(stderr, "%s: the server did not fuse the session: %s\n", source.c_str(),
+                 status.dump().c_str());
+    return flight;
+  }
+  flight.voxels = status.value("occupied_voxels", size_t{0});
+  flight.map_bt = server.get("/api/sessions/" + session + "/map.bt").body;
+  flight.ok = true;
+  return flight;
+}
+
+// The deck map's voxels against the deck scene (the map is the deck's frame): the share a
+// true surface passes through, and within one voxel of one.
+std::pair<double, double> deckPrecision(const Flight& flight, double resolution) {
+  const auto occupied = testing::occupiedVoxelsOf(flight.map_bt, resolution);
+  if (!occupied || occupied->empty()) return {0, 0};
+  const sim::Scene scene = sim::makeDeckScene(1);
+  const double half_diagonal = resolution * std::sqrt(3.0) / 2;
+  size_t in = 0, near = 0;
+  for (const auto& [x, y, z] : *occupied) {
+    const double d = scene.distanceToSurface(
+        common::Vec3((x + 0.5) * resolution, (y + 0.5) * resolution, (z + 0.5) * resolution));
+    in += d <= half_diagonal;
+    near += d <= half_diagonal + resolution;
+  }
+  return {in / double(occupied->size()), near / double(occupied->size())};
+}
+
+// Milliseconds per frame of the deck sim (DeckSource::next(): both images, the camera model)
+// on one core, over `frames` frames spread over the descent: the median, and the slowest.
+std::pair<double, double> deckSimMs(int frames) {
+  cv::setNumThreads(1);
+  std::vector<double> ms;
+  for (int i = 0; i < frames; ++i) {
+    sim::DeckSourceOptions options{.max_frames = 1, .start_s = 60.0 * i / frames};
+    sim::DeckSource source(options);
+    const auto start = std::chrono::steady_clock::now();
+    const auto frame = source.next();
+    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+                     .count());
+    if (!frame) break;
+  }
+  cv::setNumThreads(-1);
+  const double slowest = *std::max_element(ms.begin(), ms.end());
+  return {common::median(std::move(ms)).value_or(0.0), slowest};
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -195,12 +316,17 @@ int main(int argc, char** argv) {
   app.add_option("--data", data, "The shared data folder")->capture_default_str();
   app.add_option("--resolution", resolution, "Map resolution, metres (the server's default)")
       ->capture_default_str();
+  bool physics = false;
+  app.add_flag("--deck-from-30", physics,
+               "Also fly the deck with --max-range 30: what mapping beyond the rig's precision "
+               "gives");
   if (auto code = common::parseCommandLine(app, argc, argv)) return *code;
 
   std::printf("## The fast matcher's precision: block disparity errors on Middlebury\n\n");
   std::printf(
       "| pair | truth step (px) | noise handling | blocks | median abs error (px) | 68th "
       "percentile | 90th |\n|---|---|---|---|---|---|---|\n");
+  std::vector<double> pooled;  // the default way (noise handling auto), both pairs
   for (const char* name : {"venus", "teddy"}) {
     auto pair = stereo::loadMiddleburyPair(std::filesystem::path(data) / "middlebury" / name);
     if (!pair) {
@@ -209,6 +335,7 @@ int main(int argc, char** argv) {
     }
     for (auto noise : {stereo::NoiseHandling::kAuto, stereo::NoiseHandling::kOff}) {
       const auto e = blockErrors(*pair, noise);
+      if (noise == stereo::NoiseHandling::kAuto) pooled.insert(pooled.end(), e.begin(), e.end());
       auto at = [&](double q) {
         return e.empty() ? 0.0 : e[static_cast<size_t>(q * (e.size() - 1))];
       };
@@ -218,6 +345,10 @@ int main(int argc, char** argv) {
                   at(0.68), at(0.9));
     }
   }
+  std::printf(
+      "\nfast matcher's precision (median absolute block error, both pairs, noise "
+      "handling auto): %.3f px (MatcherOptions::precision_px is %.3f)\n",
+      common::median(pooled).value_or(0.0), stereo::MatcherOptions::fast().precision_px);
   std::printf("\n## Middlebury: map of the default depth step against the ground truth's\n\n");
   std::printf(
       "| pair | b*f (px m) | depth of the farthest truth (m) | far limit (m) | voxels "
@@ -239,6 +370,49 @@ int main(int argc, char** argv) {
     all.correct += m.correct;
     all.found += m.found;
   }
-  std::printf("\nmiddlebury map precision %.3f recall %.3f\n", all.precision(), all.recall());
-  return 0;
+  std::printf("\nmiddlebury map precision %.3f recall %.3f\n\n", all.precision(), all.recall());
+
+  std::printf("## Real sources, default flags: stereomap-server + stereomap-onboard --source\n\n");
+  std::printf(
+      "| source | occupied voxels | points per cloud sent | kbit/s | clouds sent / made "
+      "(empty) | depth range |\n|---|---|---|---|---|---|\n");
+  auto row = [](const char* name, const Flight& f) {
+    std::printf("| %s | %zu | %.0f | %.0f | %llu / %llu (%llu) | %s |\n", name, f.voxels,
+                f.points_per_cloud, f.kbit_s, static_cast<unsigned long long>(f.clouds_sent),
+                static_cast<unsigned long long>(f.clouds_offered),
+                static_cast<unsigned long long>(f.clouds_empty), f.depth_range.c_str());
+    std::fflush(stdout);
+  };
+  const Flight kitti = fly("kitti:" + data + "/kitti_stereo_seq2", 101);
+  row("KITTI excerpt (51 frames)", kitti);
+  const Flight euroc = fly("euroc:" + data + "/euroc_v101_micro", 102);
+  row("EuRoC clip (40 frames)", euroc);
+  const Flight deck = fly("sim:deck", 103, {"--landing", "default"});
+  row("deck descent (600 frames, landing watch on)", deck);
+  const auto [deck_in, deck_near] = deckPrecision(deck, resolution);
+  std::printf(
+      "\ndeck map against the deck scene: precision %.3f (a surface in the voxel), %.3f "
+      "(within one voxel)\n",
+      deck_in, deck_near);
+  if (physics) {
+    const Flight from30 = fly("sim:deck", 104, {"--landing", "default", "--max-range", "30"});
+    row("deck descent, --max-range 30 (beyond the rig's precision)", from30);
+    const auto [in30, near30] = deckPrecision(from30, resolution);
+    std::printf(
+        "with --max-range 30: precision %.3f (a surface in the voxel), %.3f (within one "
+        "voxel)\n",
+        in30, near30);
+  }
+  const auto [sim_ms, sim_slowest] = deckSimMs(60);
+  std::printf(
+      "\ndeck sim: %.1f ms per frame on one core (median of 60 over the descent; "
+      "slowest %.1f)\n\n",
+      sim_ms, sim_slowest);
+  const bool ok = kitti.ok && euroc.ok && deck.ok;
+  std::printf(
+      "real rigs: kitti %zu voxels, %.0f points/cloud, %.0f kbit/s; deck %zu voxels; deck "
+      "sim %.1f ms/frame; middlebury map precision %.3f recall %.3f\n",
+      kitti.voxels, kitti.points_per_cloud, kitti.kbit_s, deck.voxels, sim_ms, all.precision(),
+      all.recall());
+  return ok ? 0 : 1;
 }

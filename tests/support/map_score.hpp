@@ -10,6 +10,7 @@
 #include <octomap/OcTree.h>
 
 #include <cmath>
+#include <optional>
 #include <set>
 #include <sstream>
 #include <string>
@@ -25,31 +26,40 @@ struct MapScore {
   double precision = 0, precision_1 = 0, coverage = 0;
 };
 
-// `bt`: the map's OctoMap binary; `truth`: the room and flight the vehicle flew (its first
-// `frames` frames at 10 Hz); `max_range`: the onboard cloud range.
-inline MapScore scoreMap(const std::string& bt, double resolution, const sim::SimSource& truth,
-                         int frames, double max_range) {
-  auto keyOf = [resolution](const common::Vec3& p) { return voxelKeyOf(p, resolution); };
+// The finest voxels a server's map (`bt`, OctoMap's binary) holds occupied; nullopt when it
+// does not read. A pruned leaf stands for all the finest voxels inside it.
+inline std::optional<std::set<VoxelKey>> occupiedVoxelsOf(const std::string& bt,
+                                                          double resolution) {
   std::istringstream in(bt);
   octomap::OcTree map(resolution);
-  MapScore score;
-  if (!map.readBinary(in)) return score;
+  if (!map.readBinary(in)) return std::nullopt;
   std::set<VoxelKey> occupied;
   for (auto it = map.begin_leafs(); it != map.end_leafs(); ++it) {
     if (!map.isNodeOccupied(*it)) continue;
-    // A pruned leaf stands for all the finest voxels inside it.
     const int span = 1 << (16 - it.getDepth());
     const common::Vec3 corner =
         common::Vec3(it.getX(), it.getY(), it.getZ()) - common::Vec3::Constant(it.getSize() / 2);
     for (int dx = 0; dx < span; ++dx) {
       for (int dy = 0; dy < span; ++dy) {
         for (int dz = 0; dz < span; ++dz) {
-          occupied.insert(keyOf(corner + (common::Vec3(dx, dy, dz) + common::Vec3::Constant(0.5)) *
-                                             resolution));
+          occupied.insert(voxelKeyOf(
+              corner + (common::Vec3(dx, dy, dz) + common::Vec3::Constant(0.5)) * resolution,
+              resolution));
         }
       }
     }
   }
+  return occupied;
+}
+
+// `bt`: the map's OctoMap binary; `truth`: the room and flight the vehicle flew (its first
+// `frames` frames at 10 Hz); `max_range`: the onboard cloud range.
+inline MapScore scoreMap(const std::string& bt, double resolution, const sim::SimSource& truth,
+                         int frames, double max_range) {
+  MapScore score;
+  const auto read = occupiedVoxelsOf(bt, resolution);
+  if (!read) return score;
+  const std::set<VoxelKey>& occupied = *read;
   const auto& scene = truth.scene();
   const double half_diagonal = resolution * std::sqrt(3.0) / 2.0;
   size_t correct = 0, within_one_voxel = 0;
