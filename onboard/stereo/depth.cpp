@@ -104,6 +104,7 @@ constexpr float kFarEdge = -3.0f;
 constexpr float kConflict = -2.0f;
 constexpr int kNearerUniqueness = 30;  // percent, see StereoMatcher's constructor
 constexpr int kNearerSpeckle = 50;     // pixels of the reduced image, likewise
+constexpr int kGroundResidual = 8;     // px either side of the ground plane (matchGround)
 
 // One window's matcher: OpenCV's, with what it needs between frames.
 struct WindowMatcher {
@@ -220,12 +221,126 @@ struct WindowMatcher {
   }
 };
 
+// The ground as a plane whose disparity grows down the image, d = slope (v - horizon): a road
+// ahead of a car, terrain ahead of a low drone. A matching block that spans block_size rows of it
+// spans slope * block_size pixels of disparity, which block matching, made for surfaces facing
+// the camera, does not find (KITTI: the road's 0.33 px a row is 4 px over 13 rows, 9 over the
+// 26 of rows matched in pairs).
+struct GroundPlane {
+  double slope = 0, horizon = 0;
+  double at(double v) const { return slope * (v - horizon); }
+};
+
+// The dominant plane of disparity rising down the image among `disparity`'s valid pixels
+// (RANSAC over pairs of samples), when at least a tenth of them lie within half a pixel of it,
+// and it rises by at least `min_slope` px a row; `previous` is tried as well.
+std::optional<GroundPlane> fitGround(const cv::Mat& disparity, double min_slope,
+                                     const std::optional<GroundPlane>& previous) {
+  std::vector<cv::Point2f> samples;  // (v, d)
+  for (int v = 0; v < disparity.rows; v += 2) {
+    const float* row = disparity.ptr<float>(v);
+    for (int u = 0; u < disparity.cols; u += 4) {
+      if (row[u] > 0) samples.emplace_back(static_cast<float>(v), row[u]);
+    }
+  }
+  if (samples.size() < 200) return std::nullopt;
+  auto inliers = [&](const GroundPlane& g) {
+    size_t n = 0;
+    for (const auto& p : samples) n += std::abs(p.y - g.at(p.x)) <= 0.5;
+    return n;
+  };
+  std::optional<GroundPlane> best;
+  size_t best_count = 0;
+  auto consider = [&](const GroundPlane& g) {
+    if (!(g.slope >= min_slope)) return;
+    const size_t n = inliers(g);
+    if (n > best_count) best = g, best_count = n;
+  };
+  if (previous) consider(*previous);
+  cv::RNG rng(0x5eed);  // the same samples give the same plane
+  for (int i = 0; i < 64; ++i) {
+    const auto& a = samples[rng.uniform(0, static_cast<int>(samples.size()))];
+    const auto& b = samples[rng.uniform(0, static_cast<int>(samples.size()))];
+    if (std::abs(a.x - b.x) < 8) continue;
+    const double slope = (b.y - a.y) / (b.x - a.x);
+    consider({slope, a.x - a.y / slope});
+  }
+  if (!best || best_count * 10 < samples.size()) return std::nullopt;
+  // Least squares on its inliers.
+  double sv = 0, sd = 0, svv = 0, svd = 0, n = 0;
+  for (const auto& p : samples) {
+    if (std::abs(p.y - best->at(p.x)) > 0.5) continue;
+    sv += p.x, sd += p.y, svv += p.x * p.x, svd += p.x * p.y, ++n;
+  }
+  const double denominator = n * svv - sv * sv;
+  if (denominator <= 0) return best;
+  const double slope = (n * svd - sv * sd) / denominator;
+  const double offset = (sd - slope * sv) / n;  // d = slope v + offset
+  if (!(slope >= min_slope)) return best;
+  return GroundPlane{slope, -offset / slope};
+}
+
 }  // namespace
 
 struct StereoMatcher::Impl {
   MatcherOptions options;
   std::vector<WindowMatcher> windows;  // the first at options' own window, then `nearer`
+  // The ground pass (MatcherOptions::ground): a matcher of residual disparities around the
+  // ground plane, and the plane found last.
+  std::optional<WindowMatcher> ground;
+  std::optional<GroundPlane> plane;
+  cv::Mat sheared;  // the right image moved row by row by the plane's disparity
+
+  void matchGround(const cv::Mat& left, const cv::Mat& right, cv::Mat& disparity);
 };
+
+// Matches the rows below the horizon again on a right image sheared by the ground plane, so
+// that the ground faces the matcher (its residual disparity is 0), and takes the ground's
+// disparities where the windows found none. A pixel where both found one must agree.
+void StereoMatcher::Impl::matchGround(const cv::Mat& left, const cv::Mat& right,
+                                      cv::Mat& disparity) {
+  Impl& impl = *this;
+  const double window_rows = impl.options.block_size * impl.options.row_groups;
+  // Below a pixel of disparity over a block's rows the windows find the ground themselves.
+  impl.plane = fitGround(disparity, 1.0 / window_rows, impl.plane);
+  if (!impl.plane) return;
+  const GroundPlane g = *impl.plane;
+  const int first_row = std::clamp(static_cast<int>(std::ceil(g.horizon)) + 1, 0, left.rows);
+  if (left.rows - first_row < 2 * impl.options.block_size * impl.options.row_groups) return;
+  // right'(x, v) = right(x - g(v), v): a left pixel on the ground matches right' at x - 0.
+  cv::Mat map_x(left.rows - first_row, left.cols, CV_32FC1), map_y(map_x.size(), CV_32FC1);
+  for (int r = 0; r < map_x.rows; ++r) {
+    const float shift = static_cast<float>(g.at(first_row + r));
+    float* mx = map_x.ptr<float>(r);
+    float* my = map_y.ptr<float>(r);
+    for (int u = 0; u < map_x.cols; ++u) {
+      mx[u] = static_cast<float>(u) - shift;
+      my[u] = static_cast<float>(first_row + r);
+    }
+  }
+  cv::remap(right, impl.sheared, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+  const cv::Mat residual = impl.ground->compute(left.rowRange(first_row, left.rows), impl.sheared);
+  const float lowest = static_cast<float>(windows.front().options.min_disparity);
+  const auto& last = windows.back().options;
+  const float highest = static_cast<float>(last.min_disparity + last.num_disparities);
+  for (int r = 0; r < residual.rows; ++r) {
+    const int v = first_row + r;
+    const float* in = residual.ptr<float>(r);
+    float* out = disparity.ptr<float>(v);
+    const float shift = static_cast<float>(g.at(v));
+    for (int u = 0; u < residual.cols; ++u) {
+      if (in[u] == -1.0f || in[u] == kFarEdge || in[u] == kConflict) continue;
+      const float d = in[u] + shift;
+      // Not matched beyond the image's left edge, and within the windows' range.
+      if (d < lowest || d >= highest || d > u - impl.options.block_size / 2) continue;
+      if (out[u] == -1.0f) {
+        out[u] = d;
+      } else if (out[u] >= 0 && std::abs(out[u] - d) > 1.0f) {
+        out[u] = kConflict;
+      }
+    }
+  }
+}
 
 StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_unique<Impl>()) {
   CV_Assert(options.num_disparities > 0 && options.num_disparities % 16 == 0);
@@ -262,6 +377,17 @@ StereoMatcher::StereoMatcher(const MatcherOptions& options) : impl_(std::make_un
     impl_->windows[i].keep_far_edge = false;
   }
   if (impl_->windows.size() > 1) impl_->windows.back().keep_far_edge = false;
+  if (options.ground) {
+    // Residual disparities around the plane: a surface within a few pixels of it.
+    MatcherOptions o = options;
+    o.nearer.clear();
+    o.downscale = 1;
+    o.min_disparity = -kGroundResidual;
+    o.num_disparities = 2 * kGroundResidual;
+    o.pad_left = false;
+    impl_->ground.emplace(o);
+    impl_->ground->keep_far_edge = impl_->ground->keep_near_edge = false;
+  }
 }
 
 StereoMatcher::~StereoMatcher() = default;
@@ -296,6 +422,7 @@ cv::Mat StereoMatcher::compute(const cv::Mat& left, const cv::Mat& right) const 
       }
     }
   }
+  if (impl_->ground) impl_->matchGround(left, right, disparity);
   return disparity;
 }
 

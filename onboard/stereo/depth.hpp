@@ -71,6 +71,11 @@ struct MatcherOptions {
   // matches on a window's inner edges (a disparity beyond the window lands there) and pixels
   // where two windows disagree give none.
   std::vector<DisparityWindow> nearer;
+  // A second look at the ground: where the image holds a plane whose disparity rises down the
+  // image (a road, terrain ahead) too steeply for the block, the rows below its horizon are
+  // matched again on a right image sheared by it, and its disparities fill what the windows
+  // missed (StereoMatcher keeps the plane from frame to frame).
+  bool ground = true;
   // The disparity error of the points this preset's clouds keep (full-image pixels), as the
   // depth range's rule needs it (RigRangeOptions::precision_px): the median absolute error of
   // the block disparities on Middlebury's pairs with sub-pixel truth (stereomap-bench-realrigs,
