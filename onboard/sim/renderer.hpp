@@ -54,8 +54,11 @@ struct RenderOptions {
   double max_depth = 40.0;  // metres; farther surfaces are not rendered
   CameraModel camera;
   uint32_t noise_seed = 1;
-  // Rays per pixel along each axis, averaged (anti-aliasing: a sharp painted edge then lands
-  // between pixels as a real lens and sensor put it, which sub-pixel corners rely on).
+  // Anti-aliasing, as a real lens and sensor put a sharp painted edge between pixels (which
+  // sub-pixel corners rely on). Above 1: the mean of s x s rays (s = supersample) in each pixel
+  // that an edge crosses (where the box hit or the paint changes), one ray elsewhere, and the
+  // texture's detail finer than the pixel faded to its mean. 1: one ray per pixel centre and
+  // the exact texture (the rooms' images).
   int supersample = 1;
 };
 

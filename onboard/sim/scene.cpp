@@ -32,19 +32,13 @@ float lattice(int32_t x, int32_t y, int32_t z, uint32_t seed) {
   return static_cast<float>(hash3(x, y, z, seed) & 0xFFFFu) * (1.0f / 65535.0f);
 }
 
-// Trilinear value noise in [0, 1] with unit lattice spacing.
-float valueNoise(const Vec3& p, uint32_t seed) {
-  const double fx = std::floor(p.x()), fy = std::floor(p.y()), fz = std::floor(p.z());
-  const auto x = static_cast<int32_t>(fx), y = static_cast<int32_t>(fy),
-             z = static_cast<int32_t>(fz);
-  const float tx = static_cast<float>(p.x() - fx), ty = static_cast<float>(p.y() - fy),
-              tz = static_cast<float>(p.z() - fz);
-  auto lerp = [](float a, float b, float t) { return a + (b - a) * t; };
-  const float c00 = lerp(lattice(x, y, z, seed), lattice(x + 1, y, z, seed), tx);
-  const float c10 = lerp(lattice(x, y + 1, z, seed), lattice(x + 1, y + 1, z, seed), tx);
-  const float c01 = lerp(lattice(x, y, z + 1, seed), lattice(x + 1, y, z + 1, seed), tx);
-  const float c11 = lerp(lattice(x, y + 1, z + 1, seed), lattice(x + 1, y + 1, z + 1, seed), tx);
-  return lerp(lerp(c00, c10, ty), lerp(c01, c11, ty), tz);
+float lerp(float a, float b, float t) { return a + (b - a) * t; }
+
+// std::floor as an integer, without its library call (x86-64 has no rounding instruction
+// before SSE4.1); the same value for every input in range.
+int32_t floorInt(double v) {
+  const auto i = static_cast<int32_t>(v);
+  return i > v ? i - 1 : i;
 }
 
 // Distance in the xy plane from point (px, py) to the rectangle of `box`.
@@ -120,15 +114,6 @@ common::Box3 Scene::bounds() const {
   return bounds;
 }
 
-double Scene::entryDistance(size_t box, const Vec3& origin, const Vec3& inverse_direction) const {
-  // Slab test; an origin inside the box sees nothing of it (returns a negative value).
-  const Vec3 t0 = (boxes_[box].min - origin).cwiseProduct(inverse_direction);
-  const Vec3 t1 = (boxes_[box].max - origin).cwiseProduct(inverse_direction);
-  const double t_near = t0.cwiseMin(t1).maxCoeff();
-  const double t_far = t0.cwiseMax(t1).minCoeff();
-  return t_near <= t_far ? t_near : -1.0;
-}
-
 std::optional<RayHit> Scene::intersect(const Vec3& origin, const Vec3& direction,
                                        double max_t) const {
   const Vec3 inverse = direction.cwiseInverse();
@@ -157,14 +142,62 @@ double Scene::distanceToSurface(const Vec3& p) const {
   return best;
 }
 
-uint8_t Scene::textureAt(const Vec3& p, int box) const {
-  const uint32_t seed = texture_seed_ * 131u + static_cast<uint32_t>(box);
-  // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away.
-  const float fine = valueNoise(p * (1.0 / 0.06), seed);
-  const float coarse = valueNoise(p * (1.0 / 0.25), seed ^ 0x5bd1e995u);
-  float albedo = boxes_[box].albedo, shade = 1.0f;
-  for (const auto& marking : markings_) {
-    if (marking.box == box && p.z() >= boxes_[box].max.z() - 1e-9 &&
+void Scene::addMarking(SceneMarking marking) {
+  Eigen::AlignedBox2d bounds;
+  for (const auto& corner : marking.polygon) bounds.extend(corner);
+  marking_bounds_.push_back(bounds);
+  markings_.push_back(std::move(marking));
+}
+
+float SurfaceShader::valueNoise(const Vec3& p, uint32_t seed, LatticeCell& cell) {
+  const int32_t x = floorInt(p.x()), y = floorInt(p.y()), z = floorInt(p.z());
+  const double fx = x, fy = y, fz = z;
+  const float tx = static_cast<float>(p.x() - fx), ty = static_cast<float>(p.y() - fy),
+              tz = static_cast<float>(p.z() - fz);
+  if (!cell.lower || x != cell.x || y != cell.y || z != cell.z || seed != cell.seed) {
+    cell = {.x = x, .y = y, .z = z, .seed = seed, .lower = true};
+    cell.corner = {lattice(x, y, z, seed), lattice(x + 1, y, z, seed), lattice(x, y + 1, z, seed),
+                   lattice(x + 1, y + 1, z, seed)};
+  }
+  const std::array<float, 8>& c = cell.corner;
+  const float lower = lerp(lerp(c[0], c[1], tx), lerp(c[2], c[3], tx), ty);
+  // On a lattice plane (a deck's top at z = 0) the layer above has no weight: lerp(lower,
+  // upper, 0) is `lower` to the bit, so skipping it changes nothing but the time.
+  if (tz == 0) return lower;
+  if (!cell.upper) {
+    cell.corner[4] = lattice(x, y, z + 1, seed);
+    cell.corner[5] = lattice(x + 1, y, z + 1, seed);
+    cell.corner[6] = lattice(x, y + 1, z + 1, seed);
+    cell.corner[7] = lattice(x + 1, y + 1, z + 1, seed);
+    cell.upper = true;
+  }
+  return lerp(lower, lerp(lerp(c[4], c[5], tx), lerp(c[6], c[7], tx), ty), tz);
+}
+
+SurfaceShader::Shade SurfaceShader::shade(const Vec3& p, int box, double footprint_m) {
+  const SceneBox& surface = scene_.boxes_[box];
+  const uint32_t seed = scene_.texture_seed_ * 131u + static_cast<uint32_t>(box);
+  // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away. Each
+  // fades to its mean (0.5) between lattice spacings of two and one footprints (band-limiting,
+  // as procedural textures are anti-aliased), and is not evaluated once gone.
+  auto octave = [&](double spacing_m, uint32_t octave_seed, LatticeCell& cell) {
+    double weight = 1.0;  // comparisons first: most points need no division
+    if (footprint_m >= spacing_m) {
+      weight = 0.0;
+    } else if (2 * footprint_m > spacing_m) {
+      weight = spacing_m / footprint_m - 1.0;
+    }
+    if (weight == 0) return 0.5f;
+    const float value = valueNoise(p * (1.0 / spacing_m), octave_seed, cell);
+    return weight == 1 ? value : 0.5f + static_cast<float>(weight) * (value - 0.5f);
+  };
+  const float fine = octave(0.06, seed, octaves_[0]);
+  const float coarse = octave(0.25, seed ^ 0x5bd1e995u, octaves_[1]);
+  float albedo = surface.albedo, shade = 1.0f;
+  const bool on_top = p.z() >= surface.max.z() - 1e-9;
+  for (size_t i = 0; i < scene_.markings_.size() && on_top; ++i) {
+    const SceneMarking& marking = scene_.markings_[i];
+    if (marking.box == box && scene_.marking_bounds_[i].contains(Eigen::Vector2d(p.x(), p.y())) &&
         insidePolygon(marking.polygon, p.x(), p.y())) {
       if (marking.shade) {
         shade *= marking.albedo;
@@ -175,7 +208,7 @@ uint8_t Scene::textureAt(const Vec3& p, int box) const {
   }
   albedo *= shade;
   const float value = albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
-  return static_cast<uint8_t>(std::clamp(value * 255.0f, 0.0f, 255.0f));
+  return {.grey = std::clamp(value * 255.0f, 0.0f, 255.0f), .albedo = albedo};
 }
 
 }  // namespace stereomap::sim

@@ -6,6 +6,7 @@
 //   auto hit = room.intersect(origin, direction, 20.0);
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <vector>
@@ -18,6 +19,11 @@ struct SceneBox {
   common::Vec3 min;
   common::Vec3 max;
   float albedo = 0.6f;  // base brightness of the texture, 0..1
+
+  // Corner `i` of 8: bit 0 of `i` picks max x over min x, bit 1 max y, bit 2 max z.
+  common::Vec3 corner(int i) const {
+    return {(i & 1) ? max.x() : min.x(), (i & 2) ? max.y() : min.y(), (i & 4) ? max.z() : min.z()};
+  }
 };
 
 // Paint on the top face of a box (a landing pad's T on a deck): a polygon in the face's x, y
@@ -58,20 +64,65 @@ class Scene {
   std::optional<RayHit> intersect(const common::Vec3& origin, const common::Vec3& direction,
                                   double max_t) const;
   // Ray parameter t where origin + t * direction enters box `box` (direction given by its
-  // component-wise inverse); negative when the ray misses it or starts inside.
+  // component-wise inverse); negative when the ray misses it or starts inside. Inline: it is
+  // the renderer's innermost loop.
   double entryDistance(size_t box, const common::Vec3& origin,
-                       const common::Vec3& inverse_direction) const;
+                       const common::Vec3& inverse_direction) const {
+    // Slab test; an origin inside the box sees nothing of it (returns a negative value).
+    const common::Vec3 t0 = (boxes_[box].min - origin).cwiseProduct(inverse_direction);
+    const common::Vec3 t1 = (boxes_[box].max - origin).cwiseProduct(inverse_direction);
+    const double t_near = t0.cwiseMin(t1).maxCoeff();
+    const double t_far = t0.cwiseMax(t1).minCoeff();
+    return t_near <= t_far ? t_near : -1.0;
+  }
   // Distance from `p` to the nearest box surface (0 on a surface, inside counts as well).
   double distanceToSurface(const common::Vec3& p) const;
-  // Grey value (0..255) of the solid texture at a surface point of box `box`.
-  uint8_t textureAt(const common::Vec3& p, int box) const;
 
-  void addMarking(SceneMarking marking) { markings_.push_back(std::move(marking)); }
+  // Paint on a box's top face; what a surface point looks like is SurfaceShader's.
+  void addMarking(SceneMarking marking);
+  const std::vector<SceneMarking>& markings() const { return markings_; }
 
  private:
+  friend class SurfaceShader;
+
   std::vector<SceneBox> boxes_;
   std::vector<SceneMarking> markings_;
+  std::vector<Eigen::AlignedBox2d> marking_bounds_;  // each polygon's, to skip it cheaply
   uint32_t texture_seed_;
+};
+
+// Shades surface points of a Scene, keeping the texture's lattice values of the cells it last
+// used: consecutive pixels of a row mostly fall in the same cells and then need no hashing.
+// Not thread-safe: one per thread (it is small).
+class SurfaceShader {
+ public:
+  explicit SurfaceShader(const Scene& scene) : scene_(scene) {}
+
+  struct Shade {
+    float grey = 0;  // 0..255, not rounded
+    // The albedo there: the box's, or its paint's, times any shadow on it. It changes only at
+    // a marking's edge, which is what anti-aliasing looks for.
+    float albedo = 0;
+  };
+  // Box `box`'s surface at `p`. `footprint_m`: the pixel's size on the surface; each octave of
+  // the texture fades to its mean as its lattice spacing shrinks from two footprints to one, so
+  // that detail finer than the pixels does not alias into noise (0: the exact texture).
+  Shade shade(const common::Vec3& p, int box, double footprint_m = 0);
+
+ private:
+  // The value noise's lattice values around one cell: the layer at z (corners 0-3) and, filled
+  // when a point needs it, the layer at z + 1 (corners 4-7).
+  struct LatticeCell {
+    int32_t x = 0, y = 0, z = 0;
+    uint32_t seed = 0;
+    bool lower = false, upper = false;
+    std::array<float, 8> corner{};
+  };
+  // Trilinear value noise in [0, 1] with unit lattice spacing, reusing `cell`'s values.
+  static float valueNoise(const common::Vec3& p, uint32_t seed, LatticeCell& cell);
+
+  const Scene& scene_;
+  std::array<LatticeCell, 2> octaves_;  // fine, coarse
 };
 
 }  // namespace stereomap::sim
