@@ -142,6 +142,27 @@ TEST(CloudLink, TheBudgetHoldsTheBytesSentPerSecond) {
   EXPECT_EQ(link.stats().thinned_budget, 0u);  // a whole cloud a second fits: none thinned
 }
 
+TEST(CloudLink, AShortFlightHoldsTheBudgetFromItsStart) {
+  // Nothing is saved up before the first cloud: over any first few seconds the bytes sent stay
+  // within that many seconds' worth and the first cloud (a bucket that started full let a 5 s
+  // drive send 6 s worth).
+  CloudLink probe({.map_resolution_m = 0.1});
+  const double whole = static_cast<double>(bytesOf(*probe.prepare(wall(), pose(), 0)));
+  // Five whole clouds a second of the ten offered.
+  CloudLink link({.map_resolution_m = 0.1, .min_new_share = 0, .budget_bits_per_s = 8 * 5 * whole});
+  double bytes = 0;
+  for (int i = 0; i < 50; ++i) {  // 5 s at 10 Hz
+    const int64_t stamp = i * kFrameNs;
+    if (auto cloud = link.prepare(wall(), pose(), stamp)) {
+      link.sent(stamp, bytesOf(*cloud), 3 * cloud->size());
+      bytes += static_cast<double>(bytesOf(*cloud));
+    }
+    const double seconds = i * 0.1;  // the stamp of this frame
+    EXPECT_LE(bytes, whole * (5 * seconds + 1.5)) << "at " << seconds << " s";
+  }
+  EXPECT_GE(bytes, whole * 5 * 4);  // and it uses the budget
+}
+
 // Below a whole cloud per max_interval, clouds go out thinner, each with other voxels: the
 // whole view is refreshed every few clouds, and the bytes stay within the budget.
 TEST(CloudLink, ATightBudgetThinsCloudsAndCoversTheViewInTurn) {

@@ -307,21 +307,9 @@ std::pair<double, double> deckSimMs(int frames) {
   return {common::median(std::move(ms)).value_or(0.0), slowest};
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  CLI::App app{"stereomap-bench-realrigs: real rigs with default flags (issue 37)"};
-  std::string data = STEREOMAP_DATA_DIR;
-  double resolution = 0.1;
-  app.add_option("--data", data, "The shared data folder")->capture_default_str();
-  app.add_option("--resolution", resolution, "Map resolution, metres (the server's default)")
-      ->capture_default_str();
-  bool physics = false;
-  app.add_flag("--deck-from-30", physics,
-               "Also fly the deck with --max-range 30: what mapping beyond the rig's precision "
-               "gives");
-  if (auto code = common::parseCommandLine(app, argc, argv)) return *code;
-
+// The fast matcher's block disparity errors on the pairs with sub-pixel truth, by noise
+// handling; returns the default way's median (both pairs), or nullopt when the data is absent.
+std::optional<double> reportPrecision(const std::string& data) {
   std::printf("## The fast matcher's precision: block disparity errors on Middlebury\n\n");
   std::printf(
       "| pair | truth step (px) | noise handling | blocks | median abs error (px) | 68th "
@@ -331,7 +319,7 @@ int main(int argc, char** argv) {
     auto pair = stereo::loadMiddleburyPair(std::filesystem::path(data) / "middlebury" / name);
     if (!pair) {
       std::fprintf(stderr, "%s\n", pair.error().message.c_str());
-      return 1;
+      return std::nullopt;
     }
     for (auto noise : {stereo::NoiseHandling::kAuto, stereo::NoiseHandling::kOff}) {
       const auto e = blockErrors(*pair, noise);
@@ -345,11 +333,17 @@ int main(int argc, char** argv) {
                   at(0.68), at(0.9));
     }
   }
+  const double median = common::median(pooled).value_or(0.0);
   std::printf(
-      "\nfast matcher's precision (median absolute block error, both pairs, noise "
-      "handling auto): %.3f px (MatcherOptions::precision_px is %.3f)\n",
-      common::median(pooled).value_or(0.0), stereo::MatcherOptions::fast().precision_px);
-  std::printf("\n## Middlebury: map of the default depth step against the ground truth's\n\n");
+      "\nfast matcher's precision (median absolute block error, both pairs, noise handling "
+      "auto): %.3f px (MatcherOptions::precision_px is %.3f)\n\n",
+      median, stereo::MatcherOptions::fast().precision_px);
+  return median;
+}
+
+// The map of each pair against its truth's; the sums over the pairs, or nullopt.
+std::optional<MiddleburyMap> reportMiddlebury(const std::string& data, double resolution) {
+  std::printf("## Middlebury: map of the default depth step against the ground truth's\n\n");
   std::printf(
       "| pair | b*f (px m) | depth of the farthest truth (m) | far limit (m) | voxels "
       "ours | voxels truth | precision | recall | within one voxel |\n"
@@ -359,7 +353,7 @@ int main(int argc, char** argv) {
     auto pair = stereo::loadMiddleburyPair(std::filesystem::path(data) / "middlebury" / name);
     if (!pair) {
       std::fprintf(stderr, "%s\n", pair.error().message.c_str());
-      return 1;
+      return std::nullopt;
     }
     const auto m = middleburyMap(*pair, resolution);
     std::printf("| %s | %.1f | %.2f | %.2f | %zu | %zu | %.3f | %.3f | %.3f / %.3f |\n", name,
@@ -371,48 +365,90 @@ int main(int argc, char** argv) {
     all.found += m.found;
   }
   std::printf("\nmiddlebury map precision %.3f recall %.3f\n\n", all.precision(), all.recall());
+  return all;
+}
 
+void reportFlight(const char* name, const Flight& f) {
+  std::printf("| %s | %zu | %.0f | %.0f | %llu / %llu (%llu) | %s |\n", name, f.voxels,
+              f.points_per_cloud, f.kbit_s, static_cast<unsigned long long>(f.clouds_sent),
+              static_cast<unsigned long long>(f.clouds_offered),
+              static_cast<unsigned long long>(f.clouds_empty), f.depth_range.c_str());
+  std::fflush(stdout);
+}
+
+void reportDeckPrecision(const char* what, const Flight& f, double resolution) {
+  const auto [in, near] = deckPrecision(f, resolution);
+  std::printf("%s: precision %.3f (a surface in the voxel), %.3f (within one voxel)\n", what, in,
+              near);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"stereomap-bench-realrigs: real rigs with default flags (issue 37)"};
+  std::string data = STEREOMAP_DATA_DIR;
+  double resolution = 0.1;
+  std::vector<std::string> only = {"middlebury", "kitti", "euroc", "deck", "decksim"};
+  bool physics = false;
+  app.add_option("--data", data, "The shared data folder")->capture_default_str();
+  app.add_option("--resolution", resolution, "Map resolution, metres (the server's default)")
+      ->capture_default_str();
+  app.add_option("--only", only, "Parts to run (the last line needs them all)")
+      ->delimiter(',')
+      ->check(CLI::IsMember({"middlebury", "kitti", "euroc", "deck", "decksim"}))
+      ->capture_default_str();
+  app.add_flag("--deck-from-30", physics,
+               "Also fly the deck with --max-range 30: what mapping beyond the rig's precision "
+               "gives");
+  if (auto code = common::parseCommandLine(app, argc, argv)) return *code;
+  const auto wanted = [&](const char* part) {
+    return std::find(only.begin(), only.end(), part) != only.end();
+  };
+
+  std::optional<MiddleburyMap> middlebury;
+  if (wanted("middlebury")) {
+    if (!reportPrecision(data)) return 1;
+    middlebury = reportMiddlebury(data, resolution);
+    if (!middlebury) return 1;
+  }
   std::printf("## Real sources, default flags: stereomap-server + stereomap-onboard --source\n\n");
   std::printf(
       "| source | occupied voxels | points per cloud sent | kbit/s | clouds sent / made "
       "(empty) | depth range |\n|---|---|---|---|---|---|\n");
-  auto row = [](const char* name, const Flight& f) {
-    std::printf("| %s | %zu | %.0f | %.0f | %llu / %llu (%llu) | %s |\n", name, f.voxels,
-                f.points_per_cloud, f.kbit_s, static_cast<unsigned long long>(f.clouds_sent),
-                static_cast<unsigned long long>(f.clouds_offered),
-                static_cast<unsigned long long>(f.clouds_empty), f.depth_range.c_str());
-    std::fflush(stdout);
-  };
-  const Flight kitti = fly("kitti:" + data + "/kitti_stereo_seq2", 101);
-  row("KITTI excerpt (51 frames)", kitti);
-  const Flight euroc = fly("euroc:" + data + "/euroc_v101_micro", 102);
-  row("EuRoC clip (40 frames)", euroc);
-  const Flight deck = fly("sim:deck", 103, {"--landing", "default"});
-  row("deck descent (600 frames, landing watch on)", deck);
-  const auto [deck_in, deck_near] = deckPrecision(deck, resolution);
-  std::printf(
-      "\ndeck map against the deck scene: precision %.3f (a surface in the voxel), %.3f "
-      "(within one voxel)\n",
-      deck_in, deck_near);
-  if (physics) {
-    const Flight from30 = fly("sim:deck", 104, {"--landing", "default", "--max-range", "30"});
-    row("deck descent, --max-range 30 (beyond the rig's precision)", from30);
-    const auto [in30, near30] = deckPrecision(from30, resolution);
-    std::printf(
-        "with --max-range 30: precision %.3f (a surface in the voxel), %.3f (within one "
-        "voxel)\n",
-        in30, near30);
+  Flight kitti, euroc, deck;
+  if (wanted("kitti")) {
+    kitti = fly("kitti:" + data + "/kitti_stereo_seq2", 101);
+    reportFlight("KITTI excerpt (51 frames)", kitti);
   }
-  const auto [sim_ms, sim_slowest] = deckSimMs(60);
+  if (wanted("euroc")) {
+    euroc = fly("euroc:" + data + "/euroc_v101_micro", 102);
+    reportFlight("EuRoC clip (40 frames)", euroc);
+  }
+  if (wanted("deck")) {
+    deck = fly("sim:deck", 103, {"--landing", "default"});
+    reportFlight("deck descent (600 frames, landing watch on)", deck);
+    if (physics) {
+      const Flight from30 = fly("sim:deck", 104, {"--landing", "default", "--max-range", "30"});
+      reportFlight("deck descent, --max-range 30 (beyond the rig's precision)", from30);
+      reportDeckPrecision("\nthe deck map with --max-range 30 against the deck scene", from30,
+                          resolution);
+    }
+    reportDeckPrecision("the deck map against the deck scene", deck, resolution);
+  }
+  double sim_ms = 0;
+  if (wanted("decksim")) {
+    double slowest = 0;
+    std::tie(sim_ms, slowest) = deckSimMs(60);
+    std::printf(
+        "\ndeck sim: %.1f ms per frame on one core (median of 60 over the descent; slowest "
+        "%.1f)\n",
+        sim_ms, slowest);
+  }
+  if (only.size() < 5) return 0;
   std::printf(
-      "\ndeck sim: %.1f ms per frame on one core (median of 60 over the descent; "
-      "slowest %.1f)\n\n",
-      sim_ms, sim_slowest);
-  const bool ok = kitti.ok && euroc.ok && deck.ok;
-  std::printf(
-      "real rigs: kitti %zu voxels, %.0f points/cloud, %.0f kbit/s; deck %zu voxels; deck "
+      "\nreal rigs: kitti %zu voxels, %.0f points/cloud, %.0f kbit/s; deck %zu voxels; deck "
       "sim %.1f ms/frame; middlebury map precision %.3f recall %.3f\n",
-      kitti.voxels, kitti.points_per_cloud, kitti.kbit_s, deck.voxels, sim_ms, all.precision(),
-      all.recall());
-  return ok ? 0 : 1;
+      kitti.voxels, kitti.points_per_cloud, kitti.kbit_s, deck.voxels, sim_ms,
+      middlebury->precision(), middlebury->recall());
+  return kitti.ok && euroc.ok && deck.ok ? 0 : 1;
 }

@@ -77,9 +77,9 @@ std::vector<std::string> onboardArgs(int domain, const std::string& session, int
                                    "--domain",
                                    std::to_string(domain)};
   withLoopbackDds(argv, extra);
-  // Every cloud is sent whole, so that tests can count frames and fill disks at any map
-  // resolution; the tests of the link choose.
-  for (const char* flag : {"--min-new", "--map-resolution"}) {
+  // Every cloud is sent whole and none is held back for a link's budget, so that tests can
+  // count frames and fill disks at any map resolution; the tests of the link choose.
+  for (const char* flag : {"--min-new", "--map-resolution", "--link-budget"}) {
     if (std::find(extra.begin(), extra.end(), flag) == extra.end()) {
       argv.insert(argv.end(), {flag, "0"});
     }
