@@ -227,9 +227,10 @@ async function run(options, resources, progress) {
 
   progress.step = 'running the onboard pipeline';
   const onboard = start('stereomap-onboard', path.join(binDir, 'stereomap-onboard'),
-    // Every cloud (--min-new 0), thinned to the server's 0.1 m voxels: the page must show each.
+    // Every cloud (--min-new 0, no link budget), thinned to the server's 0.1 m voxels: the page
+    // must show each.
     ['--source', 'sim', '--frames', String(frames), '--rate', '10', '--session', 'e2e', '--vehicle', 'sim-1',
-      '--min-new', '0', ...ddsArgs], ddsEnv);
+      '--min-new', '0', '--link-budget', 'off', ...ddsArgs], ddsEnv);
   resources.procs.push(onboard);
   const onboardHealthy = () => {
     pageHealthy();
