@@ -7,6 +7,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <vector>
 
 #include "tests/support/process.hpp"
 
@@ -29,6 +30,35 @@ TEST(Cli, EveryBinaryHelpsAndRefusesBadUsageWithExitTwo) {
     // What is wrong (the flag, or a missing subcommand or option, which CLI11 checks first).
     EXPECT_NE(bad.output.find("Run with --help for more information"), std::string::npos)
         << bad.output;
+  }
+}
+
+// Options that are "auto" or a number refuse what is neither, however it is written, with exit 2
+// and a message (not a crash: std::stoi on "nan" or "99999999999" aborted the vehicle).
+TEST(Cli, AutoOrNumberOptionsRefuseWhatIsNeither) {
+  // stereomap-depth checks its image files exist first: empty ones (unreadable: exit 1 after
+  // the flags are taken).
+  const fs::path dir = makeTempDir("stereomap-cli-auto");
+  const std::string image = (dir / "empty.png").string();
+  std::ofstream{image};
+  for (const std::string& range :
+       std::vector<std::string>{"nan", "inf", "1e400", "1e-300", "12x", "-5", "0"}) {
+    const auto run = runTool(
+        {binary("stereomap-onboard"), "--max-range", range, "--no-publish", "--frames", "1"});
+    EXPECT_EQ(run.exit_code, 2) << "--max-range '" << range << "': " << run.output;
+    EXPECT_NE(run.output.find("--max-range"), std::string::npos) << run.output;
+    const auto depth = runTool({binary("stereomap-depth"), "--left", image, "--right", image,
+                                "--disparity-out", (dir / "d.png").string(), "--max-range", range});
+    EXPECT_EQ(depth.exit_code, 2) << "stereomap-depth --max-range '" << range << "'";
+  }
+  const auto taken = runTool({binary("stereomap-depth"), "--left", image, "--right", image,
+                              "--disparity-out", (dir / "d.png").string(), "--max-range", "30"});
+  EXPECT_EQ(taken.exit_code, 1) << taken.output;  // the flags were fine, the images are not
+  for (const std::string& count : std::vector<std::string>{"nan", "99999999999", "17", "8", "1040",
+                                                           "32.5", std::string(5000, '9')}) {
+    const auto run = runTool(
+        {binary("stereomap-onboard"), "--disparities", count, "--no-publish", "--frames", "1"});
+    EXPECT_EQ(run.exit_code, 2) << "--disparities '" << count << "': " << run.output;
   }
 }
 

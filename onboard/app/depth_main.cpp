@@ -40,7 +40,7 @@ int main(int argc, char** argv) {
                  "Cloud range limit, metres, or auto (with --calib: where a disparity error "
                  "moves a point by less than a voxel of --map-resolution, as the vehicle's; "
                  "without: 20)")
-      ->check(CLI::IsMember({"auto"}) | CLI::PositiveNumber)
+      ->check(common::autoOr(0.5, 100.0))
       ->capture_default_str();
   app.add_option("--map-resolution", map_resolution,
                  "With --calib: the map's voxel, for the automatic range and disparity search "
@@ -88,16 +88,15 @@ int main(int argc, char** argv) {
 
   stereo::MatcherOptions options =
       preset == "fast" ? stereo::MatcherOptions::fast() : stereo::MatcherOptions::accurate();
-  double range_m = max_range == "auto" ? 20.0 : std::stod(max_range);
+  double range_m = common::autoOrNumber(max_range).value_or(20.0);  // checked by autoOr
   if (max_disparity > 0) {
     options.num_disparities = stereo::disparitiesFor(max_disparity);
   } else if (rectifier) {
     // The vehicle's search: the rig's range and its pyramid of windows (rig_range.hpp).
     const auto range =
-        stereo::rigRange(rectifier->camera(), {.map_resolution_m = map_resolution,
-                                               .precision_px = options.precision_px,
-                                               .window_disparities = options.num_disparities,
-                                               .far_m = max_range == "auto" ? 0.0 : range_m});
+        stereo::rigRange(rectifier->camera(),
+                         stereo::rigRangeOptions(options, map_resolution,
+                                                 common::autoOrNumber(max_range).value_or(0.0)));
     options = stereo::fitToWindows(options, range.windows);
     range_m = range.far_m;
     std::printf("range: %s\n", range.explain().c_str());

@@ -25,9 +25,11 @@ namespace {
 
 using namespace stereomap;
 
-// The server's default map resolution: the depth range's when clouds go whole (--map-resolution
-// 0) and the vehicle does not know the map's.
-constexpr double kMapResolution = 0.1;
+// The map's resolution as the vehicle knows it (--map-resolution); when clouds go whole (0) it
+// does not, and the server's default (0.1 m) stands in for the depth range.
+double mapResolution(const link::CloudLinkOptions& link) {
+  return link.map_resolution_m > 0 ? link.map_resolution_m : 0.1;
+}
 
 std::string defaultSessionName() {
   const std::time_t now = std::time(nullptr);
@@ -92,22 +94,13 @@ void addFlags(CLI::App& app, Flags& f) {
                  "Farthest depth mapped, metres, or auto: from the calibration, the map's "
                  "resolution and the matcher's precision (where a disparity error moves a point "
                  "by less than a voxel); said at the start")
-      ->check(CLI::IsMember({"auto"}) | CLI::Range(0.5, 100.0))
+      ->check(common::autoOr(0.5, 100.0))
       ->capture_default_str();
   app.add_option("--disparities", f.disparities,
                  "Disparity search, a multiple of 16 from the far limit's disparity, or auto: a "
                  "pyramid of windows from the far limit to the rig's nearest depth (a quarter of "
                  "the image width of disparity), nearer ones on halved images")
-      ->check(CLI::IsMember({"auto"}) |
-              (CLI::Range(16, 1024) & CLI::Validator(
-                                          [](std::string& v) {
-                                            return std::stoi(v) % 16 == 0 ? std::string()
-                                                                          : std::string(
-                                                                                "must be a "
-                                                                                "multiple of "
-                                                                                "16");
-                                          },
-                                          "MULTIPLE OF 16")))
+      ->check(common::autoOr(16, 1024, 16))
       ->capture_default_str();
   app.add_option("--codec", f.codec,
                  "Cloud encoding: auto (the smallest, docs/BENCHMARKS.md: draco for clouds "
@@ -223,13 +216,14 @@ bool pipelineOptions(Flags& f) {
   // The range and the disparity search: from the rig unless given (explicit flags win).
   if (f.disparities != "auto") {
     options.stereo.range.reset();
-    options.stereo.matcher.num_disparities = std::stoi(f.disparities);  // checked by CLI11
+    // Both checked by common::autoOr.
+    options.stereo.matcher.num_disparities = static_cast<int>(*common::autoOrNumber(f.disparities));
     // A far limit given, or the rig's (adaptToSource, once the camera is known).
-    if (f.max_range != "auto") options.stereo.cloud.max_range_m = std::stod(f.max_range);
+    if (const auto far = common::autoOrNumber(f.max_range)) options.stereo.cloud.max_range_m = *far;
   } else {
-    options.stereo.range = stereo::AutoRange{
-        .map_resolution_m = link.map_resolution_m > 0 ? link.map_resolution_m : kMapResolution,
-        .far_m = f.max_range == "auto" ? 0.0 : std::stod(f.max_range)};
+    options.stereo.range =
+        stereo::AutoRange{.map_resolution_m = mapResolution(link),
+                          .far_m = common::autoOrNumber(f.max_range).value_or(0.0)};
   }
   options.stereo.noise = f.noise_handling == "on"    ? stereo::NoiseHandling::kOn
                          : f.noise_handling == "off" ? stereo::NoiseHandling::kOff
@@ -270,9 +264,7 @@ void adaptToSource(const CLI::App& app, const sources::OpenedSource& opened, Fla
   const auto& camera = opened.source->camera();
   if (!options.stereo.range && f.max_range == "auto") {
     options.stereo.cloud.max_range_m = stereo::farthestMappable(
-        camera,
-        options.link->map_resolution_m > 0 ? options.link->map_resolution_m : kMapResolution,
-        options.stereo.matcher.precision_px);
+        camera, mapResolution(*options.link), options.stereo.matcher.precision_px);
   }
   if (f.paper_resolution > 0) {
     const int min_disparity =

@@ -64,6 +64,14 @@ MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& ca
   return options;
 }
 
+RigRangeOptions rigRangeOptions(const MatcherOptions& matcher, double map_resolution_m,
+                                double far_m) {
+  return {.map_resolution_m = map_resolution_m,
+          .precision_px = matcher.precision_px,
+          .window_disparities = matcher.num_disparities,
+          .far_m = far_m};
+}
+
 MatcherOptions fitToWindows(MatcherOptions options, const std::vector<DisparityWindow>& windows) {
   CV_Assert(!windows.empty() && windows.front().downscale == 1);
   options.min_disparity = windows.front().min_px;
@@ -289,7 +297,9 @@ struct StereoMatcher::Impl {
   // ground plane, and the plane found last.
   std::optional<WindowMatcher> ground;
   std::optional<GroundPlane> plane;
-  cv::Mat sheared;  // the right image moved row by row by the plane's disparity
+  // The right image moved row by row by the plane's disparity, and where from: reused between
+  // frames (at KITTI's size 3.7 MB a frame otherwise).
+  cv::Mat sheared, map_x, map_y;
 
   void matchGround(const cv::Mat& left, const cv::Mat& right, cv::Mat& disparity);
 };
@@ -299,16 +309,16 @@ struct StereoMatcher::Impl {
 // disparities where the windows found none. A pixel where both found one must agree.
 void StereoMatcher::Impl::matchGround(const cv::Mat& left, const cv::Mat& right,
                                       cv::Mat& disparity) {
-  Impl& impl = *this;
-  const double window_rows = impl.options.block_size * impl.options.row_groups;
+  const double window_rows = options.block_size * options.row_groups;
   // Below a pixel of disparity over a block's rows the windows find the ground themselves.
-  impl.plane = fitGround(disparity, 1.0 / window_rows, impl.plane);
-  if (!impl.plane) return;
-  const GroundPlane g = *impl.plane;
+  plane = fitGround(disparity, 1.0 / window_rows, plane);
+  if (!plane) return;
+  const GroundPlane g = *plane;
   const int first_row = std::clamp(static_cast<int>(std::ceil(g.horizon)) + 1, 0, left.rows);
-  if (left.rows - first_row < 2 * impl.options.block_size * impl.options.row_groups) return;
+  if (left.rows - first_row < 2 * window_rows) return;
   // right'(x, v) = right(x - g(v), v): a left pixel on the ground matches right' at x - 0.
-  cv::Mat map_x(left.rows - first_row, left.cols, CV_32FC1), map_y(map_x.size(), CV_32FC1);
+  map_x.create(left.rows - first_row, left.cols, CV_32FC1);
+  map_y.create(map_x.size(), CV_32FC1);
   for (int r = 0; r < map_x.rows; ++r) {
     const float shift = static_cast<float>(g.at(first_row + r));
     float* mx = map_x.ptr<float>(r);
@@ -318,8 +328,8 @@ void StereoMatcher::Impl::matchGround(const cv::Mat& left, const cv::Mat& right,
       my[u] = static_cast<float>(first_row + r);
     }
   }
-  cv::remap(right, impl.sheared, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-  const cv::Mat residual = impl.ground->compute(left.rowRange(first_row, left.rows), impl.sheared);
+  cv::remap(right, sheared, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+  const cv::Mat residual = ground->compute(left.rowRange(first_row, left.rows), sheared);
   const float lowest = static_cast<float>(windows.front().options.min_disparity);
   const auto& last = windows.back().options;
   const float highest = static_cast<float>(last.min_disparity + last.num_disparities);
@@ -332,7 +342,7 @@ void StereoMatcher::Impl::matchGround(const cv::Mat& left, const cv::Mat& right,
       if (in[u] == -1.0f || in[u] == kFarEdge || in[u] == kConflict) continue;
       const float d = in[u] + shift;
       // Not matched beyond the image's left edge, and within the windows' range.
-      if (d < lowest || d >= highest || d > u - impl.options.block_size / 2) continue;
+      if (d < lowest || d >= highest || d > u - options.block_size / 2) continue;
       if (out[u] == -1.0f) {
         out[u] = d;
       } else if (out[u] >= 0 && std::abs(out[u] - d) > 1.0f) {

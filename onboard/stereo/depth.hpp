@@ -101,6 +101,9 @@ int minimumDisparity(double baseline_m, double fx_px, double resolution_m, doubl
 // baseline * fx / (min_disparity + num_disparities).
 MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& camera,
                           double max_range_m);
+// The rig's range (rig_range.hpp) as this matcher sees it: its precision, its window's width.
+RigRangeOptions rigRangeOptions(const MatcherOptions& matcher, double map_resolution_m,
+                                double far_m = 0);
 // The matcher searching a rig's windows: the first as min_disparity / num_disparities at full
 // resolution (downscale 1), the rest as `nearer`.
 MatcherOptions fitToWindows(MatcherOptions options, const std::vector<DisparityWindow>& windows);

@@ -20,10 +20,8 @@ DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& opt
     : camera_(camera), options_(options), matchers_(options.levels.size() + 1) {
   CV_Assert(options.noise_every >= 1);
   if (options.range) {
-    const RigRangeOptions rig{.map_resolution_m = options.range->map_resolution_m,
-                              .precision_px = options.matcher.precision_px,
-                              .window_disparities = options.matcher.num_disparities,
-                              .far_m = options.range->far_m};
+    const RigRangeOptions rig =
+        rigRangeOptions(options.matcher, options.range->map_resolution_m, options.range->far_m);
     range_ = rigRange(camera, rig);
     options_.cloud.max_range_m = range_->far_m;
     options_.cloud.max_block_depth_span_m = options.range->map_resolution_m;

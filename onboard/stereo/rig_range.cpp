@@ -28,9 +28,12 @@ RigRange rigRange(const camera::StereoCamera& camera, const RigRangeOptions& opt
   RigRange range;
   range.options = options;
   range.far_from_rule = !(options.far_m > 0);
-  range.far_m = range.far_from_rule
-                    ? farthestMappable(camera, options.map_resolution_m, options.precision_px)
-                    : options.far_m;
+  range.far_m = options.far_m;
+  if (range.far_from_rule) {
+    const double rule = farthestMappable(camera, options.map_resolution_m, options.precision_px);
+    range.far_capped = rule > options.max_far_m;
+    range.far_m = std::min(rule, options.max_far_m);
+  }
   range.far_disparity_px = camera.disparityFromDepth(range.far_m);
   // The window's far end below the far limit's disparity (rounded down, as fitToRange): what
   // lies farther is matched at the window's edge and dropped by the cloud's range.
@@ -62,7 +65,10 @@ RigRange rigRange(const camera::StereoCamera& camera, const RigRangeOptions& opt
 std::string RigRange::explain() const {
   std::ostringstream out;
   out.precision(3);
-  if (far_from_rule) {
+  if (far_capped) {
+    out << "depth " << near_m << "-" << far_m << " m (the rule's far limit capped: the server "
+        << "takes rays up to 100 m)";
+  } else if (far_from_rule) {
     out << "depth " << near_m << "-" << far_m << " m: beyond " << far_m << " m a "
         << options.precision_px << " px disparity error moves a point by more than a "
         << options.map_resolution_m << " m voxel";

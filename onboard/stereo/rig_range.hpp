@@ -34,6 +34,10 @@ struct RigRangeOptions {
   int max_levels = 4;  // full resolution, then halved up to max_levels - 1 times
   // An explicit far limit (metres, > 0) instead of the rule's; the near one stays the rig's.
   double far_m = 0;
+  // The rule's limit at most this (a long baseline and coarse voxels reach hundreds of metres):
+  // the server takes rays up to 100 m (server/core/validate.hpp), and rays to an image's
+  // corners are longer than their depth.
+  double max_far_m = 70;
 };
 
 // One matcher's search: disparities [min_px, min_px + num_px) of the full image, matched on
@@ -49,6 +53,7 @@ struct RigRange {
   double far_m = 0, near_m = 0;
   double far_disparity_px = 0, near_disparity_px = 0;
   bool far_from_rule = true;  // false: RigRangeOptions::far_m was given
+  bool far_capped = false;    // the rule's limit was beyond RigRangeOptions::max_far_m
   RigRangeOptions options;
   std::vector<DisparityWindow> windows;  // far (full resolution) to near
   // One line for logs and summaries: the limits, why, and the windows.

@@ -72,6 +72,15 @@ TEST(RigRange, WindowsCoverEveryDisparityFromFarToNearAwayFromTheirInnerEdges) {
   }
 }
 
+TEST(RigRange, TheRuleStopsWhereTheServerTakesRays) {
+  // KITTI's rig with 5 m voxels: the rule says 139 m, the server refuses rays beyond 100 m.
+  const RigRange range = rigRange(kRigs[1], {.map_resolution_m = 5, .precision_px = 0.1});
+  EXPECT_DOUBLE_EQ(range.far_m, 70);
+  EXPECT_TRUE(range.far_capped);
+  EXPECT_NE(range.explain().find("capped"), std::string::npos) << range.explain();
+  EXPECT_FALSE(range.windows.empty());
+}
+
 TEST(RigRange, AGivenFarLimitIsKeptAndSaidSo) {
   const RigRange range = rigRange(kRigs[1], {.map_resolution_m = 0.1, .far_m = 40});
   EXPECT_DOUBLE_EQ(range.far_m, 40);
