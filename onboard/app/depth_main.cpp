@@ -101,6 +101,10 @@ int main(int argc, char** argv) {
     range_m = range.far_m;
     std::printf("range: %s\n", range.explain().c_str());
   }
+  if (const auto problem = stereo::searchProblem(options, left.cols); !problem.empty()) {
+    std::fprintf(stderr, "%s\n", problem.c_str());
+    return 1;
+  }
   const stereo::StereoMatcher matcher(options);
   const auto start = std::chrono::steady_clock::now();
   const cv::Mat disparity = matcher.compute(left, right);

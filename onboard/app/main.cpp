@@ -430,6 +430,13 @@ int main(int argc, char** argv) {
     return opened.error().code == common::ErrorCode::kInvalidArgument ? 2 : 1;
   }
   adaptToSource(app, *opened, flags);
+  if (flags.pipeline.depth) {
+    const stereo::DepthStep depth(opened->source->camera(), flags.pipeline.stereo);
+    if (const auto problem = depth.problem(); !problem.empty()) {
+      spdlog::error("{}: {}", opened->source->describe(), problem);
+      return 1;
+    }
+  }
 
   TrajectoryFiles files(flags);
   flags.pipeline.on_frame = [&files](const pipeline::FrameReport& r) { files.onFrame(r); };

@@ -64,6 +64,18 @@ MatcherOptions fitToRange(MatcherOptions options, const camera::StereoCamera& ca
   return options;
 }
 
+std::string searchProblem(const MatcherOptions& options, int image_width) {
+  // OpenCV's disparities are int16 in 1/16 px, and its window must fit its image.
+  constexpr int kMostDisparity = 2047;
+  int largest = options.min_disparity + options.num_disparities;
+  for (const auto& w : options.nearer) largest = std::max(largest, w.maxPx());
+  if (options.min_disparity < image_width && largest <= kMostDisparity) return {};
+  return "the disparity search (from " + std::to_string(options.min_disparity) + " to " +
+         std::to_string(largest) + " px) lies beyond the image's " + std::to_string(image_width) +
+         " px or OpenCV's " + std::to_string(kMostDisparity) +
+         ": check the calibration's focal length and baseline, or --max-range";
+}
+
 RigRangeOptions rigRangeOptions(const MatcherOptions& matcher, double map_resolution_m,
                                 double far_m) {
   return {.map_resolution_m = map_resolution_m,

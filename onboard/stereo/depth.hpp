@@ -8,6 +8,7 @@
 #pragma once
 
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <opencv2/core.hpp>
@@ -107,6 +108,11 @@ RigRangeOptions rigRangeOptions(const MatcherOptions& matcher, double map_resolu
 // The matcher searching a rig's windows: the first as min_disparity / num_disparities at full
 // resolution (downscale 1), the rest as `nearer`.
 MatcherOptions fitToWindows(MatcherOptions options, const std::vector<DisparityWindow>& windows);
+
+// Why a matcher cannot search images `image_width` wide (a disparity beyond the image, or
+// beyond OpenCV's 16-bit fixed point: a calibration with an absurd focal length or baseline
+// puts even the far limit there), or empty when it can.
+std::string searchProblem(const MatcherOptions& options, int image_width);
 
 class StereoMatcher {
  public:

@@ -49,6 +49,7 @@ DepthStep::DepthStep(const camera::StereoCamera& camera, const DepthOptions& opt
               (i == 0 || options.levels[i].from_sigma > options.levels[i - 1].from_sigma));
   }
   if (options.noise == NoiseHandling::kOn) setLevel(0);
+  problem_ = problem();
 }
 
 void DepthStep::setLevel(int level) {
@@ -65,6 +66,11 @@ void DepthStep::setLevel(int level) {
     }
     filter_.emplace(camera_, temporal);
   }
+}
+
+std::string DepthStep::problem() const {
+  const std::string clean = searchProblem(options_.matcher, camera_.width);
+  return clean.empty() ? searchProblem(noisy_matcher_, camera_.width) : clean;
 }
 
 std::string DepthStep::describeRange() const {
@@ -120,6 +126,7 @@ common::PointCloud DepthStep::compute(const cv::Mat& left, const cv::Mat& right,
     }
   }
   ++frames_;
+  if (!problem_.empty()) return {};
   CloudOptions cloud = options_.cloud;
   cloud.disparity_offset_px = disparity_offset_px;
   const cv::Mat disparity = matcher().compute(left, right);

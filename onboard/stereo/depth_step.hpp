@@ -13,6 +13,7 @@
 #include <array>
 #include <memory>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "common/geometry.hpp"
@@ -104,6 +105,9 @@ class DepthStep {
                              const std::optional<common::Rigid3>& T_world_camera,
                              double disparity_offset_px = 0,
                              std::optional<double> raw_noise_sigma = std::nullopt);
+  // Why this camera's images cannot be searched (searchProblem), or empty; with one, compute()
+  // gives no points.
+  std::string problem() const;
   // Forgets earlier frames (tracking lost, a jump in the poses).
   void reset();
 
@@ -133,6 +137,7 @@ class DepthStep {
   // depth: averaged depth may reach farther than one frame's.
   MatcherOptions noisy_matcher_;
   double noisy_max_range_m_ = 0;
+  std::string problem_;  // problem(), as found at construction
   // The clean matcher, then one per level; each made when first needed.
   std::vector<std::unique_ptr<StereoMatcher>> matchers_;
   std::optional<TemporalFilter> filter_;

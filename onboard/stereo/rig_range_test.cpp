@@ -81,6 +81,18 @@ TEST(RigRange, TheRuleStopsWhereTheServerTakesRays) {
   EXPECT_FALSE(range.windows.empty());
 }
 
+TEST(DepthStep, AnAbsurdRigIsSaidAndGivesNoPointInsteadOfACrash) {
+  // A 5 km baseline (a calibration file's typo): even 70 m lies at 55,000 px of disparity,
+  // beyond the image and OpenCV's int16 disparities (it crashed in the matcher).
+  camera::StereoCamera absurd = kRigs[1];
+  absurd.baseline = 5000;
+  DepthStep depth(absurd, {});
+  EXPECT_NE(depth.problem().find("beyond the image"), std::string::npos) << depth.problem();
+  const cv::Mat image(absurd.height, absurd.width, CV_8UC1, cv::Scalar(100));
+  EXPECT_EQ(depth.compute(image, image, std::nullopt).size(), 0u);
+  for (const auto& camera : kRigs) EXPECT_EQ(DepthStep(camera, {}).problem(), "");
+}
+
 TEST(RigRange, AGivenFarLimitIsKeptAndSaidSo) {
   const RigRange range = rigRange(kRigs[1], {.map_resolution_m = 0.1, .far_m = 40});
   EXPECT_DOUBLE_EQ(range.far_m, 40);
