@@ -103,6 +103,8 @@ struct Topic<PoseMsg> {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
     if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
     c.seq = m.seq;
+    c.stream = m.stream;
+    c.unacked_from = m.unacked_from;
     c.stamp_ns = m.stamp_ns;
     std::copy(m.position.begin(), m.position.end(), c.position);
     std::copy(m.orientation.begin(), m.orientation.end(), c.orientation);
@@ -117,6 +119,8 @@ struct Topic<PoseMsg> {
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
     m.seq = c.seq;
+    m.stream = c.stream;
+    m.unacked_from = c.unacked_from;
     m.stamp_ns = c.stamp_ns;
     std::copy(std::begin(c.position), std::end(c.position), m.position.begin());
     std::copy(std::begin(c.orientation), std::end(c.orientation), m.orientation.begin());
@@ -150,6 +154,8 @@ struct Topic<CloudFrameMsg> {
                                                  std::to_string(kMaxPayloadBytes));
     }
     c.seq = m.seq;
+    c.stream = m.stream;
+    c.unacked_from = m.unacked_from;
     c.stamp_ns = m.stamp_ns;
     std::copy(m.sensor_position.begin(), m.sensor_position.end(), c.sensor_position);
     std::copy(m.sensor_orientation.begin(), m.sensor_orientation.end(), c.sensor_orientation);
@@ -168,6 +174,8 @@ struct Topic<CloudFrameMsg> {
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
     m.seq = c.seq;
+    m.stream = c.stream;
+    m.unacked_from = c.unacked_from;
     m.stamp_ns = c.stamp_ns;
     std::copy(std::begin(c.sensor_position), std::end(c.sensor_position),
               m.sensor_position.begin());
@@ -203,6 +211,8 @@ struct Topic<PoseCorrectionMsg> {
                                                  std::to_string(kMaxCorrectedKeyframes));
     }
     c.seq = m.seq;
+    c.stream = m.stream;
+    c.unacked_from = m.unacked_from;
     c.stamp_ns = m.stamp_ns;
     thread_local std::vector<stereomap_msg_KeyframePose> buffer;
     buffer.resize(m.keyframes.size());
@@ -222,6 +232,8 @@ struct Topic<PoseCorrectionMsg> {
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
     m.seq = c.seq;
+    m.stream = c.stream;
+    m.unacked_from = c.unacked_from;
     m.stamp_ns = c.stamp_ns;
     m.keyframes.resize(c.keyframes._length);
     for (uint32_t i = 0; i < c.keyframes._length; ++i) {
@@ -315,6 +327,9 @@ struct Topic<SessionEventMsg> {
   static Status toC(const SessionEventMsg& m, C& c) {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
     if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    c.stream = m.stream;
+    c.unacked_from = m.unacked_from;
+    c.seq = m.seq;
     c.stamp_ns = m.stamp_ns;
     c.kind = static_cast<uint32_t>(m.kind);
     c.width = m.width;
@@ -331,6 +346,9 @@ struct Topic<SessionEventMsg> {
     SessionEventMsg m;
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
+    m.stream = c.stream;
+    m.unacked_from = c.unacked_from;
+    m.seq = c.seq;
     m.stamp_ns = c.stamp_ns;
     auto kind = checkedEnum<SessionEventKind>(c.kind, 2, "kind");
     if (!kind) return kind.error();
@@ -343,6 +361,39 @@ struct Topic<SessionEventMsg> {
     m.cy = c.cy;
     m.baseline = c.baseline;
     m.resolution_hint = c.resolution_hint;
+    return m;
+  }
+};
+
+template <>
+struct Topic<AckMsg> {
+  using C = stereomap_msg_Ack;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_Ack_desc; }
+  static constexpr const char* kName = "stereomap_Ack";
+  static dds_qos_t* qos() { return ackQos(); }
+  static dds_qos_t* readerQos() { return ackQos(); }
+
+  static Status toC(const AckMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    c.stream = m.stream;
+    c.stamp_ns = m.stamp_ns;
+    c.poses = m.poses;
+    c.clouds = m.clouds;
+    c.events = m.events;
+    c.corrections = m.corrections;
+    return common::Ok{};
+  }
+  static Result<AckMsg> fromC(const C& c) {
+    AckMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.stream = c.stream;
+    m.stamp_ns = c.stamp_ns;
+    m.poses = c.poses;
+    m.clouds = c.clouds;
+    m.events = c.events;
+    m.corrections = c.corrections;
     return m;
   }
 };
@@ -562,11 +613,13 @@ template class Writer<CloudFrameMsg>;
 template class Writer<SessionEventMsg>;
 template class Writer<PoseCorrectionMsg>;
 template class Writer<LandingTargetMsg>;
+template class Writer<AckMsg>;
 template class Reader<PoseMsg>;
 template class Reader<CloudFrameMsg>;
 template class Reader<SessionEventMsg>;
 template class Reader<PoseCorrectionMsg>;
 template class Reader<LandingTargetMsg>;
+template class Reader<AckMsg>;
 
 const char* loopbackConfigXml() {
   return R"(<CycloneDDS><Domain Id="any"><General>

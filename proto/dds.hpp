@@ -41,7 +41,7 @@ class Participant {
   std::unique_ptr<Impl> impl_;
 };
 
-// One writer of topic T (PoseMsg, CloudFrameMsg or SessionEventMsg) with T's QoS preset.
+// One writer of topic T (a message of messages.hpp) with T's QoS preset.
 template <typename T>
 class Writer {
  public:

@@ -21,10 +21,20 @@ enum class SessionEventKind : uint8_t { kStarted, kEnded };
 enum class LandingState : uint8_t { kSearching, kTracking, kLost };
 enum class LandingMode : uint8_t { kDefault, kPatent };
 
+// Every sample a vehicle must not lose (poses, clouds, session events, corrections) names its
+// stream and its seq in it: a vehicle process starts a stream (a random nonzero id, as a Kafka
+// producer id) and counts each topic's samples in it from 0, so that a server takes a sample
+// exactly once however often it is re-sent (the vehicle's spool, onboard/link/spool.hpp), and
+// acknowledges what it journaled per stream (AckMsg); unacked_from: the lowest seq of the
+// topic its sender still holds (below it the server has them, or never will: a full spool
+// gave them up). Stream 0: a sender without streams,
+// whose samples are told apart by seq and stamp as before.
 struct PoseMsg {
   std::string vehicle_id;
   std::string session_id;
+  uint64_t stream = 0;
   uint64_t seq = 0;
+  uint64_t unacked_from = 0;
   int64_t stamp_ns = 0;
   std::array<double, 3> position{};
   std::array<double, 4> orientation{0, 0, 0, 1};  // T_map_body, x y z w
@@ -37,7 +47,9 @@ struct PoseMsg {
 struct CloudFrameMsg {
   std::string vehicle_id;
   std::string session_id;
+  uint64_t stream = 0;
   uint64_t seq = 0;
+  uint64_t unacked_from = 0;
   int64_t stamp_ns = 0;
   std::array<double, 3> sensor_position{};               // T_map_camera translation
   std::array<double, 4> sensor_orientation{0, 0, 0, 1};  // T_map_camera rotation, x y z w
@@ -60,7 +72,9 @@ struct KeyframePoseMsg {
 struct PoseCorrectionMsg {
   std::string vehicle_id;
   std::string session_id;
+  uint64_t stream = 0;
   uint64_t seq = 0;
+  uint64_t unacked_from = 0;
   int64_t stamp_ns = 0;
   std::vector<KeyframePoseMsg> keyframes;
 };
@@ -95,12 +109,30 @@ struct LandingTargetMsg {
 struct SessionEventMsg {
   std::string vehicle_id;
   std::string session_id;
+  uint64_t stream = 0;
+  uint64_t seq = 0;
+  uint64_t unacked_from = 0;
   int64_t stamp_ns = 0;
   SessionEventKind kind = SessionEventKind::kStarted;
   uint32_t width = 0;
   uint32_t height = 0;
   double fx = 0, fy = 0, cx = 0, cy = 0, baseline = 0;
   double resolution_hint = 0;
+};
+
+// What a server has journaled of one vehicle's stream in a session, per topic: every sample
+// with seq below the count (the highest contiguous seq journaled, plus one; a sample the
+// server refused for good counts too). Corrections count the newest journaled (each replaces
+// the ones before). Sent by the server a few times a second at most, while it changes.
+struct AckMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t stream = 0;
+  int64_t stamp_ns = 0;  // when the server sent it
+  uint64_t poses = 0;
+  uint64_t clouds = 0;
+  uint64_t events = 0;
+  uint64_t corrections = 0;
 };
 
 }  // namespace stereomap::proto

@@ -30,15 +30,15 @@ inline size_t withHeaders(size_t cdr) {
 inline size_t wireBytes(const PoseMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);  // 4: the encapsulation header
-  n = align(n, 8) + 2 * 8 + (3 + 4 + 3 + 36) * 8;            // seq, stamp, the doubles
-  n += 4 + 4;                                                // two enums
+  n = align(n, 8) + 4 * 8 + (3 + 4 + 3 + 36) * 8;  // stream, seq, unacked_from, stamp, the doubles
+  n += 4 + 4;                                      // two enums
   return withHeaders(n);
 }
 
 inline size_t wireBytes(const CloudFrameMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);
-  n = align(n, 8) + 2 * 8 + (3 + 4) * 8;  // seq, stamp, the sensor's pose
+  n = align(n, 8) + 4 * 8 + (3 + 4) * 8;  // stream, seq, unacked_from, stamp, the sensor's pose
   n += 4 + 4 + 4 + 1 + 1;                 // range, count, encoding, bits, intensity
   n = align(n, 4) + 4 + m.payload.size();
   return withHeaders(n);
@@ -47,15 +47,15 @@ inline size_t wireBytes(const CloudFrameMsg& m) {
 inline size_t wireBytes(const SessionEventMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);
-  n = align(n, 8) + 8 + 4 + 4 + 4;  // stamp, kind, width, height
-  n = align(n, 8) + 6 * 8;          // the camera model and the resolution hint
+  n = align(n, 8) + 4 * 8 + 4 + 4 + 4;  // stream, seq, unacked_from, stamp, kind, size
+  n = align(n, 8) + 6 * 8;              // the camera model and the resolution hint
   return withHeaders(n);
 }
 
 inline size_t wireBytes(const PoseCorrectionMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);
-  n = align(n, 8) + 2 * 8 + 4;                   // seq, stamp, the keyframes' count
+  n = align(n, 8) + 4 * 8 + 4;  // stream, seq, unacked_from, stamp, the keyframes' count
   n = align(n, 8) + m.keyframes.size() * 8 * 8;  // stamp and 7 doubles each
   return withHeaders(n);
 }
@@ -66,6 +66,13 @@ inline size_t wireBytes(const LandingTargetMsg& m) {
   n = align(n, 8) + 2 * 8 + 4 + 4;  // seq, stamp, state, mode
   n = string(n, m.reason) + 1;      // and has_pose
   n = align(n, 8) + (3 + 4 + 36 + 3 + 4 + 36 + 3 + 3 + 3) * 8;
+  return withHeaders(n);
+}
+
+inline size_t wireBytes(const AckMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 6 * 8;  // stream, stamp, four counts
   return withHeaders(n);
 }
 

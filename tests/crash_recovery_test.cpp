@@ -13,9 +13,9 @@
 #include <sstream>
 
 #include "proto/cloud_codec.hpp"
+#include "proto/journal/journal.hpp"
 #include "proto/pose_fields.hpp"
 #include "server/fusion/occupancy_map.hpp"
-#include "server/store/journal.hpp"
 #include "server/store/session_journals.hpp"
 #include "tests/support/server_fixture.hpp"
 
@@ -30,7 +30,8 @@ const std::string kSession = "crash";
 
 // The session's cloud frames as its journal holds them.
 std::vector<proto::CloudFrameMsg> journaledFrames(const std::string& store) {
-  auto journal = store::readJournal(std::filesystem::path(store) / kSession / "journal.smj");
+  auto journal =
+      proto::journal::readJournal(std::filesystem::path(store) / kSession / "journal.smj");
   EXPECT_TRUE(journal.ok()) << journal.error().message;
   std::vector<proto::CloudFrameMsg> frames;
   if (!journal.ok()) return frames;

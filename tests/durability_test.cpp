@@ -15,7 +15,7 @@
 #include <sstream>
 #include <thread>
 
-#include "server/store/journal.hpp"
+#include "proto/journal/journal.hpp"
 #include "tests/support/server_fixture.hpp"
 
 namespace stereomap::testing {
@@ -153,7 +153,7 @@ TEST(Durability, AFullDiskLosesNoAcknowledgedFrameAndIsReportedUntilSpaceIsFreed
     server.process().kill9();
   }
   // Every acknowledged frame is in the journal, whole, and comes back.
-  auto journal = store::readJournal(fs::path(store) / session / "journal.smj");
+  auto journal = proto::journal::readJournal(fs::path(store) / session / "journal.smj");
   ASSERT_TRUE(journal.ok());
   EXPECT_TRUE(journal->problem.empty()) << journal->problem;
   {
@@ -241,7 +241,7 @@ TEST(Durability, AFlippedByteInTheJournalCostsOnlyItsRecord) {
     bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
   }
   const auto ranges = recordRanges(bytes);
-  auto intact = store::readJournal(path);
+  auto intact = proto::journal::readJournal(path);
   ASSERT_TRUE(intact.ok());
   // A cloud record in the middle, which the newest snapshot covers.
   size_t victim = 0, clouds = 0;

@@ -23,11 +23,12 @@ TEST(LandingEndToEnd, WhatTheVehicleSeesOfThePadReachesTheApi) {
   ServerProcess server(kDescentDomain);
   constexpr int kFrames = 15;
   const std::string session = "deck-descent";
-  ChildProcess onboard({std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard", "--source",
-                        "sim:deck", "--landing", "default", "--session", session, "--vehicle",
-                        "uav-1", "--frames", std::to_string(kFrames), "--rate", "0", "--dds-config",
-                        STEREOMAP_DDS_CONFIG, "--domain", std::to_string(kDescentDomain)},
-                       server.logPath() + ".onboard");
+  ChildProcess onboard(
+      {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard", "--source", "sim:deck", "--landing",
+       "default", "--session", session, "--vehicle", "uav-1", "--frames", std::to_string(kFrames),
+       "--rate", "0", "--spool", "memory", "--dds-config", STEREOMAP_DDS_CONFIG, "--domain",
+       std::to_string(kDescentDomain)},
+      server.logPath() + ".onboard");
   const auto code = onboard.waitExit(120s);
   ASSERT_TRUE(code.has_value() && *code == 0)
       << "onboard failed: " << server.logPath() << ".onboard";

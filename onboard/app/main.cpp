@@ -10,7 +10,10 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <ctime>
+#include <filesystem>
+#include <map>
 
 #include "common/cli.hpp"
 #include "common/shutdown.hpp"
@@ -59,6 +62,14 @@ struct Flags {
   // The low end of drone radio links (1-10 Mbit/s): a real rig's clouds fit it by default.
   std::string link_budget = "1Mbit";
   std::string max_range = "auto", disparities = "auto";
+  // Where unacknowledged samples are kept: auto (a folder per vehicle id under the user's state
+  // folder), a folder, memory, or off (no acknowledgements: sent once).
+  std::string spool = "auto";
+  link::SpoolOptions spool_options;
+  double resend_after_s = 3.0;
+  double flush_timeout_s = 5.0;
+  bool skip_late = true;
+  double link_bits_per_s = 0;  // --link-budget, parsed
 };
 
 void addFlags(CLI::App& app, Flags& f) {
@@ -174,6 +185,38 @@ void addFlags(CLI::App& app, Flags& f) {
                  "after 1 s without one (0: every cloud)")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
+  app.add_option("--spool", f.spool,
+                 "Where samples the server has not acknowledged are kept, to send again after "
+                 "an outage of any length or a restart: auto ($STEREOMAP_SPOOL, else "
+                 "~/.local/state/stereomap/spool/VEHICLE; memory when another process has it), a "
+                 "folder, memory (lost with the process), or off (each sample sent once; DDS "
+                 "keeps a few seconds)")
+      ->capture_default_str();
+  app.add_option("--spool-max", f.spool_options.max_bytes,
+                 "Most the spool holds (256MB: 40 min at 1 Mbit/s); when full the oldest clouds "
+                 "are given up first, poses and session events last")
+      ->transform(CLI::AsSizeValue(false))
+      ->capture_default_str();
+  app.add_option("--spool-memory", f.spool_options.memory_bytes,
+                 "Of it, held in memory too; older samples are read back from the spool's files")
+      ->transform(CLI::AsSizeValue(false))
+      ->capture_default_str();
+  app.add_option("--skip-late", f.skip_late,
+                 "A live source (a camera, the sim at --rate) that the vehicle cannot keep up "
+                 "with skips to the newest frame (on: poses stay live) or queues every frame "
+                 "(off: each one taken, late); recorded data sets keep every frame either way")
+      ->transform(
+          CLI::CheckedTransformer(std::map<std::string, bool>{{"on", true}, {"off", false}}))
+      ->capture_default_str();
+  app.add_option("--flush-timeout", f.flush_timeout_s,
+                 "Seconds to wait at the end for the server to acknowledge everything sent (what "
+                 "is left stays in the spool for the next run on it)")
+      ->check(CLI::Range(0.0, 3600.0))
+      ->capture_default_str();
+  app.add_option("--resend-after", f.resend_after_s,
+                 "Seconds without an acknowledgement before a sample is sent again")
+      ->check(CLI::Range(0.2, 3600.0))
+      ->capture_default_str();
   app.set_config("--config", "", "Read these options from a TOML or INI file (name = value)");
   app.allow_config_extras(CLI::config_extras_mode::error);  // a typo in the file is an error
   app.add_option("--wait-for-server", f.wait_s, "Seconds to wait for a server before streaming")
@@ -196,6 +239,7 @@ bool pipelineOptions(Flags& f) {
     spdlog::error("--link-budget: {}", budget.error().message);
     return false;
   } else if (*budget > 0) {
+    f.link_bits_per_s = *budget;
     proto::PoseMsg pose;
     pose.vehicle_id = options.vehicle_id;
     pose.session_id = options.session_id;
@@ -211,6 +255,8 @@ bool pipelineOptions(Flags& f) {
   options.codec.encoding =
       f.codec == "auto" ? link::bestEncoding(link) : *proto::parseEncoding(f.codec);  // IsMember
   options.rate_hz = f.rate_hz;
+  options.skip_late = f.skip_late;
+  options.flush_timeout = std::chrono::milliseconds(static_cast<int64_t>(f.flush_timeout_s * 1000));
   options.stereo.matcher = f.stereo_preset == "accurate" ? stereo::MatcherOptions::accurate()
                                                          : stereo::MatcherOptions::fast();
   // The range and the disparity search: from the rig unless given (explicit flags win).
@@ -335,6 +381,44 @@ class TrajectoryFiles {
 };
 
 // The vehicle's DDS writers (nullptr with --no-publish); false (said) when DDS fails.
+// The spool --spool asks for: nullptr for off; false (said) when a folder given cannot be used.
+// auto falls back to memory (with a warning) when its folder cannot be had.
+bool openSpool(const Flags& f, std::unique_ptr<link::Spool>& spool) {
+  if (f.spool == "off") return true;
+  link::SpoolOptions options = f.spool_options;
+  if (f.spool == "auto") {
+    if (const char* dir = std::getenv("STEREOMAP_SPOOL"); dir != nullptr && *dir != '\0') {
+      options.dir = dir;
+    } else if (const char* state = std::getenv("XDG_STATE_HOME"); state != nullptr && *state) {
+      options.dir = std::filesystem::path(state) / "stereomap" / "spool" / f.pipeline.vehicle_id;
+    } else if (const char* home = std::getenv("HOME"); home != nullptr && *home != '\0') {
+      options.dir = std::filesystem::path(home) / ".local" / "state" / "stereomap" / "spool" /
+                    f.pipeline.vehicle_id;
+    }
+  } else if (f.spool != "memory") {
+    options.dir = f.spool;
+  }
+  auto opened = link::Spool::open(options);
+  if (!opened && f.spool == "auto") {
+    spdlog::warn("spool: {}; keeping unacknowledged samples in memory only",
+                 opened.error().message);
+    options.dir.clear();
+    opened = link::Spool::open(options);
+  }
+  if (!opened) {
+    spdlog::error("--spool: {}", opened.error().message);
+    return false;
+  }
+  spool = std::move(opened).value();
+  spdlog::info("spool: {} (up to {} MB){}",
+               options.dir.empty() ? std::string("in memory") : options.dir.string(),
+               options.max_bytes >> 20,
+               spool->empty() ? std::string()
+                              : fmt::format(", {} samples left by an earlier run to send again",
+                                            spool->stats().held));
+  return true;
+}
+
 bool makePublisher(const Flags& f, const camera::FrameSource& source,
                    std::shared_ptr<proto::Participant>& participant,
                    std::unique_ptr<pipeline::VehiclePublisher>& publisher) {
@@ -348,7 +432,13 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
     return false;
   }
   participant = std::move(created).value();
-  auto made = pipeline::VehiclePublisher::create(participant);
+  std::unique_ptr<link::Spool> spool;
+  if (!openSpool(f, spool)) return false;
+  const link::OutboxOptions outbox{
+      .vehicle_id = f.pipeline.vehicle_id,
+      .link_bits_per_s = f.link_bits_per_s,
+      .resend_after = std::chrono::milliseconds(static_cast<int64_t>(f.resend_after_s * 1000))};
+  auto made = pipeline::VehiclePublisher::create(participant, std::move(spool), outbox);
   if (!made) {
     spdlog::error("{}", made.error().message);
     return false;
@@ -410,6 +500,20 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
       sent.sent, sent.offered, sent.skipped_known, sent.skipped_empty, sent.skipped_budget,
       sent.thinned_budget, sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
       sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
+  if (summary.skipped_frames > 0) {
+    spdlog::info("live source: {} frames skipped to stay live (the vehicle fell behind its {} Hz)",
+                 summary.skipped_frames, f.rate_hz);
+  }
+  if (summary.outbox && summary.spool) {
+    const auto& out = *summary.outbox;
+    const auto& spool = *summary.spool;
+    spdlog::info(
+        "spool: {} samples sent again ({:.0f} KiB), {} still unacknowledged ({:.0f} KiB), {} "
+        "clouds and {} other samples given up when full, {} KiB written to disk{}",
+        out.resent, out.resent_bytes / 1024.0, spool.held, spool.held_bytes / 1024.0,
+        spool.dropped_clouds, spool.dropped_other, spool.disk_bytes / 1024,
+        spool.disk_ok ? std::string() : "; disk problem: " + spool.disk_problem);
+  }
   return summary.publish_errors == 0 ? 0 : 1;
 }
 

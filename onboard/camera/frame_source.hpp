@@ -48,6 +48,15 @@ class FrameSource {
   virtual std::optional<SourceFrame> next() = 0;
   // One line for logs, e.g. "sim (seed 1, room 12 x 10 m)".
   virtual std::string describe() const = 0;
+  // Whether frames come in real time (a camera; the simulator, which stamps frames as a camera
+  // would): a pipeline that falls behind skips to the newest frame instead of queueing them.
+  // Recorded data sets are not live and keep every frame.
+  virtual bool live() const { return false; }
+  // Passes over the next `frames` frames without producing them (a live source).
+  virtual void skip(uint64_t frames) {
+    for (uint64_t i = 0; i < frames && next(); ++i) {
+    }
+  }
 };
 
 }  // namespace stereomap::camera

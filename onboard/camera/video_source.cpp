@@ -27,6 +27,11 @@ class VideoSource : public FrameSource {
         max_frames_(max_frames) {}
   const StereoCamera& camera() const override { return rectifier_.camera(); }
   std::string describe() const override { return description_; }
+  bool live() const override { return true; }
+  // Grabbed and dropped: the driver's buffered frames are the old ones.
+  void skip(uint64_t frames) override {
+    for (uint64_t i = 0; i < frames; ++i) left_.grab(), right_.grab();
+  }
   std::optional<SourceFrame> next() override {
     if (max_frames_ != 0 && index_ >= max_frames_) return std::nullopt;
     for (int attempt = 0; attempt < 10; ++attempt) {

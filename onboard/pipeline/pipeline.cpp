@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <variant>
 #include <vector>
 
 #include "common/statistics.hpp"
@@ -27,7 +28,8 @@ common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
 }  // namespace
 
 common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
-    const std::shared_ptr<proto::Participant>& participant) {
+    const std::shared_ptr<proto::Participant>& participant, std::unique_ptr<link::Spool> spool,
+    const link::OutboxOptions& outbox) {
   auto publisher = std::unique_ptr<VehiclePublisher>(new VehiclePublisher());
   auto events = makeWriter<proto::SessionEventMsg>(participant);
   if (!events) return events.error();
@@ -44,32 +46,85 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   publisher->clouds_ = std::move(clouds).value();
   publisher->corrections_ = std::move(corrections).value();
   publisher->landing_ = std::move(landing).value();
+  if (spool) {
+    auto acks = proto::Reader<proto::AckMsg>::create(participant);
+    if (!acks) return acks.error();
+    publisher->acks_ = std::move(acks).value();
+    publisher->outbox_.emplace(
+        std::move(spool), outbox,
+        [raw = publisher.get()](const link::SpoolRecord& record) { return raw->write(record); });
+  }
   return publisher;
 }
 
-common::Status VehiclePublisher::publish(const proto::SessionEventMsg& event) {
-  return events_->write(event);
+common::Status VehiclePublisher::write(const link::SpoolRecord& record) {
+  return std::visit(
+      [this](const auto& message) -> common::Status {
+        using Message = std::decay_t<decltype(message)>;
+        if constexpr (std::is_same_v<Message, proto::SessionEventMsg>)
+          return events_->write(message);
+        if constexpr (std::is_same_v<Message, proto::PoseMsg>) return poses_->write(message);
+        if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) return clouds_->write(message);
+        if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
+          return corrections_->write(message);
+        }
+      },
+      record);
 }
-common::Status VehiclePublisher::publish(const proto::PoseMsg& pose) { return poses_->write(pose); }
-common::Status VehiclePublisher::publish(const proto::CloudFrameMsg& frame) {
-  return clouds_->write(frame);
+
+namespace {
+int64_t steadyNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
+      .count();
 }
-common::Status VehiclePublisher::publish(const proto::PoseCorrectionMsg& correction) {
-  return corrections_->write(correction);
+}  // namespace
+
+template <typename Message>
+common::Status VehiclePublisher::send(Message& message) {
+  if (outbox_) return outbox_->send(message, steadyNs());
+  return write(message);
+}
+
+common::Status VehiclePublisher::publish(proto::SessionEventMsg& event) { return send(event); }
+common::Status VehiclePublisher::publish(proto::PoseMsg& pose) { return send(pose); }
+common::Status VehiclePublisher::publish(proto::CloudFrameMsg& frame) { return send(frame); }
+common::Status VehiclePublisher::publish(proto::PoseCorrectionMsg& correction) {
+  return send(correction);
 }
 common::Status VehiclePublisher::publish(const proto::LandingTargetMsg& target) {
+  if (outbox_) outbox_->charge(proto::wireBytes(target), steadyNs());
   return landing_->write(target);
 }
+
+void VehiclePublisher::service(std::chrono::milliseconds wait) {
+  if (!outbox_) return;
+  ack_batch_.clear();
+  acks_->take(ack_batch_, wait);
+  for (const auto& ack : ack_batch_) outbox_->acknowledge(ack);
+  outbox_->resend(steadyNs(), serverPresent());
+  outbox_->spool().sync();
+}
+
+bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() > 0; }
+
 bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);
 }
-bool VehiclePublisher::flush(std::chrono::milliseconds timeout) const {
+
+bool VehiclePublisher::flush(std::chrono::milliseconds timeout) {
   const auto deadline = std::chrono::steady_clock::now() + timeout;
   auto left = [&] {
     return std::max(std::chrono::milliseconds(0),
                     std::chrono::duration_cast<std::chrono::milliseconds>(
                         deadline - std::chrono::steady_clock::now()));
   };
+  if (outbox_) {
+    while (!outbox_->caughtUp() && left().count() > 0) {
+      service(std::min(left(), std::chrono::milliseconds(100)));
+    }
+    outbox_->spool().sync(/*force=*/true);
+    return outbox_->caughtUp();
+  }
   const bool clouds = clouds_->waitForAcks(left());
   const bool poses = poses_->waitForAcks(left());
   const bool corrections = corrections_->waitForAcks(left());
@@ -274,8 +329,8 @@ class PipelineRun {
     const common::Vec3 velocity = velocityAt(frame.stamp_ns, *T_map_body);
     watchLanding(frame, *T_map_body, T_body_camera);
     // The pose goes first, whatever becomes of the cloud.
-    const auto pose_msg = makePoseMsg(options_, summary_.frames, frame.stamp_ns, *T_map_body,
-                                      velocity, estimate ? &*estimate : nullptr);
+    auto pose_msg = makePoseMsg(options_, summary_.frames, frame.stamp_ns, *T_map_body, velocity,
+                                estimate ? &*estimate : nullptr);
     publish(pose_msg, "Pose");
     summary_.wire_bytes += proto::wireBytes(pose_msg);
     if (!first_stamp_) first_stamp_ = frame.stamp_ns;
@@ -296,6 +351,8 @@ class PipelineRun {
       }
     }
     ++summary_.frames;
+    // Acknowledgements, and what an outage left unacknowledged, after the live samples.
+    if (publisher_ != nullptr) publisher_->service();
     report.frame_ms = msSince(frame_start);
     frame_ms_.push_back(report.frame_ms);
     if (options_.on_frame) options_.on_frame(report);
@@ -311,11 +368,17 @@ class PipelineRun {
       publish(makeSessionEvent(options_, source_.camera(), proto::SessionEventKind::kEnded),
               "SessionEvent");
       // Leaving at once would drop what the server has not acknowledged yet (the end event).
-      if (!publisher_->flush(options_.flush_timeout)) {
-        spdlog::warn(
-            "the server did not acknowledge the last samples within {} ms; it learns of "
-            "the end when the vehicle falls silent",
-            options_.flush_timeout.count());
+      summary_.flushed = publisher_->flush(options_.flush_timeout);
+      if (!summary_.flushed) {
+        spdlog::warn("the server did not acknowledge the last samples within {} ms{}",
+                     options_.flush_timeout.count(),
+                     publisher_->outbox() ? "; the spool keeps them for the next run on it"
+                                          : "; it learns of the end when the vehicle falls silent");
+      }
+      if (const auto* outbox = publisher_->outbox()) {
+        summary_.outbox = outbox->stats();
+        summary_.spool = outbox->spool().stats();
+        summary_.wire_bytes += outbox->stats().resent_bytes;
       }
     }
     if (cloud_link_) summary_.link = cloud_link_->stats();
@@ -339,7 +402,7 @@ class PipelineRun {
 
  private:
   template <typename Message>
-  void publish(const Message& message, const char* what) {
+  void publish(Message&& message, const char* what) {
     if (publisher_ == nullptr) return;
     if (auto status = publisher_->publish(message); !status) {
       ++summary_.publish_errors;
@@ -525,7 +588,15 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
       break;
     }
     if (Clock::now() - slot > period && period > Clock::duration::zero()) {
-      ++run.summary().late_frames;
+      if (source.live() && options.skip_late) {
+        // Frames of the slots that passed are not worth taking: the newest one is.
+        const auto behind = static_cast<uint64_t>((Clock::now() - slot) / period);
+        source.skip(behind);
+        i += behind;
+        run.summary().skipped_frames += behind;
+      } else {
+        ++run.summary().late_frames;
+      }
     }
     const auto frame_start = Clock::now();
     auto frame = source.next();

@@ -16,6 +16,7 @@
 #include "onboard/camera/frame_source.hpp"
 #include "onboard/landing/landing_watch.hpp"
 #include "onboard/link/cloud_link.hpp"
+#include "onboard/link/outbox.hpp"
 #include "onboard/odometry/odometry.hpp"
 #include "onboard/posegraph/graph_follower.hpp"
 #include "onboard/stereo/depth_step.hpp"
@@ -44,6 +45,9 @@ struct PipelineOptions {
   std::string vehicle_id = "sim-1";
   std::string session_id = "session";
   double rate_hz = 10.0;  // frames are paced to this rate; 0 = as fast as possible
+  // A live source (FrameSource::live) that falls behind the rate skips to the newest frame;
+  // false: every frame is taken, late (tests that count frames on a loaded machine).
+  bool skip_late = true;
   // Disparity and cloud, with noisy images' noise kept out (stereo::DepthStep).
   stereo::DepthOptions stereo;
   proto::CloudCodecOptions codec;
@@ -86,7 +90,14 @@ struct PipelineSummary {
   double stream_seconds = 0;
   link::CloudLinkStats link;
   uint64_t publish_errors = 0;
-  uint64_t late_frames = 0;      // frames that started after their slot (the rate was not kept)
+  uint64_t late_frames = 0;  // frames that started after their slot (the rate was not kept)
+  // A live source (a camera, the sim at a rate) that fell behind skips to the newest frame
+  // instead of queueing: frames skipped so.
+  uint64_t skipped_frames = 0;
+  // With an outbox: what it sent again and what its spool holds and gave up.
+  std::optional<link::OutboxStats> outbox;
+  std::optional<link::SpoolStats> spool;
+  bool flushed = true;           // everything acknowledged at the end
   double median_depth_ms = 0;    // disparity + cloud
   std::string depth_range;       // what the depth step searched and why (RigRange::explain)
   double image_noise_sigma = 0;  // the depth step's last image noise estimate, grey levels
@@ -108,27 +119,47 @@ struct PipelineSummary {
   uint64_t landing_tracked = 0, landing_poses = 0;
 };
 
-// The DDS side of the vehicle: one writer per topic.
+// The DDS side of the vehicle: one writer per topic and, with an outbox, the acknowledgements:
+// poses, clouds, session events and corrections are then numbered in the vehicle's stream,
+// kept in its spool until the server has journaled them, and sent again after an outage
+// (onboard/link/outbox.hpp); landing targets, only worth their moment, are sent once.
 class VehiclePublisher {
  public:
+  // spool: null for samples sent once (DDS's own history covers an outage of a few seconds).
   static common::Result<std::unique_ptr<VehiclePublisher>> create(
-      const std::shared_ptr<proto::Participant>& participant);
-  common::Status publish(const proto::SessionEventMsg& event);
-  common::Status publish(const proto::PoseMsg& pose);
-  common::Status publish(const proto::CloudFrameMsg& frame);
-  common::Status publish(const proto::PoseCorrectionMsg& correction);
+      const std::shared_ptr<proto::Participant>& participant,
+      std::unique_ptr<link::Spool> spool = nullptr, const link::OutboxOptions& outbox = {});
+  // The spooled kinds get their stream, seq and unacked_from filled in.
+  common::Status publish(proto::SessionEventMsg& event);
+  common::Status publish(proto::PoseMsg& pose);
+  common::Status publish(proto::CloudFrameMsg& frame);
+  common::Status publish(proto::PoseCorrectionMsg& correction);
   common::Status publish(const proto::LandingTargetMsg& target);
+  // Takes the acknowledgements that arrived (waiting up to `wait` for one) and sends again
+  // what is due. Once a frame.
+  void service(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
   bool waitForServer(std::chrono::milliseconds timeout) const;
   // Waits until the server acknowledged everything published (the final SessionEvent
-  // included), up to `timeout`; false when something is still unacknowledged.
-  bool flush(std::chrono::milliseconds timeout) const;
+  // included), up to `timeout`; false when something is still unacknowledged (with a spool
+  // folder, it is kept there for the next run).
+  bool flush(std::chrono::milliseconds timeout);
+  // Whether a server's readers are matched.
+  bool serverPresent() const;
+  const link::Outbox* outbox() const { return outbox_ ? &*outbox_ : nullptr; }
 
  private:
+  common::Status write(const link::SpoolRecord& record);
+  template <typename Message>
+  common::Status send(Message& message);
+
   std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events_;
   std::unique_ptr<proto::Writer<proto::PoseMsg>> poses_;
   std::unique_ptr<proto::Writer<proto::CloudFrameMsg>> clouds_;
   std::unique_ptr<proto::Writer<proto::PoseCorrectionMsg>> corrections_;
   std::unique_ptr<proto::Writer<proto::LandingTargetMsg>> landing_;
+  std::unique_ptr<proto::Reader<proto::AckMsg>> acks_;
+  std::optional<link::Outbox> outbox_;
+  std::vector<proto::AckMsg> ack_batch_;
 };
 
 // Messages for one frame (exposed for tests).

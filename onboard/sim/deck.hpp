@@ -115,6 +115,8 @@ class DeckSource : public camera::FrameSource {
   const camera::StereoCamera& camera() const override { return camera_; }
   std::optional<camera::SourceFrame> next() override;
   std::string describe() const override;
+  bool live() const override { return true; }
+  void skip(uint64_t frames) override { index_ += frames; }
   // The truth of the frame `next` returned last.
   const DeckTruth& truth() const { return truth_; }
   DeckTruth truthAt(double t_s) const;

@@ -24,6 +24,8 @@ class SimSource : public camera::FrameSource {
   const camera::StereoCamera& camera() const override { return camera_; }
   std::optional<camera::SourceFrame> next() override;
   std::string describe() const override;
+  bool live() const override { return true; }
+  void skip(uint64_t frames) override { index_ += frames; }
 
   const Scene& scene() const { return scene_; }
   const Flight& flight() const { return flight_; }

@@ -14,6 +14,9 @@ dds_qos_t* poseCorrectionQos();
 // Reliable, volatile, keep-last 1 per vehicle: only the newest sighting of the pad matters,
 // and a stale one is worse than none to a late joiner.
 dds_qos_t* landingTargetQos();
+// Reliable, volatile, keep-last 1 per vehicle stream: an acknowledgement counts everything
+// before it, so only the newest matters.
+dds_qos_t* ackQos();
 // Reliable, transient-local, keep-last kPoseHistory: a server restarted within a few seconds
 // gets the poses it missed, as it does the clouds.
 dds_qos_t* poseQos();

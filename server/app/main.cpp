@@ -150,9 +150,12 @@ std::optional<net::HttpServerOptions> httpOptions(const Flags& f) {
 }
 
 // A reader per topic and a thread per reader handing its samples to the map server, from
-// start() until the shutdown is requested (then one more round for what had arrived).
+// start() until the shutdown is requested (then one more round for what had arrived), and a
+// thread telling the vehicles what is journaled (Ack, at most every kAckPeriod).
 class DdsIngest {
  public:
+  static constexpr std::chrono::milliseconds kAckPeriod{200};
+
   static common::Result<std::unique_ptr<DdsIngest>> create(
       const std::shared_ptr<proto::Participant>& participant) {
     auto ingest = std::unique_ptr<DdsIngest>(new DdsIngest);
@@ -160,6 +163,11 @@ class DdsIngest {
     std::apply([&](auto&... readers) { (open(participant, readers, opened), ...); },
                ingest->readers_);
     if (!opened) return opened.error();
+    auto acks = proto::Writer<proto::AckMsg>::create(participant);
+    if (!acks)
+      return common::makeError(acks.error().code,
+                               "cannot create the DDS Ack writer: " + acks.error().message);
+    ingest->acks_ = std::move(acks).value();
     return ingest;
   }
 
@@ -173,6 +181,16 @@ class DdsIngest {
            ...);
         },
         readers_);
+    threads_.emplace_back([this, &server, &shutdown] {
+      do {
+        for (const auto& ack : server.takeAcks()) {
+          if (auto written = acks_->write(ack); !written) {
+            spdlog::warn("cannot send an acknowledgement to '{}': {}", ack.vehicle_id,
+                         written.error().message);
+          }
+        }
+      } while (!shutdown.waitFor(kAckPeriod));
+    });
   }
 
   void join() {
@@ -219,6 +237,7 @@ class DdsIngest {
              std::unique_ptr<proto::Reader<proto::PoseCorrectionMsg>>,
              std::unique_ptr<proto::Reader<proto::LandingTargetMsg>>>
       readers_;
+  std::unique_ptr<proto::Writer<proto::AckMsg>> acks_;
   std::vector<std::thread> threads_;
 };
 

@@ -14,13 +14,13 @@
 
 #include "common/cli.hpp"
 #include "common/transform_args.hpp"
+#include "proto/journal/journal.hpp"
 #include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/fusion/octomap_log.hpp"
-#include "server/store/journal.hpp"
 #include "server/store/store_admin.hpp"
 
 namespace {

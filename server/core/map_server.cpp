@@ -18,6 +18,7 @@ constexpr const char* kAccepted = "stereomap_samples_accepted_total";
 constexpr const char* kRejected = "stereomap_samples_rejected_total";
 constexpr const char* kDropped = "stereomap_fusion_dropped_frames_total";
 constexpr const char* kDuplicates = "stereomap_samples_duplicate_total";
+constexpr const char* kGivenUp = "stereomap_samples_given_up_total";
 constexpr const char* kStoreHealthy = "stereomap_store_healthy";
 constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 constexpr const char* kVehicleBytes = "stereomap_vehicle_received_bytes_total";
@@ -39,6 +40,9 @@ MapServer::MapServer(const MapServerOptions& options)
   metrics_.describe(kDropped, "counter", "Frames dropped because fusion fell behind");
   metrics_.describe(kDuplicates, "counter",
                     "Samples received again (DDS history after a restart), skipped, by topic");
+  metrics_.describe(kGivenUp, "counter",
+                    "Samples vehicles gave up before the server had them (a full spool: "
+                    "onboard/link/spool.hpp), by topic");
   metrics_.describe(kStoreHealthy, "gauge",
                     "1 when the store can be written, 0 when degraded (a full or failing disk)");
   metrics_.describe(kStoreErrors, "counter", "Failed writes to the store's journals, by topic");
@@ -202,9 +206,11 @@ void MapServer::noteTraffic(const char* topic, const std::string& session_id,
     }
     if (found == links_.end()) {
       vehicle = kOtherVehicles;
-    } else if (pose_stamp_ns) {
+    } else if (pose_stamp_ns && *pose_stamp_ns > found->second.newest_pose_ns) {
       // Only stamps from a clock in step with ours tell the link's delay; a vehicle on its
-      // own time base (a data set's stamps) or history delivered again is not counted.
+      // own time base (a data set's stamps), and poses older than its newest (history or a
+      // spool catching up: their age is the outage's, not the link's) are not counted.
+      found->second.newest_pose_ns = *pose_stamp_ns;
       const double age_s = static_cast<double>(common::nowNs() - *pose_stamp_ns) * 1e-9;
       if (age_s > -1.0 && age_s < kMaxPlausibleLatencyS) {
         auto& ring = found->second;
@@ -228,6 +234,16 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const Message& mess
   const std::string& session_id = message.session_id;
   metrics_.add(kReceived, {{"topic", topic}});
   std::shared_ptr<Session> session;
+  // The sample itself is bad (the checks of validate.hpp): sending it again cannot help, so its
+  // session, when there is one, takes it as received (its stream's acknowledgement passes it).
+  // A correction of poses not received yet may be good once they are (a vehicle catching up).
+  if constexpr (requires { message.unacked_from; }) {
+    if (rejection && rejection->reason != "unknown_poses" && origin == Origin::kLive) {
+      if (auto known = find(session_id); known && !known->readOnly()) {
+        known->claim(receiptTopicOf(message), SampleId::of(message));
+      }
+    }
+  }
   if (!rejection) session = sessionFor(session_id, topic, rejection);
   if (session && session->readOnly() && origin == Origin::kLive) {
     rejection =
@@ -251,20 +267,31 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const Message& mess
 template <typename Message>
 std::optional<uint64_t> MapServer::record(const char* topic, const Message& message,
                                           Session& session, Origin origin) {
-  uint64_t seq = 0;  // session events carry no seq: their stamp tells them apart
-  if constexpr (requires { message.seq; }) seq = message.seq;
-  if (origin != Origin::kLive || options_.log == nullptr) {
-    if (!session.claim(topic, message.vehicle_id, seq, message.stamp_ns)) {
+  const ReceiptTopic receipt_topic = receiptTopicOf(message);
+  const SampleId sample = SampleId::of(message);
+  // A sample already taken, or one too far ahead of its stream's gaps (its sender keeps it).
+  auto refused = [&](Claim claim) {
+    if (claim == Claim::kDuplicate) {
       metrics_.add(kDuplicates, {{"topic", topic}});
-      return std::nullopt;
+    } else {
+      reject(topic,
+             {"out_of_window", "seq " + std::to_string(message.seq) +
+                                   " lies too far "
+                                   "ahead of the stream's missing samples; sent again later"},
+             message.vehicle_id + "/" + message.session_id);
+    }
+    return std::nullopt;
+  };
+  if (origin != Origin::kLive || options_.log == nullptr) {
+    if (const Claim claim = session.claim(receipt_topic, sample); claim != Claim::kNew) {
+      return refused(claim);
     }
     return 0;
   }
   // Durable first: a sample the journal could not keep was not received, and is not
-  // claimed, so that DDS redelivering it later is not taken for a duplicate.
-  if (session.seen(topic, message.vehicle_id, seq, message.stamp_ns)) {
-    metrics_.add(kDuplicates, {{"topic", topic}});
-    return std::nullopt;
+  // claimed, so that a vehicle sending it again later is not taken for a duplicate.
+  if (const Claim claim = session.check(receipt_topic, sample); claim != Claim::kNew) {
+    return refused(claim);
   }
   auto logged = options_.log->append(message);
   if (!logged) {
@@ -275,7 +302,10 @@ std::optional<uint64_t> MapServer::record(const char* topic, const Message& mess
            message.vehicle_id + "/" + message.session_id);
     return std::nullopt;
   }
-  session.claim(topic, message.vehicle_id, seq, message.stamp_ns);
+  session.claim(receipt_topic, sample);
+  if (const uint64_t given_up = session.takeGivenUp(receipt_topic)) {
+    metrics_.add(kGivenUp, {{"topic", topic}}, static_cast<double>(given_up));
+  }
   session.noteStoreError("");
   // A small pose may still fit where a cloud did not: only a cloud tells there is room again.
   if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) reportStoreOk();
@@ -445,6 +475,18 @@ void MapServer::endSilentSessions(std::chrono::milliseconds timeout) {
           session->id(), timeout.count() / 1000.0);
     }
   }
+}
+
+std::vector<proto::AckMsg> MapServer::takeAcks() {
+  std::vector<proto::AckMsg> acks;
+  for (const auto& session : sessions()) {
+    if (session->readOnly()) continue;
+    auto due = session->takeAcks();
+    for (auto& ack : due) ack.stamp_ns = common::nowNs();
+    acks.insert(acks.end(), std::make_move_iterator(due.begin()),
+                std::make_move_iterator(due.end()));
+  }
+  return acks;
 }
 
 std::vector<std::shared_ptr<Session>> MapServer::sessions() const {

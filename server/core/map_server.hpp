@@ -5,6 +5,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <cstdint>
 #include <functional>
 #include <map>
 #include <memory>
@@ -91,9 +92,9 @@ class MapServer {
  public:
   explicit MapServer(const MapServerOptions& options);
 
-  // Each returns true when the sample was accepted. A sample seen before (same vehicle, a
-  // seq and stamp no newer than the last accepted: DDS redelivering its history to a
-  // restarted server) is counted as a duplicate and skipped.
+  // Each returns true when the sample was accepted. A sample seen before (its stream and seq
+  // taken already: a vehicle's spool or DDS's history sending it again, receipts.hpp) is
+  // counted as a duplicate and skipped.
   // `journal_number`: a replayed or covered frame's record number in the journal.
   bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive,
               uint64_t journal_number = 0);
@@ -134,6 +135,10 @@ class MapServer {
   // Marks ended every live session whose vehicles sent nothing for `timeout` (a vehicle that
   // stopped while the server was down never says so). Called periodically.
   void endSilentSessions(std::chrono::milliseconds timeout);
+
+  // What the live sessions have journaled of their vehicles' streams, where it changed (or a
+  // vehicle sent a sample again) since the last call: for the Ack topic, a few times a second.
+  std::vector<proto::AckMsg> takeAcks();
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;
@@ -183,6 +188,7 @@ class MapServer {
   struct VehicleLink {
     std::vector<double> pose_latency_s;  // a ring of the newest
     size_t next = 0;
+    int64_t newest_pose_ns = INT64_MIN;
   };
   std::map<std::pair<std::string, std::string>, VehicleLink> links_;  // under mutex_
   std::atomic<bool> store_ok_{true};  // fast path of reportStoreOk()

@@ -75,25 +75,29 @@ Session::~Session() {
   }
 }
 
-bool Session::claim(const std::string& topic, const std::string& vehicle, uint64_t seq,
-                    int64_t stamp_ns) {
+Claim Session::claim(ReceiptTopic topic, const SampleId& sample) {
   std::lock_guard state(state_mutex_);
-  auto [it, inserted] = last_claimed_.try_emplace({topic, vehicle}, seq, stamp_ns);
-  if (inserted) return true;
-  auto& [last_seq, last_stamp] = it->second;
-  if (seq <= last_seq && stamp_ns <= last_stamp) return false;  // not newer in either
-  last_seq = seq;
-  last_stamp = stamp_ns;
-  return true;
+  return receipts_.claim(topic, sample);
 }
 
-bool Session::seen(const std::string& topic, const std::string& vehicle, uint64_t seq,
-                   int64_t stamp_ns) const {
+Claim Session::check(ReceiptTopic topic, const SampleId& sample) {
   std::lock_guard state(state_mutex_);
-  const auto found = last_claimed_.find({topic, vehicle});
-  if (found == last_claimed_.end()) return false;
-  const auto& [last_seq, last_stamp] = found->second;
-  return seq <= last_seq && stamp_ns <= last_stamp;
+  return receipts_.check(topic, sample);
+}
+
+uint64_t Session::takeGivenUp(ReceiptTopic topic) {
+  std::lock_guard state(state_mutex_);
+  return receipts_.takeGivenUp(topic);
+}
+
+std::vector<proto::AckMsg> Session::takeAcks() {
+  std::vector<proto::AckMsg> acks;
+  {
+    std::lock_guard state(state_mutex_);
+    acks = receipts_.takeAcks();
+  }
+  for (auto& ack : acks) ack.session_id = id_;
+  return acks;
 }
 
 void Session::noteStoreError(const std::string& error) {
@@ -158,10 +162,29 @@ void Session::addPose(const PoseRecord& pose) {
   std::lock_guard lock(state_mutex_);
   const auto& q = pose.T_map_body.rotation;
   const auto& t = pose.T_map_body.translation;
-  trajectory_.push_back({pose.stamp_ns,
-                         {t.x(), t.y(), t.z()},
-                         {q.x(), q.y(), q.z(), q.w()},
-                         noteVehicle(vehicles_, pose.vehicle_id)});
+  const StoredPose stored{pose.stamp_ns,
+                          {t.x(), t.y(), t.z()},
+                          {q.x(), q.y(), q.z(), q.w()},
+                          noteVehicle(vehicles_, pose.vehicle_id)};
+  if (newest_pose_ns_.size() <= stored.vehicle)
+    newest_pose_ns_.resize(stored.vehicle + 1, INT64_MIN);
+  int64_t& newest = newest_pose_ns_[stored.vehicle];
+  if (pose.stamp_ns >= newest) {
+    newest = pose.stamp_ns;
+    trajectory_.push_back(stored);
+    return;
+  }
+  // Older than the vehicle's newest: it is catching up after an outage. Its poses stay in
+  // stamp order (after its last older one), and viewers fetch the trajectory again, as after
+  // a correction.
+  auto at = trajectory_.end();
+  while (at != trajectory_.begin()) {
+    const auto& before = *std::prev(at);
+    if (before.vehicle == stored.vehicle && before.stamp_ns <= pose.stamp_ns) break;
+    --at;
+  }
+  trajectory_.insert(at, stored);
+  ++trajectory_version_;
 }
 
 common::Rigid3 Session::StoredPose::body() const {

@@ -35,6 +35,7 @@
 #include "common/worker_pool.hpp"
 #include "proto/messages.hpp"
 #include "server/core/pose_correction.hpp"
+#include "server/core/receipts.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/tiles/tile_set.hpp"
 
@@ -137,12 +138,13 @@ class Session {
   // taken meanwhile, since it would claim to hold the frame); without one, false (counted,
   // dropped). `wait_for_room` blocks until the worker makes room instead (replay at start-up).
   bool enqueue(FusionJob job, bool wait_for_room = false);
-  // True the first time a (topic, vehicle) sample with this seq and stamp is seen: false
-  // when neither is newer than the last claimed one (a redelivered sample).
-  bool claim(const std::string& topic, const std::string& vehicle, uint64_t seq, int64_t stamp_ns);
-  // Whether claim() would call this sample a duplicate (it claims nothing).
-  bool seen(const std::string& topic, const std::string& vehicle, uint64_t seq,
-            int64_t stamp_ns) const;
+  // The session's receipts of its vehicles' streams (receipts.hpp): claim() takes a sample the
+  // first time it is seen; check() says what claim() would.
+  Claim claim(ReceiptTopic topic, const SampleId& sample);
+  Claim check(ReceiptTopic topic, const SampleId& sample);
+  // The acknowledgements due (Receipts::takeAcks), with this session's id.
+  std::vector<proto::AckMsg> takeAcks();
+  uint64_t takeGivenUp(ReceiptTopic topic);  // Receipts::takeGivenUp
   // Why a sample could not be journaled; "" when one was journaled again.
   void noteStoreError(const std::string& error);
   void addPose(const PoseRecord& pose);
@@ -179,7 +181,8 @@ class Session {
   const tiles::TileSet& tiles() const { return tiles_; }
   // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
   std::vector<fusion::VoxelIndex> occupiedVoxels() const;
-  // Poses [from, until) in arrival order (as corrected); poseCount() of them in all.
+  // Poses [from, until) in arrival order, except that a vehicle's pose older than its newest
+  // (one catching up) goes after its last older one (as corrected); poseCount() in all.
   std::vector<PoseRecord> trajectory(size_t from = 0, size_t until = SIZE_MAX) const;
   size_t poseCount() const;
   // OctoMap binary of the map as it is now (after the frame being fused, if any), written by a
@@ -246,7 +249,7 @@ class Session {
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
-  std::map<std::pair<std::string, std::string>, std::pair<uint64_t, int64_t>> last_claimed_;
+  Receipts receipts_;
   // A pose as the session keeps it, for as long as it is loaded: 72 bytes (a PoseRecord,
   // with its id string and padded Eigen types, is 112), in a deque, which grows by blocks
   // where a vector would double and copy (the soak's RSS after warm-up: docs/BENCHMARKS.md).
@@ -259,7 +262,8 @@ class Session {
   };
   static_assert(sizeof(StoredPose) == 72);
   PoseRecord poseRecord(const StoredPose& stored) const;  // under state_mutex_
-  std::deque<StoredPose> trajectory_;
+  std::deque<StoredPose> trajectory_;                     // each vehicle's poses in stamp order
+  std::vector<int64_t> newest_pose_ns_;                   // by vehicle index
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0, frames_deferred_ = 0;
   double fusion_seconds_ = 0;
   uint64_t snapshots_ = 0;

@@ -13,10 +13,21 @@
 #include <string>
 #include <vector>
 
+#include "proto/journal/journal.hpp"
 #include "server/core/map_server.hpp"
-#include "server/store/journal.hpp"
 
 namespace stereomap::store {
+
+// The journal's file format is proto/journal's (the vehicle's spool writes it too); the store
+// names what it uses of it as its own.
+using proto::journal::crc32;
+using proto::journal::Journal;
+using proto::journal::JournalDamage;
+using proto::journal::JournalRecord;
+using proto::journal::JournalReplay;
+using proto::journal::readJournal;
+using proto::journal::rewriteJournal;
+using proto::journal::visitJournal;
 
 class SessionJournals : public core::IngestLog,
                         public core::SnapshotSink,

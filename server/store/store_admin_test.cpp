@@ -13,7 +13,7 @@
 #include <thread>
 
 #include "server/core/exports.hpp"
-#include "server/store/format_one.hpp"
+#include "testing/journal_format_one.hpp"
 #include "testing/synthetic.hpp"
 
 namespace stereomap::store {

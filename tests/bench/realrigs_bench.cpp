@@ -218,7 +218,9 @@ Flight fly(const std::string& source, int domain, const std::vector<std::string>
                                    "--dds-config",
                                    STEREOMAP_DDS_CONFIG,
                                    "--domain",
-                                   std::to_string(domain)};
+                                   std::to_string(domain),
+                                   "--spool",
+                                   "memory"};
   argv.insert(argv.end(), extra.begin(), extra.end());
   const std::string log_path = server.logPath() + ".onboard";
   testing::ChildProcess onboard(argv, log_path);

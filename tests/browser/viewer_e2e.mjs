@@ -230,7 +230,7 @@ async function run(options, resources, progress) {
     // Every cloud (--min-new 0, no link budget), thinned to the server's 0.1 m voxels: the page
     // must show each.
     ['--source', 'sim', '--frames', String(frames), '--rate', '10', '--session', 'e2e', '--vehicle', 'sim-1',
-      '--min-new', '0', '--link-budget', 'off', ...ddsArgs], ddsEnv);
+      '--min-new', '0', '--link-budget', 'off', '--spool', 'memory', '--skip-late', 'off', ...ddsArgs], ddsEnv);
   resources.procs.push(onboard);
   const onboardHealthy = () => {
     pageHealthy();
@@ -434,7 +434,7 @@ async function run(options, resources, progress) {
   progress.step = 'a descent onto the moving deck with the landing watch on';
   const deck = start('stereomap-onboard (deck)', path.join(binDir, 'stereomap-onboard'),
     ['--source', 'sim:deck', '--landing', 'default', '--frames', '10', '--rate', '0', '--session', 'deck',
-      '--vehicle', 'uav-1', ...ddsArgs], ddsEnv);
+      '--vehicle', 'uav-1', '--spool', 'memory', ...ddsArgs], ddsEnv);
   resources.procs.push(deck);
   await waitUntil('the deck descent to finish', 120_000, 250,
     async () => ({ ok: deck.exit !== null, seen: 'it still running' }), () => expectRunningOrSuccess(deck, { mayExit: true }));

@@ -4,21 +4,21 @@
 // that a record appended next is read back as the file's last, numbered above every other.
 #include <variant>
 
-#include "server/store/journal.hpp"
+#include "proto/journal/journal.hpp"
 #include "tests/fuzz/fuzz_input.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace stereomap;
   const auto path =
       fuzz::scratch().write("journal.smj", {reinterpret_cast<const char*>(data), size});
-  auto replay = store::readJournal(path);
+  auto replay = proto::journal::readJournal(path);
   if (!replay) __builtin_trap();  // the file exists: damage is reported, not an error
   if (replay->records.size() != replay->numbers.size() || replay->good_bytes > size ||
       replay->file_bytes != size) {
     __builtin_trap();
   }
 
-  auto journal = store::Journal::open(path);
+  auto journal = proto::journal::Journal::open(path);
   if (!journal) return 0;  // refused (a format 1 file, or a tail it could not set aside)
   proto::PoseMsg pose;
   pose.vehicle_id.assign(1, 'v');  // (gcc 12 warns falsely on = "v": -Wrestrict)
@@ -26,7 +26,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   auto number = (*journal)->append(pose);
   if (!number || *number <= replay->last_number) __builtin_trap();
   journal->reset();
-  auto again = store::readJournal(path);
+  auto again = proto::journal::readJournal(path);
   if (!again || again->numbers.empty() || again->numbers.back() != *number ||
       !std::holds_alternative<proto::PoseMsg>(again->records.back())) {
     __builtin_trap();

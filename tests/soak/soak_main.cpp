@@ -33,7 +33,7 @@
 #include "common/cli.hpp"
 #include "common/statistics.hpp"
 #include "common/time.hpp"
-#include "server/store/journal.hpp"
+#include "proto/journal/journal.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/websocket_client.hpp"
 
@@ -72,7 +72,7 @@ struct AtKill {
 
 AtKill journaled(const std::filesystem::path& journal_path) {
   AtKill at;
-  auto journal = store::readJournal(journal_path);
+  auto journal = proto::journal::readJournal(journal_path);
   if (!journal) return at;
   for (size_t i = 0; i < journal->records.size(); ++i) {
     at.last_number = std::max(at.last_number, journal->numbers[i]);
@@ -229,7 +229,7 @@ struct Accounting {
 // the first one journaled after it. Every frame journaled at a kill is still there.
 void account(const std::filesystem::path& journal_path, const std::string& vehicle, int64_t frames,
              const std::vector<AtKill>& kills, Accounting& out) {
-  auto journal = store::readJournal(journal_path);
+  auto journal = proto::journal::readJournal(journal_path);
   if (!journal) {
     out.problems.push_back(journal.error().message);
     return;

@@ -84,6 +84,13 @@ std::vector<std::string> onboardArgs(int domain, const std::string& session, int
       argv.insert(argv.end(), {flag, "0"});
     }
   }
+  // Tests run side by side with the same vehicle id: none inherits another's spool folder. And
+  // tests count frames: on a loaded machine the sim takes each one late instead of skipping.
+  for (const auto& [flag, value] : {std::pair{"--spool", "memory"}, {"--skip-late", "off"}}) {
+    if (std::find(extra.begin(), extra.end(), flag) == extra.end()) {
+      argv.insert(argv.end(), {flag, value});
+    }
+  }
   argv.insert(argv.end(), extra.begin(), extra.end());
   return argv;
 }

@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "server/store/journal.hpp"
+#include "proto/journal/journal.hpp"
 
 namespace stereomap::testing {
 
@@ -25,7 +25,7 @@ inline std::string formatOneOf(const std::filesystem::path& format_two,
     std::memcpy(&length, &v2[at + 4], 4);
     const std::string payload = v2.substr(at + 24, length);
     const uint32_t crc =
-        store::crc32(reinterpret_cast<const uint8_t*>(payload.data()), payload.size());
+        proto::journal::crc32(reinterpret_cast<const uint8_t*>(payload.data()), payload.size());
     if (starts != nullptr) starts->push_back(v1.size());
     v1.append(reinterpret_cast<const char*>(&length), 4);
     v1.append(reinterpret_cast<const char*>(&crc), 4);

@@ -26,7 +26,7 @@
 #include "common/result.hpp"
 #include "proto/messages.hpp"
 
-namespace stereomap::store {
+namespace stereomap::proto::journal {
 
 using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg,
                                    proto::PoseCorrectionMsg>;
@@ -91,10 +91,16 @@ class Journal {
   Journal(const Journal&) = delete;
   Journal& operator=(const Journal&) = delete;
 
-  // Appends and makes the record durable; its record number. On failure (a full disk) the
+  // Appends and makes the record durable (kNow: fdatasync before it returns; kLater: in the
+  // page cache, durable at the next sync(), or when the kernel writes it back: what survives
+  // the process, not a power loss); its record number. On failure (a full disk) the
   // partial record is cut off again before anything else is written, and the error names
   // the cause; while it cannot be cut, every append fails.
-  common::Result<uint64_t> append(const JournalRecord& record);
+  enum class Durability { kNow, kLater };
+  common::Result<uint64_t> append(const JournalRecord& record,
+                                  Durability durability = Durability::kNow);
+  // Makes everything appended durable.
+  common::Status sync();
   // What opening found (damage, the tail cut), without the records themselves.
   const JournalReplay& recovered() const { return recovered_; }
   uint64_t bytes() const { return bytes_; }
@@ -124,4 +130,4 @@ common::Status rewriteJournal(const std::filesystem::path& path,
 // CRC-32 (IEEE 802.3), as zlib's crc32().
 uint32_t crc32(const uint8_t* data, size_t size);
 
-}  // namespace stereomap::store
+}  // namespace stereomap::proto::journal

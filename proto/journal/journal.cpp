@@ -1,4 +1,4 @@
-#include "server/store/journal.hpp"
+#include "proto/journal/journal.hpp"
 
 #include <fcntl.h>
 #include <sys/stat.h>
@@ -12,7 +12,7 @@
 
 #include "common/files.hpp"
 
-namespace stereomap::store {
+namespace stereomap::proto::journal {
 
 namespace fs = std::filesystem;
 using common::ErrorCode;
@@ -27,7 +27,15 @@ constexpr uint8_t kMarker[4] = {'S', 'M', 'R', 2};
 constexpr size_t kHeaderBytes = 24;   // marker, length, number, body CRC, header CRC
 constexpr size_t kV1HeaderBytes = 8;  // length, CRC
 constexpr uint32_t kMaxRecordBytes = 64u << 20;
-enum RecordType : uint8_t { kCloudFrame = 1, kPose = 2, kSessionEvent = 3, kPoseCorrection = 4 };
+// Types 1-4 were written before samples named their stream (and session events their seq):
+// read as stream 0. Types 5-8 carry both.
+enum RecordType : uint8_t {
+  kCloudFrame = 1,
+  kPose = 2,
+  kSessionEvent = 3,
+  kPoseCorrection = 4,
+  kStreamed = 4,  // added to a type: the same message with its stream
+};
 
 // Little-endian field writer/reader; the reader fails (ok() false) on any overrun.
 class Writer {
@@ -94,26 +102,31 @@ void getArray(Reader& r, std::array<double, N>& a) {
   for (double& v : a) v = r.get<double>();
 }
 
-// The fields every message starts with: ids, seq (where the message has one), stamp.
+// The fields every message starts with: ids, stream, seq, unacked_from, stamp.
 template <typename Message>
 void putHeader(Writer& w, const Message& m) {
   w.putString(m.vehicle_id);
   w.putString(m.session_id);
-  if constexpr (requires { m.seq; }) w.put(m.seq);
+  w.put(m.stream);
+  w.put(m.seq);
+  w.put(m.unacked_from);
   w.put(m.stamp_ns);
 }
+// `streamed` false: a record of types 1-4 (no stream; session events without a seq).
 template <typename Message>
-void getHeader(Reader& r, Message& m) {
+void getHeader(Reader& r, Message& m, bool streamed) {
   m.vehicle_id = r.getString();
   m.session_id = r.getString();
-  if constexpr (requires { m.seq; }) m.seq = r.get<uint64_t>();
+  if (streamed) m.stream = r.get<uint64_t>();
+  if (streamed || !std::is_same_v<Message, proto::SessionEventMsg>) m.seq = r.get<uint64_t>();
+  if (streamed) m.unacked_from = r.get<uint64_t>();
   m.stamp_ns = r.get<int64_t>();
 }
 
 std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
   Writer w;
   if (const auto* f = std::get_if<proto::CloudFrameMsg>(&record)) {
-    type = kCloudFrame;
+    type = kCloudFrame + kStreamed;
     putHeader(w, *f);
     putArray(w, f->sensor_position);
     putArray(w, f->sensor_orientation);
@@ -124,14 +137,14 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     w.put(static_cast<uint8_t>(f->has_intensity));
     w.putBytes(f->payload);
   } else if (const auto* e = std::get_if<proto::SessionEventMsg>(&record)) {
-    type = kSessionEvent;
+    type = kSessionEvent + kStreamed;
     putHeader(w, *e);
     w.put(static_cast<uint8_t>(e->kind));
     w.put(e->width);
     w.put(e->height);
     for (double v : {e->fx, e->fy, e->cx, e->cy, e->baseline, e->resolution_hint}) w.put(v);
   } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
-    type = kPoseCorrection;
+    type = kPoseCorrection + kStreamed;
     putHeader(w, *c);
     w.put(static_cast<uint32_t>(c->keyframes.size()));
     for (const auto& k : c->keyframes) {
@@ -141,7 +154,7 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     }
   } else {
     const auto& p = std::get<proto::PoseMsg>(record);
-    type = kPose;
+    type = kPose + kStreamed;
     putHeader(w, p);
     putArray(w, p.position);
     putArray(w, p.orientation);
@@ -155,9 +168,11 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
 
 bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) {
   Reader r(data, size);
+  const bool streamed = type > kStreamed;
+  if (streamed) type -= kStreamed;
   if (type == kCloudFrame) {
     proto::CloudFrameMsg f;
-    getHeader(r, f);
+    getHeader(r, f, streamed);
     getArray(r, f.sensor_position);
     getArray(r, f.sensor_orientation);
     f.max_range = r.get<float>();
@@ -171,7 +186,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     out = std::move(f);
   } else if (type == kPose) {
     proto::PoseMsg p;
-    getHeader(r, p);
+    getHeader(r, p, streamed);
     getArray(r, p.position);
     getArray(r, p.orientation);
     getArray(r, p.velocity);
@@ -181,7 +196,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     out = std::move(p);
   } else if (type == kSessionEvent) {
     proto::SessionEventMsg e;
-    getHeader(r, e);
+    getHeader(r, e, streamed);
     e.kind = static_cast<proto::SessionEventKind>(r.get<uint8_t>() & 1);
     e.width = r.get<uint32_t>();
     e.height = r.get<uint32_t>();
@@ -191,7 +206,7 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     out = std::move(e);
   } else if (type == kPoseCorrection) {
     proto::PoseCorrectionMsg c;
-    getHeader(r, c);
+    getHeader(r, c, streamed);
     const uint32_t count = r.get<uint32_t>();
     // Bounded before anything is allocated: a damaged count must not ask for gigabytes.
     if (count > proto::kMaxCorrectedKeyframes || count > size / 64) return false;
@@ -323,7 +338,7 @@ size_t v1RecordAt(const std::vector<uint8_t>& bytes, size_t at, JournalRecord* d
   }
   const uint8_t* payload = &bytes[at + kV1HeaderBytes];
   // Cheap tests first: the scan below tries every offset.
-  if (payload[0] < kCloudFrame || payload[0] > kSessionEvent) return 0;
+  if (payload[0] < kCloudFrame || payload[0] > kPoseCorrection + kStreamed) return 0;
   if (crc32(payload, length) != getU32(&bytes[at + 4])) return 0;
   JournalRecord scratch;
   if (!decode(payload[0], payload + 1, length - 1, decoded ? *decoded : scratch)) return 0;
@@ -589,7 +604,7 @@ bool Journal::cutBack() {
   return true;
 }
 
-common::Result<uint64_t> Journal::append(const JournalRecord& record) {
+common::Result<uint64_t> Journal::append(const JournalRecord& record, Durability durability) {
   if (needs_cut_ && !cutBack()) {
     return makeError(ErrorCode::kIo, path_.string() +
                                          ": the journal still ends in a failed write and cannot "
@@ -597,7 +612,8 @@ common::Result<uint64_t> Journal::append(const JournalRecord& record) {
                                          common::systemError(errno));
   }
   const std::vector<uint8_t> bytes = framed(payloadOf(record), next_number_);
-  if (!common::writeAllAt(fd_, bytes.data(), bytes.size(), bytes_) || ::fdatasync(fd_) != 0) {
+  if (!common::writeAllAt(fd_, bytes.data(), bytes.size(), bytes_) ||
+      (durability == Durability::kNow && ::fdatasync(fd_) != 0)) {
     const int error = errno;
     needs_cut_ = true;
     cutBack();  // if this fails too, the next append tries again before writing
@@ -606,6 +622,14 @@ common::Result<uint64_t> Journal::append(const JournalRecord& record) {
   }
   bytes_ += bytes.size();
   return next_number_++;
+}
+
+common::Status Journal::sync() {
+  if (::fdatasync(fd_) != 0) {
+    return makeError(ErrorCode::kIo,
+                     path_.string() + ": sync failed: " + common::systemError(errno));
+  }
+  return common::Ok{};
 }
 
 common::Status rewriteJournal(const fs::path& path, const std::vector<JournalRecord>& records,
@@ -618,4 +642,4 @@ common::Status rewriteJournal(const fs::path& path, const std::vector<JournalRec
   return common::writeFileAtomically(path, content);
 }
 
-}  // namespace stereomap::store
+}  // namespace stereomap::proto::journal

@@ -1,0 +1,273 @@
+// stereomap-bench-outage (issue 38): nothing lost through an outage of any length, and a vehicle
+// that falls behind stays live. Real stereomap-server and stereomap-onboard processes on
+// loopback DDS:
+//   - outage: a sim flight (typical camera, thinned clouds, --link-budget 1Mbit, ground-truth
+//     poses), the server killed with SIGKILL `--at` seconds in and started again on the same
+//     store `--down` seconds later; every pose and cloud the vehicle sent must be in the
+//     session's journal, once; how long the vehicle took to catch up after the server's return
+//     (its log), and the live poses' age at the server meanwhile (/metrics, p95 of the last 100).
+//   - overload: the vehicle run at twice the frame rate its pipeline holds (measured first); the
+//     age of its poses at the server.
+//   - restart: the vehicle killed (SIGKILL) during an outage and started again on its spool; every
+//     sample the first process sent must be journaled.
+//   - spool: bytes the spool writes per minute of flight, thinned and whole clouds.
+// The last line is the issue's figure line.
+//
+//   stereomap-bench-outage [--down 60] [--flight 180] [--at 60] [--only outage,overload,...]
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "tests/support/server_fixture.hpp"
+#include "tests/support/stream_count.hpp"
+
+namespace {
+
+using namespace stereomap;
+using namespace std::chrono_literals;
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+constexpr int kDomain = 97;
+const std::string kSession = "outage";
+
+// The vehicle's pose age at the server, p95 of its last 100 poses (s), or nullopt.
+std::optional<double> poseAgeP95(const testing::ServerProcess& server) {
+  const auto reply = server.get("/metrics");
+  if (reply.status != 200) return std::nullopt;
+  std::istringstream lines(reply.body);
+  std::string line;
+  while (std::getline(lines, line)) {
+    if (line.rfind("stereomap_vehicle_pose_latency_seconds{", 0) != 0) continue;
+    if (line.find("quantile=\"0.95\"") == std::string::npos) continue;
+    if (line.find("session=\"" + kSession + "\"") == std::string::npos) continue;
+    return std::stod(line.substr(line.rfind(' ') + 1));
+  }
+  return std::nullopt;
+}
+
+std::vector<std::string> vehicleArgs(int frames, double rate, const std::string& spool,
+                                     const std::vector<std::string>& extra = {}) {
+  std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard",
+                                   "--source",
+                                   "sim",
+                                   "--camera",
+                                   "typical",
+                                   "--session",
+                                   kSession,
+                                   "--frames",
+                                   std::to_string(frames),
+                                   "--rate",
+                                   std::to_string(rate),
+                                   "--spool",
+                                   spool,
+                                   "--dds-config",
+                                   STEREOMAP_DDS_CONFIG,
+                                   "--domain",
+                                   std::to_string(kDomain),
+                                   "--flush-timeout",
+                                   "120"};
+  argv.insert(argv.end(), extra.begin(), extra.end());
+  return argv;
+}
+
+struct OutageRun {
+  double down_s = 0;
+  size_t poses = 0, poses_sent = 0, clouds = 0, clouds_sent = 0, repeated = 0;
+  double catch_up_s = -1;
+  double live_age_p95_ms = -1;  // the largest p95 read during the catch-up
+  double spool_kib = 0, flight_s = 0;
+};
+
+// One flight with the server away `down_s` seconds from `at_s` on.
+OutageRun outage(double flight_s, double at_s, double down_s,
+                 const std::vector<std::string>& extra = {}) {
+  OutageRun run{.down_s = down_s, .flight_s = flight_s};
+  const std::string store = testing::makeTempDir("stereomap-outage-store");
+  const std::string spool = store + ".spool";
+  const std::string vehicle_log = store + ".vehicle.log";
+  auto server =
+      std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  testing::ChildProcess vehicle(vehicleArgs(static_cast<int>(flight_s * 10), 10, spool, extra),
+                                vehicle_log);
+  if (down_s > 0) {
+    std::this_thread::sleep_for(std::chrono::duration<double>(at_s));
+    server->process().kill9();
+    server.reset();
+    std::this_thread::sleep_for(std::chrono::duration<double>(down_s));
+    server = std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store,
+                                                      true, 120s);
+  }
+  // Live poses' age while the vehicle catches up (it says when it has).
+  while (vehicle.running() &&
+         testing::readText(vehicle_log).find("link: caught up") == std::string::npos) {
+    if (const auto age = poseAgeP95(*server)) {
+      run.live_age_p95_ms = std::max(run.live_age_p95_ms, *age * 1000);
+    }
+    std::this_thread::sleep_for(1s);
+  }
+  const auto code = vehicle.waitExit(std::chrono::seconds(static_cast<int>(flight_s) + 300));
+  const std::string log = testing::readText(vehicle_log);
+  if (!code || *code != 0)
+    std::fprintf(stderr, "the vehicle failed; its log: %s\n", vehicle_log.c_str());
+  run.catch_up_s = testing::numberIn(log, R"(caught up ([0-9.]+) s after the server came back)");
+  run.poses_sent = static_cast<size_t>(testing::numberIn(log, R"(done: ([0-9]+) frames)"));
+  run.clouds_sent = static_cast<size_t>(
+      testing::numberIn(log, R"(link: sent [0-9]+ kbit/s \(clouds and poses\), ([0-9]+) of)"));
+  run.spool_kib = testing::numberIn(log, R"(([0-9]+) KiB written to disk)");
+  server->process().stop();
+  server.reset();
+  const auto found = testing::journaledSamples(store, kSession);
+  run.poses = found.poseCount();
+  run.clouds = found.cloudCount();
+  run.repeated = found.repeated;
+  std::printf("| %.0f s at %.0f s of %.0f s | %zu / %zu | %zu / %zu | %zu | %.1f | %.0f | %.0f |\n",
+              down_s, at_s, flight_s, run.poses, run.poses_sent, run.clouds, run.clouds_sent,
+              run.repeated, run.catch_up_s, run.live_age_p95_ms,
+              run.spool_kib / flight_s * 60 / 1024);
+  std::fflush(stdout);
+  fs::remove_all(store);
+  fs::remove_all(spool);
+  fs::remove(vehicle_log);
+  return run;
+}
+
+// The frame rate the vehicle's pipeline holds (frames per second with --rate 0).
+double sustainableRate(const std::vector<std::string>& extra) {
+  const std::string dir = testing::makeTempDir("stereomap-outage-rate");
+  auto argv = vehicleArgs(60, 0, "off", extra);
+  argv.push_back("--no-publish");
+  const auto run = testing::runTool(argv, 300s);
+  const double frame_ms = testing::numberIn(run.output, R"(frame ([0-9.]+) ms \(medians\))");
+  fs::remove_all(dir);
+  return frame_ms > 0 ? 1000 / frame_ms : 0;
+}
+
+// The vehicle at twice its sustainable rate: the age of its poses at the server (p95, ms),
+// the largest read over the flight after its first 10 s.
+double overloaded(double seconds) {
+  const std::vector<std::string> odometry = {"--vo", "fast"};
+  const double rate = 2 * sustainableRate(odometry);
+  const std::string store = testing::makeTempDir("stereomap-overload-store");
+  testing::ServerProcess server(kDomain, {}, store);
+  const std::string log_path = store + ".vehicle.log";
+  testing::ChildProcess vehicle(
+      vehicleArgs(static_cast<int>(seconds * rate), rate, "memory", odometry), log_path);
+  double worst = -1;
+  const auto start = Clock::now();
+  while (vehicle.running()) {
+    std::this_thread::sleep_for(1s);
+    if (Clock::now() - start < 10s) continue;
+    if (const auto age = poseAgeP95(server)) worst = std::max(worst, *age * 1000);
+  }
+  const std::string log = testing::readText(log_path);
+  std::printf("| %.1f Hz (twice the %.1f it holds) | %.0f | %.0f of %.0f |\n", rate, rate / 2,
+              worst, testing::numberIn(log, R"(([0-9]+) frames skipped to stay live)"),
+              seconds * rate);
+  fs::remove(log_path);
+  return worst;
+}
+
+// The vehicle killed during an outage and started again on its spool: every sample the first
+// process sent is journaled (the spool's files say how far it went).
+void restart() {
+  const std::string store = testing::makeTempDir("stereomap-restart-store");
+  const std::string spool = store + ".spool";
+  auto server =
+      std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  {
+    testing::ChildProcess first(vehicleArgs(600, 10, spool), store + ".first.log");
+    std::this_thread::sleep_for(20s);
+    server->process().kill9();
+    server.reset();
+    std::this_thread::sleep_for(15s);
+    first.kill9();
+  }
+  // How far the first process went (its spool's files say).
+  const auto reach = testing::spooledReach(spool);
+  server = std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  testing::ChildProcess second(vehicleArgs(300, 10, spool), store + ".second.log");
+  second.waitExit(300s);
+  server->process().stop();
+  server.reset();
+  const auto found = testing::journaledSamples(store, kSession);
+  for (const auto& [stream, sent] : reach) {
+    std::printf("| the first process (stream %016llx) | %zu / %llu poses, %zu / %llu clouds |\n",
+                static_cast<unsigned long long>(stream), found.poseCount(stream),
+                static_cast<unsigned long long>(sent.poses), found.cloudCount(stream),
+                static_cast<unsigned long long>(sent.clouds));
+  }
+  fs::remove_all(store);
+  fs::remove_all(spool);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"stereomap-bench-outage: nothing lost through a server outage (issue 38)"};
+  double down_s = 60, flight_s = 180, at_s = 60;
+  std::vector<std::string> only = {"outage", "overload", "restart", "spool"};
+  app.add_option("--down", down_s, "Seconds the server is away")->capture_default_str();
+  app.add_option("--flight", flight_s, "Seconds of flight at 10 Hz")->capture_default_str();
+  app.add_option("--at", at_s, "Seconds into the flight the server is killed")
+      ->capture_default_str();
+  app.add_option("--only", only, "Parts to run")
+      ->check(CLI::IsMember({"outage", "overload", "restart", "spool"}));
+  CLI11_PARSE(app, argc, argv);
+  auto wanted = [&](const char* part) {
+    return std::find(only.begin(), only.end(), part) != only.end();
+  };
+  if (at_s + 10 > flight_s) {
+    std::fprintf(stderr, "--at must leave at least 10 s of flight\n");
+    return 2;
+  }
+
+  std::optional<OutageRun> main_run;
+  if (wanted("outage")) {
+    std::printf(
+        "## Outage: server killed and started again (typical camera, thinned clouds, 1 Mbit/s)\n\n"
+        "| server down | poses journaled / sent | clouds journaled / sent | records repeated | "
+        "caught up (s) | live pose age p95 during catch-up (ms) | spool KiB per minute |\n"
+        "|---|---|---|---|---|---|---|\n");
+    main_run = outage(flight_s, at_s, down_s);
+  }
+  if (wanted("spool")) {
+    std::printf(
+        "\n## Spool bytes per minute of flight (server up, 60 s)\n\n"
+        "| clouds | poses journaled / sent | clouds journaled / sent | records repeated | "
+        "caught up (s) | live pose age p95 (ms) | spool KiB per minute |\n"
+        "|---|---|---|---|---|---|---|\n");
+    outage(60, 0, 0, {});
+    outage(60, 0, 0, {"--map-resolution", "0"});
+  }
+  double overload_p95 = -1;
+  if (wanted("overload")) {
+    std::printf(
+        "\n## Overloaded vehicle (fast odometry, sim at twice what it holds, 30 s)\n\n"
+        "| rate | pose age p95 at the server (ms) | frames skipped |\n|---|---|---|\n");
+    overload_p95 = overloaded(30);
+  }
+  if (wanted("restart")) {
+    std::printf(
+        "\n## Vehicle killed during an outage, started again on its spool\n\n"
+        "| samples of | journaled / sent |\n|---|---|\n");
+    restart();
+  }
+  if (main_run && overload_p95 >= 0) {
+    std::printf(
+        "\noutage: %.0f s down: %zu/%zu poses, %zu/%zu clouds journaled, caught up in %.1f s; live "
+        "pose age p95 %.0f ms during catch-up; overloaded vehicle pose age p95 %.0f ms\n",
+        main_run->down_s, main_run->poses, main_run->poses_sent, main_run->clouds,
+        main_run->clouds_sent, main_run->catch_up_s, main_run->live_age_p95_ms, overload_p95);
+  }
+  return 0;
+}
