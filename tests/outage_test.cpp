@@ -67,6 +67,11 @@ class OutageTest : public ::testing::Test {
   std::unique_ptr<ServerProcess> startServer(int domain) {
     return std::make_unique<ServerProcess>(domain, std::vector<std::string>{}, store_, true, 60s);
   }
+  // SIGKILL: nothing the server has not journaled survives it.
+  static void killServer(std::unique_ptr<ServerProcess>& server) {
+    server->process().kill9();
+    server.reset();
+  }
   std::string store_, spool_, log_;
 };
 
@@ -76,8 +81,7 @@ TEST_F(OutageTest, TwentySecondsDownLosesNothing) {
   auto server = startServer(kOutageDomain);
   ChildProcess onboard(vehicle(kOutageDomain, "outage", 450, spool_), log_);
   std::this_thread::sleep_for(8s);
-  server->process().kill9();
-  server.reset();
+  killServer(server);
   std::this_thread::sleep_for(20s);
   server = startServer(kOutageDomain);
   ASSERT_EQ(onboard.waitExit(scaledTimeout(180s)).value_or(-1), 0) << readText(log_);
@@ -104,8 +108,7 @@ TEST_F(OutageTest, AVehicleStartedAgainOnItsSpoolSendsWhatItLeft) {
   {
     ChildProcess first(vehicle(kRestartDomain, "restart", 600, spool_), log_);
     std::this_thread::sleep_for(6s);
-    server->process().kill9();
-    server.reset();
+    killServer(server);
     std::this_thread::sleep_for(8s);
     first.kill9();
   }
@@ -166,8 +169,7 @@ TEST_F(OutageTest, ForgedAcknowledgementsCostNothing) {
     return stream != 0;
   }));
   std::this_thread::sleep_for(4s);
-  server->process().kill9();
-  server.reset();
+  killServer(server);
   for (int i = 0; i < 20; ++i) {
     for (auto ack : {proto::AckMsg{"sim-1", "another-session", stream, 0, 1000, 1000, 10, 10},
                      proto::AckMsg{"another-vehicle", "forged", stream, 0, 1000, 1000, 10, 10},
@@ -193,8 +195,7 @@ TEST_F(OutageTest, AFullSpoolGivesUpCloudsNotPoses) {
   ChildProcess onboard(
       vehicle(kFullDomain, "full", 350, spool_, {"--spool-max", "160kB", "--min-new", "0"}), log_);
   std::this_thread::sleep_for(5s);
-  server->process().kill9();
-  server.reset();
+  killServer(server);
   std::this_thread::sleep_for(15s);
   server = startServer(kFullDomain);
   ASSERT_EQ(onboard.waitExit(scaledTimeout(120s)).value_or(-1), 0) << readText(log_);

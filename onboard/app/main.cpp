@@ -495,11 +495,14 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
   spdlog::info(
       "link: sent {:.0f} kbit/s (clouds and poses), {} of {} clouds ({} skipped with nothing new, "
       "{} empty, {} over the budget, {} thinner for it), {:.0f} points and {:.1f} KiB per cloud "
-      "sent",
+      "sent{}",
       summary.stream_seconds > 0 ? summary.wire_bytes * 8 / summary.stream_seconds / 1000 : 0.0,
       sent.sent, sent.offered, sent.skipped_known, sent.skipped_empty, sent.skipped_budget,
       sent.thinned_budget, sent.sent ? static_cast<double>(sent.points_out) / sent.sent : 0.0,
-      sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0);
+      sent.sent ? summary.payload_bytes / 1024.0 / sent.sent : 0.0,
+      summary.spool && summary.spool->dropped_clouds > 0
+          ? fmt::format(", {} given up by the full spool", summary.spool->dropped_clouds)
+          : std::string());
   if (summary.skipped_frames > 0) {
     spdlog::info("live source: {} frames skipped to stay live (the vehicle fell behind its {} Hz)",
                  summary.skipped_frames, f.rate_hz);

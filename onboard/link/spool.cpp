@@ -194,6 +194,10 @@ void Spool::recover() {
     if (segments_[first].held == 0) release(first);
   }
   stats_.held = entries_.size();
+  // Acknowledgements of streams no file holds any more need not be kept.
+  std::erase_if(acked_,
+                [&](const auto& entry) { return stream_sessions_.count(entry.first) == 0; });
+  acked_changed_ = true;
   if (stats_.recovered > 0 || stats_.lost_records > 0) {
     spdlog::info(
         "spool {}: {} samples an earlier run left unacknowledged, to send again ({} "

@@ -306,8 +306,6 @@ int main(int argc, char** argv) {
   };
   auto participant = proto::Participant::create(flags.dds);
   if (!participant) return fail(participant.error());
-  auto ingest = DdsIngest::create(*participant);
-  if (!ingest) return fail(ingest.error());
 
   // Journal first: a frame counts as received once it is on disk.
   store::SessionJournals journals(flags.store_dir, flags.options.resolution);
@@ -319,6 +317,12 @@ int main(int argc, char** argv) {
                                          {.default_resolution = flags.options.resolution});
   if (!admin) return fail(admin.error());
   recoverSessions(**admin);
+  // The readers only now: a vehicle sees the server once it takes samples. Created before the
+  // recovery, they matched vehicles whose live poses then waited out the recovery in their
+  // queues (a pose 200 ms old on arrival after a 5-minute outage; docs/BENCHMARKS.md); the
+  // vehicles keep what is not acknowledged meanwhile.
+  auto ingest = DdsIngest::create(*participant);
+  if (!ingest) return fail(ingest.error());
 
   auto http_server = net::HttpServer::create(*http, server, admin->get());
   if (!http_server) return fail(http_server.error());

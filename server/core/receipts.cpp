@@ -62,7 +62,13 @@ Claim Receipts::classify(ReceiptTopic topic, const Taken& taken, const SampleId&
   return full ? Claim::kOutOfWindow : Claim::kNew;
 }
 
+bool Receipts::full(const SampleId& sample) const {
+  return streams_.size() >= kMaxReceiptStreams &&
+         streams_.count({sample.vehicle, sample.stream}) == 0;
+}
+
 Claim Receipts::check(ReceiptTopic topic, const SampleId& sample) {
+  if (full(sample)) return Claim::kOutOfWindow;
   Stream& stream = streamOf(sample, topic);
   const Claim claim = classify(topic, stream.topics[static_cast<size_t>(topic)], sample);
   if (claim == Claim::kDuplicate && sample.stream != 0) stream.ack_due = true;
@@ -70,6 +76,7 @@ Claim Receipts::check(ReceiptTopic topic, const SampleId& sample) {
 }
 
 Claim Receipts::claim(ReceiptTopic topic, const SampleId& sample) {
+  if (full(sample)) return Claim::kOutOfWindow;
   Stream& stream = streamOf(sample, topic);
   Taken& taken = stream.topics[static_cast<size_t>(topic)];
   const Claim claim = classify(topic, taken, sample);

@@ -51,10 +51,12 @@ struct SampleId {
   }
 };
 
-// kOutOfWindow: a stream's seqs taken above its count are bounded (kReceiptWindow); a sample
-// that would need more is not taken (its sender keeps it and sends it again later).
+// kOutOfWindow: a stream's seqs taken above its count are bounded (kReceiptWindow), and a
+// session's streams (kMaxReceiptStreams: a vehicle starts one per process); a sample that would
+// need more is not taken (its sender keeps it and sends it again later).
 enum class Claim { kNew, kDuplicate, kOutOfWindow };
 inline constexpr size_t kReceiptWindow = 65536;
+inline constexpr size_t kMaxReceiptStreams = 16384;
 
 class Receipts {
  public:
@@ -85,6 +87,7 @@ class Receipts {
     std::array<Taken, kReceiptTopics> topics;
     bool ack_due = false;
   };
+  bool full(const SampleId& sample) const;  // a new stream beyond kMaxReceiptStreams
   // The stream's entry with the sample's unacked_from applied.
   Stream& streamOf(const SampleId& sample, ReceiptTopic topic);
   static Claim classify(ReceiptTopic topic, const Taken& taken, const SampleId& sample);

@@ -119,5 +119,15 @@ TEST(Receipts, TheWindowAboveAGapIsBounded) {
   EXPECT_EQ(receipts.claim(ReceiptTopic::kPose, sample(kReceiptWindow + 1)), Claim::kNew);
 }
 
+TEST(Receipts, StreamsAreBounded) {
+  Receipts receipts;
+  for (uint64_t stream = 1; stream <= kMaxReceiptStreams; ++stream) {
+    ASSERT_EQ(receipts.claim(ReceiptTopic::kPose, sample(0, 0, stream)), Claim::kNew);
+  }
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kPose, sample(0, 0, kMaxReceiptStreams + 1)),
+            Claim::kOutOfWindow);
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kPose, sample(1, 0, 5)), Claim::kNew);  // a known one
+}
+
 }  // namespace
 }  // namespace stereomap::core

@@ -14,6 +14,7 @@
 // The last line is the issue's figure line.
 //
 //   stereomap-bench-outage [--down 60] [--flight 180] [--at 60] [--only outage,overload,...]
+#include <spdlog/fmt/fmt.h>
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
@@ -82,15 +83,15 @@ std::vector<std::string> vehicleArgs(int frames, double rate, const std::string&
 
 struct OutageRun {
   double down_s = 0;
-  size_t poses = 0, poses_sent = 0, clouds = 0, clouds_sent = 0, repeated = 0;
+  size_t poses = 0, poses_sent = 0, clouds = 0, clouds_sent = 0, repeated = 0, duplicates = 0;
   double catch_up_s = -1;
   double live_age_p95_ms = -1;  // the largest p95 read during the catch-up
-  double spool_kib = 0, flight_s = 0;
+  double spool_mib = 0, flight_s = 0;
 };
 
 // One flight with the server away `down_s` seconds from `at_s` on.
 OutageRun outage(double flight_s, double at_s, double down_s,
-                 const std::vector<std::string>& extra = {}) {
+                 const std::vector<std::string>& extra = {}, const std::string& label = "") {
   OutageRun run{.down_s = down_s, .flight_s = flight_s};
   const std::string store = testing::makeTempDir("stereomap-outage-store");
   const std::string spool = store + ".spool";
@@ -112,6 +113,7 @@ OutageRun outage(double flight_s, double at_s, double down_s,
          testing::readText(vehicle_log).find("link: caught up") == std::string::npos) {
     if (const auto age = poseAgeP95(*server)) {
       run.live_age_p95_ms = std::max(run.live_age_p95_ms, *age * 1000);
+      std::fprintf(stderr, "catching up: live pose age p95 %.0f ms\n", *age * 1000);
     }
     std::this_thread::sleep_for(1s);
   }
@@ -123,17 +125,25 @@ OutageRun outage(double flight_s, double at_s, double down_s,
   run.poses_sent = static_cast<size_t>(testing::numberIn(log, R"(done: ([0-9]+) frames)"));
   run.clouds_sent = static_cast<size_t>(
       testing::numberIn(log, R"(link: sent [0-9]+ kbit/s \(clouds and poses\), ([0-9]+) of)"));
-  run.spool_kib = testing::numberIn(log, R"(([0-9]+) KiB written to disk)");
+  run.spool_mib = testing::numberIn(log, R"(([0-9]+) KiB written to disk)") / 1024;
+  // Samples the server received again (DDS history, spool) after its restart.
+  const std::string metrics = server->get("/metrics").body;
+  for (const char* topic : {"Pose", "CloudFrame", "SessionEvent", "PoseCorrection"}) {
+    run.duplicates += static_cast<size_t>(testing::seriesValue(
+        metrics, std::string("stereomap_samples_duplicate_total{topic=\"") + topic + "\"}"));
+  }
   server->process().stop();
   server.reset();
   const auto found = testing::journaledSamples(store, kSession);
   run.poses = found.poseCount();
   run.clouds = found.cloudCount();
   run.repeated = found.repeated;
-  std::printf("| %.0f s at %.0f s of %.0f s | %zu / %zu | %zu / %zu | %zu | %.1f | %.0f | %.0f |\n",
-              down_s, at_s, flight_s, run.poses, run.poses_sent, run.clouds, run.clouds_sent,
-              run.repeated, run.catch_up_s, run.live_age_p95_ms,
-              run.spool_kib / flight_s * 60 / 1024);
+  const std::string first =
+      label.empty() ? fmt::format("{:.0f} s at {:.0f} s of {:.0f} s", down_s, at_s, flight_s)
+                    : label;
+  std::printf("| %s | %zu / %zu | %zu / %zu | %zu | %zu | %.1f | %.0f | %.1f |\n", first.c_str(),
+              run.poses, run.poses_sent, run.clouds, run.clouds_sent, run.repeated, run.duplicates,
+              run.catch_up_s, run.live_age_p95_ms, run.spool_mib / flight_s * 60);
   std::fflush(stdout);
   fs::remove_all(store);
   fs::remove_all(spool);
@@ -144,8 +154,12 @@ OutageRun outage(double flight_s, double at_s, double down_s,
 // The frame rate the vehicle's pipeline holds (frames per second with --rate 0).
 double sustainableRate(const std::vector<std::string>& extra) {
   const std::string dir = testing::makeTempDir("stereomap-outage-rate");
+  // Published to no one (a domain of its own): the whole frame's work, as in flight.
   auto argv = vehicleArgs(60, 0, "off", extra);
-  argv.push_back("--no-publish");
+  for (const auto& [flag, value] : {std::pair{"--domain", "230"}, {"--flush-timeout", "0"}}) {
+    *(std::find(argv.begin(), argv.end(), flag) + 1) = value;
+  }
+  argv.insert(argv.end(), {"--wait-for-server", "0"});
   const auto run = testing::runTool(argv, 300s);
   const double frame_ms = testing::numberIn(run.output, R"(frame ([0-9.]+) ms \(medians\))");
   fs::remove_all(dir);
@@ -220,7 +234,8 @@ int main(int argc, char** argv) {
   app.add_option("--flight", flight_s, "Seconds of flight at 10 Hz")->capture_default_str();
   app.add_option("--at", at_s, "Seconds into the flight the server is killed")
       ->capture_default_str();
-  app.add_option("--only", only, "Parts to run")
+  app.add_option("--only", only, "Parts to run, comma-separated")
+      ->delimiter(',')
       ->check(CLI::IsMember({"outage", "overload", "restart", "spool"}));
   CLI11_PARSE(app, argc, argv);
   auto wanted = [&](const char* part) {
@@ -236,18 +251,20 @@ int main(int argc, char** argv) {
     std::printf(
         "## Outage: server killed and started again (typical camera, thinned clouds, 1 Mbit/s)\n\n"
         "| server down | poses journaled / sent | clouds journaled / sent | records repeated | "
-        "caught up (s) | live pose age p95 during catch-up (ms) | spool KiB per minute |\n"
-        "|---|---|---|---|---|---|---|\n");
+        "received again | caught up (s) | live pose age p95 during catch-up (ms) | spool MB per "
+        "minute |\n"
+        "|---|---|---|---|---|---|---|---|\n");
     main_run = outage(flight_s, at_s, down_s);
   }
   if (wanted("spool")) {
     std::printf(
         "\n## Spool bytes per minute of flight (server up, 60 s)\n\n"
         "| clouds | poses journaled / sent | clouds journaled / sent | records repeated | "
-        "caught up (s) | live pose age p95 (ms) | spool KiB per minute |\n"
-        "|---|---|---|---|---|---|---|\n");
-    outage(60, 0, 0, {});
-    outage(60, 0, 0, {"--map-resolution", "0"});
+        "received again | caught up (s) | live pose age p95 (ms) | spool MB per minute |\n"
+        "|---|---|---|---|---|---|---|---|\n");
+    outage(60, 0, 0, {}, "thinned (the default)");
+    outage(60, 0, 0, {"--map-resolution", "0", "--link-budget", "off"},
+           "whole (`--map-resolution 0 --link-budget off`)");
   }
   double overload_p95 = -1;
   if (wanted("overload")) {
