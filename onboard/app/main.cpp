@@ -193,8 +193,9 @@ void addFlags(CLI::App& app, Flags& f) {
                  "keeps a few seconds)")
       ->capture_default_str();
   app.add_option("--spool-max", f.spool_options.max_bytes,
-                 "Most the spool holds (256MB: 40 min at 1 Mbit/s); when full the oldest clouds "
-                 "are given up first, poses and session events last")
+                 "Most the spool holds (256MB: 3 hours of the default thinned stream, 34 min of a "
+                 "full 1 Mbit/s); when full the oldest clouds are given up first, poses and "
+                 "session events last")
       ->transform(CLI::AsSizeValue(false))
       ->capture_default_str();
   app.add_option("--spool-memory", f.spool_options.memory_bytes,
@@ -207,7 +208,7 @@ void addFlags(CLI::App& app, Flags& f) {
                  "(off: each one taken, late); recorded data sets keep every frame either way")
       ->transform(
           CLI::CheckedTransformer(std::map<std::string, bool>{{"on", true}, {"off", false}}))
-      ->capture_default_str();
+      ->default_str("on");
   app.add_option("--flush-timeout", f.flush_timeout_s,
                  "Seconds to wait at the end for the server to acknowledge everything sent (what "
                  "is left stays in the spool for the next run on it)")
