@@ -7,6 +7,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <charconv>
 #include <fstream>
 #include <sstream>
 #include <system_error>
@@ -64,11 +65,11 @@ uint64_t segmentNumber(const fs::path& path) {
   }
   const std::string digits =
       name.substr(prefix.size(), name.size() - prefix.size() - suffix.size());
-  if (digits.empty() || digits.size() > 19 ||
-      !std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; })) {
-    return 0;
-  }
-  return std::stoull(digits);
+  uint64_t number = 0;
+  const auto [end, error] = std::from_chars(digits.data(), digits.data() + digits.size(), number);
+  // Digits only, and within 64 bits: any other name is not a segment of ours.
+  if (error != std::errc() || end != digits.data() + digits.size() || digits[0] == '+') return 0;
+  return number;
 }
 
 }  // namespace

@@ -219,6 +219,19 @@ TEST_F(SpoolTest, AFullDiskKeepsSamplesInMemory) {
   EXPECT_EQ(due(*spool).size(), 6u);
 }
 
+// Names in the folder that are not the spool's segments (a number past 64 bits among them) are
+// left alone.
+TEST_F(SpoolTest, ForeignFilesInTheFolderAreLeftAlone) {
+  fs::create_directories(dir_);
+  for (const char* name : {"spool-99999999999999999999.smj", "spool-.smj", "spool--1.smj",
+                           "spool-1x.smj", "notes.txt"}) {
+    std::ofstream(dir_ / name) << "not a segment";
+  }
+  auto spool = open();
+  EXPECT_EQ(spool->stats().recovered, 0u);
+  EXPECT_TRUE(fs::exists(dir_ / "spool-99999999999999999999.smj"));
+}
+
 TEST_F(SpoolTest, ANewerCorrectionReplacesTheOlder) {
   auto spool = open({.dir = {}});
   for (uint64_t i = 0; i < 3; ++i) {

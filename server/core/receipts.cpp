@@ -1,6 +1,7 @@
 #include "server/core/receipts.hpp"
 
 #include <algorithm>
+#include <cstdint>
 #include <iterator>
 #include <utility>
 
@@ -63,6 +64,8 @@ Claim Receipts::classify(ReceiptTopic topic, const Taken& taken, const SampleId&
 }
 
 bool Receipts::full(const SampleId& sample) const {
+  // The last seq could not be counted past (the count would wrap to 0): no sender gets there.
+  if (sample.stream != 0 && sample.seq == UINT64_MAX) return true;
   return streams_.size() >= kMaxReceiptStreams &&
          streams_.count({sample.vehicle, sample.stream}) == 0;
 }

@@ -87,7 +87,8 @@ class Receipts {
     std::array<Taken, kReceiptTopics> topics;
     bool ack_due = false;
   };
-  bool full(const SampleId& sample) const;  // a new stream beyond kMaxReceiptStreams
+  // A new stream beyond kMaxReceiptStreams, or a seq no count can pass.
+  bool full(const SampleId& sample) const;
   // The stream's entry with the sample's unacked_from applied.
   Stream& streamOf(const SampleId& sample, ReceiptTopic topic);
   static Claim classify(ReceiptTopic topic, const Taken& taken, const SampleId& sample);

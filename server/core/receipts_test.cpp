@@ -119,6 +119,17 @@ TEST(Receipts, TheWindowAboveAGapIsBounded) {
   EXPECT_EQ(receipts.claim(ReceiptTopic::kPose, sample(kReceiptWindow + 1)), Claim::kNew);
 }
 
+// A hostile seq at the end of the range is refused rather than wrapping a count to 0 (which
+// would take every earlier sample again).
+TEST(Receipts, TheLastSeqIsRefused) {
+  Receipts receipts;
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kCorrection, sample(UINT64_MAX)), Claim::kOutOfWindow);
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kPose, sample(UINT64_MAX, UINT64_MAX)),
+            Claim::kOutOfWindow);
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kCorrection, sample(3)), Claim::kNew);
+  EXPECT_EQ(receipts.claim(ReceiptTopic::kCorrection, sample(2)), Claim::kDuplicate);
+}
+
 TEST(Receipts, StreamsAreBounded) {
   Receipts receipts;
   for (uint64_t stream = 1; stream <= kMaxReceiptStreams; ++stream) {
