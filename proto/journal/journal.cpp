@@ -406,6 +406,14 @@ uint64_t JournalReplay::lostRecords() const {
   return lost;
 }
 
+std::vector<uint8_t> encodeRecord(const JournalRecord& record) { return payloadOf(record); }
+
+std::optional<JournalRecord> decodeRecord(const uint8_t* data, size_t size) {
+  JournalRecord record;
+  if (size == 0 || !decode(data[0], data + 1, size - 1, record)) return std::nullopt;
+  return record;
+}
+
 uint32_t crc32(const uint8_t* data, size_t size) {
   static const std::array<uint32_t, 256> table = [] {
     std::array<uint32_t, 256> t{};

@@ -19,6 +19,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <variant>
 #include <vector>
@@ -126,6 +127,12 @@ class Journal {
 common::Status rewriteJournal(const std::filesystem::path& path,
                               const std::vector<JournalRecord>& records,
                               const std::vector<uint64_t>& numbers);
+
+// One record's bytes without the file's framing (a type byte and the body, what the CRC
+// covers), for stores that keep records elsewhere than in a journal file (the cluster's
+// database); and back: nullopt when the bytes are not a whole record of a known type.
+std::vector<uint8_t> encodeRecord(const JournalRecord& record);
+std::optional<JournalRecord> decodeRecord(const uint8_t* data, size_t size);
 
 // CRC-32 (IEEE 802.3), as zlib's crc32().
 uint32_t crc32(const uint8_t* data, size_t size);

@@ -1,0 +1,266 @@
+#include "server/cluster/cluster_db.hpp"
+
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <random>
+
+#include "server/core/validate.hpp"
+
+namespace stereomap::cluster {
+
+using common::ErrorCode;
+using common::makeError;
+
+namespace {
+
+// Version 1 of the cluster's schema. Each statement is idempotent. The fencing trigger reads
+// the session's row FOR SHARE: a takeover (UPDATE of the epoch) waits for a write that
+// passed the check to commit, and a write after it sees the new epoch; so no row with a
+// stale epoch commits after a takeover.
+constexpr const char* kSchema[] = {
+    R"(CREATE TABLE IF NOT EXISTS sm_servers (
+         id text PRIMARY KEY,
+         http text NOT NULL,
+         lease_until timestamptz NOT NULL,
+         joined_at timestamptz NOT NULL DEFAULT now()))",
+    R"(CREATE TABLE IF NOT EXISTS sm_sessions (
+         id text PRIMARY KEY,
+         owner text,
+         epoch bigint NOT NULL,
+         resolution double precision NOT NULL,
+         state text NOT NULL CHECK (state IN ('live', 'closed')),
+         created_at timestamptz NOT NULL DEFAULT now(),
+         owned_since timestamptz NOT NULL DEFAULT clock_timestamp()))",
+    R"(CREATE INDEX IF NOT EXISTS sm_sessions_owner ON sm_sessions (owner) WHERE state = 'live')",
+    R"(CREATE TABLE IF NOT EXISTS sm_journal (
+         session text NOT NULL REFERENCES sm_sessions (id) ON DELETE CASCADE,
+         number bigint NOT NULL,
+         epoch bigint NOT NULL,
+         kind smallint NOT NULL,
+         record bytea NOT NULL,
+         committed_at timestamptz NOT NULL DEFAULT clock_timestamp(),
+         PRIMARY KEY (session, number)))",
+    R"(CREATE TABLE IF NOT EXISTS sm_snapshots (
+         session text NOT NULL REFERENCES sm_sessions (id) ON DELETE CASCADE,
+         number bigint NOT NULL,
+         epoch bigint NOT NULL,
+         map bytea NOT NULL,
+         PRIMARY KEY (session, number)))",
+    R"(CREATE OR REPLACE FUNCTION sm_fence() RETURNS trigger LANGUAGE plpgsql AS $$
+       DECLARE current bigint;
+       BEGIN
+         SELECT epoch INTO current FROM sm_sessions WHERE id = NEW.session FOR SHARE;
+         IF current IS NULL OR current <> NEW.epoch THEN
+           RAISE EXCEPTION 'session % is fenced: epoch % is stale (now %)',
+             NEW.session, NEW.epoch, current USING ERRCODE = 'SMF01';
+         END IF;
+         RETURN NEW;
+       END $$)",
+    R"(CREATE OR REPLACE TRIGGER sm_journal_fence BEFORE INSERT ON sm_journal
+         FOR EACH ROW EXECUTE FUNCTION sm_fence())",
+    R"(CREATE OR REPLACE TRIGGER sm_snapshots_fence BEFORE INSERT ON sm_snapshots
+         FOR EACH ROW EXECUTE FUNCTION sm_fence())",
+};
+
+// The advisory lock key that serialises schema creation between servers ("smschema").
+constexpr int64_t kSchemaLock = 0x736d736368656d61;
+
+std::string madeUpServerId() {
+  char host[64] = {};
+  ::gethostname(host, sizeof(host) - 1);
+  std::string id = host;
+  for (char& c : id) {
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-') c = '-';
+  }
+  std::random_device random;
+  return (id.empty() ? "server" : id.substr(0, 40)) + "-" + std::to_string(::getpid()) + "-" +
+         std::to_string(random() % 100000);
+}
+
+std::string interval(std::chrono::milliseconds span) {
+  return std::to_string(span.count()) + " milliseconds";
+}
+
+Ownership ownershipAt(const PgResult& rows, int row) {
+  return {rows.text(row, 0), rows.text(row, 1), rows.integer(row, 2), rows.real(row, 3)};
+}
+
+}  // namespace
+
+common::Status migrateSchema(PgConnection& db) {
+  if (auto begun = db.exec("BEGIN"); !begun) return begun.error();
+  auto fail = [&](const common::Error& error) -> common::Status {
+    (void)db.exec("ROLLBACK");
+    return makeError(error.code, "cannot create the cluster's schema: " + error.message);
+  };
+  if (auto locked = db.exec("SELECT pg_advisory_xact_lock($1)", {kSchemaLock}); !locked) {
+    return fail(locked.error());
+  }
+  for (const char* statement : kSchema) {
+    if (auto done = db.exec(statement); !done) return fail(done.error());
+  }
+  if (auto committed = db.exec("COMMIT"); !committed) return fail(committed.error());
+  return common::Ok{};
+}
+
+common::Result<std::unique_ptr<ClusterDb>> ClusterDb::open(const ClusterOptions& given) {
+  ClusterOptions options = given;
+  if (options.server_id.empty()) options.server_id = madeUpServerId();
+  if (!core::isValidId(options.server_id)) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     "server id '" + options.server_id +
+                         "' must be 1-64 letters, digits, '-', '_' or '.'");
+  }
+  auto db = PgConnection::connect(options.url);
+  if (!db) return db.error();
+  // A statement that waits on a lock held by a paused server must not wait with it.
+  for (const char* setting : {"SET lock_timeout = '2s'",
+                              "SET idle_in_transaction_session_timeout = '5s'"}) {
+    if (auto set = (*db)->exec(setting); !set) return set.error();
+  }
+  if (auto migrated = migrateSchema(**db); !migrated) return migrated.error();
+  auto cluster = std::unique_ptr<ClusterDb>(new ClusterDb(std::move(options), std::move(*db)));
+  if (auto registered = cluster->registerServer(); !registered) return registered.error();
+  return cluster;
+}
+
+ClusterDb::ClusterDb(ClusterOptions options, std::unique_ptr<PgConnection> db)
+    : options_(std::move(options)), db_(std::move(db)) {}
+
+common::Result<PgResult> ClusterDb::exec(std::string_view sql, const std::vector<PgParam>& params) {
+  std::lock_guard lock(mutex_);
+  if (!db_->connected()) {
+    if (auto reconnected = db_->reconnect(); !reconnected) return reconnected.error();
+    for (const char* setting : {"SET lock_timeout = '2s'",
+                                "SET idle_in_transaction_session_timeout = '5s'"}) {
+      if (auto set = db_->exec(setting); !set) return set.error();
+    }
+  }
+  return db_->exec(sql, params);
+}
+
+common::Status ClusterDb::registerServer() {
+  auto done = exec(
+      "INSERT INTO sm_servers (id, http, lease_until) VALUES ($1, $2, now() + $3::interval) "
+      "ON CONFLICT (id) DO UPDATE SET http = EXCLUDED.http, lease_until = EXCLUDED.lease_until",
+      {options_.server_id, options_.http, interval(options_.lease)});
+  if (!done) return done.error();
+  return common::Ok{};
+}
+
+common::Status ClusterDb::renewLease() {
+  auto renewed = exec(
+      "UPDATE sm_servers SET lease_until = now() + $2::interval "
+      "WHERE id = $1 AND lease_until > now()",
+      {options_.server_id, interval(options_.lease)});
+  if (!renewed) return renewed.error();
+  if (renewed->affected() == 1) return common::Ok{};
+  // Expired (or removed by an operator): back in the cluster, but what it owned may be gone.
+  if (auto registered = registerServer(); !registered) return registered.error();
+  return makeError(ErrorCode::kConflict,
+                   "this server's lease had run out (paused or cut off from the database); "
+                   "its sessions may have been taken by others");
+}
+
+common::Result<Ownership> ClusterDb::placeSession(const std::string& id, double resolution) {
+  if (!core::isValidId(id)) {
+    return makeError(ErrorCode::kInvalidArgument, "session id '" + id + "' is not valid");
+  }
+  // The least-loaded live server; ties go to the lowest id, the same choice on every server.
+  auto placed = exec(
+      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
+      "SELECT $1, v.id, 1, $2, 'live' FROM sm_servers v WHERE v.lease_until > now() "
+      "ORDER BY (SELECT count(*) FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live'), "
+      "v.id LIMIT 1 "
+      "ON CONFLICT (id) DO NOTHING RETURNING id, owner, epoch, resolution",
+      {id, resolution});
+  if (!placed) return placed.error();
+  if (placed->rows() == 1) return ownershipAt(*placed, 0);
+  auto existing = ownerOf(id);
+  if (!existing) return existing.error();
+  if (!*existing) {
+    return makeError(ErrorCode::kConflict, "session '" + id + "' is closed or has no live server");
+  }
+  return **existing;
+}
+
+common::Result<std::vector<Ownership>> ClusterDb::owned() {
+  auto rows = exec(
+      "SELECT id, owner, epoch, resolution FROM sm_sessions WHERE owner = $1 AND state = 'live' "
+      "ORDER BY id",
+      {options_.server_id});
+  if (!rows) return rows.error();
+  std::vector<Ownership> out;
+  for (int i = 0; i < rows->rows(); ++i) out.push_back(ownershipAt(*rows, i));
+  return out;
+}
+
+common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
+  // This server's share: the orphans divided among the live servers, rounded up, so that
+  // the survivors of a failure split the work rather than the first one taking it all.
+  auto taken = exec(
+      "WITH orphans AS ("
+      "  SELECT s.id FROM sm_sessions s LEFT JOIN sm_servers v ON v.id = s.owner "
+      "  WHERE s.state = 'live' AND (v.id IS NULL OR v.lease_until <= now())), "
+      "share AS ("
+      "  SELECT greatest(1, ceil((SELECT count(*) FROM orphans)::numeric / "
+      "    greatest(1, (SELECT count(*) FROM sm_servers WHERE lease_until > now()))))::int AS n) "
+      "UPDATE sm_sessions SET owner = $1, epoch = epoch + 1, owned_since = clock_timestamp() "
+      "WHERE id IN (SELECT s.id FROM sm_sessions s WHERE s.id IN (SELECT id FROM orphans) "
+      "  ORDER BY s.id LIMIT (SELECT n FROM share) FOR UPDATE SKIP LOCKED) "
+      "AND EXISTS (SELECT 1 FROM sm_servers WHERE id = $1 AND lease_until > now()) "
+      "RETURNING id, owner, epoch, resolution",
+      {options_.server_id});
+  if (!taken) return taken.error();
+  std::vector<Ownership> out;
+  for (int i = 0; i < taken->rows(); ++i) out.push_back(ownershipAt(*taken, i));
+  return out;
+}
+
+common::Result<std::optional<Ownership>> ClusterDb::ownerOf(const std::string& id) {
+  auto rows = exec(
+      "SELECT id, owner, epoch, resolution FROM sm_sessions WHERE id = $1 AND state = 'live' "
+      "AND owner IS NOT NULL",
+      {id});
+  if (!rows) return rows.error();
+  if (rows->rows() == 0) return std::optional<Ownership>();
+  return std::optional<Ownership>(ownershipAt(*rows, 0));
+}
+
+common::Result<std::vector<ServerInfo>> ClusterDb::servers() {
+  auto rows = exec(
+      "SELECT v.id, v.http, v.lease_until > now(), "
+      "(SELECT count(*) FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live') "
+      "FROM sm_servers v ORDER BY v.id",
+      {});
+  if (!rows) return rows.error();
+  std::vector<ServerInfo> out;
+  for (int i = 0; i < rows->rows(); ++i) {
+    out.push_back({rows->text(i, 0), rows->text(i, 1), rows->text(i, 2) == "t",
+                   rows->integer(i, 3)});
+  }
+  return out;
+}
+
+common::Status ClusterDb::release(const Ownership& session, bool closed) {
+  auto done = exec(
+      "UPDATE sm_sessions SET owner = NULL, state = CASE WHEN $4 THEN 'closed' ELSE state END "
+      "WHERE id = $1 AND owner = $2 AND epoch = $3",
+      {session.session, options_.server_id, session.epoch, closed ? "true" : "false"});
+  if (!done) return done.error();
+  if (done->affected() == 0) {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + session.session + "' is no longer this server's (epoch " +
+                         std::to_string(session.epoch) + " is stale)");
+  }
+  return common::Ok{};
+}
+
+common::Status ClusterDb::leave() {
+  auto done = exec("UPDATE sm_servers SET lease_until = now() WHERE id = $1", {options_.server_id});
+  if (!done) return done.error();
+  return common::Ok{};
+}
+
+}  // namespace stereomap::cluster

@@ -1,0 +1,46 @@
+// One throwaway PostgreSQL per test suite (CTest runs each test case in its own process),
+// and a fresh database for each test. Tests skip (saying why) when PostgreSQL is not installed.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <cctype>
+#include <memory>
+#include <string>
+
+#include "tests/support/postgres.hpp"
+
+namespace stereomap::cluster {
+
+class PostgresTest : public ::testing::Test {
+ public:
+  static void SetUpTestSuite() {
+    if (!db_ && why_.empty()) db_ = testing::TestPostgres::start(&why_).release();
+  }
+  static void TearDownTestSuite() {
+    delete db_;  // stops it and removes its directory
+    db_ = nullptr;
+    why_.clear();
+  }
+
+ protected:
+  void SetUp() override {
+    if (db_ == nullptr) GTEST_SKIP() << why_;
+    const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
+    database_ = "t" + std::to_string(++count_) + "_" + info->name();
+    for (char& c : database_) c = std::isalnum(static_cast<unsigned char>(c)) ? std::tolower(c) : '_';
+    database_ = database_.substr(0, 60);
+    std::string why;
+    ASSERT_TRUE(db_->createDatabase(database_, &why)) << why;
+  }
+  std::string url() const { return db_->url(database_); }
+  testing::TestPostgres& postgres() { return *db_; }
+  std::string database_;
+
+ private:
+  static inline testing::TestPostgres* db_ = nullptr;  // one per suite (CTest: per process)
+  static inline std::string why_;
+  static inline int count_ = 0;
+};
+
+}  // namespace stereomap::cluster

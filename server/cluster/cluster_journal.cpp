@@ -1,0 +1,336 @@
+#include "server/cluster/cluster_journal.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+
+#include "common/time.hpp"
+
+namespace stereomap::cluster {
+
+using common::ErrorCode;
+using common::makeError;
+namespace journal = proto::journal;
+
+namespace {
+
+// The kind column: what a row holds, so that frames can be read without the rest.
+enum Kind : int { kCloud = 1, kPose = 2, kEvent = 3, kCorrection = 4 };
+
+// A group's bounds: PostgreSQL takes at most 65535 parameters (5 per row), and a group
+// should not hold a commit up for long.
+constexpr size_t kMaxGroupRows = 2000;
+constexpr size_t kMaxGroupBytes = 32u << 20;
+constexpr int kFramesPerRead = 64;
+
+}  // namespace
+
+struct ClusterJournal::Pending {
+  std::string session;
+  int kind = 0;
+  std::vector<uint8_t> record;
+  int64_t enqueued_ns = 0;
+  int64_t epoch = 0;
+  uint64_t number = 0;
+  bool done = false;
+  std::optional<common::Error> error;
+};
+
+common::Result<std::unique_ptr<ClusterJournal>> ClusterJournal::open(const std::string& url) {
+  auto writer = PgConnection::connect(url);
+  if (!writer) return writer.error();
+  auto reader = PgConnection::connect(url);
+  if (!reader) return reader.error();
+  return std::unique_ptr<ClusterJournal>(
+      new ClusterJournal(std::move(*writer), std::move(*reader), url));
+}
+
+ClusterJournal::ClusterJournal(std::unique_ptr<PgConnection> writer,
+                               std::unique_ptr<PgConnection> reader, std::string url)
+    : url_(std::move(url)), writer_(std::move(writer)), reader_(std::move(reader)) {
+  latencies_.reserve(kLatencyWindow);
+  committer_ = std::thread([this] { commitLoop(); });
+}
+
+ClusterJournal::~ClusterJournal() {
+  {
+    std::lock_guard lock(mutex_);
+    stop_ = true;
+  }
+  wake_.notify_all();
+  committer_.join();
+}
+
+void ClusterJournal::adopt(const std::string& session, int64_t epoch, uint64_t last_number) {
+  std::lock_guard lock(mutex_);
+  owned_[session] = {epoch, last_number + 1};
+}
+
+void ClusterJournal::drop(const std::string& session) {
+  std::lock_guard lock(mutex_);
+  owned_.erase(session);
+}
+
+std::optional<int64_t> ClusterJournal::epochOf(const std::string& session) const {
+  std::lock_guard lock(mutex_);
+  const auto it = owned_.find(session);
+  if (it == owned_.end()) return std::nullopt;
+  return it->second.epoch;
+}
+
+void ClusterJournal::onFenced(FencedCallback callback) {
+  std::lock_guard lock(mutex_);
+  on_fenced_ = std::move(callback);
+}
+
+common::Result<uint64_t> ClusterJournal::append(const proto::CloudFrameMsg& frame) {
+  return appendRecord(frame.session_id, kCloud, frame);
+}
+common::Result<uint64_t> ClusterJournal::append(const proto::PoseMsg& pose) {
+  return appendRecord(pose.session_id, kPose, pose);
+}
+common::Result<uint64_t> ClusterJournal::append(const proto::SessionEventMsg& event) {
+  return appendRecord(event.session_id, kEvent, event);
+}
+common::Result<uint64_t> ClusterJournal::append(const proto::PoseCorrectionMsg& correction) {
+  return appendRecord(correction.session_id, kCorrection, correction);
+}
+
+common::Result<uint64_t> ClusterJournal::appendRecord(const std::string& session, int kind,
+                                                      const journal::JournalRecord& record) {
+  Pending pending{session, kind, journal::encodeRecord(record), common::nowNs()};
+  std::unique_lock lock(mutex_);
+  if (!owned_.contains(session)) {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + session + "' is not this server's to write");
+  }
+  waiting_.push_back(&pending);
+  wake_.notify_one();
+  done_.wait(lock, [&] { return pending.done; });
+  if (pending.error) return *pending.error;
+  return pending.number;
+}
+
+void ClusterJournal::commitLoop() {
+  std::vector<Pending*> group;
+  for (;;) {
+    std::unique_lock lock(mutex_);
+    wake_.wait(lock, [&] { return stop_ || !waiting_.empty(); });
+    if (waiting_.empty()) return;  // stopping, and nobody waits
+    group.clear();
+    size_t bytes = 0;
+    while (!waiting_.empty() && group.size() < kMaxGroupRows &&
+           (group.empty() || bytes + waiting_.front()->record.size() <= kMaxGroupBytes)) {
+      Pending* next = waiting_.front();
+      waiting_.pop_front();
+      bytes += next->record.size();
+      const auto owned = owned_.find(next->session);
+      if (owned == owned_.end()) {  // dropped while it waited
+        next->error = makeError(ErrorCode::kConflict,
+                                "session '" + next->session + "' is not this server's to write");
+        next->done = true;
+        continue;
+      }
+      next->epoch = owned->second.epoch;
+      next->number = owned->second.next_number++;
+      group.push_back(next);
+    }
+    lock.unlock();
+    if (!group.empty()) commitGroup(group);
+    lock.lock();
+    done_.notify_all();
+  }
+}
+
+common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows) {
+  if (!writer_->connected()) {
+    if (auto reconnected = writer_->reconnect(); !reconnected) return reconnected.error();
+  }
+  std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record) VALUES ";
+  std::vector<PgParam> params;
+  params.reserve(rows.size() * 5);
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const size_t p = i * 5;
+    if (i > 0) sql += ',';
+    for (size_t k = 1; k <= 5; ++k) {
+      sql += k == 1 ? "($" : ",$";
+      sql += std::to_string(p + k);
+    }
+    sql += ')';
+    params.emplace_back(rows[i]->session);
+    params.emplace_back(rows[i]->number);
+    params.emplace_back(rows[i]->epoch);
+    params.emplace_back(rows[i]->kind);
+    params.push_back(PgParam::bytes(std::string_view(
+        reinterpret_cast<const char*>(rows[i]->record.data()), rows[i]->record.size())));
+  }
+  auto inserted = writer_->exec(sql, params);
+  if (!inserted) return inserted.error();
+  return common::Ok{};
+}
+
+void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
+  auto committed = insertRows(group);
+  std::vector<std::pair<std::string, std::string>> fenced;
+  if (!committed && writer_->lastState() == kFencedState) {
+    // One session's stale epoch refused the whole group: each session again on its own, so
+    // that the others commit.
+    std::map<std::string, std::vector<Pending*>> by_session;
+    for (Pending* p : group) by_session[p->session].push_back(p);
+    for (auto& [session, rows] : by_session) {
+      auto alone = insertRows(rows);
+      const bool stale = !alone && writer_->lastState() == kFencedState;
+      if (stale) fenced.emplace_back(session, alone.error().message);
+      for (Pending* p : rows) {
+        if (!alone) {
+          p->error = stale ? makeError(ErrorCode::kConflict,
+                                       "session '" + session + "' was fenced: another server "
+                                       "owns it now (" + alone.error().message + ")")
+                           : alone.error();
+        }
+      }
+    }
+  } else if (!committed) {
+    for (Pending* p : group) p->error = committed.error();
+  }
+
+  const int64_t now = common::nowNs();
+  FencedCallback callback;
+  {
+    std::lock_guard lock(mutex_);
+    for (Pending* p : group) {
+      if (p->error) {
+        // Numbers are given back: nothing numbered after them was written meanwhile (this
+        // thread alone numbers rows), so the journal keeps no gap.
+        if (auto owned = owned_.find(p->session);
+            owned != owned_.end() && owned->second.epoch == p->epoch) {
+          owned->second.next_number = std::min(owned->second.next_number, p->number);
+        }
+      } else {
+        const double seconds = static_cast<double>(now - p->enqueued_ns) * 1e-9;
+        if (latencies_.size() < kLatencyWindow) {
+          latencies_.push_back(seconds);
+        } else {
+          latencies_[latency_next_] = seconds;
+        }
+        latency_next_ = (latency_next_ + 1) % kLatencyWindow;
+        ++committed_;
+      }
+      p->done = true;
+    }
+    if (committed) ++groups_;
+    for (const auto& [session, why] : fenced) owned_.erase(session);
+    callback = on_fenced_;
+  }
+  for (const auto& [session, why] : fenced) {
+    spdlog::error("session '{}': fenced by the cluster's database ({}); unloading it", session,
+                  why);
+    if (callback) callback(session, why);
+  }
+}
+
+std::vector<double> ClusterJournal::commitLatencies() const {
+  std::lock_guard lock(mutex_);
+  return latencies_;
+}
+uint64_t ClusterJournal::committedSamples() const {
+  std::lock_guard lock(mutex_);
+  return committed_;
+}
+uint64_t ClusterJournal::committedGroups() const {
+  std::lock_guard lock(mutex_);
+  return groups_;
+}
+
+common::Result<PgResult> ClusterJournal::readerExec(std::string_view sql,
+                                                   const std::vector<PgParam>& params) const {
+  std::lock_guard lock(reader_mutex_);
+  if (!reader_->connected()) {
+    if (auto reconnected = reader_->reconnect(); !reconnected) return reconnected.error();
+  }
+  return reader_->exec(sql, params);
+}
+
+common::Status ClusterJournal::forEachFrame(
+    const std::string& session, uint64_t after, uint64_t up_to,
+    const std::function<void(const proto::CloudFrameMsg& frame, uint64_t number)>& visit) const {
+  for (uint64_t from = after; from < up_to;) {
+    auto rows = readerExec(
+        "SELECT number, record FROM sm_journal WHERE session = $1 AND kind = $2 AND number > $3 "
+        "AND number <= $4 ORDER BY number LIMIT $5",
+        {session, static_cast<int>(kCloud), from, up_to, kFramesPerRead});
+    if (!rows) return rows.error();
+    if (rows->rows() == 0) break;
+    for (int i = 0; i < rows->rows(); ++i) {
+      const auto number = static_cast<uint64_t>(rows->integer(i, 0));
+      const std::string bytes = rows->bytes(i, 1);
+      auto record = journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()),
+                                          bytes.size());
+      if (record && std::holds_alternative<proto::CloudFrameMsg>(*record)) {
+        visit(std::get<proto::CloudFrameMsg>(*record), number);
+      }
+      from = number;
+    }
+  }
+  return common::Ok{};
+}
+
+common::Status ClusterJournal::saveSnapshot(const std::string& session, uint64_t journal_number,
+                                            const std::string& ot) {
+  const auto epoch = epochOf(session);
+  if (!epoch) {
+    return makeError(ErrorCode::kConflict, "session '" + session + "' is not this server's to write");
+  }
+  auto saved = readerExec(
+      "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, $2, $3, $4) "
+      "ON CONFLICT (session, number) DO UPDATE SET map = EXCLUDED.map, epoch = EXCLUDED.epoch",
+      {session, journal_number, *epoch, PgParam::bytes(ot)});
+  if (!saved) return saved.error();
+  // The older ones are no longer needed: recovery starts from the newest.
+  auto pruned = readerExec("DELETE FROM sm_snapshots WHERE session = $1 AND number < $2",
+                           {session, journal_number});
+  if (!pruned) return pruned.error();
+  return common::Ok{};
+}
+
+common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
+  StoredSession stored;
+  auto snapshot = readerExec(
+      "SELECT number, map FROM sm_snapshots WHERE session = $1 ORDER BY number DESC LIMIT 1",
+      {session});
+  if (!snapshot) return snapshot.error();
+  if (snapshot->rows() == 1) {
+    stored.snapshot_number = static_cast<uint64_t>(snapshot->integer(0, 0));
+    stored.snapshot = snapshot->bytes(0, 1);
+  }
+  for (uint64_t from = 0;;) {
+    auto rows = readerExec(
+        "SELECT number, record FROM sm_journal WHERE session = $1 AND number > $2 "
+        "ORDER BY number LIMIT 1024",
+        {session, from});
+    if (!rows) return rows.error();
+    if (rows->rows() == 0) break;
+    for (int i = 0; i < rows->rows(); ++i) {
+      const auto number = static_cast<uint64_t>(rows->integer(i, 0));
+      from = number;
+      stored.last_number = number;
+      const std::string bytes = rows->bytes(i, 1);
+      auto record = journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()),
+                                          bytes.size());
+      if (!record) {
+        ++stored.unreadable;
+        continue;
+      }
+      // A frame the snapshot holds is counted, never fused: its payload is not kept.
+      if (auto* frame = std::get_if<proto::CloudFrameMsg>(&*record);
+          frame != nullptr && number <= stored.snapshot_number) {
+        std::vector<uint8_t>().swap(frame->payload);
+      }
+      stored.records.push_back(std::move(*record));
+      stored.numbers.push_back(number);
+    }
+  }
+  return stored;
+}
+
+}  // namespace stereomap::cluster

@@ -1,0 +1,114 @@
+// The cluster's journal and snapshots in PostgreSQL: the MapServer's IngestLog, SnapshotSink
+// and FrameArchive when the server runs with --cluster. A sample counts as received once its
+// row is committed. Appends from every ingest thread are committed in groups: one thread
+// gathers what is waiting, numbers it per session and writes it in one statement, so that
+// the database's commit (a WAL flush) is paid once per group, not per sample.
+//
+// Every row carries its session's ownership epoch; the database refuses a stale one
+// (cluster_db.hpp). A session whose write is refused that way is dropped here and reported
+// to onFenced(): the server must unload it, as another server owns it now.
+#pragma once
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "proto/journal/journal.hpp"
+#include "server/cluster/pg.hpp"
+#include "server/core/map_server.hpp"
+
+namespace stereomap::cluster {
+
+// What the database holds of a session, for recovering it: the newest snapshot and the
+// records in journal order. Cloud frames the snapshot covers come without their payloads.
+struct StoredSession {
+  uint64_t snapshot_number = 0;  // 0: no snapshot
+  std::string snapshot;          // the .ot map
+  std::vector<proto::journal::JournalRecord> records;
+  std::vector<uint64_t> numbers;
+  uint64_t last_number = 0;
+  uint64_t unreadable = 0;  // rows that did not decode (never expected; counted, skipped)
+};
+
+class ClusterJournal : public core::IngestLog,
+                       public core::SnapshotSink,
+                       public core::FrameArchive {
+ public:
+  using FencedCallback = std::function<void(const std::string& session, const std::string& why)>;
+
+  static common::Result<std::unique_ptr<ClusterJournal>> open(const std::string& url);
+  ~ClusterJournal() override;
+
+  // Reads what the database holds of `session` (for recovery after taking it).
+  common::Result<StoredSession> read(const std::string& session);
+
+  // This server writes `session` from now on at `epoch`, numbering after `last_number`.
+  void adopt(const std::string& session, int64_t epoch, uint64_t last_number);
+  // Stops writing it (lost, closed or unloaded): later appends fail with kConflict.
+  void drop(const std::string& session);
+  std::optional<int64_t> epochOf(const std::string& session) const;
+  // Called from the commit thread, at most once per adoption, when the database fenced a
+  // session; the session is already dropped. Set before the first append.
+  void onFenced(FencedCallback callback);
+
+  common::Result<uint64_t> append(const proto::CloudFrameMsg& frame) override;
+  common::Result<uint64_t> append(const proto::PoseMsg& pose) override;
+  common::Result<uint64_t> append(const proto::SessionEventMsg& event) override;
+  common::Result<uint64_t> append(const proto::PoseCorrectionMsg& correction) override;
+  common::Status forEachFrame(const std::string& session, uint64_t after, uint64_t up_to,
+                              const std::function<void(const proto::CloudFrameMsg& frame,
+                                                       uint64_t number)>& visit) const override;
+  common::Status saveSnapshot(const std::string& session, uint64_t journal_number,
+                              const std::string& ot) override;
+
+  // Seconds from append() to its commit, the newest kLatencyWindow, for /metrics and the
+  // benchmark; and how many samples were committed, in how many groups.
+  static constexpr size_t kLatencyWindow = 8192;
+  std::vector<double> commitLatencies() const;
+  uint64_t committedSamples() const;
+  uint64_t committedGroups() const;
+
+ private:
+  struct Pending;
+  ClusterJournal(std::unique_ptr<PgConnection> writer, std::unique_ptr<PgConnection> reader,
+                 std::string url);
+  common::Result<uint64_t> appendRecord(const std::string& session, int kind,
+                                        const proto::journal::JournalRecord& record);
+  void commitLoop();
+  // Writes one group; the sessions the database fenced are dropped and reported.
+  void commitGroup(std::vector<Pending*>& group);
+  common::Status insertRows(std::vector<Pending*>& rows);
+  common::Result<PgResult> readerExec(std::string_view sql, const std::vector<PgParam>& params) const;
+
+  std::string url_;
+  std::unique_ptr<PgConnection> writer_;  // the commit thread's only
+  mutable std::mutex reader_mutex_;
+  std::unique_ptr<PgConnection> reader_;  // reads and snapshots
+
+  mutable std::mutex mutex_;
+  std::condition_variable wake_;  // the commit thread: something waits, or stop
+  std::condition_variable done_;  // appenders: a group was committed
+  struct Owned {
+    int64_t epoch = 0;
+    uint64_t next_number = 1;
+  };
+  std::map<std::string, Owned> owned_;
+  std::deque<Pending*> waiting_;
+  FencedCallback on_fenced_;
+  bool stop_ = false;
+  std::vector<double> latencies_;
+  size_t latency_next_ = 0;
+  uint64_t committed_ = 0, groups_ = 0;
+  std::thread committer_;
+};
+
+}  // namespace stereomap::cluster

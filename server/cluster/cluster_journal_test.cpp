@@ -1,0 +1,226 @@
+#include "server/cluster/cluster_journal.hpp"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <set>
+#include <thread>
+
+#include "server/cluster/cluster_db.hpp"
+#include "server/cluster/cluster_fixture.hpp"
+
+namespace stereomap::cluster {
+namespace {
+
+using ClusterJournalTest = PostgresTest;
+using namespace std::chrono_literals;
+
+proto::PoseMsg poseOf(const std::string& session, const std::string& vehicle, uint64_t seq) {
+  proto::PoseMsg pose;
+  pose.session_id = session;
+  pose.vehicle_id = vehicle;
+  pose.stream = 7;
+  pose.seq = seq;
+  pose.stamp_ns = static_cast<int64_t>(seq) * 1000000;
+  pose.position = {1.0 * seq, 2, 3};
+  pose.orientation = {0, 0, 0, 1};
+  return pose;
+}
+
+proto::CloudFrameMsg frameOf(const std::string& session, uint64_t seq, size_t payload_bytes) {
+  proto::CloudFrameMsg frame;
+  frame.session_id = session;
+  frame.vehicle_id = "v";
+  frame.seq = seq;
+  frame.point_count = 1;
+  frame.payload.assign(payload_bytes, static_cast<uint8_t>(seq));
+  return frame;
+}
+
+struct Server {
+  std::unique_ptr<ClusterDb> db;
+  std::unique_ptr<ClusterJournal> journal;
+};
+
+Server openServer(const std::string& url, const std::string& id,
+                  std::chrono::milliseconds lease = 4000ms) {
+  Server server;
+  auto db = ClusterDb::open({.url = url, .server_id = id, .http = "127.0.0.1:1", .lease = lease});
+  EXPECT_TRUE(db) << (db ? "" : db.error().message);
+  if (db) server.db = std::move(*db);
+  auto journal = ClusterJournal::open(url);
+  EXPECT_TRUE(journal) << (journal ? "" : journal.error().message);
+  if (journal) server.journal = std::move(*journal);
+  return server;
+}
+
+TEST_F(ClusterJournalTest, AppendsFromManyThreadsAreCommittedInGroupsNumberedWithoutGaps) {
+  auto server = openServer(url(), "a");
+  auto placed = server.db->placeSession("s", 0.1);
+  ASSERT_TRUE(placed);
+  server.journal->adopt("s", placed->epoch, 0);
+  constexpr int kThreads = 8, kEach = 250;
+  std::vector<std::thread> threads;
+  std::mutex mutex;
+  std::set<uint64_t> numbers;
+  std::atomic<int> failures = 0;
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([&, t] {
+      for (int i = 0; i < kEach; ++i) {
+        auto n = server.journal->append(poseOf("s", "v" + std::to_string(t), i));
+        if (!n) {
+          ++failures;
+          continue;
+        }
+        std::lock_guard lock(mutex);
+        numbers.insert(*n);
+      }
+    });
+  }
+  for (auto& thread : threads) thread.join();
+  EXPECT_EQ(failures, 0);
+  ASSERT_EQ(numbers.size(), static_cast<size_t>(kThreads * kEach));
+  EXPECT_EQ(*numbers.begin(), 1u);
+  EXPECT_EQ(*numbers.rbegin(), static_cast<uint64_t>(kThreads * kEach)) << "no gaps";
+  EXPECT_LT(server.journal->committedGroups(), static_cast<uint64_t>(kThreads * kEach))
+      << "appends waiting together share a commit";
+  EXPECT_EQ(server.journal->committedSamples(), static_cast<uint64_t>(kThreads * kEach));
+
+  auto stored = server.journal->read("s");
+  ASSERT_TRUE(stored) << stored.error().message;
+  ASSERT_EQ(stored->records.size(), static_cast<size_t>(kThreads * kEach));
+  EXPECT_EQ(stored->last_number, static_cast<uint64_t>(kThreads * kEach));
+  for (size_t i = 0; i < stored->numbers.size(); ++i) EXPECT_EQ(stored->numbers[i], i + 1);
+  const auto& first = std::get<proto::PoseMsg>(stored->records.front());
+  EXPECT_EQ(first.stream, 7u);
+  EXPECT_EQ(first.orientation[3], 1.0);
+}
+
+TEST_F(ClusterJournalTest, AStaleOwnerIsFencedByTheDatabaseAndTheNewOwnerContinues) {
+  auto a = openServer(url(), "a", 500ms);
+  auto b = openServer(url(), "b");
+  auto placed = a.db->placeSession("s", 0.1);
+  ASSERT_TRUE(placed);
+  ASSERT_EQ(placed->owner, "a");
+  a.journal->adopt("s", placed->epoch, 0);
+  std::vector<std::string> fenced;
+  a.journal->onFenced([&](const std::string& session, const std::string&) {
+    fenced.push_back(session);
+  });
+  for (uint64_t i = 0; i < 10; ++i) ASSERT_TRUE(a.journal->append(poseOf("s", "v", i)));
+
+  // a is paused past its lease; b takes the session.
+  std::this_thread::sleep_for(600ms);
+  ASSERT_TRUE(b.db->renewLease());
+  auto taken = b.db->takeOrphans();
+  ASSERT_TRUE(taken);
+  ASSERT_EQ(taken->size(), 1u);
+  EXPECT_EQ((*taken)[0].epoch, 2);
+  auto stored = b.journal->read("s");
+  ASSERT_TRUE(stored);
+  EXPECT_EQ(stored->last_number, 10u);
+  b.journal->adopt("s", (*taken)[0].epoch, stored->last_number);
+
+  // a wakes up and writes with its old epoch: refused, reported once, the session dropped.
+  auto stale = a.journal->append(poseOf("s", "v", 10));
+  ASSERT_FALSE(stale);
+  EXPECT_EQ(stale.error().code, common::ErrorCode::kConflict);
+  EXPECT_NE(stale.error().message.find("fenced"), std::string::npos) << stale.error().message;
+  EXPECT_EQ(fenced, std::vector<std::string>{"s"});
+  EXPECT_FALSE(a.journal->epochOf("s").has_value());
+  EXPECT_FALSE(a.journal->saveSnapshot("s", 10, "map")) << "nor can it save a snapshot";
+
+  auto next = b.journal->append(poseOf("s", "v", 10));
+  ASSERT_TRUE(next) << next.error().message;
+  EXPECT_EQ(*next, 11u);
+  auto rows = postgres().sql("SELECT count(*), max(epoch) FROM sm_journal WHERE epoch = 1",
+                             database_);
+  ASSERT_TRUE(rows);
+  EXPECT_EQ(*rows, "10|1\n") << "nothing committed with the stale epoch after the takeover";
+}
+
+TEST_F(ClusterJournalTest, OneFencedSessionDoesNotHoldUpTheOthersInItsGroup) {
+  auto a = openServer(url(), "a");
+  ASSERT_TRUE(a.db->placeSession("kept", 0.1));
+  ASSERT_TRUE(a.db->placeSession("lost", 0.1));
+  a.journal->adopt("kept", 1, 0);
+  a.journal->adopt("lost", 1, 0);
+  // Another server raised "lost"'s epoch (as a takeover does).
+  ASSERT_TRUE(postgres().sql("UPDATE sm_sessions SET epoch = 2, owner = 'b' WHERE id = 'lost'",
+                             database_));
+  std::vector<std::thread> threads;
+  std::atomic<int> kept_ok = 0, lost_ok = 0;
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&, t] {
+      for (int i = 0; i < 50; ++i) {
+        const bool lost = (t % 2) == 1;
+        auto n = a.journal->append(poseOf(lost ? "lost" : "kept", "v" + std::to_string(t), i));
+        if (n) ++(lost ? lost_ok : kept_ok);
+      }
+    });
+  }
+  for (auto& thread : threads) thread.join();
+  EXPECT_EQ(kept_ok, 100);
+  EXPECT_EQ(lost_ok, 0);
+  auto stored = a.journal->read("kept");
+  ASSERT_TRUE(stored);
+  EXPECT_EQ(stored->last_number, 100u) << "numbers given back by failed groups leave no gap";
+}
+
+TEST_F(ClusterJournalTest, SnapshotsAndFramesAreReadBackForRecovery) {
+  auto a = openServer(url(), "a");
+  ASSERT_TRUE(a.db->placeSession("s", 0.1));
+  a.journal->adopt("s", 1, 0);
+  for (uint64_t i = 0; i < 6; ++i) {
+    ASSERT_TRUE(a.journal->append(frameOf("s", i, 1000 + i)));
+    ASSERT_TRUE(a.journal->append(poseOf("s", "v", i)));
+  }
+  ASSERT_TRUE(a.journal->saveSnapshot("s", 4, "first"));
+  ASSERT_TRUE(a.journal->saveSnapshot("s", 6, std::string("second\0map", 10)));
+  auto stored = a.journal->read("s");
+  ASSERT_TRUE(stored) << stored.error().message;
+  EXPECT_EQ(stored->snapshot_number, 6u);
+  EXPECT_EQ(stored->snapshot, std::string("second\0map", 10));
+  ASSERT_EQ(stored->records.size(), 12u);
+  // Frames 1, 3, 5 (numbers) are covered by the snapshot: no payload; 7, 9, 11 whole.
+  for (size_t i = 0; i < stored->records.size(); ++i) {
+    if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&stored->records[i])) {
+      EXPECT_EQ(frame->payload.empty(), stored->numbers[i] <= 6) << stored->numbers[i];
+    }
+  }
+  std::vector<uint64_t> visited;
+  ASSERT_TRUE(a.journal->forEachFrame("s", 2, 9, [&](const proto::CloudFrameMsg& frame, uint64_t n) {
+    EXPECT_EQ(frame.payload.size(), 1000 + frame.seq);
+    visited.push_back(n);
+  }));
+  EXPECT_EQ(visited, (std::vector<uint64_t>{3, 5, 7, 9}));
+  auto count = postgres().sql("SELECT count(*) FROM sm_snapshots", database_);
+  ASSERT_TRUE(count);
+  EXPECT_EQ(*count, "1\n") << "older snapshots are removed";
+}
+
+TEST_F(ClusterJournalTest, AppendsFailWhileTheDatabaseIsDownAndResumeAfter) {
+  auto a = openServer(url(), "a");
+  ASSERT_TRUE(a.db->placeSession("s", 0.1));
+  a.journal->adopt("s", 1, 0);
+  ASSERT_TRUE(a.journal->append(poseOf("s", "v", 0)));
+  postgres().kill9();
+  auto refused = a.journal->append(poseOf("s", "v", 1));
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, common::ErrorCode::kUnavailable) << refused.error().message;
+  std::string why;
+  ASSERT_TRUE(postgres().restart(&why)) << why;
+  auto resumed = a.journal->append(poseOf("s", "v", 1));
+  ASSERT_TRUE(resumed) << resumed.error().message;
+  EXPECT_EQ(*resumed, 2u) << "the failed append's number was given back";
+}
+
+TEST_F(ClusterJournalTest, AnUnownedSessionIsRefusedAtOnce) {
+  auto a = openServer(url(), "a");
+  auto refused = a.journal->append(poseOf("nobody's", "v", 0));
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, common::ErrorCode::kConflict);
+}
+
+}  // namespace
+}  // namespace stereomap::cluster
