@@ -403,6 +403,15 @@ struct QosDeleter {
 };
 using QosPtr = std::unique_ptr<dds_qos_t, QosDeleter>;
 
+// A writer or reader made on the participant gets an implicit publisher or subscriber with
+// its QoS: the partition set here is theirs.
+void setPartitions(dds_qos_t* qos, const std::vector<std::string>& partitions) {
+  if (partitions.empty()) return;
+  std::vector<const char*> names;
+  for (const auto& name : partitions) names.push_back(name.c_str());
+  dds_qset_partition(qos, static_cast<uint32_t>(names.size()), names.data());
+}
+
 template <typename T>
 Result<dds_entity_t> createTopic(dds_entity_t participant) {
   const dds_entity_t topic =
@@ -475,12 +484,13 @@ Writer<T>::~Writer() = default;
 
 template <typename T>
 Result<std::unique_ptr<Writer<T>>> Writer<T>::create(
-    const std::shared_ptr<Participant>& participant) {
+    const std::shared_ptr<Participant>& participant, const std::vector<std::string>& partitions) {
   auto impl = std::make_unique<Impl>();
   impl->participant = participant;
   auto topic = createTopic<T>(participant->handle());
   if (!topic) return topic.error();
   QosPtr qos(Topic<T>::qos());
+  setPartitions(qos.get(), partitions);
   impl->writer = dds_create_writer(participant->handle(), *topic, qos.get(), nullptr);
   if (impl->writer < 0) {
     const dds_return_t rc = impl->writer;
@@ -541,12 +551,13 @@ Reader<T>::~Reader() = default;
 
 template <typename T>
 Result<std::unique_ptr<Reader<T>>> Reader<T>::create(
-    const std::shared_ptr<Participant>& participant) {
+    const std::shared_ptr<Participant>& participant, const std::vector<std::string>& partitions) {
   auto impl = std::make_unique<Impl>();
   impl->participant = participant;
   auto topic = createTopic<T>(participant->handle());
   if (!topic) return topic.error();
   QosPtr qos(Topic<T>::readerQos());
+  setPartitions(qos.get(), partitions);
   impl->reader = dds_create_reader(participant->handle(), *topic, qos.get(), nullptr);
   if (impl->reader < 0) {
     const dds_return_t rc = impl->reader;
@@ -620,6 +631,10 @@ template class Reader<SessionEventMsg>;
 template class Reader<PoseCorrectionMsg>;
 template class Reader<LandingTargetMsg>;
 template class Reader<AckMsg>;
+
+std::string sessionPartition(const std::string& session_id) { return "sm." + session_id; }
+
+std::vector<std::string> everyPartition() { return {"", kEverySessionPartition}; }
 
 const char* loopbackConfigXml() {
   return R"(<CycloneDDS><Domain Id="any"><General>

@@ -41,12 +41,24 @@ class Participant {
   std::unique_ptr<Impl> impl_;
 };
 
-// One writer of topic T (a message of messages.hpp) with T's QoS preset.
+// DDS partitions route a session's samples: a vehicle writes (and reads its acknowledgements)
+// in its session's partition, "sm.<session>"; a single server reads every one ("sm.*", and
+// the default partition "" for writers that name none); in a cluster only a session's owner
+// reads its partition (docs/PROTOCOL.md, "Partitions"). Session ids cannot hold '*' or '?'
+// (core::isValidId), so no id is a wildcard.
+std::string sessionPartition(const std::string& session_id);
+inline constexpr const char* kEverySessionPartition = "sm.*";
+// What a single server reads and writes in: every session's partition and the default one.
+std::vector<std::string> everyPartition();
+
+// One writer of topic T (a message of messages.hpp) with T's QoS preset, in `partitions`
+// (none: the default partition).
 template <typename T>
 class Writer {
  public:
   static common::Result<std::unique_ptr<Writer>> create(
-      const std::shared_ptr<Participant>& participant);
+      const std::shared_ptr<Participant>& participant,
+      const std::vector<std::string>& partitions = {});
   ~Writer();
   // Copies `message` into a DDS sample and writes it; fails (without throwing) on a bound
   // violation or a DDS error.
@@ -79,8 +91,10 @@ struct RefusedSample {
 template <typename T>
 class Reader {
  public:
+  // In `partitions` (none: the default partition); a name may be a wildcard ("sm.*").
   static common::Result<std::unique_ptr<Reader>> create(
-      const std::shared_ptr<Participant>& participant);
+      const std::shared_ptr<Participant>& participant,
+      const std::vector<std::string>& partitions = {});
   ~Reader();
   // Waits up to `timeout` for samples (or wake()), then appends every available valid sample
   // to `out`, and each one refused by its type's checks to `refused` when given. Returns the

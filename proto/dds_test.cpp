@@ -291,3 +291,53 @@ TEST(Dds, BadConfigFileIsAClearError) {
 
 }  // namespace
 }  // namespace stereomap::proto
+
+namespace stereomap::proto {
+namespace {
+
+// Partitions route a session's samples (sessionPartition): a vehicle in "sm.a" reaches the
+// wildcard and the session's own readers, never another session's; a single server's
+// every-partition writer reaches readers of a session and of the default partition.
+TEST(Dds, PartitionsRouteASessionsSamples) {
+  auto participant = makeParticipant();
+  auto everything = Reader<PoseMsg>::create(participant, everyPartition());
+  auto wildcard = Reader<PoseMsg>::create(participant, {kEverySessionPartition});
+  auto own = Reader<PoseMsg>::create(participant, {sessionPartition("a")});
+  auto other = Reader<PoseMsg>::create(participant, {sessionPartition("b")});
+  auto plain = Reader<PoseMsg>::create(participant);
+  ASSERT_TRUE(everything && wildcard && own && other && plain);
+  auto vehicle = Writer<PoseMsg>::create(participant, {sessionPartition("a")});
+  ASSERT_TRUE(vehicle);
+  ASSERT_TRUE((*vehicle)->waitForReaders(3, 5s));
+  std::this_thread::sleep_for(300ms);  // a wrong match would show by now
+  EXPECT_EQ((*vehicle)->matchedReaders(), 3) << "everything, wildcard and own; not b, not plain";
+
+  PoseMsg pose;
+  pose.vehicle_id = "v";
+  pose.session_id = "a";
+  pose.orientation = {0, 0, 0, 1};
+  ASSERT_TRUE((*vehicle)->write(pose));
+  EXPECT_EQ(takeAtLeast(**own, 1).size(), 1u);
+  EXPECT_EQ(takeAtLeast(**wildcard, 1).size(), 1u);
+  EXPECT_EQ(takeAtLeast(**everything, 1).size(), 1u);
+  std::vector<PoseMsg> none;
+  (*other)->take(none, 200ms);
+  (*plain)->take(none, 0ms);
+  EXPECT_TRUE(none.empty());
+
+  // A writer that names no partition (an older vehicle, a tool) reaches the single server.
+  auto unnamed = Writer<PoseMsg>::create(participant);
+  ASSERT_TRUE(unnamed);
+  ASSERT_TRUE((*unnamed)->waitForReaders(2, 5s));
+  std::this_thread::sleep_for(300ms);
+  EXPECT_EQ((*unnamed)->matchedReaders(), 2) << "everything and plain";
+
+  // The single server's acknowledgements reach a vehicle reading in its session's partition.
+  auto vehicle_acks = Reader<AckMsg>::create(participant, {sessionPartition("a")});
+  auto server_acks = Writer<AckMsg>::create(participant, everyPartition());
+  ASSERT_TRUE(vehicle_acks && server_acks);
+  EXPECT_TRUE((*server_acks)->waitForReaders(1, 5s));
+}
+
+}  // namespace
+}  // namespace stereomap::proto

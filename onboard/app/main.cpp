@@ -439,7 +439,8 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
       .vehicle_id = f.pipeline.vehicle_id,
       .link_bits_per_s = f.link_bits_per_s,
       .resend_after = std::chrono::milliseconds(static_cast<int64_t>(f.resend_after_s * 1000))};
-  auto made = pipeline::VehiclePublisher::create(participant, std::move(spool), outbox);
+  auto made = pipeline::VehiclePublisher::create(participant, f.pipeline.session_id,
+                                                 std::move(spool), outbox);
   if (!made) {
     spdlog::error("{}", made.error().message);
     return false;

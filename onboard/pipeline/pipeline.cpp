@@ -21,25 +21,25 @@ using common::msSince;
 
 template <typename T>
 common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
-    const std::shared_ptr<proto::Participant>& participant) {
-  return proto::Writer<T>::create(participant);
+    const std::shared_ptr<proto::Participant>& participant, const std::string& session_id) {
+  return proto::Writer<T>::create(participant, {proto::sessionPartition(session_id)});
 }
 
 }  // namespace
 
 common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
-    const std::shared_ptr<proto::Participant>& participant, std::unique_ptr<link::Spool> spool,
-    const link::OutboxOptions& outbox) {
+    const std::shared_ptr<proto::Participant>& participant, const std::string& session_id,
+    std::unique_ptr<link::Spool> spool, const link::OutboxOptions& outbox) {
   auto publisher = std::unique_ptr<VehiclePublisher>(new VehiclePublisher());
-  auto events = makeWriter<proto::SessionEventMsg>(participant);
+  auto events = makeWriter<proto::SessionEventMsg>(participant, session_id);
   if (!events) return events.error();
-  auto poses = makeWriter<proto::PoseMsg>(participant);
+  auto poses = makeWriter<proto::PoseMsg>(participant, session_id);
   if (!poses) return poses.error();
-  auto clouds = makeWriter<proto::CloudFrameMsg>(participant);
+  auto clouds = makeWriter<proto::CloudFrameMsg>(participant, session_id);
   if (!clouds) return clouds.error();
-  auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant);
+  auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant, session_id);
   if (!corrections) return corrections.error();
-  auto landing = makeWriter<proto::LandingTargetMsg>(participant);
+  auto landing = makeWriter<proto::LandingTargetMsg>(participant, session_id);
   if (!landing) return landing.error();
   publisher->events_ = std::move(events).value();
   publisher->poses_ = std::move(poses).value();
@@ -47,7 +47,8 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   publisher->corrections_ = std::move(corrections).value();
   publisher->landing_ = std::move(landing).value();
   if (spool) {
-    auto acks = proto::Reader<proto::AckMsg>::create(participant);
+    auto acks = proto::Reader<proto::AckMsg>::create(participant,
+                                                     {proto::sessionPartition(session_id)});
     if (!acks) return acks.error();
     publisher->acks_ = std::move(acks).value();
     publisher->outbox_.emplace(

@@ -125,9 +125,11 @@ struct PipelineSummary {
 // (onboard/link/outbox.hpp); landing targets, only worth their moment, are sent once.
 class VehiclePublisher {
  public:
-  // spool: null for samples sent once (DDS's own history covers an outage of a few seconds).
+  // Everything is written, and acknowledgements read, in the session's DDS partition
+  // (proto::sessionPartition). spool: null for samples sent once (DDS's own history covers
+  // an outage of a few seconds).
   static common::Result<std::unique_ptr<VehiclePublisher>> create(
-      const std::shared_ptr<proto::Participant>& participant,
+      const std::shared_ptr<proto::Participant>& participant, const std::string& session_id,
       std::unique_ptr<link::Spool> spool = nullptr, const link::OutboxOptions& outbox = {});
   // The spooled kinds get their stream, seq and unacked_from filled in.
   common::Status publish(proto::SessionEventMsg& event);

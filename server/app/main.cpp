@@ -17,12 +17,15 @@
 #include "proto/dds_cli.hpp"
 #include "server/core/map_server.hpp"
 #include "server/fusion/octomap_log.hpp"
+#include "server/ingest/dds_ingest.hpp"
 #include "server/net/http_server.hpp"
+#include "server/app/run.hpp"
 #include "server/store/store_admin.hpp"
 
 namespace {
 
 using namespace stereomap;
+using app::Flags;
 
 // The token from --token, --token-file or $STEREOMAP_TOKEN (at most one of the flags);
 // exits 2 with a message on a bad file. Empty: none.
@@ -63,16 +66,6 @@ bool isLoopback(const std::string& address) {
          address == "localhost";
 }
 
-struct Flags {
-  std::string http_spec = "127.0.0.1:8080";
-  std::string store_dir = "stereomap-store";
-  core::MapServerOptions options;
-  proto::DdsOptions dds;
-  std::string web_root;
-  std::string token, token_file;
-  double vehicle_timeout_s = 60;
-};
-
 void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--http", f.http_spec, "Address and port for HTTP and WebSocket")
       ->capture_default_str();
@@ -107,6 +100,26 @@ void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--queue", f.options.queue_capacity,
                  "Frames per session waiting for fusion before new ones are dropped")
       ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  auto* cluster = app.add_option(
+      "--cluster", f.cluster_url,
+      "Run as one server of a cluster whose state is in this PostgreSQL database (a libpq URL, "
+      "e.g. postgresql://stereomap@db.example:5432/stereomap; the password from PGPASSWORD or "
+      "~/.pgpass, not the URL). Sessions are journaled there and spread over the cluster's "
+      "servers; --store is not used");
+  app.add_option("--server-id", f.server_id,
+                 "This server's name in the cluster (letters, digits, . _ -; default: the host "
+                 "name, process id and a random number)")
+      ->needs(cluster);
+  app.add_option("--advertise", f.advertise,
+                 "Where the cluster's proxy reaches this server's HTTP, HOST:PORT (default: "
+                 "--http's)")
+      ->needs(cluster);
+  app.add_option("--lease", f.lease_s,
+                 "Seconds a server keeps its sessions without renewing its lease: a server "
+                 "silent that long loses them to the others")
+      ->check(CLI::Range(1.0, 600.0))
+      ->needs(cluster)
       ->capture_default_str();
 }
 
@@ -149,144 +162,6 @@ std::optional<net::HttpServerOptions> httpOptions(const Flags& f) {
   return http;
 }
 
-// A reader per topic and a thread per reader handing its samples to the map server, from
-// start() until the shutdown is requested (then one more round for what had arrived), and a
-// thread telling the vehicles what is journaled (Ack, at most every kAckPeriod).
-class DdsIngest {
- public:
-  static constexpr std::chrono::milliseconds kAckPeriod{200};
-
-  static common::Result<std::unique_ptr<DdsIngest>> create(
-      const std::shared_ptr<proto::Participant>& participant) {
-    auto ingest = std::unique_ptr<DdsIngest>(new DdsIngest);
-    common::Status opened = common::Ok{};
-    std::apply([&](auto&... readers) { (open(participant, readers, opened), ...); },
-               ingest->readers_);
-    if (!opened) return opened.error();
-    auto acks = proto::Writer<proto::AckMsg>::create(participant);
-    if (!acks)
-      return common::makeError(acks.error().code,
-                               "cannot create the DDS Ack writer: " + acks.error().message);
-    ingest->acks_ = std::move(acks).value();
-    return ingest;
-  }
-
-  void start(core::MapServer& server, common::Shutdown& shutdown) {
-    shutdown.onStop(
-        [this] { std::apply([](auto&... readers) { (readers->wake(), ...); }, readers_); });
-    std::apply(
-        [&](auto&... readers) {
-          (threads_.emplace_back(
-               [&server, &shutdown, reader = readers.get()] { pump(*reader, server, shutdown); }),
-           ...);
-        },
-        readers_);
-    threads_.emplace_back([this, &server, &shutdown] {
-      do {
-        for (const auto& ack : server.takeAcks()) {
-          if (auto written = acks_->write(ack); !written) {
-            spdlog::warn("cannot send an acknowledgement to '{}': {}", ack.vehicle_id,
-                         written.error().message);
-          }
-        }
-      } while (!shutdown.waitFor(kAckPeriod));
-    });
-  }
-
-  void join() {
-    for (auto& thread : threads_) thread.join();
-    threads_.clear();
-  }
-
- private:
-  DdsIngest() = default;
-
-  template <typename T>
-  static void open(const std::shared_ptr<proto::Participant>& participant,
-                   std::unique_ptr<proto::Reader<T>>& reader, common::Status& opened) {
-    if (!opened) return;
-    auto created = proto::Reader<T>::create(participant);
-    if (!created) {
-      opened = common::makeError(created.error().code,
-                                 "cannot create DDS readers: " + created.error().message);
-      return;
-    }
-    reader = std::move(created).value();
-  }
-
-  template <typename T>
-  static void pump(proto::Reader<T>& reader, core::MapServer& server,
-                   const common::Shutdown& shutdown) {
-    std::vector<T> batch;
-    std::vector<proto::RefusedSample> refused;
-    bool last_round = false;
-    while (!last_round) {
-      last_round = shutdown.stopRequested();  // after a stop: one more round for what arrived
-      batch.clear();
-      refused.clear();
-      reader.take(batch, last_round ? std::chrono::milliseconds(0) : std::chrono::milliseconds(500),
-                  &refused);
-      for (const auto& sample : refused) server.refuse(sample);
-      for (const auto& sample : batch) server.ingest(sample);
-    }
-  }
-
-  std::tuple<std::unique_ptr<proto::Reader<proto::CloudFrameMsg>>,
-             std::unique_ptr<proto::Reader<proto::PoseMsg>>,
-             std::unique_ptr<proto::Reader<proto::SessionEventMsg>>,
-             std::unique_ptr<proto::Reader<proto::PoseCorrectionMsg>>,
-             std::unique_ptr<proto::Reader<proto::LandingTargetMsg>>>
-      readers_;
-  std::unique_ptr<proto::Writer<proto::AckMsg>> acks_;
-  std::vector<std::thread> threads_;
-};
-
-// What earlier runs journaled, fused again before DDS delivers anything new.
-void recoverSessions(store::StoreAdmin& admin) {
-  if (!admin.catalogWarning().empty()) spdlog::warn("{}", admin.catalogWarning());
-  for (const auto& session : admin.recoverAll()) {
-    if (!session.problem.empty()) {
-      spdlog::warn(
-          "session '{}': {} ({} records lost; `stereomap-store check` and `repair` "
-          "say more)",
-          session.id, session.problem, session.lost_records);
-    }
-    spdlog::info("session '{}' recovered: {} frames ({} from a snapshot), {} poses, in {:.1f} s",
-                 session.id, session.frames, session.snapshot_frames, session.poses,
-                 session.seconds);
-  }
-}
-
-// Until the shutdown: every second ends silent sessions; every five saves what is due and
-// logs the maps' growth.
-void serveUntilStopped(const Flags& f, core::MapServer& server, store::StoreAdmin& admin,
-                       const net::HttpServer& http, const common::Shutdown& shutdown) {
-  size_t last_voxels = 0;
-  const auto vehicle_timeout =
-      std::chrono::milliseconds(static_cast<int64_t>(f.vehicle_timeout_s * 1000));
-  for (int tick = 1; !shutdown.waitFor(std::chrono::seconds(1)); ++tick) {
-    if (vehicle_timeout.count() > 0) server.endSilentSessions(vehicle_timeout);
-    if (tick % 5 != 0) continue;
-    admin.checkpoint(/*all=*/false);
-    size_t voxels = 0, frames = 0, backlog = 0;
-    const auto sessions = server.sessions();
-    for (const auto& session : sessions) {
-      const auto status = session->status();
-      voxels += status.occupied_voxels;
-      frames += status.frames_fused;
-      backlog += status.backlog;
-    }
-    if (voxels != last_voxels) {
-      spdlog::info(
-          "map: {} sessions, {} frames fused, {} occupied voxels (+{}), backlog {}, "
-          "{} viewers",
-          sessions.size(), frames, voxels,
-          static_cast<long>(voxels) - static_cast<long>(last_voxels), backlog, http.viewers());
-      last_voxels = voxels;
-    }
-  }
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -307,39 +182,6 @@ int main(int argc, char** argv) {
   auto participant = proto::Participant::create(flags.dds);
   if (!participant) return fail(participant.error());
 
-  // Journal first: a frame counts as received once it is on disk.
-  store::SessionJournals journals(flags.store_dir, flags.options.resolution);
-  flags.options.log = &journals;
-  flags.options.snapshots = &journals;
-  flags.options.archive = &journals;
-  core::MapServer server(flags.options);
-  auto admin = store::StoreAdmin::create(flags.store_dir, server, &journals,
-                                         {.default_resolution = flags.options.resolution});
-  if (!admin) return fail(admin.error());
-  recoverSessions(**admin);
-  // The readers only now: a vehicle sees the server once it takes samples. Created before the
-  // recovery, they matched vehicles whose live poses then waited out the recovery in their
-  // queues (a pose 200 ms old on arrival after a 5-minute outage; docs/BENCHMARKS.md); the
-  // vehicles keep what is not acknowledged meanwhile.
-  auto ingest = DdsIngest::create(*participant);
-  if (!ingest) return fail(ingest.error());
-
-  auto http_server = net::HttpServer::create(*http, server, admin->get());
-  if (!http_server) return fail(http_server.error());
-  (*http_server)->start();
-  (*ingest)->start(server, shutdown);
-  spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", flags.dds.domain_id,
-               flags.options.resolution, flags.store_dir);
-  spdlog::info("viewer: http://{}:{}/", http->address, (*http_server)->port());
-
-  serveUntilStopped(flags, server, **admin, **http_server, shutdown);
-
-  spdlog::info("stopping (signal {}): finishing queued frames and saving sessions",
-               shutdown.signal());
-  (*ingest)->join();
-  (*http_server)->stop();
-  for (const auto& session : server.sessions()) session->waitUntilFused();
-  (*admin)->checkpoint(/*all=*/true);
-  spdlog::info("stopped");
-  return 0;
+  if (!flags.cluster_url.empty()) return app::runClusterServer(flags, *http, *participant, shutdown);
+  return app::runSingleServer(flags, *http, *participant, shutdown);
 }

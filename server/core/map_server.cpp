@@ -294,6 +294,13 @@ std::optional<uint64_t> MapServer::record(const char* topic, const Message& mess
     return refused(claim);
   }
   auto logged = options_.log->append(message);
+  if (!logged && logged.error().code == common::ErrorCode::kConflict) {
+    // The session is not this server's to record: being deleted, or (in a cluster) owned by
+    // another server now. Not the store's fault: it is not degraded for it.
+    reject(topic, {"not_recorded", logged.error().message},
+           message.vehicle_id + "/" + message.session_id);
+    return std::nullopt;
+  }
   if (!logged) {
     metrics_.add(kStoreErrors, {{"topic", topic}});
     session.noteStoreError(logged.error().message);

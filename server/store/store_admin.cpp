@@ -21,6 +21,7 @@
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "server/store/replay.hpp"
 
 namespace stereomap::store {
 
@@ -75,29 +76,6 @@ void moveMessage(Message& m, const std::string& into, const std::string& vehicle
 void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
                    std::array<double, 4>& orientation) {
   proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
-}
-
-// Replays the journal's poses stamped no later than `until_ns` into `server`, then each
-// vehicle's newest correction made by then (so that the frames replayed next are fused
-// corrected); counts the poses taken into `poses`. Returns the newest correction's record
-// number (0: none).
-uint64_t replayPosesAndCorrections(core::MapServer& server, const JournalReplay& replay,
-                                   int64_t until_ns, size_t& poses) {
-  std::map<std::string, size_t> newest;  // vehicle -> record index
-  for (size_t i = 0; i < replay.records.size(); ++i) {
-    const auto& record = replay.records[i];
-    if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-      if (pose->stamp_ns <= until_ns) poses += server.ingest(*pose, core::Origin::kReplay);
-    } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
-      if (c->stamp_ns <= until_ns) newest[c->vehicle_id] = i;
-    }
-  }
-  uint64_t newest_number = 0;
-  for (const auto& [vehicle, i] : newest) {
-    server.ingest(std::get<proto::PoseCorrectionMsg>(replay.records[i]), core::Origin::kReplay);
-    newest_number = std::max(newest_number, replay.numbers[i]);
-  }
-  return newest_number;
 }
 
 }  // namespace
@@ -378,14 +356,8 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
   }
   // Frames and session events, in journal order.
   auto ingest = [&](const JournalRecord& record, uint64_t number) {
-    if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
-      const bool covered = number <= covered_up_to;
-      result.frames +=
-          server_.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
-      result.snapshot_frames += covered;
-    } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
-      server_.ingest(*event, core::Origin::kReplay);
-    }
+    replayFrameOrEvent(server_, record, number, covered_up_to, result.frames,
+                       result.snapshot_frames);
   };
   if (!snapshots.empty() && covered_up_to == snapshots.front().first && replay->version != 1) {
     for (size_t i = 0; i < kept.records.size(); ++i) ingest(kept.records[i], kept.numbers[i]);

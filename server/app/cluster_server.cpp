@@ -1,0 +1,62 @@
+// A server in a cluster (--cluster URL): sessions journaled in PostgreSQL and spread over the
+// cluster's servers (server/cluster); this one serves those it owns.
+#include <spdlog/spdlog.h>
+
+#include "server/app/run.hpp"
+#include "server/cluster/cluster_db.hpp"
+#include "server/cluster/cluster_journal.hpp"
+#include "server/cluster/cluster_node.hpp"
+#include "server/cluster/pg.hpp"
+
+namespace stereomap::app {
+
+int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
+                     const std::shared_ptr<proto::Participant>& participant,
+                     common::Shutdown& shutdown) {
+  auto fail = [](const common::Error& error) {
+    spdlog::error("{}", error.message);
+    return 1;
+  };
+  if (cluster::redactPassword(flags.cluster_url) != flags.cluster_url) {
+    spdlog::warn(
+        "--cluster holds a password, visible to every local user in the process list; "
+        "prefer PGPASSWORD or a ~/.pgpass file");
+  }
+  const std::string advertise =
+      flags.advertise.empty() ? http.address + ":" + std::to_string(http.port) : flags.advertise;
+  auto db = cluster::ClusterDb::open(
+      {.url = flags.cluster_url,
+       .server_id = flags.server_id,
+       .http = advertise,
+       .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000))});
+  if (!db) return fail(db.error());
+  auto journal = cluster::ClusterJournal::open(flags.cluster_url);
+  if (!journal) return fail(journal.error());
+  flags.options.log = journal->get();
+  flags.options.snapshots = journal->get();
+  flags.options.archive = journal->get();
+  core::MapServer server(flags.options);
+
+  auto http_server = net::HttpServer::create(http, server, nullptr);
+  if (!http_server) return fail(http_server.error());
+  (*http_server)->start();
+  auto node = cluster::ClusterNode::start({.default_resolution = flags.options.resolution}, **db,
+                                          **journal, server, participant);
+  if (!node) return fail(node.error());
+  spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
+               (*db)->serverId(), cluster::redactPassword(flags.cluster_url), flags.dds.domain_id,
+               flags.options.resolution);
+  spdlog::info("viewer: http://{}:{}/ (this server's sessions only; the cluster's proxy has all)",
+               http.address, (*http_server)->port());
+
+  serveUntilStopped(flags, server, nullptr, **http_server, shutdown);
+
+  spdlog::info("stopping (signal {}): handing this server's sessions back to the cluster",
+               shutdown.signal());
+  (*node)->stop();
+  (*http_server)->stop();
+  spdlog::info("stopped");
+  return 0;
+}
+
+}  // namespace stereomap::app

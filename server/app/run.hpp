@@ -1,0 +1,46 @@
+// stereomap-server's two modes, beside its flags: a single server (a store of files and
+// SQLite on its own disk: single_server.cpp) and a server in a cluster (PostgreSQL, sessions
+// spread over servers: cluster_server.cpp). main.cpp parses the flags and runs one.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "common/shutdown.hpp"
+#include "proto/dds.hpp"
+#include "server/core/map_server.hpp"
+#include "server/net/http_server.hpp"
+#include "server/store/store_admin.hpp"
+
+namespace stereomap::app {
+
+struct Flags {
+  std::string http_spec = "127.0.0.1:8080";
+  std::string store_dir = "stereomap-store";
+  core::MapServerOptions options;
+  proto::DdsOptions dds;
+  std::string web_root;
+  std::string token, token_file;
+  double vehicle_timeout_s = 60;
+  // Cluster mode (empty url: the single server).
+  std::string cluster_url;
+  std::string server_id;   // empty: made up from the host name and process id
+  std::string advertise;   // where others reach this server's HTTP (empty: --http's address)
+  double lease_s = 4;
+};
+
+
+// Each returns the process's exit code once the shutdown was requested and everything saved.
+int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
+                    const std::shared_ptr<proto::Participant>& participant,
+                    common::Shutdown& shutdown);
+int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
+                     const std::shared_ptr<proto::Participant>& participant,
+                     common::Shutdown& shutdown);
+
+// Until the shutdown: every second ends silent sessions; every five saves what is due (with
+// a store) and logs the maps' growth.
+void serveUntilStopped(const Flags& f, core::MapServer& server, store::StoreAdmin* admin,
+                       const net::HttpServer& http, const common::Shutdown& shutdown);
+
+}  // namespace stereomap::app

@@ -1,0 +1,334 @@
+#include "server/cluster/cluster_node.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <limits>
+#include <sstream>
+
+#include "common/time.hpp"
+#include "server/core/validate.hpp"
+#include "server/store/replay.hpp"
+
+namespace stereomap::cluster {
+
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+// Recovers `session` into `server` from what the database holds of it; the same order as
+// the file store's recovery (store_admin.cpp): poses and corrections, the snapshot when it
+// holds the newest correction, then frames and events in journal order.
+common::Status recover(core::MapServer& server, ClusterJournal& journal, const Ownership& owned,
+                       StoredSession& stored, size_t& frames, size_t& poses) {
+  auto created = server.createSession(owned.session, owned.resolution, /*read_only=*/false);
+  if (!created) return created.error();
+  const auto& session = *created;
+  proto::journal::JournalReplay kept;
+  kept.records = std::move(stored.records);
+  kept.numbers = std::move(stored.numbers);
+  const uint64_t newest_correction = store::replayPosesAndCorrections(
+      server, kept, std::numeric_limits<int64_t>::max(), poses);
+  uint64_t covered_up_to = 0;
+  if (stored.snapshot_number > 0 && stored.snapshot_number >= newest_correction) {
+    std::istringstream ot(stored.snapshot);
+    if (auto restored = session->restore(ot, stored.snapshot_number); restored) {
+      covered_up_to = stored.snapshot_number;
+    } else {
+      spdlog::warn("session '{}': its snapshot {} is unusable ({}); fusing every frame again",
+                   owned.session, stored.snapshot_number, restored.error().message);
+    }
+  }
+  uint64_t snapshot_frames = 0;
+  if (covered_up_to == stored.snapshot_number) {
+    for (size_t i = 0; i < kept.records.size(); ++i) {
+      store::replayFrameOrEvent(server, kept.records[i], kept.numbers[i], covered_up_to, frames,
+                                snapshot_frames);
+    }
+  } else {
+    // The frames the snapshot was to hold came without their payloads: read them again.
+    for (size_t i = 0; i < kept.records.size(); ++i) {
+      if (!std::holds_alternative<proto::CloudFrameMsg>(kept.records[i])) {
+        store::replayFrameOrEvent(server, kept.records[i], kept.numbers[i], 0, frames,
+                                  snapshot_frames);
+      }
+    }
+    auto again = journal.forEachFrame(
+        owned.session, 0, std::numeric_limits<int64_t>::max(),
+        [&](const proto::CloudFrameMsg& frame, uint64_t number) {
+          store::replayFrameOrEvent(server, frame, number, 0, frames, snapshot_frames);
+        });
+    if (!again) return again.error();
+  }
+  session->waitUntilIdle();
+  return common::Ok{};
+}
+
+}  // namespace
+
+common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
+    const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
+    core::MapServer& server, const std::shared_ptr<proto::Participant>& participant) {
+  auto node =
+      std::unique_ptr<ClusterNode>(new ClusterNode(options, db, journal, server, participant));
+  auto events = proto::Reader<proto::SessionEventMsg>::create(participant,
+                                                              {proto::kEverySessionPartition});
+  if (!events) return events.error();
+  node->events_ = std::move(events).value();
+  journal.onFenced([raw = node.get()](const std::string& session, const std::string& why) {
+    std::lock_guard lock(raw->mutex_);
+    raw->fenced_[session] = why;
+    raw->wake_.notify_all();
+  });
+  node->reconcile();  // what this server owns already (a restart), before the first sample
+  node->control_ = std::thread([raw = node.get()] { raw->controlLoop(); });
+  node->events_thread_ = std::thread([raw = node.get()] { raw->eventLoop(); });
+  node->acks_thread_ = std::thread([raw = node.get()] {
+    ingest::sendAcksUntil(
+        raw->server_,
+        [raw](const proto::AckMsg& ack) -> common::Status {
+          std::lock_guard lock(raw->mutex_);
+          const auto served = raw->served_.find(ack.session_id);
+          if (served == raw->served_.end()) return common::Ok{};  // lost meanwhile
+          return served->second.acks->write(ack);
+        },
+        [raw](std::chrono::milliseconds period) { return !raw->sleepFor(period); });
+  });
+  return node;
+}
+
+ClusterNode::ClusterNode(const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
+                         core::MapServer& server, std::shared_ptr<proto::Participant> participant)
+    : options_(options),
+      db_(db),
+      journal_(journal),
+      server_(server),
+      participant_(std::move(participant)) {}
+
+ClusterNode::~ClusterNode() { stop(); }
+
+bool ClusterNode::sleepFor(std::chrono::milliseconds period) {
+  std::unique_lock lock(mutex_);
+  wake_.wait_for(lock, period, [&] { return stopping_; });
+  return !stopping_;
+}
+
+void ClusterNode::stop() {
+  {
+    std::lock_guard lock(mutex_);
+    if (stopping_) return;
+    stopping_ = true;
+  }
+  wake_.notify_all();
+  if (events_) events_->wake();
+  for (auto* thread : {&control_, &events_thread_, &acks_thread_}) {
+    if (thread->joinable()) thread->join();
+  }
+  std::vector<std::string> ids;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, served] : served_) ids.push_back(id);
+  }
+  for (const auto& id : ids) {
+    int64_t epoch = 0;
+    {
+      std::lock_guard lock(mutex_);
+      epoch = served_[id].epoch;
+    }
+    unserve(id, "this server is stopping");
+    if (auto released = db_.release({id, db_.serverId(), epoch, 0}, /*closed=*/false); !released) {
+      spdlog::warn("session '{}': cannot hand it back to the cluster: {}", id,
+                   released.error().message);
+    }
+  }
+  if (auto left = db_.leave(); !left) {
+    spdlog::warn("cannot leave the cluster cleanly: {}", left.error().message);
+  }
+}
+
+std::map<std::string, int64_t> ClusterNode::served() const {
+  std::lock_guard lock(mutex_);
+  std::map<std::string, int64_t> out;
+  for (const auto& [id, served] : served_) out[id] = served.epoch;
+  return out;
+}
+
+void ClusterNode::controlLoop() {
+  while (sleepFor(options_.poll)) reconcile();
+}
+
+void ClusterNode::eventLoop() {
+  std::vector<proto::SessionEventMsg> batch;
+  std::vector<proto::RefusedSample> refused;
+  for (;;) {
+    {
+      std::lock_guard lock(mutex_);
+      if (stopping_) return;
+    }
+    batch.clear();
+    refused.clear();
+    events_->take(batch, std::chrono::milliseconds(500), &refused);
+    for (const auto& event : batch) {
+      bool mine = false;
+      {
+        std::lock_guard lock(mutex_);
+        mine = served_.contains(event.session_id);
+        if (!mine && core::isValidId(event.session_id)) {
+          announced_.emplace(event.session_id, event.resolution_hint > 0
+                                                   ? event.resolution_hint
+                                                   : options_.default_resolution);
+          wake_.notify_all();
+        }
+      }
+      // A session this server does not own is another's to journal; its owner's vehicle
+      // sends the event again until it is acknowledged, so nothing waits on it here.
+      if (mine) server_.ingest(event);
+    }
+    for (const auto& sample : refused) server_.refuse(sample);
+  }
+}
+
+void ClusterNode::reconcile() {
+  // 1. Sessions the database fenced since the last round.
+  std::map<std::string, std::string> fenced;
+  std::map<std::string, double> to_place;
+  {
+    std::lock_guard lock(mutex_);
+    fenced.swap(fenced_);
+    to_place.swap(announced_);
+  }
+  for (const auto& [id, why] : fenced) unserve(id, "fenced: another server owns it now");
+
+  // 2. The lease, about four times per lease.
+  const auto now = Clock::now();
+  if (now - last_renewal_ >= db_.options().lease / 4) {
+    auto renewed = db_.renewLease();
+    if (renewed) {
+      last_renewal_ = now;
+      if (database_down_) spdlog::info("cluster: the database is reachable again");
+      database_down_ = false;
+    } else if (renewed.error().code == common::ErrorCode::kConflict) {
+      last_renewal_ = now;
+      spdlog::error("cluster: {}", renewed.error().message);
+    } else {
+      if (!database_down_) {
+        spdlog::error("cluster: cannot renew this server's lease: {}", renewed.error().message);
+      }
+      database_down_ = true;
+      return;  // nothing else can be done without the database
+    }
+  }
+
+  // 3. Sessions vehicles announced: placed (on whichever server is least loaded).
+  for (const auto& [id, resolution] : to_place) {
+    {
+      std::lock_guard lock(mutex_);
+      if (served_.contains(id)) continue;
+    }
+    if (auto placed = db_.placeSession(id, resolution); !placed) {
+      spdlog::warn("cluster: cannot place session '{}': {}", id, placed.error().message);
+      std::lock_guard lock(mutex_);
+      announced_.emplace(id, resolution);  // again next round
+    }
+  }
+
+  // 4. Orphans of servers whose lease ran out.
+  if (auto taken = db_.takeOrphans(); taken) {
+    for (const auto& session : *taken) {
+      spdlog::info("cluster: took session '{}' (epoch {}) from a server whose lease ran out",
+                   session.session, session.epoch);
+    }
+  }
+
+  // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
+  auto owned = db_.owned();
+  if (!owned) return;
+  std::map<std::string, Ownership> wanted;
+  for (const auto& session : *owned) wanted[session.session] = session;
+  std::vector<std::pair<std::string, std::string>> gone;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, served] : served_) {
+      const auto it = wanted.find(id);
+      if (it == wanted.end()) {
+        gone.emplace_back(id, "another server owns it now, or it was closed");
+      } else if (it->second.epoch != served.epoch) {
+        gone.emplace_back(id, "its epoch moved on (taken and given back meanwhile)");
+      }
+    }
+  }
+  for (const auto& [id, why] : gone) unserve(id, why);
+  for (const auto& [id, session] : wanted) {
+    bool serving = false;
+    {
+      std::lock_guard lock(mutex_);
+      serving = served_.contains(id) || stopping_;
+    }
+    if (!serving) serve(session);
+  }
+}
+
+void ClusterNode::serve(const Ownership& owned) {
+  const auto started = Clock::now();
+  auto stored = journal_.read(owned.session);
+  if (!stored) {
+    spdlog::error("session '{}': cannot read it from the database: {}", owned.session,
+                  stored.error().message);
+    return;  // next round
+  }
+  const uint64_t last_number = stored->last_number;
+  const uint64_t unreadable = stored->unreadable;
+  const uint64_t snapshot_number = stored->snapshot_number;
+  size_t frames = 0, poses = 0;
+  if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
+  server_.forget(owned.session);
+  if (auto recovered = recover(server_, journal_, owned, *stored, frames, poses); !recovered) {
+    spdlog::error("session '{}': cannot recover it: {}", owned.session,
+                  recovered.error().message);
+    server_.unload(owned.session);
+    return;
+  }
+  journal_.adopt(owned.session, owned.epoch, last_number);
+  auto ingest =
+      ingest::DdsIngest::create(participant_, {proto::sessionPartition(owned.session)}, false);
+  auto acks = proto::Writer<proto::AckMsg>::create(participant_,
+                                                   {proto::sessionPartition(owned.session)});
+  if (!ingest || !acks) {
+    spdlog::error("session '{}': cannot read it from DDS: {}", owned.session,
+                  !ingest ? ingest.error().message : acks.error().message);
+    journal_.drop(owned.session);
+    server_.unload(owned.session);
+    return;
+  }
+  (*ingest)->start(server_);
+  {
+    std::lock_guard lock(mutex_);
+    served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
+  }
+  spdlog::info(
+      "session '{}' served here (epoch {}): {} frames ({} up to record {} from a snapshot), {} "
+      "poses recovered in {:.2f} s{}",
+      owned.session, owned.epoch, frames, snapshot_number > 0 ? "those" : "none", snapshot_number,
+      poses, common::msSince(started) / 1000,
+      unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
+}
+
+void ClusterNode::unserve(const std::string& session, const std::string& why) {
+  Served served;
+  {
+    std::lock_guard lock(mutex_);
+    const auto it = served_.find(session);
+    if (it == served_.end()) return;
+    served = std::move(it->second);
+    served_.erase(it);
+  }
+  if (served.ingest) {
+    served.ingest->stop();
+    served.ingest->join();
+  }
+  journal_.drop(session);
+  server_.unload(session);
+  server_.forget(session);
+  spdlog::warn("session '{}' (epoch {}) no longer served here: {}", session, served.epoch, why);
+}
+
+}  // namespace stereomap::cluster
