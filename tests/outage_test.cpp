@@ -24,32 +24,11 @@ namespace fs = std::filesystem;
 constexpr int kOutageDomain = 98, kRestartDomain = 99, kForgedDomain = 100, kFullDomain = 101,
               kOverloadDomain = 102;
 
-// The vehicle as users fly it (thinned clouds, a 1 Mbit/s budget, its spool in `spool`), with
-// ground-truth poses (the odometry is not what is tested), at 10 Hz.
+// The vehicle as users fly it (support/stream_count.hpp).
 std::vector<std::string> vehicle(int domain, const std::string& session, int frames,
                                  const std::string& spool,
                                  const std::vector<std::string>& extra = {}) {
-  std::vector<std::string> args = extra;
-  const std::pair<std::string, std::string> defaults[] = {
-      {"--rate", "10"},           {"--vo", "gt"},
-      {"--min-new", "0.1"},       {"--map-resolution", "0.1"},
-      {"--link-budget", "1Mbit"}, {"--spool", spool},
-      {"--flush-timeout", "60"}};
-  for (const auto& [flag, value] : defaults) {
-    if (std::find(extra.begin(), extra.end(), flag) == extra.end()) {
-      args.insert(args.end(), {flag, value});
-    }
-  }
-  return onboardArgs(domain, session, frames, args);
-}
-
-struct Sent {
-  size_t poses = 0, clouds = 0;
-};
-Sent sentBy(const std::string& log) {
-  return {static_cast<size_t>(numberIn(log, R"(done: ([0-9]+) frames)")),
-          static_cast<size_t>(
-              numberIn(log, R"(link: sent [0-9]+ kbit/s \(clouds and poses\), ([0-9]+) of)"))};
+  return userVehicleArgs(domain, session, frames, spool, extra);
 }
 
 class OutageTest : public ::testing::Test {

@@ -22,14 +22,6 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
         "--cluster holds a password, visible to every local user in the process list; "
         "prefer PGPASSWORD or a ~/.pgpass file");
   }
-  const std::string advertise =
-      flags.advertise.empty() ? http.address + ":" + std::to_string(http.port) : flags.advertise;
-  auto db = cluster::ClusterDb::open(
-      {.url = flags.cluster_url,
-       .server_id = flags.server_id,
-       .http = advertise,
-       .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000))});
-  if (!db) return fail(db.error());
   auto journal = cluster::ClusterJournal::open(flags.cluster_url);
   if (!journal) return fail(journal.error());
   flags.options.log = journal->get();
@@ -40,6 +32,16 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   auto http_server = net::HttpServer::create(http, server, nullptr);
   if (!http_server) return fail(http_server.error());
   (*http_server)->start();
+  // Registered once it listens: with --http PORT 0 the port is known only now.
+  const std::string advertise =
+      flags.advertise.empty() ? http.address + ":" + std::to_string((*http_server)->port())
+                              : flags.advertise;
+  auto db = cluster::ClusterDb::open(
+      {.url = flags.cluster_url,
+       .server_id = flags.server_id,
+       .http = advertise,
+       .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000))});
+  if (!db) return fail(db.error());
   auto node = cluster::ClusterNode::start({.default_resolution = flags.options.resolution}, **db,
                                           **journal, server, participant);
   if (!node) return fail(node.error());

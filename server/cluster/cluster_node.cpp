@@ -7,63 +7,12 @@
 
 #include "common/time.hpp"
 #include "server/core/validate.hpp"
-#include "server/store/replay.hpp"
+#include "server/cluster/cluster_recovery.hpp"
 
 namespace stereomap::cluster {
 
 using Clock = std::chrono::steady_clock;
 
-namespace {
-
-// Recovers `session` into `server` from what the database holds of it; the same order as
-// the file store's recovery (store_admin.cpp): poses and corrections, the snapshot when it
-// holds the newest correction, then frames and events in journal order.
-common::Status recover(core::MapServer& server, ClusterJournal& journal, const Ownership& owned,
-                       StoredSession& stored, size_t& frames, size_t& poses) {
-  auto created = server.createSession(owned.session, owned.resolution, /*read_only=*/false);
-  if (!created) return created.error();
-  const auto& session = *created;
-  proto::journal::JournalReplay kept;
-  kept.records = std::move(stored.records);
-  kept.numbers = std::move(stored.numbers);
-  const uint64_t newest_correction = store::replayPosesAndCorrections(
-      server, kept, std::numeric_limits<int64_t>::max(), poses);
-  uint64_t covered_up_to = 0;
-  if (stored.snapshot_number > 0 && stored.snapshot_number >= newest_correction) {
-    std::istringstream ot(stored.snapshot);
-    if (auto restored = session->restore(ot, stored.snapshot_number); restored) {
-      covered_up_to = stored.snapshot_number;
-    } else {
-      spdlog::warn("session '{}': its snapshot {} is unusable ({}); fusing every frame again",
-                   owned.session, stored.snapshot_number, restored.error().message);
-    }
-  }
-  uint64_t snapshot_frames = 0;
-  if (covered_up_to == stored.snapshot_number) {
-    for (size_t i = 0; i < kept.records.size(); ++i) {
-      store::replayFrameOrEvent(server, kept.records[i], kept.numbers[i], covered_up_to, frames,
-                                snapshot_frames);
-    }
-  } else {
-    // The frames the snapshot was to hold came without their payloads: read them again.
-    for (size_t i = 0; i < kept.records.size(); ++i) {
-      if (!std::holds_alternative<proto::CloudFrameMsg>(kept.records[i])) {
-        store::replayFrameOrEvent(server, kept.records[i], kept.numbers[i], 0, frames,
-                                  snapshot_frames);
-      }
-    }
-    auto again = journal.forEachFrame(
-        owned.session, 0, std::numeric_limits<int64_t>::max(),
-        [&](const proto::CloudFrameMsg& frame, uint64_t number) {
-          store::replayFrameOrEvent(server, frame, number, 0, frames, snapshot_frames);
-        });
-    if (!again) return again.error();
-  }
-  session->waitUntilIdle();
-  return common::Ok{};
-}
-
-}  // namespace
 
 common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
@@ -250,9 +199,9 @@ void ClusterNode::reconcile() {
     for (const auto& [id, served] : served_) {
       const auto it = wanted.find(id);
       if (it == wanted.end()) {
-        gone.emplace_back(id, "another server owns it now, or it was closed");
+        gone.emplace_back(id, "fenced: another server owns it now (or it was closed)");
       } else if (it->second.epoch != served.epoch) {
-        gone.emplace_back(id, "its epoch moved on (taken and given back meanwhile)");
+        gone.emplace_back(id, "fenced: its epoch moved on (taken and given back meanwhile)");
       }
     }
   }
@@ -281,7 +230,7 @@ void ClusterNode::serve(const Ownership& owned) {
   size_t frames = 0, poses = 0;
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
-  if (auto recovered = recover(server_, journal_, owned, *stored, frames, poses); !recovered) {
+  if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses); !recovered) {
     spdlog::error("session '{}': cannot recover it: {}", owned.session,
                   recovered.error().message);
     server_.unload(owned.session);

@@ -122,9 +122,9 @@ OutageRun outage(double flight_s, double at_s, double down_s,
   if (!code || *code != 0)
     std::fprintf(stderr, "the vehicle failed; its log: %s\n", vehicle_log.c_str());
   run.catch_up_s = testing::numberIn(log, R"(caught up ([0-9.]+) s after the server came back)");
-  run.poses_sent = static_cast<size_t>(testing::numberIn(log, R"(done: ([0-9]+) frames)"));
-  run.clouds_sent = static_cast<size_t>(
-      testing::numberIn(log, R"(link: sent [0-9]+ kbit/s \(clouds and poses\), ([0-9]+) of)"));
+  const testing::Sent sent = testing::sentBy(log);
+  run.poses_sent = sent.poses;
+  run.clouds_sent = sent.clouds;
   run.spool_mib = testing::numberIn(log, R"(([0-9]+) KiB written to disk)") / 1024;
   // Samples the server received again (DDS history, spool) after its restart.
   const std::string metrics = server->get("/metrics").body;

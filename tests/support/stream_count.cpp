@@ -1,5 +1,6 @@
 #include "tests/support/stream_count.hpp"
 
+#include <algorithm>
 #include <cstdio>
 #include <fstream>
 #include <regex>
@@ -7,6 +8,7 @@
 #include <variant>
 
 #include "proto/journal/journal.hpp"
+#include "tests/support/server_fixture.hpp"
 
 namespace stereomap::testing {
 
@@ -27,14 +29,9 @@ size_t StreamSamples::cloudCount() const { return total(clouds); }
 size_t StreamSamples::poseCount(uint64_t stream) const { return ofStream(poses, stream); }
 size_t StreamSamples::cloudCount(uint64_t stream) const { return ofStream(clouds, stream); }
 
-StreamSamples journaledSamples(const std::filesystem::path& store, const std::string& session) {
+StreamSamples samplesIn(const std::vector<proto::journal::JournalRecord>& records) {
   StreamSamples out;
-  auto replay = proto::journal::readJournal(store / session / "journal.smj");
-  if (!replay) {
-    std::fprintf(stderr, "cannot read the journal: %s\n", replay.error().message.c_str());
-    return out;
-  }
-  for (const auto& record : replay->records) {
+  for (const auto& record : records) {
     if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
       out.repeated += !out.poses[pose->stream].insert(pose->seq).second;
     } else if (const auto* cloud = std::get_if<proto::CloudFrameMsg>(&record)) {
@@ -42,6 +39,15 @@ StreamSamples journaledSamples(const std::filesystem::path& store, const std::st
     }
   }
   return out;
+}
+
+StreamSamples journaledSamples(const std::filesystem::path& store, const std::string& session) {
+  auto replay = proto::journal::readJournal(store / session / "journal.smj");
+  if (!replay) {
+    std::fprintf(stderr, "cannot read the journal: %s\n", replay.error().message.c_str());
+    return {};
+  }
+  return samplesIn(replay->records);
 }
 
 std::map<uint64_t, StreamReach> spooledReach(const std::filesystem::path& spool) {
@@ -62,6 +68,29 @@ std::map<uint64_t, StreamReach> spooledReach(const std::filesystem::path& spool)
     }
   }
   return reach;
+}
+
+std::vector<std::string> userVehicleArgs(int domain, const std::string& session, int frames,
+                                         const std::string& spool,
+                                         const std::vector<std::string>& extra) {
+  std::vector<std::string> args = extra;
+  const std::pair<std::string, std::string> defaults[] = {
+      {"--rate", "10"},           {"--vo", "gt"},
+      {"--min-new", "0.1"},       {"--map-resolution", "0.1"},
+      {"--link-budget", "1Mbit"}, {"--spool", spool},
+      {"--flush-timeout", "60"}};
+  for (const auto& [flag, value] : defaults) {
+    if (std::find(extra.begin(), extra.end(), flag) == extra.end()) {
+      args.insert(args.end(), {flag, value});
+    }
+  }
+  return onboardArgs(domain, session, frames, args);
+}
+
+Sent sentBy(const std::string& log) {
+  return {static_cast<size_t>(numberIn(log, R"(done: ([0-9]+) frames)")),
+          static_cast<size_t>(
+              numberIn(log, R"(link: sent [0-9]+ kbit/s \(clouds and poses\), ([0-9]+) of)"))};
 }
 
 double numberIn(const std::string& text, const std::string& pattern) {

