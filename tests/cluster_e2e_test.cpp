@@ -72,8 +72,10 @@ class ClusterTest : public ::testing::Test {
     return out;
   }
 
-  // Every vehicle's samples journaled once each; each map as fused offline from the journal.
-  void expectWholeSessions(int count, ServerProcess& survivor) {
+  // Every vehicle's samples journaled once each; each map, on the server that owns it, as
+  // fused offline from the journal.
+  void expectWholeSessions(int count) {
+    const auto owner = owners();
     for (int i = 0; i < count; ++i) {
       const std::string session = "flight" + std::to_string(i);
       const Sent sent = sentBy(readText(vehicleLog(i)));
@@ -89,7 +91,8 @@ class ClusterTest : public ::testing::Test {
       EXPECT_EQ(journaled.poseCount(), sent.poses) << session;
       EXPECT_EQ(journaled.cloudCount(), sent.clouds) << session;
       EXPECT_EQ(journaled.repeated, 0u) << session;
-      expectMapIsTheJournals(session, survivor, *stored, **journal);
+      ASSERT_TRUE(servers_.contains(owner.at(session))) << owner.at(session);
+      expectMapIsTheJournals(session, *servers_[owner.at(session)], *stored, **journal);
     }
   }
 
@@ -175,7 +178,85 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
     ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
         << readText(vehicleLog(static_cast<int>(i)));
   }
-  expectWholeSessions(4, *servers_[survivor]);
+  expectWholeSessions(4);
+}
+
+// A server paused past its lease (SIGSTOP) loses its sessions to the other; woken (SIGCONT),
+// it commits nothing with its old epoch, says it was fenced, and unloads them; the sessions
+// end whole on their new owner.
+TEST_F(ClusterTest, AStaleOwnerIsFencedAndCommitsNothing) {
+  startServer(kFencedDomain, "a");
+  startServer(kFencedDomain, "b");
+  for (int i = 0; i < 2; ++i) startVehicle(kFencedDomain, i, 250);
+  ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
+  std::this_thread::sleep_for(5s);
+  const std::string stale = owners()["flight0"];
+  const std::string other = stale == "a" ? "b" : "a";
+  ::kill(servers_[stale]->process().pid(), SIGSTOP);
+  ASSERT_TRUE(waitUntil(30s, [&] {
+    for (const auto& [session, owner] : owners()) {
+      if (owner != other) return false;
+    }
+    return true;
+  }));
+  std::this_thread::sleep_for(2s);  // the new owner takes samples
+  ::kill(servers_[stale]->process().pid(), SIGCONT);
+  ASSERT_TRUE(waitUntil(20s, [&] {
+    return servers_[stale]->get("/api/sessions").body.rfind("[]", 0) == 0;
+  })) << servers_[stale]->get("/api/sessions").body;
+  const std::string log = servers_[stale]->log();
+  EXPECT_NE(log.find("fenced"), std::string::npos) << log;
+  for (size_t i = 0; i < vehicles_.size(); ++i) {
+    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
+        << readText(vehicleLog(static_cast<int>(i)));
+  }
+  // Rows written with an epoch that was no longer the session's: none.
+  EXPECT_EQ(query("SELECT count(*) FROM sm_journal j JOIN sm_sessions s ON s.id = j.session "
+                  "WHERE j.epoch < s.epoch AND j.committed_at >= s.owned_since"),
+            "0\n");
+  EXPECT_TRUE(servers_[stale]->process().running()) << "fenced, not dead";
+  expectWholeSessions(2);
+}
+
+// The database killed under load and started again: the servers stay up, refuse samples
+// meanwhile (the vehicles keep them), and take them again by themselves.
+TEST_F(ClusterTest, TheDatabaseRestartedUnderLoadLosesNothing) {
+  startServer(kDatabaseDomain, "a");
+  startServer(kDatabaseDomain, "b");
+  for (int i = 0; i < 2; ++i) startVehicle(kDatabaseDomain, i, 300);
+  ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
+  std::this_thread::sleep_for(6s);
+  db_->kill9();
+  std::this_thread::sleep_for(5s);
+  std::string why;
+  ASSERT_TRUE(db_->restart(&why)) << why;
+  for (size_t i = 0; i < vehicles_.size(); ++i) {
+    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
+        << readText(vehicleLog(static_cast<int>(i)));
+  }
+  for (const auto& [id, server] : servers_) {
+    EXPECT_TRUE(server->process().running()) << id;
+    EXPECT_EQ(server->get("/healthz").status, 200) << id << ": " << server->log();
+  }
+  expectWholeSessions(2);
+}
+
+// A --cluster URL that cannot be reached, or whose credentials are refused, is a clear error
+// at start.
+TEST_F(ClusterTest, AnUnreachableOrRefusedDatabaseIsAClearErrorAtStart) {
+  const std::string server = std::string(STEREOMAP_BIN_DIR) + "/stereomap-server";
+  const auto unreachable = runTool(
+      {server, "--http", "127.0.0.1:0", "--cluster",
+       "postgresql://stereomap@127.0.0.1:" + std::to_string(unusedPort()) + "/postgres"},
+      30s);
+  EXPECT_EQ(unreachable.exit_code, 1) << unreachable.output;
+  EXPECT_NE(unreachable.output.find("cannot be reached"), std::string::npos) << unreachable.output;
+  const auto refused = runTool(
+      {server, "--http", "127.0.0.1:0", "--cluster", db_->urlWithPassword("not-the-password")},
+      30s);
+  EXPECT_EQ(refused.exit_code, 1) << refused.output;
+  EXPECT_NE(refused.output.find("refused the credentials"), std::string::npos) << refused.output;
+  EXPECT_EQ(refused.output.find("not-the-password"), std::string::npos) << "the password is shown";
 }
 
 }  // namespace

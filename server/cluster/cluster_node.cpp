@@ -151,18 +151,21 @@ void ClusterNode::reconcile() {
   const auto now = Clock::now();
   if (now - last_renewal_ >= db_.options().lease / 4) {
     auto renewed = db_.renewLease();
-    if (renewed) {
+    if (renewed || renewed.error().code == common::ErrorCode::kConflict) {
       last_renewal_ = now;
+      if (!renewed) spdlog::error("cluster: {}", renewed.error().message);
       if (database_down_) spdlog::info("cluster: the database is reachable again");
       database_down_ = false;
-    } else if (renewed.error().code == common::ErrorCode::kConflict) {
-      last_renewal_ = now;
-      spdlog::error("cluster: {}", renewed.error().message);
+      // The store is the database: reachable, it can be written (a sample refused while it
+      // was not would otherwise keep /healthz degraded until the next cloud).
+      server_.reportStoreOk();
     } else {
       if (!database_down_) {
         spdlog::error("cluster: cannot renew this server's lease: {}", renewed.error().message);
       }
       database_down_ = true;
+      server_.reportStoreProblem("the cluster's database cannot be reached: " +
+                                 renewed.error().message);
       return;  // nothing else can be done without the database
     }
   }

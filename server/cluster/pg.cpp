@@ -77,6 +77,23 @@ std::string redactPassword(const std::string& url) {
 
 namespace {
 
+// libpq's messages span lines ("...failed: Connection refused\n\tIs the server running...");
+// logs want one.
+std::string oneLine(std::string text) {
+  std::string out;
+  bool space = false;
+  for (char c : text) {
+    if (c == '\n' || c == '\t' || c == '\r' || c == ' ') {
+      space = !out.empty();
+      continue;
+    }
+    if (space) out += ' ';
+    space = false;
+    out += c;
+  }
+  return out;
+}
+
 pg_conn* open(const std::string& url, std::chrono::seconds timeout) {
   const std::string seconds = std::to_string(std::max<int64_t>(1, timeout.count()));
   // The URL first (expanded), then what we add: a connect timeout, and keepalives so that a
@@ -98,8 +115,7 @@ common::Result<std::unique_ptr<PgConnection>> PgConnection::connect(const std::s
   pg_conn* conn = open(url, timeout);
   if (conn == nullptr) return common::makeError(common::ErrorCode::kUnavailable, "libpq: out of memory");
   if (PQstatus(conn) != CONNECTION_OK) {
-    std::string why = PQerrorMessage(conn);
-    while (!why.empty() && (why.back() == '\n' || why.back() == ' ')) why.pop_back();
+    const std::string why = oneLine(PQerrorMessage(conn));
     PQfinish(conn);
     const bool refused_credentials = why.find("authentication") != std::string::npos ||
                                      why.find("password") != std::string::npos;
@@ -124,8 +140,7 @@ common::Status PgConnection::reconnect() {
   if (conn_ != nullptr) PQfinish(conn_);
   conn_ = open(url_, timeout_);
   if (connected()) return common::Ok{};
-  std::string why = conn_ != nullptr ? PQerrorMessage(conn_) : "out of memory";
-  while (!why.empty() && (why.back() == '\n' || why.back() == ' ')) why.pop_back();
+  const std::string why = oneLine(conn_ != nullptr ? PQerrorMessage(conn_) : "out of memory");
   return common::makeError(common::ErrorCode::kUnavailable,
                            "PostgreSQL at " + redacted_ + " cannot be reached: " + why);
 }
@@ -155,8 +170,7 @@ common::Result<PgResult> PgConnection::exec(std::string_view sql,
   const char* state = raw != nullptr ? PQresultErrorField(raw, PG_DIAG_SQLSTATE) : nullptr;
   last_state_ = state != nullptr ? state : "";
   const char* primary = raw != nullptr ? PQresultErrorField(raw, PG_DIAG_MESSAGE_PRIMARY) : nullptr;
-  std::string why = primary != nullptr ? primary : PQerrorMessage(conn_);
-  while (!why.empty() && (why.back() == '\n' || why.back() == ' ')) why.pop_back();
+  const std::string why = oneLine(primary != nullptr ? primary : PQerrorMessage(conn_));
   common::ErrorCode code = common::ErrorCode::kInvalidArgument;
   if (!connected() || last_state_.rfind("08", 0) == 0 || last_state_.rfind("57P", 0) == 0) {
     code = common::ErrorCode::kUnavailable;  // connection exceptions, an operator's shutdown
