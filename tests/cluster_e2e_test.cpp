@@ -15,9 +15,11 @@
 
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_recovery.hpp"
+#include "tests/support/nginx.hpp"
 #include "tests/support/postgres.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/stream_count.hpp"
+#include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -26,6 +28,27 @@ using namespace std::chrono_literals;
 using Clock = std::chrono::steady_clock;
 
 constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105;
+
+// A viewer connecting through the proxy as the web viewer does (/ws?session=ID): true when a
+// tile of `session` came within `timeout`.
+bool viewerSeesMap(int port, const std::string& session, std::chrono::milliseconds timeout) {
+  const auto deadline = Clock::now() + timeout;
+  WebSocketClient ws(port, "/ws?session=" + session);
+  if (ws.status() != 101) return false;
+  ws.sendText(R"({"type":"hello","protocol":2})");
+  ws.sendText(R"({"type":"subscribe","session":")" + session + R"("})");
+  if (ws.readUntil("\"subscribed\"", timeout).kind != WsMessage::Kind::kText) return false;
+  ws.sendText(R"({"type":"view","id":1,"eye":[0,0,30]})");
+  while (Clock::now() < deadline) {
+    const auto message = ws.read(std::chrono::duration_cast<std::chrono::milliseconds>(
+        deadline - Clock::now()));
+    if (message.kind == WsMessage::Kind::kBinary) return true;
+    if (message.kind == WsMessage::Kind::kClose || message.kind == WsMessage::Kind::kNone) {
+      return false;
+    }
+  }
+  return false;
+}
 
 class ClusterTest : public ::testing::Test {
  protected:
@@ -153,7 +176,24 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
   EXPECT_EQ(per_server["a"], 2);
   EXPECT_EQ(per_server["b"], 2);
 
+  // One URL for operators and viewers: nginx in front of both servers.
+  std::string why;
+  auto nginx = TestNginx::start({"127.0.0.1:" + std::to_string(servers_["a"]->port()),
+                                 "127.0.0.1:" + std::to_string(servers_["b"]->port())},
+                                &why);
+  ASSERT_TRUE(nginx) << why;
   std::this_thread::sleep_for(8s);
+  const auto listed = httpGet(nginx->port(), "/api/sessions");
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_NE(listed.body.find("\"flight" + std::to_string(i) + "\""), std::string::npos)
+        << "every session of the cluster is listed through the proxy: " << listed.body;
+  }
+  for (int i = 0; i < 4; ++i) {
+    const std::string path = "/api/sessions/flight" + std::to_string(i);
+    EXPECT_EQ(httpGet(nginx->port(), path).status, 200) << path << " reaches its owner";
+  }
+  ASSERT_TRUE(viewerSeesMap(nginx->port(), "flight0", 10s)) << nginx->accessLog();
+
   const std::string victim = owners()["flight0"];
   const std::string survivor = victim == "a" ? "b" : "a";
   servers_[victim]->process().kill9();
@@ -170,9 +210,15 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
     return query("SELECT count(DISTINCT session) FROM sm_journal WHERE epoch = 2") == "2\n";
   }, 100ms));
   const double resumed_s = std::chrono::duration<double>(Clock::now() - killed).count();
-  std::printf("failover %.1f s, ingest resumed %.1f s\n", failover_s, resumed_s);
+  // A viewer of the killed server's session, reconnecting through the proxy, sees it again.
+  ASSERT_TRUE(waitUntil(60s, [&] { return viewerSeesMap(nginx->port(), "flight0", 2s); }, 200ms))
+      << nginx->accessLog();
+  const double viewer_s = std::chrono::duration<double>(Clock::now() - killed).count();
+  std::printf("failover %.1f s, ingest resumed %.1f s, viewer back %.1f s\n", failover_s,
+              resumed_s, viewer_s);
   EXPECT_LT(failover_s, 7.0);
   EXPECT_LT(resumed_s, 10.0);
+  EXPECT_LT(viewer_s, 15.0);
 
   for (size_t i = 0; i < vehicles_.size(); ++i) {
     ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)

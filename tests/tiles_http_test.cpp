@@ -92,6 +92,17 @@ TEST(TilesHttp, AnImportedMapIsServedExactlyAtEveryLevel) {
   EXPECT_TRUE(cached.body.empty());
   EXPECT_EQ(server.request("GET", first_tile, "", "If-None-Match: \"other\"\r\n").status, 200);
   EXPECT_EQ(server.get(first_tile).header("Cache-Control"), "no-cache");
+  // The index's versioned URL names this version for good: any cache may keep it; another
+  // version is not served under a versioned URL.
+  const std::string url = index["tiles"][0]["url"];
+  EXPECT_EQ(url, first_tile + "?v=" + etag.substr(1, etag.size() - 2));
+  const auto versioned = server.get(url);
+  EXPECT_EQ(versioned.status, 200);
+  EXPECT_EQ(versioned.body, server.get(first_tile).body);
+  EXPECT_EQ(versioned.header("Cache-Control"), "public, max-age=31536000, immutable");
+  const auto stale = server.get(first_tile + "?v=0-0");
+  EXPECT_EQ(stale.status, 404) << stale.body;
+  EXPECT_EQ(stale.header("Cache-Control"), "no-store");
   // HEAD states the length GET would send, with no body.
   const auto head = server.request("HEAD", first_tile);
   EXPECT_EQ(head.status, 200);

@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include "server/app/run.hpp"
+#include "server/cluster/cluster_admin.hpp"
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_node.hpp"
@@ -29,10 +30,11 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   flags.options.archive = journal->get();
   core::MapServer server(flags.options);
 
-  auto http_server = net::HttpServer::create(http, server, nullptr);
+  // The HTTP port first: with --http ADDRESS:0 it is known only once bound, and the cluster
+  // must know where this server is reached before it is given sessions.
+  cluster::ClusterAdmin admin;
+  auto http_server = net::HttpServer::create(http, server, &admin);
   if (!http_server) return fail(http_server.error());
-  (*http_server)->start();
-  // Registered once it listens: with --http PORT 0 the port is known only now.
   const std::string advertise =
       flags.advertise.empty() ? http.address + ":" + std::to_string((*http_server)->port())
                               : flags.advertise;
@@ -42,13 +44,16 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
        .http = advertise,
        .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000))});
   if (!db) return fail(db.error());
-  auto node = cluster::ClusterNode::start({.default_resolution = flags.options.resolution}, **db,
-                                          **journal, server, participant);
+  admin.attach(**db, advertise);
+  (*http_server)->start();
+  auto node = cluster::ClusterNode::start(
+      {.default_resolution = flags.options.resolution, .admin = &admin}, **db, **journal, server,
+      participant);
   if (!node) return fail(node.error());
   spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
                (*db)->serverId(), cluster::redactPassword(flags.cluster_url), flags.dds.domain_id,
                flags.options.resolution);
-  spdlog::info("viewer: http://{}:{}/ (this server's sessions only; the cluster's proxy has all)",
+  spdlog::info("viewer: http://{}:{}/ (this server; the cluster's proxy routes to every one)",
                http.address, (*http_server)->port());
 
   serveUntilStopped(flags, server, nullptr, **http_server, shutdown);

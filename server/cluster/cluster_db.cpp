@@ -243,6 +243,18 @@ common::Result<std::vector<ServerInfo>> ClusterDb::servers() {
   return out;
 }
 
+common::Result<std::vector<ClusterDb::Placement>> ClusterDb::directory() {
+  auto rows = exec(
+      "SELECT s.id, s.owner, s.epoch, s.resolution, v.http FROM sm_sessions s "
+      "JOIN sm_servers v ON v.id = s.owner WHERE s.state = 'live' AND v.lease_until > now() "
+      "ORDER BY s.id",
+      {});
+  if (!rows) return rows.error();
+  std::vector<Placement> out;
+  for (int i = 0; i < rows->rows(); ++i) out.push_back({ownershipAt(*rows, i), rows->text(i, 4)});
+  return out;
+}
+
 common::Status ClusterDb::release(const Ownership& session, bool closed) {
   auto done = exec(
       "UPDATE sm_sessions SET owner = NULL, state = CASE WHEN $4 THEN 'closed' ELSE state END "

@@ -74,6 +74,12 @@ class ClusterDb {
   // The owner of session `id` (nullopt: no such session, or closed).
   common::Result<std::optional<Ownership>> ownerOf(const std::string& id);
   common::Result<std::vector<ServerInfo>> servers();
+  // Every live session with a live owner: the session, its owner's id and HTTP address.
+  struct Placement {
+    Ownership ownership;
+    std::string http;
+  };
+  common::Result<std::vector<Placement>> directory();
   // Gives up a session this server owns (closed, or its server stopping): no owner until
   // another takes it; refused (kConflict) when the epoch is stale.
   common::Status release(const Ownership& session, bool closed);

@@ -192,6 +192,7 @@ void ClusterNode::reconcile() {
   }
 
   // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
+  if (options_.admin != nullptr) options_.admin->refresh();
   auto owned = db_.owned();
   if (!owned) return;
   std::map<std::string, Ownership> wanted;

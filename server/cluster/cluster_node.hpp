@@ -21,6 +21,7 @@
 #include <thread>
 
 #include "proto/dds.hpp"
+#include "server/cluster/cluster_admin.hpp"
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/core/map_server.hpp"
@@ -31,6 +32,7 @@ namespace stereomap::cluster {
 struct ClusterNodeOptions {
   std::chrono::milliseconds poll{250};  // how often ownership is looked at
   double default_resolution = 0.1;      // for sessions announced without a hint
+  ClusterAdmin* admin = nullptr;        // refreshed every round (the API's directory)
 };
 
 class ClusterNode {

@@ -79,9 +79,19 @@ std::string queryValue(std::string_view target, std::string_view key) {
   return common::queryParameter(target, key).value_or("");
 }
 
-// GET /api/sessions/{id}/tiles and /api/sessions/{id}/tiles/{level}/{key} (FORMAT.md).
+// A tile version's tag, "<map epoch, hex>-<version>": the ETag's text and the `v` of a
+// versioned tile URL. The version alone would repeat after a restart or on another server
+// (versions start again): the map's epoch makes it unique.
+std::string tileTag(uint64_t epoch, uint64_t version) {
+  char tag[48];
+  std::snprintf(tag, sizeof(tag), "%llx-%llu", static_cast<unsigned long long>(epoch),
+                static_cast<unsigned long long>(version));
+  return tag;
+}
+
+// GET /api/sessions/{id}/tiles and /api/sessions/{id}/tiles/{level}/{key}[?v=TAG] (FORMAT.md).
 HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& parts,
-                       std::string_view if_none_match) {
+                       std::string_view target, std::string_view if_none_match) {
   using proto::tiles::kLevels;
   const auto& tiles = session.tiles();
   if (parts.size() == 4) {
@@ -97,7 +107,10 @@ HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& p
                         {"key", info.key.text()},
                         {"version", info.version},
                         {"voxels", info.cells[level]},
-                        {"bytes", bytes}});
+                        {"bytes", bytes},
+                        {"url", "/api/sessions/" + session.id() + "/tiles/" +
+                                    std::to_string(level) + "/" + info.key.text() +
+                                    "?v=" + tileTag(tiles.epoch(), info.version)}});
       }
     }
     const json index = {{"session", session.id()},
@@ -118,15 +131,38 @@ HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& p
   if (!key) return error(400, "a tile key is x_y_z (integers), e.g. 3_-2_0");
   const auto tile = tiles.find(*key);
   if (!tile) return error(404, "no occupied tile " + key->text() + " in this map");
-  // The version alone would repeat after a restart (versions start again): the map's epoch
-  // makes the tag unique.
-  char etag[64];
-  std::snprintf(etag, sizeof(etag), "\"%llx-%llu\"", static_cast<unsigned long long>(tiles.epoch()),
-                static_cast<unsigned long long>(tile->version()));
-  if (if_none_match == "*" || if_none_match.find(etag) != std::string_view::npos) {
-    return HttpAnswer{304, "", "", "", etag};
+  const std::string tag = tileTag(tiles.epoch(), tile->version());
+  const std::string etag = "\"" + tag + "\"";
+  // A versioned URL (the index's `url`) names one version for good: a proxy may keep it
+  // forever. Any other version is not served under it.
+  const auto wanted = common::queryParameter(target, "v");
+  if (wanted && *wanted != tag) {
+    return error(404, "tile " + key->text() + " is no longer at version " + *wanted +
+                          " (now " + tag + "): read the index again");
   }
-  return HttpAnswer{200, "application/octet-stream", *tile->encoded(level), "", etag};
+  if (if_none_match == "*" || if_none_match.find(etag) != std::string_view::npos) {
+    return HttpAnswer{304, "", "", "", etag, wanted.has_value()};
+  }
+  return HttpAnswer{200, "application/octet-stream", *tile->encoded(level), "", etag,
+                    wanted.has_value()};
+}
+
+// GET /api/cluster/route?session=ID: where the cluster's proxy sends a request for the
+// session (header X-Stereomap-Upstream, host:port): its owner, or this server when no live
+// server owns it (or the id is bad), which then answers as for any unknown session.
+HttpAnswer answerRoute(const SessionAdmin* admin, const std::string& session) {
+  const auto self = admin != nullptr ? admin->selfAddress() : std::nullopt;
+  if (!self) return error(404, "this server is not in a cluster (stereomap-server --cluster)");
+  std::optional<std::string> owner;
+  if (isValidId(session)) owner = admin->routeTo(session);
+  const std::string upstream = owner.value_or(*self);
+  HttpAnswer answer{200, "application/json",
+                    json{{"session", session}, {"upstream", upstream}, {"owned", owner.has_value()}}
+                            .dump() +
+                        "\n",
+                    ""};
+  answer.headers.emplace_back("X-Stereomap-Upstream", upstream);
+  return answer;
 }
 
 }  // namespace
@@ -136,6 +172,9 @@ std::string sessionListJson(const MapServer& server, const SessionAdmin* admin) 
   for (const auto& session : server.sessions()) list.push_back(sessionObject(session->status()));
   if (admin != nullptr) {
     for (const auto& closed : admin->closedSessions()) list.push_back(sessionObject(closed));
+    for (const auto& remote : admin->remoteSessions()) {
+      if (!server.find(remote.id)) list.push_back(sessionObject(remote));
+    }
   }
   return list.dump();
 }
@@ -177,6 +216,9 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts[0] == "metrics") {
     return HttpAnswer{200, "text/plain; version=0.0.4", server.metricsText(), ""};
   }
+  if (parts.size() == 3 && parts[1] == "cluster" && parts[2] == "route") {
+    return answerRoute(admin, queryValue(target, "session"));
+  }
   if (parts.size() < 2 || parts[1] != "sessions") {
     return error(404, "unknown API path '" + std::string(target) + "'");
   }
@@ -202,7 +244,7 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   if (parts.size() == 3) {
     return HttpAnswer{200, "application/json", sessionObject(session->status()).dump() + "\n", ""};
   }
-  if (parts[3] == "tiles") return answerTiles(*session, parts, if_none_match);
+  if (parts[3] == "tiles") return answerTiles(*session, parts, target, if_none_match);
   if (parts.size() == 4 && parts[3] == "landing") {
     return HttpAnswer{200, "application/json",
                       landingJson(parts[2], session->landingTargets()).dump() + "\n", ""};
@@ -301,6 +343,7 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
     return error(code == common::ErrorCode::kNotFound          ? 404
                  : code == common::ErrorCode::kConflict        ? 409
                  : code == common::ErrorCode::kInvalidArgument ? 400
+                 : code == common::ErrorCode::kUnavailable     ? 503
                                                                : 500,
                  done.error().message);
   }

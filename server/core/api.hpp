@@ -6,6 +6,8 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
+#include <vector>
 
 #include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
@@ -19,6 +21,10 @@ struct HttpAnswer {
   std::string body;
   std::string filename;  // when set: offered as a download with this name
   std::string etag;      // when set: sent as ETag, with Cache-Control no-cache (revalidate)
+  // With an ETag: the body at this URL never changes (a versioned tile), so any cache may keep
+  // it for good: Cache-Control public, immutable.
+  bool immutable = false;
+  std::vector<std::pair<std::string, std::string>> headers;  // more response headers
 };
 
 // True for the paths answerApi() serves (/healthz, /metrics, /api/...).

@@ -94,6 +94,7 @@ struct SessionStatus {
   double refusion_seconds = 0;      // the last re-fusion, from its start to the swap
   std::string refusion_error;       // why the last re-fusion failed ("" when it did not)
   uint64_t trajectory_version = 0;  // bumps when poses already shown change (a correction)
+  std::string server;  // in a cluster: the address of the server that serves it ("": this one)
 };
 
 // "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".

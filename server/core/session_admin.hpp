@@ -4,6 +4,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -43,6 +44,19 @@ class SessionAdmin {
   // as long as fusing those frames. kNotFound: no such session in the store.
   virtual common::Result<std::shared_ptr<Session>> replay(const std::string& id,
                                                           int64_t until_ns) const = 0;
+
+  // In a cluster (server/cluster): the sessions other servers serve, for listings (state
+  // live or ended, `server` naming where; their counts are that server's to tell). None on a
+  // single server.
+  virtual std::vector<SessionStatus> remoteSessions() const { return {}; }
+  // In a cluster: the address (host:port) of the server that serves session `id`, for the
+  // proxy's routing (GET /api/cluster/route); nullopt on a single server, or when no live
+  // server serves it.
+  virtual std::optional<std::string> routeTo(const std::string& /*id*/) const {
+    return std::nullopt;
+  }
+  // In a cluster: this server's own address (routes for unknown sessions go there).
+  virtual std::optional<std::string> selfAddress() const { return std::nullopt; }
 };
 
 }  // namespace stereomap::core

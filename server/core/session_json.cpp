@@ -41,6 +41,7 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                      {"refusions", s.refusions},
                      {"refusing", s.refusing},
                      {"refusion_error", textOrNull(s.refusion_error)}});
+  if (!s.server.empty()) object["server"] = s.server;
   return object;
 }
 

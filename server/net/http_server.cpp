@@ -277,10 +277,14 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     if (!answer.content_type.empty()) response->set(http::field::content_type, answer.content_type);
     if (answer.etag.empty()) {
       response->set(http::field::cache_control, "no-store");
+    } else if (answer.immutable) {  // a versioned tile: never changes at its URL
+      response->set(http::field::etag, answer.etag);
+      response->set(http::field::cache_control, "public, max-age=31536000, immutable");
     } else {  // tiles: any cache may keep them, asking whether they are still current
       response->set(http::field::etag, answer.etag);
       response->set(http::field::cache_control, "no-cache");
     }
+    for (const auto& [name, value] : answer.headers) response->set(name, value);
     if (!answer.filename.empty()) {
       response->set(http::field::content_disposition,
                     "inline; filename=\"" + answer.filename + "\"");
