@@ -21,6 +21,9 @@
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/fusion/octomap_log.hpp"
+#include "server/cluster/cluster_db.hpp"
+#include "server/cluster/pg.hpp"
+#include "server/store/map_import.hpp"
 #include "server/store/store_admin.hpp"
 
 namespace {
@@ -202,6 +205,7 @@ struct Args {
   std::string map_file;
   std::string first, second, into;
   std::vector<double> transform;
+  std::string cluster_url;
 };
 
 // A subcommand: whether it writes (it needs the store to itself) and what it does.
@@ -305,6 +309,9 @@ int mergeSessions(Store& store, Args& a) {
 std::vector<Command> addCommands(CLI::App& app, Args& a) {
   app.require_subcommand(1);
   app.add_option("--store", a.root, "The store directory")->capture_default_str();
+  app.add_option("--cluster", a.cluster_url,
+                 "A cluster's PostgreSQL database (libpq URL, as stereomap-server --cluster) "
+                 "instead of a store directory: import only, for now");
   app.add_option("--resolution", a.resolution,
                  "Voxel edge (m) for sessions whose directory does not record one")
       ->check(CLI::Range(0.01, 2.0))
@@ -379,6 +386,29 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
   return commands;
 }
 
+// With --cluster: the cluster's database instead of a store folder. Only import for now.
+int runInCluster(const Command& command, const Args& a) {
+  if (command.app->get_name() != "import") {
+    return fail("with --cluster only import is offered yet (" + command.app->get_name() +
+                " works on a single server's store)");
+  }
+  std::printf("reading and checking %s...\n", a.map_file.c_str());
+  std::fflush(stdout);
+  auto map = store::readImportableMap(a.map_file);
+  if (!map) return fail(map.error().message);
+  auto db = cluster::PgConnection::connect(a.cluster_url);
+  if (!db) return fail(db.error().message);
+  if (auto imported = cluster::importSession(**db, a.id, map->resolution, map->ot); !imported) {
+    return fail(imported.error().message);
+  }
+  std::printf(
+      "imported %s as session '%s' of the cluster at %s: %g m, %.1f MB; a live server serves it "
+      "within a second\n",
+      a.map_file.c_str(), a.id.c_str(), (*db)->redactedUrl().c_str(), map->resolution,
+      static_cast<double>(map->ot.size()) / 1e6);
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -397,6 +427,7 @@ int main(int argc, char** argv) {
   if (command.app->get_name() == "delete" && !args.yes) {
     return fail("delete is permanent: add --yes to delete '" + args.id + "'");
   }
+  if (!args.cluster_url.empty()) return runInCluster(command, args);
   auto store = openStore(args.root, args.resolution, command.writes);
   if (!store) return fail(store.error().message);
   return command.run(*store, args);

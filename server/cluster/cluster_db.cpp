@@ -104,6 +104,34 @@ common::Status migrateSchema(PgConnection& db) {
   return common::Ok{};
 }
 
+common::Status importSession(PgConnection& db, const std::string& id, double resolution,
+                             const std::string& ot) {
+  if (!core::isValidId(id)) {
+    return makeError(ErrorCode::kInvalidArgument, "session id '" + id.substr(0, 80) +
+                                                      "' is not 1-64 of [A-Za-z0-9._-]");
+  }
+  if (auto migrated = migrateSchema(db); !migrated) return migrated.error();
+  if (auto begun = db.exec("BEGIN"); !begun) return begun.error();
+  auto fail = [&](const common::Error& error) -> common::Status {
+    (void)db.exec("ROLLBACK");
+    return error;
+  };
+  auto session = db.exec(
+      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
+      "VALUES ($1, NULL, 1, $2, 'live') ON CONFLICT (id) DO NOTHING",
+      {id, resolution});
+  if (!session) return fail(session.error());
+  if (session->affected() == 0) {
+    return fail(makeError(ErrorCode::kConflict, "session '" + id + "' already exists"));
+  }
+  auto snapshot = db.exec(
+      "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, 0, 1, $2)",
+      {id, PgParam::bytes(ot)});
+  if (!snapshot) return fail(snapshot.error());
+  if (auto committed = db.exec("COMMIT"); !committed) return fail(committed.error());
+  return common::Ok{};
+}
+
 common::Result<std::unique_ptr<ClusterDb>> ClusterDb::open(const ClusterOptions& given) {
   ClusterOptions options = given;
   if (options.server_id.empty()) options.server_id = madeUpServerId();

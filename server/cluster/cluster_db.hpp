@@ -96,6 +96,13 @@ class ClusterDb {
   std::unique_ptr<PgConnection> db_;
 };
 
+// Makes a map (OctoMap's full format) a new live session of the cluster: its snapshot of
+// label 0 and no journal; the least-loaded live server takes it within a round of its
+// control loop (an orphan: no owner yet). kConflict when the session exists. One
+// transaction: a failure leaves nothing.
+common::Status importSession(PgConnection& db, const std::string& id, double resolution,
+                             const std::string& ot);
+
 // Creates the cluster's tables, functions and triggers when missing (idempotent; serialised
 // between servers by an advisory lock).
 common::Status migrateSchema(PgConnection& db);

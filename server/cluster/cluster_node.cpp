@@ -231,6 +231,7 @@ void ClusterNode::serve(const Ownership& owned) {
   const uint64_t last_number = stored->last_number;
   const uint64_t unreadable = stored->unreadable;
   const uint64_t snapshot_number = stored->snapshot_number;
+  const bool has_snapshot = !stored->snapshot.empty();
   size_t frames = 0, poses = 0;
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
@@ -257,12 +258,11 @@ void ClusterNode::serve(const Ownership& owned) {
     std::lock_guard lock(mutex_);
     served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
   }
-  spdlog::info(
-      "session '{}' served here (epoch {}): {} frames ({} up to record {} from a snapshot), {} "
-      "poses recovered in {:.2f} s{}",
-      owned.session, owned.epoch, frames, snapshot_number > 0 ? "those" : "none", snapshot_number,
-      poses, common::msSince(started) / 1000,
-      unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
+  spdlog::info("session '{}' served here (epoch {}): {} frames and {} poses recovered{} in {:.2f} s{}",
+               owned.session, owned.epoch, frames, poses,
+               has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
+               common::msSince(started) / 1000,
+               unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
 }
 
 void ClusterNode::unserve(const std::string& session, const std::string& why) {

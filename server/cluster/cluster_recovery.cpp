@@ -21,7 +21,7 @@ common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
   const uint64_t newest_correction = store::replayPosesAndCorrections(
       server, kept, std::numeric_limits<int64_t>::max(), poses);
   uint64_t covered_up_to = 0;
-  if (stored.snapshot_number > 0 && stored.snapshot_number >= newest_correction) {
+  if (!stored.snapshot.empty() && stored.snapshot_number >= newest_correction) {
     std::istringstream ot(stored.snapshot);
     if (auto restored = session->restore(ot, stored.snapshot_number); restored) {
       covered_up_to = stored.snapshot_number;

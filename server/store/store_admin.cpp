@@ -21,6 +21,7 @@
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
+#include "server/store/map_import.hpp"
 #include "server/store/replay.hpp"
 
 namespace stereomap::store {
@@ -668,19 +669,9 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
     return makeError(ErrorCode::kConflict, "session '" + id + "' already exists");
   }
   // The whole file is read and checked before anything is written.
-  std::ifstream in(file, std::ios::binary);
-  if (!in) return makeError(ErrorCode::kNotFound, "cannot read " + file.string());
-  auto map = fusion::OccupancyMap::load(in);
-  if (!map) return makeError(map.error().code, file.string() + ": " + map.error().message);
-  const double resolution = (*map)->resolution();
-  if (resolution < 0.01 || resolution > 2.0) {
-    return makeError(ErrorCode::kInvalidArgument,
-                     file.string() + ": resolution " + std::to_string(resolution) +
-                         " m is outside what the server fuses (0.01 .. 2 m)");
-  }
-  std::ostringstream ot;
-  if (!(*map)->writeFull(ot)) return makeError(ErrorCode::kIo, "cannot convert the map");
-  map->reset();
+  auto map = readImportableMap(file);
+  if (!map) return map.error();
+  const double resolution = map->resolution;
 
   const fs::path staging = root_ / (".import-" + id + "-" + std::to_string(common::nowNs()));
   fs::create_directories(staging, ec);
@@ -690,7 +681,7 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
                makeError(ErrorCode::kIo, "cannot create " + staging.string() + ": " + ec.message()))
          : common::writeFileAtomically(staging / kMetaName, meta.dump() + "\n");
   if (written) written = common::writeFileAtomically(staging / kClosedMarker, "");
-  if (written) written = common::writeFileAtomically(snapshotPath(staging, 0), ot.str());
+  if (written) written = common::writeFileAtomically(snapshotPath(staging, 0), map->ot);
   if (written) {
     auto journal = Journal::open(staging / kJournalName);  // empty: no frames, no poses
     if (!journal) written = journal.error();

@@ -115,6 +115,72 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
   return reply;
 }
 
+HttpConnection::~HttpConnection() {
+  if (fd_ >= 0) ::close(fd_);
+}
+
+bool HttpConnection::connect() {
+  if (fd_ >= 0) ::close(fd_);
+  pending_.clear();
+  fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
+  if (fd_ < 0) return false;
+  timeval timeout{60, 0};
+  setsockopt(fd_, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(static_cast<uint16_t>(port_));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
+    ::close(fd_);
+    fd_ = -1;
+    return false;
+  }
+  return true;
+}
+
+HttpReply HttpConnection::get(const std::string& path) {
+  const std::string request = "GET " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n";
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    if (fd_ < 0 && !connect()) return {};
+    if (::send(fd_, request.data(), request.size(), MSG_NOSIGNAL) !=
+        static_cast<ssize_t>(request.size())) {
+      ::close(fd_);
+      fd_ = -1;
+      continue;
+    }
+    char buffer[65536];
+    size_t header_end = std::string::npos;
+    while ((header_end = pending_.find("\r\n\r\n")) == std::string::npos) {
+      const ssize_t n = ::recv(fd_, buffer, sizeof(buffer), 0);
+      if (n <= 0) break;
+      pending_.append(buffer, static_cast<size_t>(n));
+    }
+    if (header_end == std::string::npos) {  // closed by the server: once more, anew
+      ::close(fd_);
+      fd_ = -1;
+      continue;
+    }
+    HttpReply reply;
+    reply.status = pending_.rfind("HTTP/1.1 ", 0) == 0 ? std::atoi(pending_.c_str() + 9) : 0;
+    reply.headers = pending_.substr(0, header_end + 2);
+    const size_t length = static_cast<size_t>(std::atoll(reply.header("Content-Length").c_str()));
+    pending_.erase(0, header_end + 4);
+    while (pending_.size() < length) {
+      const ssize_t n = ::recv(fd_, buffer, sizeof(buffer), 0);
+      if (n <= 0) break;
+      pending_.append(buffer, static_cast<size_t>(n));
+    }
+    reply.body = pending_.substr(0, length);
+    pending_.erase(0, std::min(length, pending_.size()));
+    if (reply.header("Connection") == "close") {
+      ::close(fd_);
+      fd_ = -1;
+    }
+    return reply;
+  }
+  return {};
+}
+
 std::string HttpReply::header(const std::string& name) const {
   auto lower = [](std::string text) {
     for (auto& c : text) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));

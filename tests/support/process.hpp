@@ -62,6 +62,24 @@ HttpReply httpGet(int port, const std::string& path);
 HttpReply httpRequest(int port, const std::string& method, const std::string& path,
                       const std::string& body = "", const std::string& headers = "");
 
+// A keep-alive HTTP/1.1 connection to 127.0.0.1:port for many GETs in a row (load tests:
+// no handshake per request). Answers must carry Content-Length; it connects again after a
+// server closes the connection.
+class HttpConnection {
+ public:
+  explicit HttpConnection(int port) : port_(port) {}
+  ~HttpConnection();
+  HttpConnection(const HttpConnection&) = delete;
+  HttpConnection& operator=(const HttpConnection&) = delete;
+  HttpReply get(const std::string& path);
+
+ private:
+  bool connect();
+  int port_ = 0;
+  int fd_ = -1;
+  std::string pending_;  // bytes read past the previous answer
+};
+
 // Calls `done` until it returns true or `timeout` passes; true when it did.
 bool waitUntil(std::chrono::milliseconds timeout, const std::function<bool()>& done,
                std::chrono::milliseconds step = std::chrono::milliseconds(200));
