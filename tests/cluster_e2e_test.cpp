@@ -18,11 +18,8 @@
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_recovery.hpp"
 #include "testing/data.hpp"
-#include "tests/support/nginx.hpp"
-#include "tests/support/postgres.hpp"
-#include "tests/support/server_fixture.hpp"
+#include "tests/support/cluster_harness.hpp"
 #include "tests/support/stream_count.hpp"
-#include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -33,70 +30,27 @@ using Clock = std::chrono::steady_clock;
 constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105,
               kTilesDomain = 106;
 
-// A viewer connecting through the proxy as the web viewer does (/ws?session=ID): true when a
-// tile of `session` came within `timeout`.
-bool viewerSeesMap(int port, const std::string& session, std::chrono::milliseconds timeout) {
-  const auto deadline = Clock::now() + timeout;
-  WebSocketClient ws(port, "/ws?session=" + session);
-  if (ws.status() != 101) return false;
-  ws.sendText(R"({"type":"hello","protocol":2})");
-  ws.sendText(R"({"type":"subscribe","session":")" + session + R"("})");
-  if (ws.readUntil("\"subscribed\"", timeout).kind != WsMessage::Kind::kText) return false;
-  ws.sendText(R"({"type":"view","id":1,"eye":[0,0,30]})");
-  while (Clock::now() < deadline) {
-    const auto message = ws.read(std::chrono::duration_cast<std::chrono::milliseconds>(
-        deadline - Clock::now()));
-    if (message.kind == WsMessage::Kind::kBinary) return true;
-    if (message.kind == WsMessage::Kind::kClose || message.kind == WsMessage::Kind::kNone) {
-      return false;
-    }
-  }
-  return false;
-}
-
 class ClusterTest : public ::testing::Test {
  protected:
   void SetUp() override {
     std::string why;
-    db_ = TestPostgres::start(&why);
-    if (!db_) GTEST_SKIP() << why;
-    dir_ = makeTempDir("stereomap-cluster-test");
+    cluster_ = ClusterHarness::start(&why);
+    if (!cluster_) GTEST_SKIP() << why;
   }
-  void TearDown() override {
-    vehicles_.clear();
-    servers_.clear();
-    db_.reset();
-    std::error_code ec;
-    std::filesystem::remove_all(dir_, ec);
-  }
+  void TearDown() override { cluster_.reset(); }
 
   ServerProcess& startServer(int domain, const std::string& id) {
-    servers_[id] = std::make_unique<ServerProcess>(
-        domain, std::vector<std::string>{"--cluster", db_->url(), "--server-id", id, "--lease",
-                                         "2"});
-    return *servers_[id];
+    return cluster_->startServer(domain, id);
   }
-  // Vehicle `i` flying session flight<i> for `frames` frames at 10 Hz.
-  void startVehicle(int domain, int i, int frames) {
-    const std::string session = "flight" + std::to_string(i);
-    vehicles_.push_back(std::make_unique<ChildProcess>(
-        userVehicleArgs(domain, session, frames, "memory",
-                        {"--vehicle", "v" + std::to_string(i), "--flush-timeout", "90"}),
-        vehicleLog(i)));
-  }
-  std::string vehicleLog(int i) const { return dir_ + "/vehicle" + std::to_string(i) + ".log"; }
-
-  // One value of a query (psql, tuples only), "" when it fails.
-  std::string query(const std::string& sql) { return db_->sql(sql).value_or(""); }
-  // session -> owner, of the live sessions.
-  std::map<std::string, std::string> owners() {
-    std::map<std::string, std::string> out;
-    std::istringstream rows(query("SELECT id, coalesce(owner, '') FROM sm_sessions"));
-    for (std::string line; std::getline(rows, line);) {
-      const auto bar = line.find('|');
-      if (bar != std::string::npos) out[line.substr(0, bar)] = line.substr(bar + 1);
-    }
-    return out;
+  void startVehicle(int domain, int i, int frames) { cluster_->startVehicle(domain, i, frames); }
+  std::string vehicleLog(int i) const { return cluster_->vehicleLog(i); }
+  std::string query(const std::string& sql) { return cluster_->query(sql); }
+  std::map<std::string, std::string> owners() { return cluster_->owners(); }
+  void waitForVehicles() {
+    std::string why;
+    ASSERT_TRUE(cluster_->waitForVehicles(
+        std::chrono::duration_cast<std::chrono::seconds>(scaledTimeout(180s)), &why))
+        << why;
   }
 
   // Every vehicle's samples journaled once each; each map, on the server that owns it, as
@@ -106,7 +60,7 @@ class ClusterTest : public ::testing::Test {
     for (int i = 0; i < count; ++i) {
       const std::string session = "flight" + std::to_string(i);
       const Sent sent = sentBy(readText(vehicleLog(i)));
-      auto journal = cluster::ClusterJournal::open(db_->url());
+      auto journal = cluster::ClusterJournal::open(cluster_->db().url());
       ASSERT_TRUE(journal) << journal.error().message;
       auto stored = (*journal)->read(session);
       ASSERT_TRUE(stored) << stored.error().message;
@@ -118,8 +72,8 @@ class ClusterTest : public ::testing::Test {
       EXPECT_EQ(journaled.poseCount(), sent.poses) << session;
       EXPECT_EQ(journaled.cloudCount(), sent.clouds) << session;
       EXPECT_EQ(journaled.repeated, 0u) << session;
-      ASSERT_TRUE(servers_.contains(owner.at(session))) << owner.at(session);
-      expectMapIsTheJournals(session, *servers_[owner.at(session)], *stored, **journal);
+      ASSERT_TRUE(cluster_->servers().contains(owner.at(session))) << owner.at(session);
+      expectMapIsTheJournals(session, cluster_->server(owner.at(session)), *stored, **journal);
     }
   }
 
@@ -161,10 +115,7 @@ class ClusterTest : public ::testing::Test {
     return out;
   }
 
-  std::unique_ptr<TestPostgres> db_;
-  std::string dir_;
-  std::map<std::string, std::unique_ptr<ServerProcess>> servers_;
-  std::vector<std::unique_ptr<ChildProcess>> vehicles_;
+  std::unique_ptr<ClusterHarness> cluster_;
 };
 
 // Two servers, four vehicles in four sessions (two each), one server killed mid-flight: the
@@ -182,10 +133,8 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
 
   // One URL for operators and viewers: nginx in front of both servers.
   std::string why;
-  auto nginx = TestNginx::start({"127.0.0.1:" + std::to_string(servers_["a"]->port()),
-                                 "127.0.0.1:" + std::to_string(servers_["b"]->port())},
-                                &why);
-  ASSERT_TRUE(nginx) << why;
+  ASSERT_TRUE(cluster_->startNginx(&why)) << why;
+  auto* nginx = &cluster_->nginx();
   std::this_thread::sleep_for(8s);
   const auto listed = httpGet(nginx->port(), "/api/sessions");
   for (int i = 0; i < 4; ++i) {
@@ -196,11 +145,11 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
     const std::string path = "/api/sessions/flight" + std::to_string(i);
     EXPECT_EQ(httpGet(nginx->port(), path).status, 200) << path << " reaches its owner";
   }
-  ASSERT_TRUE(viewerSeesMap(nginx->port(), "flight0", 10s)) << nginx->accessLog();
+  ASSERT_TRUE(viewerSeesTiles(nginx->port(), "flight0", 10s)) << nginx->accessLog();
 
   const std::string victim = owners()["flight0"];
   const std::string survivor = victim == "a" ? "b" : "a";
-  servers_[victim]->process().kill9();
+  cluster_->server(victim).process().kill9();
   const auto killed = Clock::now();
   ASSERT_TRUE(waitUntil(30s, [&] {
     for (const auto& [session, owner] : owners()) {
@@ -215,7 +164,7 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
   }, 100ms));
   const double resumed_s = std::chrono::duration<double>(Clock::now() - killed).count();
   // A viewer of the killed server's session, reconnecting through the proxy, sees it again.
-  ASSERT_TRUE(waitUntil(60s, [&] { return viewerSeesMap(nginx->port(), "flight0", 2s); }, 200ms))
+  ASSERT_TRUE(waitUntil(60s, [&] { return viewerSeesTiles(nginx->port(), "flight0", 2s); }, 200ms))
       << nginx->accessLog();
   const double viewer_s = std::chrono::duration<double>(Clock::now() - killed).count();
   std::printf("failover %.1f s, ingest resumed %.1f s, viewer back %.1f s\n", failover_s,
@@ -224,10 +173,7 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
   EXPECT_LT(resumed_s, 10.0);
   EXPECT_LT(viewer_s, 15.0);
 
-  for (size_t i = 0; i < vehicles_.size(); ++i) {
-    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
-        << readText(vehicleLog(static_cast<int>(i)));
-  }
+  waitForVehicles();
   expectWholeSessions(4);
 }
 
@@ -242,7 +188,7 @@ TEST_F(ClusterTest, AStaleOwnerIsFencedAndCommitsNothing) {
   std::this_thread::sleep_for(5s);
   const std::string stale = owners()["flight0"];
   const std::string other = stale == "a" ? "b" : "a";
-  ::kill(servers_[stale]->process().pid(), SIGSTOP);
+  ::kill(cluster_->server(stale).process().pid(), SIGSTOP);
   ASSERT_TRUE(waitUntil(30s, [&] {
     for (const auto& [session, owner] : owners()) {
       if (owner != other) return false;
@@ -250,21 +196,20 @@ TEST_F(ClusterTest, AStaleOwnerIsFencedAndCommitsNothing) {
     return true;
   }));
   std::this_thread::sleep_for(2s);  // the new owner takes samples
-  ::kill(servers_[stale]->process().pid(), SIGCONT);
+  ::kill(cluster_->server(stale).process().pid(), SIGCONT);
+  // Unloaded: it answers for neither session any more (its listing names their new server).
   ASSERT_TRUE(waitUntil(20s, [&] {
-    return servers_[stale]->get("/api/sessions").body.rfind("[]", 0) == 0;
-  })) << servers_[stale]->get("/api/sessions").body;
-  const std::string log = servers_[stale]->log();
+    return cluster_->server(stale).get("/api/sessions/flight0").status == 404 &&
+           cluster_->server(stale).get("/api/sessions/flight1").status == 404;
+  })) << cluster_->server(stale).get("/api/sessions").body;
+  const std::string log = cluster_->server(stale).log();
   EXPECT_NE(log.find("fenced"), std::string::npos) << log;
-  for (size_t i = 0; i < vehicles_.size(); ++i) {
-    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
-        << readText(vehicleLog(static_cast<int>(i)));
-  }
+  waitForVehicles();
   // Rows written with an epoch that was no longer the session's: none.
   EXPECT_EQ(query("SELECT count(*) FROM sm_journal j JOIN sm_sessions s ON s.id = j.session "
                   "WHERE j.epoch < s.epoch AND j.committed_at >= s.owned_since"),
             "0\n");
-  EXPECT_TRUE(servers_[stale]->process().running()) << "fenced, not dead";
+  EXPECT_TRUE(cluster_->server(stale).process().running()) << "fenced, not dead";
   expectWholeSessions(2);
 }
 
@@ -276,15 +221,12 @@ TEST_F(ClusterTest, TheDatabaseRestartedUnderLoadLosesNothing) {
   for (int i = 0; i < 2; ++i) startVehicle(kDatabaseDomain, i, 300);
   ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
   std::this_thread::sleep_for(6s);
-  db_->kill9();
+  cluster_->db().kill9();
   std::this_thread::sleep_for(5s);
   std::string why;
-  ASSERT_TRUE(db_->restart(&why)) << why;
-  for (size_t i = 0; i < vehicles_.size(); ++i) {
-    ASSERT_EQ(vehicles_[i]->waitExit(scaledTimeout(180s)).value_or(-1), 0)
-        << readText(vehicleLog(static_cast<int>(i)));
-  }
-  for (const auto& [id, server] : servers_) {
+  ASSERT_TRUE(cluster_->db().restart(&why)) << why;
+  waitForVehicles();
+  for (const auto& [id, server] : cluster_->servers()) {
     EXPECT_TRUE(server->process().running()) << id;
     EXPECT_EQ(server->get("/healthz").status, 200) << id << ": " << server->log();
   }
@@ -302,7 +244,7 @@ TEST_F(ClusterTest, AnUnreachableOrRefusedDatabaseIsAClearErrorAtStart) {
   EXPECT_EQ(unreachable.exit_code, 1) << unreachable.output;
   EXPECT_NE(unreachable.output.find("cannot be reached"), std::string::npos) << unreachable.output;
   const auto refused = runTool(
-      {server, "--http", "127.0.0.1:0", "--cluster", db_->urlWithPassword("not-the-password")},
+      {server, "--http", "127.0.0.1:0", "--cluster", cluster_->db().urlWithPassword("not-the-password")},
       30s);
   EXPECT_EQ(refused.exit_code, 1) << refused.output;
   EXPECT_NE(refused.output.find("refused the credentials"), std::string::npos) << refused.output;
@@ -319,16 +261,14 @@ TEST_F(ClusterTest, FiftyClientsFetchACampusTwiceAndTheSecondPassIsNginxs) {
   startServer(kTilesDomain, "a");
   startServer(kTilesDomain, "b");
   const auto imported =
-      runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-store", "--cluster", db_->url(),
+      runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-store", "--cluster", cluster_->db().url(),
                "import", campus.string(), "--session", "campus"},
               120s);
   ASSERT_EQ(imported.exit_code, 0) << imported.output;
-  EXPECT_EQ(imported.output.find(db_->url()), std::string::npos) << "the password is shown";
+  EXPECT_EQ(imported.output.find(cluster_->db().url()), std::string::npos) << "the password is shown";
   std::string why;
-  auto nginx = TestNginx::start({"127.0.0.1:" + std::to_string(servers_["a"]->port()),
-                                 "127.0.0.1:" + std::to_string(servers_["b"]->port())},
-                                &why);
-  ASSERT_TRUE(nginx) << why;
+  ASSERT_TRUE(cluster_->startNginx(&why)) << why;
+  auto* nginx = &cluster_->nginx();
   // Taken by a server and restored from its snapshot: every tile listed.
   std::vector<std::string> urls;
   ASSERT_TRUE(waitUntil(60s, [&] {

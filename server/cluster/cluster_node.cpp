@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <limits>
 #include <sstream>
 
@@ -12,6 +13,15 @@
 namespace stereomap::cluster {
 
 using Clock = std::chrono::steady_clock;
+
+namespace {
+
+constexpr const char* kCommitSeconds = "stereomap_cluster_commit_seconds";
+constexpr const char* kCommitted = "stereomap_cluster_committed_samples_total";
+constexpr const char* kCommitGroups = "stereomap_cluster_commit_groups_total";
+constexpr const char* kServed = "stereomap_cluster_sessions_served";
+
+}  // namespace
 
 
 common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
@@ -28,6 +38,13 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     raw->fenced_[session] = why;
     raw->wake_.notify_all();
   });
+  auto& metrics = server.metrics();
+  metrics.describe(kCommitSeconds, "gauge",
+                   "Seconds from a sample's append to its commit in the cluster's database, "
+                   "over the newest 8192 commits");
+  metrics.describe(kCommitted, "counter", "Samples committed to the cluster's database");
+  metrics.describe(kCommitGroups, "counter", "Commits (groups of samples) to the database");
+  metrics.describe(kServed, "gauge", "Sessions this server serves in the cluster");
   node->reconcile();  // what this server owns already (a restart), before the first sample
   node->control_ = std::thread([raw = node.get()] { raw->controlLoop(); });
   node->events_thread_ = std::thread([raw = node.get()] { raw->eventLoop(); });
@@ -191,6 +208,8 @@ void ClusterNode::reconcile() {
     }
   }
 
+  publishMetrics();
+
   // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
   if (options_.admin != nullptr) options_.admin->refresh();
   auto owned = db_.owned();
@@ -218,6 +237,23 @@ void ClusterNode::reconcile() {
     }
     if (!serving) serve(session);
   }
+}
+
+void ClusterNode::publishMetrics() {
+  auto latencies = journal_.commitLatencies();
+  auto& metrics = server_.metrics();
+  if (!latencies.empty()) {
+    for (const auto& [label, q] : {std::pair{"0.5", 0.5}, {"0.99", 0.99}, {"1", 1.0}}) {
+      const auto at = latencies.begin() +
+                      static_cast<std::ptrdiff_t>(q * static_cast<double>(latencies.size() - 1));
+      std::nth_element(latencies.begin(), at, latencies.end());
+      metrics.set(kCommitSeconds, {{"quantile", label}}, *at);
+    }
+  }
+  metrics.set(kCommitted, {}, static_cast<double>(journal_.committedSamples()));
+  metrics.set(kCommitGroups, {}, static_cast<double>(journal_.committedGroups()));
+  std::lock_guard lock(mutex_);
+  metrics.set(kServed, {}, static_cast<double>(served_.size()));
 }
 
 void ClusterNode::serve(const Ownership& owned) {

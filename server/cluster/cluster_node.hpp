@@ -63,6 +63,8 @@ class ClusterNode {
   void eventLoop();
   // One round: the lease, placements, takeovers, and what this server owns now.
   void reconcile();
+  // The commit latencies and counts, and the sessions served, into the server's /metrics.
+  void publishMetrics();
   void serve(const Ownership& session);
   void unserve(const std::string& session, const std::string& why);
   bool sleepFor(std::chrono::milliseconds period);  // false when stopping

@@ -145,6 +145,7 @@ class MapServer {
   // Prometheus text, with per-session gauges refreshed.
   std::string metricsText() const;
   const Metrics& metrics() const { return metrics_; }
+  Metrics& metrics() { return metrics_; }  // for series the server's modes add (cluster)
   const MapServerOptions& options() const { return options_; }
 
  private:

@@ -32,7 +32,7 @@ const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-bu
 const store = new MapStore(kCacheBytes);
 // `bytes`: what this page's connections received, in all.
 const link = { socket: null, connected: false, failures: 0, retryAtMs: null, bytes: 0,
-  received: 0, applied: 0, lastMessageMs: null };
+  received: 0, applied: 0, lastMessageMs: null, routedFor: null };
 // Rates for the status line: the live session's (`sessionId`) poses and clouds taken and its
 // vehicles' link bytes, from its statuses' counts; this page's connection from link.bytes.
 const meters = { sessionId: null, poses: new RateMeter(), clouds: new RateMeter(), linkBytes: new RateMeter(),
@@ -55,10 +55,17 @@ function send(text) {
   if (link.connected) link.socket.send(text);
 }
 
-// Subscribes to the session to show when it is not the one subscribed to.
+// Subscribes to the session to show when it is not the one subscribed to. In a cluster
+// (behind its proxy) a session another server serves (its status names that `server`) needs
+// a connection routed there: /ws?session=ID reaches its owner, so the page connects again.
 function followChoice(again = false) {
   const id = displayedSessionId();
   if (!link.connected || id === null || (store.subscribed?.id === id && !again)) return;
+  if (store.statuses.get(id)?.server && link.routedFor !== id) {
+    link.failures = 0;
+    link.socket.close();
+    return;
+  }
   subscribeError = '';
   store.subscribe(id);
   send(subscribeMessage(id));
@@ -220,7 +227,11 @@ async function receive(data) {
 function connect() {
   const scheme = location.protocol === 'https:' ? 'wss' : 'ws';
   const token = params.get('token');
-  const socket = new WebSocket(`${scheme}://${location.host}/ws`);
+  // The session to show travels in the URL: a cluster's proxy routes the connection to the
+  // server that serves it (a single server ignores it).
+  const id = displayedSessionId();
+  link.routedFor = id;
+  const socket = new WebSocket(`${scheme}://${location.host}/ws${id === null ? '' : `?session=${encodeURIComponent(id)}`}`);
   socket.binaryType = 'arraybuffer';
   link.socket = socket;
   // Tiles decode asynchronously; one chain keeps every message in the order it came.
@@ -241,7 +252,8 @@ function connect() {
   // Also called when connecting failed; the error event carries nothing more useful.
   socket.onclose = (event) => {
     if (event.reason) console.warn(`stereomap: the server closed the connection: ${event.reason}`);
-    const delayMs = Math.min(kRetryMaxMs, kRetryFirstMs * 2 ** link.failures);
+    // At once after closing it to reach another server (followChoice), else backing off.
+    const delayMs = link.failures === 0 && event.wasClean ? 0 : Math.min(kRetryMaxMs, kRetryFirstMs * 2 ** link.failures);
     Object.assign(link, { connected: false, failures: link.failures + 1, retryAtMs: Date.now() + delayMs });
     setTimeout(connect, delayMs);
     updateStatus();

@@ -1,0 +1,60 @@
+// A whole cluster on loopback for tests and stereomap-bench-cluster (issue 39): a throwaway
+// PostgreSQL, stereomap-server --cluster processes, nginx in front of them (config/nginx), sim
+// vehicles; what the database says of owners, and a viewer's view through the proxy.
+#pragma once
+
+#include <chrono>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "tests/support/nginx.hpp"
+#include "tests/support/postgres.hpp"
+#include "tests/support/server_fixture.hpp"
+
+namespace stereomap::testing {
+
+class ClusterHarness {
+ public:
+  // Starts PostgreSQL; nullptr with `why` when it cannot.
+  static std::unique_ptr<ClusterHarness> start(std::string* why);
+  ~ClusterHarness();  // vehicles, nginx, servers, then the database
+
+  // A server named `id` on `domain`, with a lease of `lease_s` seconds.
+  ServerProcess& startServer(int domain, const std::string& id, double lease_s = 2);
+  ServerProcess& server(const std::string& id) { return *servers_.at(id); }
+  std::map<std::string, std::unique_ptr<ServerProcess>>& servers() { return servers_; }
+  // nginx in front of every server started so far.
+  bool startNginx(std::string* why);
+  TestNginx& nginx() { return *nginx_; }
+  TestPostgres& db() { return *db_; }
+  const std::string& dir() const { return dir_; }
+
+  // Vehicle `i` flying session flight<i> as users fly it, `frames` frames at 10 Hz.
+  void startVehicle(int domain, int i, int frames);
+  std::string vehicleLog(int i) const;
+  // Waits for every vehicle to end; false (with its log in `why`) when one failed.
+  bool waitForVehicles(std::chrono::seconds timeout, std::string* why);
+
+  // The live sessions' owners (session -> server id) as the database says.
+  std::map<std::string, std::string> owners();
+  // True once every session is owned by `server`.
+  bool allOwnedBy(const std::string& server);
+  // The output of one statement (psql, tuples only), "" when it fails.
+  std::string query(const std::string& sql);
+
+ private:
+  ClusterHarness() = default;
+  std::unique_ptr<TestPostgres> db_;
+  std::string dir_;
+  std::map<std::string, std::unique_ptr<ServerProcess>> servers_;
+  std::unique_ptr<TestNginx> nginx_;
+  std::vector<std::unique_ptr<ChildProcess>> vehicles_;
+};
+
+// A viewer connecting through the proxy as the web viewer does (/ws?session=ID, hello,
+// subscribe, a view): true when a tile of `session` came within `timeout`.
+bool viewerSeesTiles(int port, const std::string& session, std::chrono::milliseconds timeout);
+
+}  // namespace stereomap::testing
