@@ -1,8 +1,18 @@
 #include "common/worker_pool.hpp"
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <atomic>
 
 namespace stereomap::common {
+
+void runAsBackgroundWork() {
+  // On Linux a nice value is per thread: PRIO_PROCESS with the thread's id.
+  const auto tid = static_cast<id_t>(::syscall(SYS_gettid));
+  (void)::setpriority(PRIO_PROCESS, tid, 10);
+}
 
 // Who runs a task is decided once: a helper or the caller takes it from kWaiting.
 struct WorkerPool::Task {
@@ -26,8 +36,13 @@ struct WorkerPool::Task {
   }
 };
 
-WorkerPool::WorkerPool(unsigned threads) {
-  for (unsigned i = 0; i < std::max(threads, 1u); ++i) threads_.emplace_back([this] { run(); });
+WorkerPool::WorkerPool(unsigned threads, bool background) {
+  for (unsigned i = 0; i < std::max(threads, 1u); ++i) {
+    threads_.emplace_back([this, background] {
+      if (background) runAsBackgroundWork();
+      run();
+    });
+  }
 }
 
 WorkerPool::~WorkerPool() {

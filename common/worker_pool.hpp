@@ -16,10 +16,18 @@
 
 namespace stereomap::common {
 
+// Lowers the calling thread's scheduling priority (nice +10) for work that can wait: fusion
+// has a queue (and, with a journal, frames deferred to it), while the ingest path's journal
+// commits and acknowledgements are what vehicles wait on. On a busy machine the kernel then
+// runs those first (measured: a cluster server's commit p99, docs/BENCHMARKS.md). Lowering
+// needs no privilege; a failure is ignored (the thread runs at normal priority).
+void runAsBackgroundWork();
+
 class WorkerPool {
  public:
-  // `threads` helpers (at least one).
-  explicit WorkerPool(unsigned threads);
+  // `threads` helpers (at least one); `background`: they run as background work
+  // (runAsBackgroundWork).
+  explicit WorkerPool(unsigned threads, bool background = false);
   ~WorkerPool();  // finishes the tasks under way
   WorkerPool(const WorkerPool&) = delete;
   WorkerPool& operator=(const WorkerPool&) = delete;

@@ -90,7 +90,7 @@ class ClusterTest : public ::testing::Test {
     core::MapServer scratch({.resolution = 0.1, .max_sessions = 1});
     size_t frames = 0, poses = 0;
     ASSERT_TRUE(cluster::recoverSession(scratch, journal, {session, "", 0, 0.1}, stored, frames,
-                                        poses));
+                                        poses, /*wait_until_fused=*/true));
     auto offline_session = scratch.find(session);
     ASSERT_TRUE(offline_session);
     auto offline_ot = offline_session->mapFull();

@@ -28,6 +28,8 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   flags.options.log = journal->get();
   flags.options.snapshots = journal->get();
   flags.options.archive = journal->get();
+  flags.options.snapshot_interval = std::chrono::milliseconds(
+      static_cast<int64_t>((flags.snapshot_interval_s < 0 ? 30 : flags.snapshot_interval_s) * 1000));
   core::MapServer server(flags.options);
 
   // The HTTP port first: with --http ADDRESS:0 it is known only once bound, and the cluster

@@ -92,6 +92,11 @@ void addFlags(CLI::App& app, Flags& f) {
                  "the last one)")
       ->check(CLI::Range(1, 1000000))
       ->capture_default_str();
+  app.add_option("--snapshot-interval", f.snapshot_interval_s,
+                 "Least seconds between a session's snapshots (default: none on a single server; "
+                 "30 in a cluster, where each snapshot is megabytes of database writes that "
+                 "samples' commits wait behind)")
+      ->check(CLI::Range(0.0, 86400.0));
   app.add_option("--vehicle-timeout", f.vehicle_timeout_s,
                  "Seconds without samples after which a live session counts as ended (its "
                  "vehicle stopped unseen, e.g. while the server was down); 0: never")

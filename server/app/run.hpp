@@ -22,6 +22,7 @@ struct Flags {
   std::string web_root;
   std::string token, token_file;
   double vehicle_timeout_s = 60;
+  double snapshot_interval_s = -1;  // -1: the mode's default
   // Cluster mode (empty url: the single server).
   std::string cluster_url;
   std::string server_id;   // empty: made up from the host name and process id

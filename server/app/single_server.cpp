@@ -71,6 +71,8 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   flags.options.log = &journals;
   flags.options.snapshots = &journals;
   flags.options.archive = &journals;
+  flags.options.snapshot_interval = std::chrono::milliseconds(
+      static_cast<int64_t>(std::max(0.0, flags.snapshot_interval_s) * 1000));
   core::MapServer server(flags.options);
   auto admin = store::StoreAdmin::create(flags.store_dir, server, &journals,
                                          {.default_resolution = flags.options.resolution});

@@ -5,6 +5,7 @@
 
 #include <random>
 
+#include "server/cluster/snapshot_codec.hpp"
 #include "server/core/validate.hpp"
 
 namespace stereomap::cluster {
@@ -47,6 +48,9 @@ constexpr const char* kSchema[] = {
          epoch bigint NOT NULL,
          map bytea NOT NULL,
          PRIMARY KEY (session, number)))",
+    // Snapshots come compressed (snapshot_codec.hpp): PostgreSQL's own compression would only
+    // cost CPU.
+    R"(ALTER TABLE sm_snapshots ALTER COLUMN map SET STORAGE EXTERNAL)",
     R"(CREATE OR REPLACE FUNCTION sm_fence() RETURNS trigger LANGUAGE plpgsql AS $$
        DECLARE current bigint;
        BEGIN
@@ -126,7 +130,7 @@ common::Status importSession(PgConnection& db, const std::string& id, double res
   }
   auto snapshot = db.exec(
       "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, 0, 1, $2)",
-      {id, PgParam::bytes(ot)});
+      {id, PgParam::bytes(packSnapshot(ot))});
   if (!snapshot) return fail(snapshot.error());
   if (auto committed = db.exec("COMMIT"); !committed) return fail(committed.error());
   return common::Ok{};

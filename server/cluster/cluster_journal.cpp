@@ -5,6 +5,7 @@
 #include <algorithm>
 
 #include "common/time.hpp"
+#include "server/cluster/snapshot_codec.hpp"
 
 namespace stereomap::cluster {
 
@@ -284,7 +285,7 @@ common::Status ClusterJournal::saveSnapshot(const std::string& session, uint64_t
   auto saved = readerExec(
       "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, $2, $3, $4) "
       "ON CONFLICT (session, number) DO UPDATE SET map = EXCLUDED.map, epoch = EXCLUDED.epoch",
-      {session, journal_number, *epoch, PgParam::bytes(ot)});
+      {session, journal_number, *epoch, PgParam::bytes(packSnapshot(ot))});
   if (!saved) return saved.error();
   // The older ones are no longer needed: recovery starts from the newest.
   auto pruned = readerExec("DELETE FROM sm_snapshots WHERE session = $1 AND number < $2",
@@ -300,8 +301,14 @@ common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
       {session});
   if (!snapshot) return snapshot.error();
   if (snapshot->rows() == 1) {
-    stored.snapshot_number = static_cast<uint64_t>(snapshot->integer(0, 0));
-    stored.snapshot = snapshot->bytes(0, 1);
+    auto ot = unpackSnapshot(snapshot->bytes(0, 1));
+    if (ot) {
+      stored.snapshot_number = static_cast<uint64_t>(snapshot->integer(0, 0));
+      stored.snapshot = std::move(*ot);
+    } else {  // the journal alone then: slower, as complete
+      spdlog::warn("session '{}': its snapshot cannot be read ({}); replaying its whole journal",
+                   session, ot.error().message);
+    }
   }
   for (uint64_t from = 0;;) {
     auto rows = readerExec(

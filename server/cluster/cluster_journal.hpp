@@ -72,7 +72,7 @@ class ClusterJournal : public core::IngestLog,
 
   // Seconds from append() to its commit, the newest kLatencyWindow, for /metrics and the
   // benchmark; and how many samples were committed, in how many groups.
-  static constexpr size_t kLatencyWindow = 8192;
+  static constexpr size_t kLatencyWindow = 32768;
   std::vector<double> commitLatencies() const;
   uint64_t committedSamples() const;
   uint64_t committedGroups() const;

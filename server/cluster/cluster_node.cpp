@@ -41,7 +41,7 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
   auto& metrics = server.metrics();
   metrics.describe(kCommitSeconds, "gauge",
                    "Seconds from a sample's append to its commit in the cluster's database, "
-                   "over the newest 8192 commits");
+                   "over the newest 32768 commits");
   metrics.describe(kCommitted, "counter", "Samples committed to the cluster's database");
   metrics.describe(kCommitGroups, "counter", "Commits (groups of samples) to the database");
   metrics.describe(kServed, "gauge", "Sessions this server serves in the cluster");
@@ -271,7 +271,8 @@ void ClusterNode::serve(const Ownership& owned) {
   size_t frames = 0, poses = 0;
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
-  if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses); !recovered) {
+  if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses,
+                                      /*wait_until_fused=*/false); !recovered) {
     spdlog::error("session '{}': cannot recover it: {}", owned.session,
                   recovered.error().message);
     server_.unload(owned.session);

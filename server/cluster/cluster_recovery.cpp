@@ -11,7 +11,7 @@ namespace stereomap::cluster {
 
 common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
                               const Ownership& owned, StoredSession& stored, size_t& frames,
-                              size_t& poses) {
+                              size_t& poses, bool wait_until_fused) {
   auto created = server.createSession(owned.session, owned.resolution, /*read_only=*/false);
   if (!created) return created.error();
   const auto& session = *created;
@@ -51,7 +51,7 @@ common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
         });
     if (!again) return again.error();
   }
-  session->waitUntilIdle();
+  if (wait_until_fused) session->waitUntilIdle();
   return common::Ok{};
 }
 

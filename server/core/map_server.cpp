@@ -32,8 +32,9 @@ constexpr double kMaxPlausibleLatencyS = 30.0;
 
 MapServer::MapServer(const MapServerOptions& options)
     : options_(options),
-      pool_(std::make_shared<common::WorkerPool>(std::max(1u, std::thread::hardware_concurrency()) -
-                                                 1)) {
+      // Fusion is background work: on a busy machine samples' journaling goes first.
+      pool_(std::make_shared<common::WorkerPool>(
+          std::max(1u, std::thread::hardware_concurrency()) - 1, /*background=*/true)) {
   metrics_.describe(kReceived, "counter", "DDS samples received, by topic");
   metrics_.describe(kAccepted, "counter", "DDS samples that passed validation, by topic");
   metrics_.describe(kRejected, "counter", "DDS samples rejected, by topic and reason");
@@ -103,6 +104,7 @@ Session::Options MapServer::sessionOptions(const std::string& id, double resolut
   }
   if (options_.snapshots != nullptr && snapshots) {
     session_options.snapshot_every = options_.snapshot_every;
+    session_options.snapshot_interval = options_.snapshot_interval;
     session_options.on_snapshot = [sink = options_.snapshots, id](uint64_t journal_number,
                                                                   const std::string& ot) {
       return sink->saveSnapshot(id, journal_number, ot);

@@ -80,6 +80,7 @@ struct MapServerOptions {
   SnapshotSink* snapshots = nullptr;  // not owned; nullptr: no snapshots
   FrameArchive* archive = nullptr;    // not owned; nullptr: corrections never re-fuse a map
   size_t snapshot_every = 100;        // frames between snapshots
+  std::chrono::milliseconds snapshot_interval{0};  // and at least this long (Session::Options)
 };
 
 // A frame as fusion takes it (the cloud decoded, the pose as sent), or the reason it is not

@@ -1,5 +1,7 @@
 #include "server/core/session.hpp"
 
+#include "common/worker_pool.hpp"
+
 #include <algorithm>
 #include <chrono>
 
@@ -387,6 +389,8 @@ bool Session::endIfSilent(int64_t now_ns, int64_t timeout_ns) {
 }
 
 void Session::run() {
+  // Fusion can wait (its queue, frames deferred to the journal); the ingest path cannot.
+  common::runAsBackgroundWork();
   for (;;) {
     FusionJob job;
     {
@@ -486,6 +490,11 @@ void Session::fuseDeferred(std::set<uint64_t> numbers) {
 
 void Session::snapshotIfDue(uint64_t fused) {
   if (!snapshot_writer_.joinable() || fused < snapshot_due_) return;
+  const auto now = std::chrono::steady_clock::now();
+  if (options_.snapshot_interval.count() > 0 && last_snapshot_.time_since_epoch().count() != 0 &&
+      now - last_snapshot_ < options_.snapshot_interval) {
+    return;
+  }
   {
     // Deferred frames are not in the map yet: a snapshot now would claim to hold them.
     std::lock_guard lock(queue_mutex_);
@@ -503,6 +512,7 @@ void Session::snapshotIfDue(uint64_t fused) {
     snapshot_wanted_ = true;
   }
   snapshot_due_ = fused + options_.snapshot_every;
+  last_snapshot_ = now;
   snapshot_changed_.notify_one();
 }
 

@@ -15,6 +15,7 @@
 
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
@@ -111,6 +112,9 @@ class Session {
     // on_snapshot runs on a thread of its own while fusion goes on; a snapshot still being
     // written when the next one is due delays that one to the next frame.
     size_t snapshot_every = 0;
+    // And at least this long after the previous one (a cluster's snapshots are megabytes of
+    // database writes that commits wait behind; docs/BENCHMARKS.md). 0: no floor.
+    std::chrono::milliseconds snapshot_interval{0};
     std::function<common::Status(uint64_t journal_number, const std::string& ot)> on_snapshot;
     std::shared_ptr<common::WorkerPool> pool;  // fusion's helper threads; null: its own
     // Reads the session's journaled frames numbered in (after, up_to] again, in order, as
@@ -243,6 +247,7 @@ class Session {
   tiles::TileSet tiles_;        // written by the worker only
   fusion::MapChanges changes_;  // the worker's scratch
   uint64_t snapshot_due_ = 0;   // fused-frame count at which the next snapshot is due (worker)
+  std::chrono::steady_clock::time_point last_snapshot_{};  // when one was last asked (worker)
   std::mutex snapshot_mutex_;
   std::condition_variable snapshot_changed_;
   bool snapshot_wanted_ = false, snapshot_writing_ = false, snapshot_stopping_ = false;

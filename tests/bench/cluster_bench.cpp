@@ -12,7 +12,7 @@
 //     through nginx twice; the second pass's share of nginx cache hits (H).
 //   - load: virtual vehicles replaying a recorded thinned stream (poses and clouds as a sim
 //     vehicle sends them) at --rate samples/s for --seconds into both servers: the servers'
-//     commit p99 (their /metrics, the newest 8192 commits) and the rate committed (R, rows in
+//     commit p99 (their /metrics, the newest 32768 commits) and the rate committed (R, rows in
 //     the database during the window).
 // The last line is the figure line.
 //
@@ -331,10 +331,17 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
     f.rate = span > 0 ? rows / span : -1;
   }
   for (const auto& [id, server] : cluster.servers()) {
-    const double p99 = testing::seriesValue(server->get("/metrics").body,
-                                            "stereomap_cluster_commit_seconds{quantile=\"0.99\"}");
+    const std::string metrics = server->get("/metrics").body;
+    auto series = [&](const std::string& name) { return testing::seriesValue(metrics, name); };
+    const double p99 = series("stereomap_cluster_commit_seconds{quantile=\"0.99\"}");
     f.commit_p99_ms = std::max(f.commit_p99_ms, p99 * 1000);
-    std::fprintf(stderr, "load: server %s commit p99 %.1f ms\n", id.c_str(), p99 * 1000);
+    std::fprintf(stderr,
+                 "load: server %s commit p50 %.1f ms, p99 %.1f ms, max %.1f ms; %.0f samples in "
+                 "%.0f commits\n",
+                 id.c_str(), series("stereomap_cluster_commit_seconds{quantile=\"0.5\"}") * 1000,
+                 p99 * 1000, series("stereomap_cluster_commit_seconds{quantile=\"1\"}") * 1000,
+                 series("stereomap_cluster_committed_samples_total"),
+                 series("stereomap_cluster_commit_groups_total"));
   }
   std::fprintf(stderr, "load: %zu samples sent in %.1f s (%.0f/s) by %d vehicles; %.0f/s committed\n",
                sent, sent_s, static_cast<double>(sent) / sent_s, vehicles, f.rate);

@@ -48,10 +48,16 @@ class ServerProcess {
   std::unique_ptr<ChildProcess> process_;
 };
 
-// The value of one series in Prometheus text (`name{labels}`), 0 when absent.
+// The value of one series in Prometheus text (`name{labels}`, or `name` alone), 0 when
+// absent. Matched at a line's start: a family's "# HELP name ..." line is not its value.
 inline double seriesValue(const std::string& metrics, const std::string& series) {
-  const size_t at = metrics.find(series + " ");
-  return at == std::string::npos ? 0.0 : std::atof(metrics.c_str() + at + series.size() + 1);
+  for (size_t at = metrics.find(series + " "); at != std::string::npos;
+       at = metrics.find(series + " ", at + 1)) {
+    if (at == 0 || metrics[at - 1] == '\n') {
+      return std::atof(metrics.c_str() + at + series.size() + 1);
+    }
+  }
+  return 0.0;
 }
 
 // The onboard binary's argv for a sim flight on `domain`.
