@@ -47,8 +47,8 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   publisher->corrections_ = std::move(corrections).value();
   publisher->landing_ = std::move(landing).value();
   if (spool) {
-    auto acks = proto::Reader<proto::AckMsg>::create(participant,
-                                                     {proto::sessionPartition(session_id)});
+    auto acks =
+        proto::Reader<proto::AckMsg>::create(participant, {proto::sessionPartition(session_id)});
     if (!acks) return acks.error();
     publisher->acks_ = std::move(acks).value();
     publisher->outbox_.emplace(

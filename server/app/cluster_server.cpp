@@ -28,8 +28,8 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   flags.options.log = journal->get();
   flags.options.snapshots = journal->get();
   flags.options.archive = journal->get();
-  flags.options.snapshot_interval = std::chrono::milliseconds(
-      static_cast<int64_t>((flags.snapshot_interval_s < 0 ? 30 : flags.snapshot_interval_s) * 1000));
+  flags.options.snapshot_interval = std::chrono::milliseconds(static_cast<int64_t>(
+      (flags.snapshot_interval_s < 0 ? 30 : flags.snapshot_interval_s) * 1000));
   core::MapServer server(flags.options);
 
   // The HTTP port first: with --http ADDRESS:0 it is known only once bound, and the cluster
@@ -37,9 +37,9 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   cluster::ClusterAdmin admin;
   auto http_server = net::HttpServer::create(http, server, &admin);
   if (!http_server) return fail(http_server.error());
-  const std::string advertise =
-      flags.advertise.empty() ? http.address + ":" + std::to_string((*http_server)->port())
-                              : flags.advertise;
+  const std::string advertise = flags.advertise.empty()
+                                    ? http.address + ":" + std::to_string((*http_server)->port())
+                                    : flags.advertise;
   auto db = cluster::ClusterDb::open(
       {.url = flags.cluster_url,
        .server_id = flags.server_id,
@@ -48,9 +48,9 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   if (!db) return fail(db.error());
   admin.attach(**db, advertise);
   (*http_server)->start();
-  auto node = cluster::ClusterNode::start(
-      {.default_resolution = flags.options.resolution, .admin = &admin}, **db, **journal, server,
-      participant);
+  auto node =
+      cluster::ClusterNode::start({.default_resolution = flags.options.resolution, .admin = &admin},
+                                  **db, **journal, server, participant);
   if (!node) return fail(node.error());
   spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
                (*db)->serverId(), cluster::redactPassword(flags.cluster_url), flags.dds.domain_id,

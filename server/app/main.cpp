@@ -15,11 +15,11 @@
 #include "common/cli.hpp"
 #include "common/shutdown.hpp"
 #include "proto/dds_cli.hpp"
+#include "server/app/run.hpp"
 #include "server/core/map_server.hpp"
 #include "server/fusion/octomap_log.hpp"
 #include "server/ingest/dds_ingest.hpp"
 #include "server/net/http_server.hpp"
-#include "server/app/run.hpp"
 #include "server/store/store_admin.hpp"
 
 namespace {
@@ -187,6 +187,7 @@ int main(int argc, char** argv) {
   auto participant = proto::Participant::create(flags.dds);
   if (!participant) return fail(participant.error());
 
-  if (!flags.cluster_url.empty()) return app::runClusterServer(flags, *http, *participant, shutdown);
+  if (!flags.cluster_url.empty())
+    return app::runClusterServer(flags, *http, *participant, shutdown);
   return app::runSingleServer(flags, *http, *participant, shutdown);
 }

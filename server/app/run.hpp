@@ -25,11 +25,10 @@ struct Flags {
   double snapshot_interval_s = -1;  // -1: the mode's default
   // Cluster mode (empty url: the single server).
   std::string cluster_url;
-  std::string server_id;   // empty: made up from the host name and process id
-  std::string advertise;   // where others reach this server's HTTP (empty: --http's address)
+  std::string server_id;  // empty: made up from the host name and process id
+  std::string advertise;  // where others reach this server's HTTP (empty: --http's address)
   double lease_s = 4;
 };
-
 
 // Each returns the process's exit code once the shutdown was requested and everything saved.
 int runSingleServer(Flags& flags, const net::HttpServerOptions& http,

@@ -58,7 +58,6 @@ void serveUntilStopped(const Flags& f, core::MapServer& server, store::StoreAdmi
   }
 }
 
-
 int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
                     const std::shared_ptr<proto::Participant>& participant,
                     common::Shutdown& shutdown) {

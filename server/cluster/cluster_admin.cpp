@@ -14,9 +14,7 @@ common::Error notInCluster(const char* what) {
 }  // namespace
 
 common::Status ClusterAdmin::open(const std::string&) { return notInCluster("opening a session"); }
-common::Status ClusterAdmin::close(const std::string&) {
-  return notInCluster("closing a session");
-}
+common::Status ClusterAdmin::close(const std::string&) { return notInCluster("closing a session"); }
 common::Status ClusterAdmin::remove(const std::string&) {
   return notInCluster("deleting a session");
 }

@@ -111,8 +111,8 @@ common::Status migrateSchema(PgConnection& db) {
 common::Status importSession(PgConnection& db, const std::string& id, double resolution,
                              const std::string& ot) {
   if (!core::isValidId(id)) {
-    return makeError(ErrorCode::kInvalidArgument, "session id '" + id.substr(0, 80) +
-                                                      "' is not 1-64 of [A-Za-z0-9._-]");
+    return makeError(ErrorCode::kInvalidArgument,
+                     "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
   }
   if (auto migrated = migrateSchema(db); !migrated) return migrated.error();
   if (auto begun = db.exec("BEGIN"); !begun) return begun.error();
@@ -128,9 +128,9 @@ common::Status importSession(PgConnection& db, const std::string& id, double res
   if (session->affected() == 0) {
     return fail(makeError(ErrorCode::kConflict, "session '" + id + "' already exists"));
   }
-  auto snapshot = db.exec(
-      "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, 0, 1, $2)",
-      {id, PgParam::bytes(packSnapshot(ot))});
+  auto snapshot =
+      db.exec("INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, 0, 1, $2)",
+              {id, PgParam::bytes(packSnapshot(ot))});
   if (!snapshot) return fail(snapshot.error());
   if (auto committed = db.exec("COMMIT"); !committed) return fail(committed.error());
   return common::Ok{};
@@ -140,15 +140,15 @@ common::Result<std::unique_ptr<ClusterDb>> ClusterDb::open(const ClusterOptions&
   ClusterOptions options = given;
   if (options.server_id.empty()) options.server_id = madeUpServerId();
   if (!core::isValidId(options.server_id)) {
-    return makeError(ErrorCode::kInvalidArgument,
-                     "server id '" + options.server_id +
-                         "' must be 1-64 letters, digits, '-', '_' or '.'");
+    return makeError(
+        ErrorCode::kInvalidArgument,
+        "server id '" + options.server_id + "' must be 1-64 letters, digits, '-', '_' or '.'");
   }
   auto db = PgConnection::connect(options.url);
   if (!db) return db.error();
   // A statement that waits on a lock held by a paused server must not wait with it.
-  for (const char* setting : {"SET lock_timeout = '2s'",
-                              "SET idle_in_transaction_session_timeout = '5s'"}) {
+  for (const char* setting :
+       {"SET lock_timeout = '2s'", "SET idle_in_transaction_session_timeout = '5s'"}) {
     if (auto set = (*db)->exec(setting); !set) return set.error();
   }
   if (auto migrated = migrateSchema(**db); !migrated) return migrated.error();
@@ -164,8 +164,8 @@ common::Result<PgResult> ClusterDb::exec(std::string_view sql, const std::vector
   std::lock_guard lock(mutex_);
   if (!db_->connected()) {
     if (auto reconnected = db_->reconnect(); !reconnected) return reconnected.error();
-    for (const char* setting : {"SET lock_timeout = '2s'",
-                                "SET idle_in_transaction_session_timeout = '5s'"}) {
+    for (const char* setting :
+         {"SET lock_timeout = '2s'", "SET idle_in_transaction_session_timeout = '5s'"}) {
       if (auto set = db_->exec(setting); !set) return set.error();
     }
   }
@@ -269,8 +269,8 @@ common::Result<std::vector<ServerInfo>> ClusterDb::servers() {
   if (!rows) return rows.error();
   std::vector<ServerInfo> out;
   for (int i = 0; i < rows->rows(); ++i) {
-    out.push_back({rows->text(i, 0), rows->text(i, 1), rows->text(i, 2) == "t",
-                   rows->integer(i, 3)});
+    out.push_back(
+        {rows->text(i, 0), rows->text(i, 1), rows->text(i, 2) == "t", rows->integer(i, 3)});
   }
   return out;
 }
@@ -294,9 +294,9 @@ common::Status ClusterDb::release(const Ownership& session, bool closed) {
       {session.session, options_.server_id, session.epoch, closed ? "true" : "false"});
   if (!done) return done.error();
   if (done->affected() == 0) {
-    return makeError(ErrorCode::kConflict,
-                     "session '" + session.session + "' is no longer this server's (epoch " +
-                         std::to_string(session.epoch) + " is stale)");
+    return makeError(ErrorCode::kConflict, "session '" + session.session +
+                                               "' is no longer this server's (epoch " +
+                                               std::to_string(session.epoch) + " is stale)");
   }
   return common::Ok{};
 }

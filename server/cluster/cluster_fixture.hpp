@@ -28,7 +28,8 @@ class PostgresTest : public ::testing::Test {
     if (db_ == nullptr) GTEST_SKIP() << why_;
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
     database_ = "t" + std::to_string(++count_) + "_" + info->name();
-    for (char& c : database_) c = std::isalnum(static_cast<unsigned char>(c)) ? std::tolower(c) : '_';
+    for (char& c : database_)
+      c = std::isalnum(static_cast<unsigned char>(c)) ? std::tolower(c) : '_';
     database_ = database_.substr(0, 60);
     std::string why;
     ASSERT_TRUE(db_->createDatabase(database_, &why)) << why;

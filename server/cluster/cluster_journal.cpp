@@ -184,9 +184,10 @@ void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
       if (stale) fenced.emplace_back(session, alone.error().message);
       for (Pending* p : rows) {
         if (!alone) {
-          p->error = stale ? makeError(ErrorCode::kConflict,
-                                       "session '" + session + "' was fenced: another server "
-                                       "owns it now (" + alone.error().message + ")")
+          p->error = stale ? makeError(ErrorCode::kConflict, "session '" + session +
+                                                                 "' was fenced: another server "
+                                                                 "owns it now (" +
+                                                                 alone.error().message + ")")
                            : alone.error();
         }
       }
@@ -244,7 +245,7 @@ uint64_t ClusterJournal::committedGroups() const {
 }
 
 common::Result<PgResult> ClusterJournal::readerExec(std::string_view sql,
-                                                   const std::vector<PgParam>& params) const {
+                                                    const std::vector<PgParam>& params) const {
   std::lock_guard lock(reader_mutex_);
   if (!reader_->connected()) {
     if (auto reconnected = reader_->reconnect(); !reconnected) return reconnected.error();
@@ -265,8 +266,8 @@ common::Status ClusterJournal::forEachFrame(
     for (int i = 0; i < rows->rows(); ++i) {
       const auto number = static_cast<uint64_t>(rows->integer(i, 0));
       const std::string bytes = rows->bytes(i, 1);
-      auto record = journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()),
-                                          bytes.size());
+      auto record =
+          journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
       if (record && std::holds_alternative<proto::CloudFrameMsg>(*record)) {
         visit(std::get<proto::CloudFrameMsg>(*record), number);
       }
@@ -280,7 +281,8 @@ common::Status ClusterJournal::saveSnapshot(const std::string& session, uint64_t
                                             const std::string& ot) {
   const auto epoch = epochOf(session);
   if (!epoch) {
-    return makeError(ErrorCode::kConflict, "session '" + session + "' is not this server's to write");
+    return makeError(ErrorCode::kConflict,
+                     "session '" + session + "' is not this server's to write");
   }
   auto saved = readerExec(
       "INSERT INTO sm_snapshots (session, number, epoch, map) VALUES ($1, $2, $3, $4) "
@@ -322,8 +324,8 @@ common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
       from = number;
       stored.last_number = number;
       const std::string bytes = rows->bytes(i, 1);
-      auto record = journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()),
-                                          bytes.size());
+      auto record =
+          journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
       if (!record) {
         ++stored.unreadable;
         continue;

@@ -87,7 +87,8 @@ class ClusterJournal : public core::IngestLog,
   // Writes one group; the sessions the database fenced are dropped and reported.
   void commitGroup(std::vector<Pending*>& group);
   common::Status insertRows(std::vector<Pending*>& rows);
-  common::Result<PgResult> readerExec(std::string_view sql, const std::vector<PgParam>& params) const;
+  common::Result<PgResult> readerExec(std::string_view sql,
+                                      const std::vector<PgParam>& params) const;
 
   std::string url_;
   std::unique_ptr<PgConnection> writer_;  // the commit thread's only

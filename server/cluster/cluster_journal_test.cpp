@@ -104,9 +104,8 @@ TEST_F(ClusterJournalTest, AStaleOwnerIsFencedByTheDatabaseAndTheNewOwnerContinu
   ASSERT_EQ(placed->owner, "a");
   a.journal->adopt("s", placed->epoch, 0);
   std::vector<std::string> fenced;
-  a.journal->onFenced([&](const std::string& session, const std::string&) {
-    fenced.push_back(session);
-  });
+  a.journal->onFenced(
+      [&](const std::string& session, const std::string&) { fenced.push_back(session); });
   for (uint64_t i = 0; i < 10; ++i) ASSERT_TRUE(a.journal->append(poseOf("s", "v", i)));
 
   // a is paused past its lease; b takes the session.
@@ -133,8 +132,8 @@ TEST_F(ClusterJournalTest, AStaleOwnerIsFencedByTheDatabaseAndTheNewOwnerContinu
   auto next = b.journal->append(poseOf("s", "v", 10));
   ASSERT_TRUE(next) << next.error().message;
   EXPECT_EQ(*next, 11u);
-  auto rows = postgres().sql("SELECT count(*), max(epoch) FROM sm_journal WHERE epoch = 1",
-                             database_);
+  auto rows =
+      postgres().sql("SELECT count(*), max(epoch) FROM sm_journal WHERE epoch = 1", database_);
   ASSERT_TRUE(rows);
   EXPECT_EQ(*rows, "10|1\n") << "nothing committed with the stale epoch after the takeover";
 }
@@ -146,8 +145,8 @@ TEST_F(ClusterJournalTest, OneFencedSessionDoesNotHoldUpTheOthersInItsGroup) {
   a.journal->adopt("kept", 1, 0);
   a.journal->adopt("lost", 1, 0);
   // Another server raised "lost"'s epoch (as a takeover does).
-  ASSERT_TRUE(postgres().sql("UPDATE sm_sessions SET epoch = 2, owner = 'b' WHERE id = 'lost'",
-                             database_));
+  ASSERT_TRUE(
+      postgres().sql("UPDATE sm_sessions SET epoch = 2, owner = 'b' WHERE id = 'lost'", database_));
   std::vector<std::thread> threads;
   std::atomic<int> kept_ok = 0, lost_ok = 0;
   for (int t = 0; t < 4; ++t) {
@@ -189,10 +188,11 @@ TEST_F(ClusterJournalTest, SnapshotsAndFramesAreReadBackForRecovery) {
     }
   }
   std::vector<uint64_t> visited;
-  ASSERT_TRUE(a.journal->forEachFrame("s", 2, 9, [&](const proto::CloudFrameMsg& frame, uint64_t n) {
-    EXPECT_EQ(frame.payload.size(), 1000 + frame.seq);
-    visited.push_back(n);
-  }));
+  ASSERT_TRUE(
+      a.journal->forEachFrame("s", 2, 9, [&](const proto::CloudFrameMsg& frame, uint64_t n) {
+        EXPECT_EQ(frame.payload.size(), 1000 + frame.seq);
+        visited.push_back(n);
+      }));
   EXPECT_EQ(visited, (std::vector<uint64_t>{3, 5, 7, 9}));
   auto count = postgres().sql("SELECT count(*) FROM sm_snapshots", database_);
   ASSERT_TRUE(count);

@@ -7,8 +7,8 @@
 #include <sstream>
 
 #include "common/time.hpp"
-#include "server/core/validate.hpp"
 #include "server/cluster/cluster_recovery.hpp"
+#include "server/core/validate.hpp"
 
 namespace stereomap::cluster {
 
@@ -23,14 +23,13 @@ constexpr const char* kServed = "stereomap_cluster_sessions_served";
 
 }  // namespace
 
-
 common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
     core::MapServer& server, const std::shared_ptr<proto::Participant>& participant) {
   auto node =
       std::unique_ptr<ClusterNode>(new ClusterNode(options, db, journal, server, participant));
-  auto events = proto::Reader<proto::SessionEventMsg>::create(participant,
-                                                              {proto::kEverySessionPartition});
+  auto events =
+      proto::Reader<proto::SessionEventMsg>::create(participant, {proto::kEverySessionPartition});
   if (!events) return events.error();
   node->events_ = std::move(events).value();
   journal.onFenced([raw = node.get()](const std::string& session, const std::string& why) {
@@ -272,17 +271,17 @@ void ClusterNode::serve(const Ownership& owned) {
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
   if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses,
-                                      /*wait_until_fused=*/false); !recovered) {
-    spdlog::error("session '{}': cannot recover it: {}", owned.session,
-                  recovered.error().message);
+                                      /*wait_until_fused=*/false);
+      !recovered) {
+    spdlog::error("session '{}': cannot recover it: {}", owned.session, recovered.error().message);
     server_.unload(owned.session);
     return;
   }
   journal_.adopt(owned.session, owned.epoch, last_number);
   auto ingest =
       ingest::DdsIngest::create(participant_, {proto::sessionPartition(owned.session)}, false);
-  auto acks = proto::Writer<proto::AckMsg>::create(participant_,
-                                                   {proto::sessionPartition(owned.session)});
+  auto acks =
+      proto::Writer<proto::AckMsg>::create(participant_, {proto::sessionPartition(owned.session)});
   if (!ingest || !acks) {
     spdlog::error("session '{}': cannot read it from DDS: {}", owned.session,
                   !ingest ? ingest.error().message : acks.error().message);
@@ -295,11 +294,12 @@ void ClusterNode::serve(const Ownership& owned) {
     std::lock_guard lock(mutex_);
     served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
   }
-  spdlog::info("session '{}' served here (epoch {}): {} frames and {} poses recovered{} in {:.2f} s{}",
-               owned.session, owned.epoch, frames, poses,
-               has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
-               common::msSince(started) / 1000,
-               unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
+  spdlog::info(
+      "session '{}' served here (epoch {}): {} frames and {} poses recovered{} in {:.2f} s{}",
+      owned.session, owned.epoch, frames, poses,
+      has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
+      common::msSince(started) / 1000,
+      unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
 }
 
 void ClusterNode::unserve(const std::string& session, const std::string& why) {

@@ -79,9 +79,9 @@ class ClusterNode {
   mutable std::mutex mutex_;
   std::condition_variable wake_;
   bool stopping_ = false;
-  std::map<std::string, Served> served_;         // under mutex_
-  std::map<std::string, double> announced_;      // sessions heard of, to place: resolution
-  std::map<std::string, std::string> fenced_;    // sessions the database fenced: why
+  std::map<std::string, Served> served_;       // under mutex_
+  std::map<std::string, double> announced_;    // sessions heard of, to place: resolution
+  std::map<std::string, std::string> fenced_;  // sessions the database fenced: why
   std::chrono::steady_clock::time_point last_renewal_{};
   bool database_down_ = false;  // said once per outage
 

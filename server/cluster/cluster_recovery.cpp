@@ -18,8 +18,8 @@ common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
   proto::journal::JournalReplay kept;
   kept.records = std::move(stored.records);
   kept.numbers = std::move(stored.numbers);
-  const uint64_t newest_correction = store::replayPosesAndCorrections(
-      server, kept, std::numeric_limits<int64_t>::max(), poses);
+  const uint64_t newest_correction =
+      store::replayPosesAndCorrections(server, kept, std::numeric_limits<int64_t>::max(), poses);
   uint64_t covered_up_to = 0;
   if (!stored.snapshot.empty() && stored.snapshot_number >= newest_correction) {
     std::istringstream ot(stored.snapshot);
@@ -44,11 +44,11 @@ common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
                                   snapshot_frames);
       }
     }
-    auto again = journal.forEachFrame(
-        owned.session, 0, std::numeric_limits<int64_t>::max(),
-        [&](const proto::CloudFrameMsg& frame, uint64_t number) {
-          store::replayFrameOrEvent(server, frame, number, 0, frames, snapshot_frames);
-        });
+    auto again = journal.forEachFrame(owned.session, 0, std::numeric_limits<int64_t>::max(),
+                                      [&](const proto::CloudFrameMsg& frame, uint64_t number) {
+                                        store::replayFrameOrEvent(server, frame, number, 0, frames,
+                                                                  snapshot_frames);
+                                      });
     if (!again) return again.error();
   }
   if (wait_until_fused) session->waitUntilIdle();

@@ -44,8 +44,7 @@ int PgResult::rows() const { return PQntuples(result_); }
 int PgResult::columns() const { return PQnfields(result_); }
 bool PgResult::isNull(int row, int column) const { return PQgetisnull(result_, row, column) != 0; }
 std::string PgResult::text(int row, int column) const {
-  return {PQgetvalue(result_, row, column),
-          static_cast<size_t>(PQgetlength(result_, row, column))};
+  return {PQgetvalue(result_, row, column), static_cast<size_t>(PQgetlength(result_, row, column))};
 }
 int64_t PgResult::integer(int row, int column) const {
   return isNull(row, column) ? 0 : std::strtoll(PQgetvalue(result_, row, column), nullptr, 10);
@@ -98,13 +97,20 @@ pg_conn* open(const std::string& url, std::chrono::seconds timeout) {
   const std::string seconds = std::to_string(std::max<int64_t>(1, timeout.count()));
   // The URL first (expanded), then what we add: a connect timeout, and keepalives so that a
   // database gone silent (its machine cut off) is noticed in seconds, not hours.
-  const char* keys[] = {"dbname",          "connect_timeout",    "keepalives",
-                        "keepalives_idle", "keepalives_interval", "keepalives_count",
-                        "application_name", nullptr};
+  const char* keys[] = {"dbname",
+                        "connect_timeout",
+                        "keepalives",
+                        "keepalives_idle",
+                        "keepalives_interval",
+                        "keepalives_count",
+                        "application_name",
+                        nullptr};
   const char* values[] = {url.c_str(), seconds.c_str(), "1", "5", "2", "3", "stereomap", nullptr};
   pg_conn* conn = PQconnectdbParams(keys, values, /*expand_dbname=*/1);
   // The database's notices ("relation already exists, skipping") are not for our logs.
-  if (conn != nullptr) PQsetNoticeProcessor(conn, [](void*, const char*) {}, nullptr);
+  if (conn != nullptr)
+    PQsetNoticeProcessor(
+        conn, [](void*, const char*) {}, nullptr);
   return conn;
 }
 
@@ -113,7 +119,8 @@ pg_conn* open(const std::string& url, std::chrono::seconds timeout) {
 common::Result<std::unique_ptr<PgConnection>> PgConnection::connect(const std::string& url,
                                                                     std::chrono::seconds timeout) {
   pg_conn* conn = open(url, timeout);
-  if (conn == nullptr) return common::makeError(common::ErrorCode::kUnavailable, "libpq: out of memory");
+  if (conn == nullptr)
+    return common::makeError(common::ErrorCode::kUnavailable, "libpq: out of memory");
   if (PQstatus(conn) != CONNECTION_OK) {
     const std::string why = oneLine(PQerrorMessage(conn));
     PQfinish(conn);
@@ -134,7 +141,9 @@ PgConnection::~PgConnection() {
   if (conn_ != nullptr) PQfinish(conn_);
 }
 
-bool PgConnection::connected() const { return conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK; }
+bool PgConnection::connected() const {
+  return conn_ != nullptr && PQstatus(conn_) == CONNECTION_OK;
+}
 
 common::Status PgConnection::reconnect() {
   if (conn_ != nullptr) PQfinish(conn_);
@@ -178,9 +187,8 @@ common::Result<PgResult> PgConnection::exec(std::string_view sql,
              last_state_ == "40P01") {
     code = common::ErrorCode::kConflict;  // fenced, unique violation, serialization, deadlock
   }
-  return common::makeError(code, "PostgreSQL" +
-                                     (last_state_.empty() ? std::string() : " " + last_state_) +
-                                     ": " + why);
+  return common::makeError(
+      code, "PostgreSQL" + (last_state_.empty() ? std::string() : " " + last_state_) + ": " + why);
 }
 
 }  // namespace stereomap::cluster

@@ -24,12 +24,12 @@ namespace stereomap::cluster {
 
 // A statement's parameter: text, binary bytes (for bytea), or SQL NULL.
 struct PgParam {
-  PgParam(std::string text) : value(std::move(text)) {}  // NOLINT: implicit by design
-  PgParam(const char* text) : value(text) {}             // NOLINT
-  PgParam(int64_t number) : value(std::to_string(number)) {}  // NOLINT
+  PgParam(std::string text) : value(std::move(text)) {}        // NOLINT: implicit by design
+  PgParam(const char* text) : value(text) {}                   // NOLINT
+  PgParam(int64_t number) : value(std::to_string(number)) {}   // NOLINT
   PgParam(uint64_t number) : value(std::to_string(number)) {}  // NOLINT
-  PgParam(int number) : value(std::to_string(number)) {}  // NOLINT
-  PgParam(double number);                                 // NOLINT: exact (hex float)
+  PgParam(int number) : value(std::to_string(number)) {}       // NOLINT
+  PgParam(double number);                                      // NOLINT: exact (hex float)
   static PgParam bytes(std::string_view data);
   static PgParam null();
   std::optional<std::string> value;

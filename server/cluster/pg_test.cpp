@@ -42,8 +42,8 @@ TEST_F(PgTest, ValuesTravelAsParametersNeverAsSql) {
   ASSERT_TRUE((*db)->exec("CREATE TABLE t (name text, data bytea, x double precision)"));
   const std::string hostile = "x'); DROP TABLE t; --";
   const std::string binary("\0\x01\xff\x00zz", 6);
-  ASSERT_TRUE((*db)->exec("INSERT INTO t VALUES ($1, $2, $3)",
-                          {hostile, PgParam::bytes(binary), 0.1}));
+  ASSERT_TRUE(
+      (*db)->exec("INSERT INTO t VALUES ($1, $2, $3)", {hostile, PgParam::bytes(binary), 0.1}));
   auto rows = (*db)->exec("SELECT name, data, x FROM t WHERE name = $1", {hostile});
   ASSERT_TRUE(rows) << rows.error().message;
   ASSERT_EQ(rows->rows(), 1);

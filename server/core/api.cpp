@@ -103,14 +103,14 @@ HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& p
         // The bytes as served (encoded once per tile version, then kept).
         const size_t bytes =
             tile && tile->version() == info.version ? tile->encoded(level)->size() : 0;
-        list.push_back({{"level", level},
-                        {"key", info.key.text()},
-                        {"version", info.version},
-                        {"voxels", info.cells[level]},
-                        {"bytes", bytes},
-                        {"url", "/api/sessions/" + session.id() + "/tiles/" +
-                                    std::to_string(level) + "/" + info.key.text() +
-                                    "?v=" + tileTag(tiles.epoch(), info.version)}});
+        list.push_back(
+            {{"level", level},
+             {"key", info.key.text()},
+             {"version", info.version},
+             {"voxels", info.cells[level]},
+             {"bytes", bytes},
+             {"url", "/api/sessions/" + session.id() + "/tiles/" + std::to_string(level) + "/" +
+                         info.key.text() + "?v=" + tileTag(tiles.epoch(), info.version)}});
       }
     }
     const json index = {{"session", session.id()},
@@ -137,14 +137,14 @@ HttpAnswer answerTiles(const Session& session, const std::vector<std::string>& p
   // forever. Any other version is not served under it.
   const auto wanted = common::queryParameter(target, "v");
   if (wanted && *wanted != tag) {
-    return error(404, "tile " + key->text() + " is no longer at version " + *wanted +
-                          " (now " + tag + "): read the index again");
+    return error(404, "tile " + key->text() + " is no longer at version " + *wanted + " (now " +
+                          tag + "): read the index again");
   }
   if (if_none_match == "*" || if_none_match.find(etag) != std::string_view::npos) {
     return HttpAnswer{304, "", "", "", etag, wanted.has_value()};
   }
-  return HttpAnswer{200, "application/octet-stream", *tile->encoded(level), "", etag,
-                    wanted.has_value()};
+  return HttpAnswer{200,  "application/octet-stream", *tile->encoded(level), "",
+                    etag, wanted.has_value()};
 }
 
 // GET /api/cluster/route?session=ID: where the cluster's proxy sends a request for the
@@ -156,11 +156,11 @@ HttpAnswer answerRoute(const SessionAdmin* admin, const std::string& session) {
   std::optional<std::string> owner;
   if (isValidId(session)) owner = admin->routeTo(session);
   const std::string upstream = owner.value_or(*self);
-  HttpAnswer answer{200, "application/json",
-                    json{{"session", session}, {"upstream", upstream}, {"owned", owner.has_value()}}
-                            .dump() +
-                        "\n",
-                    ""};
+  HttpAnswer answer{
+      200, "application/json",
+      json{{"session", session}, {"upstream", upstream}, {"owned", owner.has_value()}}.dump() +
+          "\n",
+      ""};
   answer.headers.emplace_back("X-Stereomap-Upstream", upstream);
   return answer;
 }

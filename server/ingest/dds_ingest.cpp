@@ -26,9 +26,9 @@ common::Result<std::unique_ptr<DdsIngest>> DdsIngest::create(
     const std::vector<std::string>& partitions, bool events) {
   auto ingest = std::unique_ptr<DdsIngest>(new DdsIngest);
   auto& [clouds, poses, corrections, landing, session_events] = ingest->readers_;
-  for (auto status : {open(participant, partitions, clouds), open(participant, partitions, poses),
-                      open(participant, partitions, corrections),
-                      open(participant, partitions, landing)}) {
+  for (auto status :
+       {open(participant, partitions, clouds), open(participant, partitions, poses),
+        open(participant, partitions, corrections), open(participant, partitions, landing)}) {
     if (!status) return status.error();
   }
   if (events) {
@@ -48,7 +48,8 @@ void DdsIngest::start(core::MapServer& server) {
   std::apply(
       [&](auto&... readers) {
         auto launch = [&](auto& reader) {
-          if (reader) threads_.emplace_back([this, &server, r = reader.get()] { pump(*r, server); });
+          if (reader)
+            threads_.emplace_back([this, &server, r = reader.get()] { pump(*r, server); });
         };
         (launch(readers), ...);
       },

@@ -30,7 +30,8 @@ void replayFrameOrEvent(core::MapServer& server, const proto::journal::JournalRe
                         uint64_t& snapshot_frames) {
   if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
     const bool covered = number <= covered_up_to;
-    frames += server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
+    frames +=
+        server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
     snapshot_frames += covered;
   } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
     server.ingest(*event, core::Origin::kReplay);

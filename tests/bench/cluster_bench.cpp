@@ -113,19 +113,25 @@ void failover(testing::ClusterHarness& cluster, Figures& f) {
       }
     }
   });
-  if (testing::waitUntil(60s, [&] { return cluster.allOwnedBy(survivor); }, 50ms)) {
+  if (testing::waitUntil(
+          60s, [&] { return cluster.allOwnedBy(survivor); }, 50ms)) {
     f.failover_s = secondsSince(killed);
   }
-  if (testing::waitUntil(60s, [&] {
-        return cluster.query("SELECT count(DISTINCT session) FROM sm_journal WHERE epoch = 2") ==
-               std::to_string(taken) + "\n";
-      }, 50ms)) {
+  if (testing::waitUntil(
+          60s,
+          [&] {
+            return cluster.query(
+                       "SELECT count(DISTINCT session) FROM sm_journal WHERE epoch = 2") ==
+                   std::to_string(taken) + "\n";
+          },
+          50ms)) {
     f.resumed_s = secondsSince(killed);
   }
   viewer.join();
-  std::fprintf(stderr, "failover %.1f s, ingest resumed %.1f s, viewer back %.1f s\n",
-               f.failover_s, f.resumed_s, f.viewer_s);
-  if (!cluster.waitForVehicles(180s, &why)) std::fprintf(stderr, "a vehicle failed: %s\n", why.c_str());
+  std::fprintf(stderr, "failover %.1f s, ingest resumed %.1f s, viewer back %.1f s\n", f.failover_s,
+               f.resumed_s, f.viewer_s);
+  if (!cluster.waitForVehicles(180s, &why))
+    std::fprintf(stderr, "a vehicle failed: %s\n", why.c_str());
   countLosses(cluster, 0, 4, f);
 }
 
@@ -143,19 +149,22 @@ void fenced(testing::ClusterHarness& cluster, Figures& f) {
   const std::string stale = cluster.owners()["flight4"];
   const std::string other = stale == "a" ? "b" : "a";
   ::kill(cluster.server(stale).process().pid(), SIGSTOP);
-  testing::waitUntil(30s, [&] { return cluster.allOwnedBy(other); }, 100ms);
+  testing::waitUntil(
+      30s, [&] { return cluster.allOwnedBy(other); }, 100ms);
   std::this_thread::sleep_for(2s);
   ::kill(cluster.server(stale).process().pid(), SIGCONT);
   testing::waitUntil(20s, [&] {
     return cluster.server(stale).get("/api/sessions/flight4").status == 404 &&
            cluster.server(stale).get("/api/sessions/flight5").status == 404;
   });
-  if (!cluster.waitForVehicles(180s, &why)) std::fprintf(stderr, "a vehicle failed: %s\n", why.c_str());
+  if (!cluster.waitForVehicles(180s, &why))
+    std::fprintf(stderr, "a vehicle failed: %s\n", why.c_str());
   const std::string rows = cluster.query(
       "SELECT count(*) FROM sm_journal j JOIN sm_sessions s ON s.id = j.session "
       "WHERE j.epoch < s.epoch AND j.committed_at >= s.owned_since");
   f.fenced_writes = rows.empty() ? -1 : std::stol(rows);
-  std::fprintf(stderr, "fenced: %ld rows with a stale epoch after the takeover; the stale server %s\n",
+  std::fprintf(stderr,
+               "fenced: %ld rows with a stale epoch after the takeover; the stale server %s\n",
                f.fenced_writes,
                cluster.server(stale).log().find("fenced") != std::string::npos
                    ? "logged that it was fenced"
@@ -164,10 +173,10 @@ void fenced(testing::ClusterHarness& cluster, Figures& f) {
 }
 
 void tileCache(testing::ClusterHarness& cluster, const std::filesystem::path& campus, Figures& f) {
-  const auto imported = testing::runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-store",
-                                          "--cluster", cluster.db().url(), "import",
-                                          campus.string(), "--session", "campus"},
-                                         120s);
+  const auto imported =
+      testing::runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-store", "--cluster",
+                        cluster.db().url(), "import", campus.string(), "--session", "campus"},
+                       120s);
   if (imported.exit_code != 0) {
     std::fprintf(stderr, "import failed: %s\n", imported.output.c_str());
     return;
@@ -218,10 +227,9 @@ std::vector<proto::journal::JournalRecord> recordedFlight(testing::ClusterHarnes
   auto stored = (*journal)->read("flight1");
   if (!stored) return flight;
   std::map<uint64_t, proto::CloudFrameMsg> clouds;  // whole, by record number
-  (void)(*journal)->forEachFrame("flight1", 0, stored->last_number,
-                                 [&](const proto::CloudFrameMsg& frame, uint64_t number) {
-                                   clouds[number] = frame;
-                                 });
+  (void)(*journal)->forEachFrame(
+      "flight1", 0, stored->last_number,
+      [&](const proto::CloudFrameMsg& frame, uint64_t number) { clouds[number] = frame; });
   for (size_t i = 0; i < stored->records.size(); ++i) {
     if (std::holds_alternative<proto::PoseMsg>(stored->records[i])) {
       flight.push_back(stored->records[i]);
@@ -234,8 +242,9 @@ std::vector<proto::journal::JournalRecord> recordedFlight(testing::ClusterHarnes
 
 // Virtual vehicles replaying `flight` at `rate` samples/s in all, each in its own session
 // partition, with its own stream and seqs.
-void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::JournalRecord>& flight,
-          double rate, double seconds, int vehicles, Figures& f) {
+void load(testing::ClusterHarness& cluster,
+          const std::vector<proto::journal::JournalRecord>& flight, double rate, double seconds,
+          int vehicles, Figures& f) {
   if (flight.empty()) {
     std::fprintf(stderr, "load: no recorded flight\n");
     return;
@@ -245,8 +254,8 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
   cluster.query("UPDATE sm_sessions SET state = 'closed', owner = NULL");
   cluster.startServer(kLoadDomain, "a", 4);
   cluster.startServer(kLoadDomain, "b", 4);
-  auto participant = proto::Participant::create(
-      {.domain_id = kLoadDomain, .config_file = STEREOMAP_DDS_CONFIG});
+  auto participant =
+      proto::Participant::create({.domain_id = kLoadDomain, .config_file = STEREOMAP_DDS_CONFIG});
   if (!participant) return;
   struct Vehicle {
     std::string id, session;
@@ -285,8 +294,9 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
   }
   // Every session placed and served before the clock starts.
   testing::waitUntil(60s, [&] {
-    return cluster.query("SELECT count(*) FROM sm_sessions WHERE id LIKE 'load%' AND owner "
-                         "IS NOT NULL") == std::to_string(vehicles) + "\n";
+    return cluster.query(
+               "SELECT count(*) FROM sm_sessions WHERE id LIKE 'load%' AND owner "
+               "IS NOT NULL") == std::to_string(vehicles) + "\n";
   });
   std::this_thread::sleep_for(3s);
   const std::string t0 = cluster.query("SELECT clock_timestamp()");
@@ -300,22 +310,20 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
       auto& v = fleet[sent % fleet.size()];
       auto record = flight[v.next % flight.size()];
       ++v.next;
+      // As the vehicle's own: its ids, its stream, the next seq of the topic, stamped now.
+      auto restamp = [&](auto& message, uint64_t& next_seq, auto& writer) {
+        message.vehicle_id = v.id;
+        message.session_id = v.session;
+        message.stream = v.stream;
+        message.seq = next_seq++;
+        message.unacked_from = 0;
+        message.stamp_ns = common::nowNs();
+        (void)writer->write(message);
+      };
       if (auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-        pose->vehicle_id = v.id;
-        pose->session_id = v.session;
-        pose->stream = v.stream;
-        pose->seq = v.poses++;
-        pose->unacked_from = 0;
-        pose->stamp_ns = common::nowNs();
-        (void)v.pose_writer->write(*pose);
+        restamp(*pose, v.poses, v.pose_writer);
       } else if (auto* cloud = std::get_if<proto::CloudFrameMsg>(&record)) {
-        cloud->vehicle_id = v.id;
-        cloud->session_id = v.session;
-        cloud->stream = v.stream;
-        cloud->seq = v.clouds++;
-        cloud->unacked_from = 0;
-        cloud->stamp_ns = common::nowNs();
-        (void)v.cloud_writer->write(*cloud);
+        restamp(*cloud, v.clouds, v.cloud_writer);
       }
       ++sent;
     }
@@ -329,8 +337,8 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
   };
   const std::string committed = cluster.query(
       "SELECT count(*), extract(epoch FROM max(committed_at) - min(committed_at)) FROM sm_journal "
-      "WHERE session LIKE 'load%' AND committed_at BETWEEN '" + trim(t0) + "' AND '" + trim(t1) +
-      "'");
+      "WHERE session LIKE 'load%' AND committed_at BETWEEN '" +
+      trim(t0) + "' AND '" + trim(t1) + "'");
   const auto bar = committed.find('|');
   if (bar != std::string::npos) {
     const double rows = std::stod(committed.substr(0, bar));
@@ -350,15 +358,17 @@ void load(testing::ClusterHarness& cluster, const std::vector<proto::journal::Jo
                  series("stereomap_cluster_committed_samples_total"),
                  series("stereomap_cluster_commit_groups_total"));
   }
-  std::fprintf(stderr, "load: %zu samples sent in %.1f s (%.0f/s) by %d vehicles; %.0f/s committed\n",
-               sent, sent_s, static_cast<double>(sent) / sent_s, vehicles, f.rate);
+  std::fprintf(stderr,
+               "load: %zu samples sent in %.1f s (%.0f/s) by %d vehicles; %.0f/s committed\n", sent,
+               sent_s, static_cast<double>(sent) / sent_s, vehicles, f.rate);
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"stereomap-bench-cluster: failover, fencing, nginx's tile cache and commit "
-               "latency of the cluster on PostgreSQL (issue 39)"};
+  CLI::App app{
+      "stereomap-bench-cluster: failover, fencing, nginx's tile cache and commit "
+      "latency of the cluster on PostgreSQL (issue 39)"};
   double rate = 2000, seconds = 20;
   int vehicles = 16;
   std::string only = "failover,fenced,tiles,load";

@@ -95,8 +95,8 @@ bool viewerSeesTiles(int port, const std::string& session, std::chrono::millisec
   if (ws.readUntil("\"subscribed\"", timeout).kind != WsMessage::Kind::kText) return false;
   ws.sendText(R"({"type":"view","id":1,"eye":[0,0,30]})");
   while (Clock::now() < deadline) {
-    const auto message = ws.read(
-        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()));
+    const auto message =
+        ws.read(std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()));
     if (message.kind == WsMessage::Kind::kBinary) return true;
     if (message.kind == WsMessage::Kind::kClose || message.kind == WsMessage::Kind::kNone) {
       return false;

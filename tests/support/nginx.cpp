@@ -56,16 +56,20 @@ std::unique_ptr<TestNginx> TestNginx::start(const std::vector<std::string>& upst
       return nullptr;
     }
   }
-  std::vector<std::string> argv = {binary, "-p", nginx->prefix_, "-c", conf, "-e",
-                                   nginx->prefix_ + "/error.log", "-g", "daemon off;"};
+  std::vector<std::string> argv = {
+      binary, "-p",         nginx->prefix_, "-c", conf, "-e", nginx->prefix_ + "/error.log",
+      "-g",   "daemon off;"};
   if (root) {
     argv.insert(argv.begin(),
                 {"/usr/bin/setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"});
   }
   nginx->process_ = std::make_unique<ChildProcess>(argv, nginx->prefix_ + "/stdout.log");
-  const bool up = waitUntil(std::chrono::seconds(10), [&] {
-    return !nginx->process_->running() || httpGet(nginx->port_, "/_nginx_probe").status != 0;
-  }, std::chrono::milliseconds(50));
+  const bool up = waitUntil(
+      std::chrono::seconds(10),
+      [&] {
+        return !nginx->process_->running() || httpGet(nginx->port_, "/_nginx_probe").status != 0;
+      },
+      std::chrono::milliseconds(50));
   if (!up || !nginx->process_->running()) {
     std::ifstream log(nginx->prefix_ + "/error.log");
     std::stringstream errors;

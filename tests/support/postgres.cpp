@@ -38,8 +38,7 @@ std::string postgresBin() {
   std::error_code ec;
   for (const auto& entry : fs::directory_iterator("/usr/lib/postgresql", ec)) {
     const fs::path bin = entry.path() / "bin";
-    if (fs::exists(bin / "postgres", ec) && fs::exists(bin / "initdb", ec) &&
-        bin.string() > best) {
+    if (fs::exists(bin / "postgres", ec) && fs::exists(bin / "initdb", ec) && bin.string() > best) {
       best = bin.string();
     }
   }
@@ -91,10 +90,10 @@ std::unique_ptr<TestPostgres> TestPostgres::start(std::string* why) {
     std::ofstream pw(db->dir_ + "/password");
     pw << db->password_ << "\n";
   }
-  const auto init = runTool(db->asDatabaseUser({db->bin_ + "/initdb", "-D", db->dir_ + "/data",
-                                                "-U", "stereomap", "--pwfile=" + db->dir_ + "/password",
-                                                "--auth=scram-sha-256", "-E", "UTF8",
-                                                "--no-instructions", "--no-sync"}));
+  const auto init =
+      runTool(db->asDatabaseUser({db->bin_ + "/initdb", "-D", db->dir_ + "/data", "-U", "stereomap",
+                                  "--pwfile=" + db->dir_ + "/password", "--auth=scram-sha-256",
+                                  "-E", "UTF8", "--no-instructions", "--no-sync"}));
   fs::remove(db->dir_ + "/password");
   if (init.exit_code != 0) {
     if (why) *why = "initdb failed: " + init.output;
@@ -112,13 +111,16 @@ bool TestPostgres::launch(std::string* why) {
                       "listen_addresses=127.0.0.1", "-c", "unix_socket_directories=" + dir_, "-c",
                       "max_connections=200", "-c", "shared_buffers=64MB"}),
       log);
-  const bool ready = waitUntil(std::chrono::seconds(30), [&] {
-    if (!postmaster_->running()) return true;
-    const auto probe = runTool({bin_ + "/pg_isready", "-q", "-h", "127.0.0.1", "-p",
-                                std::to_string(port_)},
-                               std::chrono::seconds(10));
-    return probe.exit_code == 0;
-  }, std::chrono::milliseconds(100));
+  const bool ready = waitUntil(
+      std::chrono::seconds(30),
+      [&] {
+        if (!postmaster_->running()) return true;
+        const auto probe =
+            runTool({bin_ + "/pg_isready", "-q", "-h", "127.0.0.1", "-p", std::to_string(port_)},
+                    std::chrono::seconds(10));
+        return probe.exit_code == 0;
+      },
+      std::chrono::milliseconds(100));
   if (!ready || !postmaster_->running()) {
     if (why) *why = "PostgreSQL did not start; its log (" + log + "):\n" + tail(log);
     return false;
@@ -144,8 +146,8 @@ std::string TestPostgres::urlWithPassword(const std::string& password,
 
 std::optional<std::string> TestPostgres::sql(const std::string& statement,
                                              const std::string& database) {
-  const auto run = runTool({bin_ + "/psql", "-X", "-q", "-t", "-A", "-v", "ON_ERROR_STOP=1",
-                            "-d", url(database), "-c", statement},
+  const auto run = runTool({bin_ + "/psql", "-X", "-q", "-t", "-A", "-v", "ON_ERROR_STOP=1", "-d",
+                            url(database), "-c", statement},
                            std::chrono::seconds(60));
   if (run.exit_code != 0) return std::nullopt;
   return run.output;

@@ -4,8 +4,9 @@
 // test running as root runs it as `nobody`. Stopped and removed with the object.
 //
 //   auto db = TestPostgres::start();       // nullopt + why when PostgreSQL is not installed
-//   std::string url = db->url();           // postgresql://stereomap:PASSWORD@127.0.0.1:PORT/postgres
-//   db->kill9(); db->restart();            // the database failing under a running cluster
+//   std::string url = db->url();           //
+//   postgresql://stereomap:PASSWORD@127.0.0.1:PORT/postgres db->kill9(); db->restart(); // the
+//   database failing under a running cluster
 #pragma once
 
 #include <memory>

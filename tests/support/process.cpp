@@ -80,12 +80,14 @@ void ChildProcess::kill9() {
 
 HttpReply httpGet(int port, const std::string& path) { return httpRequest(port, "GET", path); }
 
-HttpReply httpRequest(int port, const std::string& method, const std::string& path,
-                      const std::string& body, const std::string& headers) {
-  HttpReply reply;
+namespace {
+
+// A TCP connection to 127.0.0.1:port with a 60 s receive timeout (session management replays
+// journals: allow for it); -1 when it cannot be made.
+int connectLoopback(int port) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  if (fd < 0) return reply;
-  timeval timeout{60, 0};  // session management replays journals: allow for it
+  if (fd < 0) return -1;
+  timeval timeout{60, 0};
   setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
   sockaddr_in address{};
   address.sin_family = AF_INET;
@@ -93,8 +95,18 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
   address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
   if (::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
     ::close(fd);
-    return reply;
+    return -1;
   }
+  return fd;
+}
+
+}  // namespace
+
+HttpReply httpRequest(int port, const std::string& method, const std::string& path,
+                      const std::string& body, const std::string& headers) {
+  HttpReply reply;
+  const int fd = connectLoopback(port);
+  if (fd < 0) return reply;
   const std::string request =
       method + " " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n" + headers +
       "Content-Type: application/json\r\nContent-Length: " + std::to_string(body.size()) +
@@ -122,20 +134,8 @@ HttpConnection::~HttpConnection() {
 bool HttpConnection::connect() {
   if (fd_ >= 0) ::close(fd_);
   pending_.clear();
-  fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
-  if (fd_ < 0) return false;
-  timeval timeout{60, 0};
-  setsockopt(fd_, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof(timeout));
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_port = htons(static_cast<uint16_t>(port_));
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  if (::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
-    ::close(fd_);
-    fd_ = -1;
-    return false;
-  }
-  return true;
+  fd_ = connectLoopback(port_);
+  return fd_ >= 0;
 }
 
 HttpReply HttpConnection::get(const std::string& path) {
