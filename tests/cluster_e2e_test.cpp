@@ -11,6 +11,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <map>
 #include <sstream>
 #include <thread>
@@ -71,9 +72,34 @@ class ClusterTest : public ::testing::Test {
       EXPECT_EQ(journaled.poseCount(), sent.poses) << session;
       EXPECT_EQ(journaled.cloudCount(), sent.clouds) << session;
       EXPECT_EQ(journaled.repeated, 0u) << session;
+      expectEveryPoseJournaled(i, stored->records);
       ASSERT_TRUE(cluster_->servers().contains(owner.at(session))) << owner.at(session);
       expectMapIsTheJournals(session, cluster_->server(owner.at(session)), *stored, **journal);
     }
+  }
+
+  // Every pose in vehicle `i`'s --trajectory-out has its journaled pose (the same stamp, to
+  // the microsecond the TUM text keeps), and the journal holds no other.
+  void expectEveryPoseJournaled(int i, const std::vector<proto::journal::JournalRecord>& records) {
+    std::vector<int64_t> journaled_us;
+    for (const auto& record : records) {
+      if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+        journaled_us.push_back((pose->stamp_ns + 500) / 1000);
+      }
+    }
+    std::sort(journaled_us.begin(), journaled_us.end());
+    std::istringstream lines(readText(cluster_->trajectoryOut(i)));
+    size_t sent = 0, missing = 0;
+    for (std::string line; std::getline(lines, line);) {
+      if (line.empty() || line[0] == '#') continue;
+      ++sent;
+      const auto us = static_cast<int64_t>(std::llround(std::stod(line) * 1e6));
+      const auto near = std::lower_bound(journaled_us.begin(), journaled_us.end(), us - 1);
+      missing += near == journaled_us.end() || *near > us + 1;
+    }
+    EXPECT_GT(sent, 100u) << "vehicle " << i;
+    EXPECT_EQ(missing, 0u) << "vehicle " << i << ": poses it sent that are not journaled";
+    EXPECT_EQ(journaled_us.size(), sent) << "vehicle " << i;
   }
 
   void expectMapIsTheJournals(const std::string& session, ServerProcess& server,

@@ -46,8 +46,13 @@ bool ClusterHarness::startNginx(std::string* why) {
 void ClusterHarness::startVehicle(int domain, int i, int frames) {
   vehicles_.push_back(std::make_unique<ChildProcess>(
       userVehicleArgs(domain, "flight" + std::to_string(i), frames, "memory",
-                      {"--vehicle", "v" + std::to_string(i), "--flush-timeout", "90"}),
+                      {"--vehicle", "v" + std::to_string(i), "--flush-timeout", "90",
+                       "--trajectory-out", trajectoryOut(i)}),
       vehicleLog(i)));
+}
+
+std::string ClusterHarness::trajectoryOut(int i) const {
+  return dir_ + "/trajectory" + std::to_string(i) + ".tum";
 }
 
 std::string ClusterHarness::vehicleLog(int i) const {

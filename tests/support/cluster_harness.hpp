@@ -31,9 +31,12 @@ class ClusterHarness {
   TestPostgres& db() { return *db_; }
   const std::string& dir() const { return dir_; }
 
-  // Vehicle `i` flying session flight<i> as users fly it, `frames` frames at 10 Hz.
+  // Vehicle `i` flying session flight<i> as users fly it, `frames` frames at 10 Hz, with its
+  // trajectory written out.
   void startVehicle(int domain, int i, int frames);
   std::string vehicleLog(int i) const;
+  // The poses vehicle `i` sent (its --trajectory-out, TUM), written when it ends.
+  std::string trajectoryOut(int i) const;
   // Waits for every vehicle to end; false (with its log in `why`) when one failed.
   bool waitForVehicles(std::chrono::seconds timeout, std::string* why);
 
