@@ -229,9 +229,15 @@ function connect() {
   const token = params.get('token');
   // The session to show travels in the URL: a cluster's proxy routes the connection to the
   // server that serves it (a single server ignores it).
+  // A token goes in the URL too (as ?token=): a cluster's proxy must present it to look the
+  // session's server up before the hello can.
   const id = displayedSessionId();
   link.routedFor = id;
-  const socket = new WebSocket(`${scheme}://${location.host}/ws${id === null ? '' : `?session=${encodeURIComponent(id)}`}`);
+  const query = new URLSearchParams();
+  if (id !== null) query.set('session', id);
+  if (token) query.set('token', token);
+  const search = query.toString();
+  const socket = new WebSocket(`${scheme}://${location.host}/ws${search ? `?${search}` : ''}`);
   socket.binaryType = 'arraybuffer';
   link.socket = socket;
   // Tiles decode asynchronously; one chain keeps every message in the order it came.
