@@ -7,6 +7,8 @@
 #include <cmath>
 #include <limits>
 
+#include "server/fusion/detail/ray_cast.hpp"
+
 namespace stereomap::fusion::detail {
 
 using octomap::OcTreeKey;
@@ -33,167 +35,6 @@ void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch,
     }
     for (uint64_t v : values) scratch[counts[(v >> shift) & 0xFFFF]++] = v;
     values.swap(scratch);
-  }
-}
-
-// The voxels an update can touch, as bricks of 4x4x4 voxels: one 64-bit word per brick,
-// whose bits are the brick's voxels in Morton order. The box starts on a multiple of 4, so
-// a voxel's Morton code is its brick's code followed by its bit: listing the bricks in
-// Morton order lists the voxels in Morton order (only bricks need sorting, not voxels).
-struct BrickBox {
-  std::array<int, 3> min{};     // first key of the box (a multiple of 4 on each axis)
-  std::array<int, 3> bricks{};  // bricks along each axis
-  size_t words() const { return static_cast<size_t>(bricks[0]) * bricks[1] * bricks[2]; }
-  size_t brickIndex(int rx, int ry, int rz) const {  // relative keys
-    return (static_cast<size_t>(rx >> 2) * bricks[1] + (ry >> 2)) * bricks[2] + (rz >> 2);
-  }
-  std::array<int, 3> brickKey(size_t word) const {  // absolute key of the brick's corner
-    const int bz = static_cast<int>(word % bricks[2]);
-    word /= bricks[2];
-    const int by = static_cast<int>(word % bricks[1]);
-    const int bx = static_cast<int>(word / bricks[1]);
-    return {min[0] + 4 * bx, min[1] + 4 * by, min[2] + 4 * bz};
-  }
-};
-
-// Bit of a voxel inside its brick: the Morton code of its 2-bit coordinates.
-constexpr std::array<uint8_t, 64> kBrickBit = [] {
-  std::array<uint8_t, 64> bit{};
-  for (unsigned i = 0; i < 64; ++i) {
-    const unsigned x = i & 3, y = (i >> 2) & 3, z = (i >> 4) & 3;
-    bit[i] = static_cast<uint8_t>((x & 1) | (y & 1) << 1 | (z & 1) << 2 | (x >> 1) << 3 |
-                                  (y >> 1) << 4 | (z >> 1) << 5);
-  }
-  return bit;
-}();
-
-inline void markVoxel(std::vector<uint64_t>& words, const BrickBox& box, int rx, int ry, int rz) {
-  words[box.brickIndex(rx, ry, rz)] |= uint64_t{1}
-                                       << kBrickBit[(rx & 3) | (ry & 3) << 2 | (rz & 3) << 4];
-}
-
-// One ray of OctoMap's computeRayKeys (Amanatides & Woo), with the same float/double
-// arithmetic so that it visits the same voxels, as a walk over bit indices of a KeyBox.
-class RayWalk {
- public:
-  // Prepares the walk from `origin` to `end` and returns the origin voxel's bit, or false
-  // when there is nothing to mark (an end outside the tree, or origin and end in one voxel).
-  bool start(const octomap::OcTree& tree, const point3d& origin, const point3d& end,
-             const BrickBox& box) {
-    OcTreeKey key_origin, key_end;
-    if (!tree.coordToKeyChecked(origin, key_origin) || !tree.coordToKeyChecked(end, key_end)) {
-      return false;
-    }
-    if (key_origin == key_end) return false;
-    point3d direction = end - origin;
-    length_ = static_cast<float>(direction.norm());
-    // A ray whose length underflows float (an end 1e-38 m from an origin on a voxel border,
-    // in another voxel) has no direction: its walk would never end. Found by fuzzing
-    // (tests/fuzz/corpus/samples/ray-without-length), as a write past the box.
-    if (!(length_ > 0) || !std::isfinite(length_)) return false;
-    direction /= length_;
-    const double resolution = tree.getResolution();
-    double t_max[3], t_delta[3];
-    for (unsigned i = 0; i < 3; ++i) {
-      step_[i] = direction(i) > 0.0 ? 1 : direction(i) < 0.0 ? -1 : 0;
-      if (step_[i] != 0) {
-        double border = tree.keyToCoord(key_origin[i]);
-        border += static_cast<float>(step_[i] * resolution * 0.5);
-        t_max[i] = (border - origin(i)) / direction(i);
-        t_delta[i] = resolution / std::fabs(direction(i));
-      } else {
-        t_max[i] = t_delta[i] = std::numeric_limits<double>::max();
-      }
-      key_[i] = key_origin[i] - box.min[i];  // relative to the box from here on
-      end_[i] = key_end[i] - box.min[i];
-    }
-    for (unsigned i = 0; i < 3; ++i) limit_[i] = 4 * static_cast<unsigned>(box.bricks[i]);
-    stride_x_ = static_cast<size_t>(box.bricks[1]) * box.bricks[2];
-    stride_y_ = static_cast<size_t>(box.bricks[2]);
-    t0_ = t_max[0], t1_ = t_max[1], t2_ = t_max[2];
-    d0_ = t_delta[0], d1_ = t_delta[1], d2_ = t_delta[2];
-    return true;
-  }
-
-  // One voxel further; false when the ray is done, else key() is the voxel to mark. The
-  // next axis is the smallest t_max, ties going to the later axis (as OctoMap), chosen with
-  // selects instead of branches: the choice is unpredictable, and a mispredicted branch per
-  // voxel was most of the cost.
-  bool advance() {
-    const bool x_first = t0_ < t1_;
-    const bool z_next = !((x_first ? t0_ : t1_) < t2_);
-    const bool x_next = x_first && !z_next;
-    const bool y_next = !x_first && !z_next;
-    key_[0] += x_next ? step_[0] : 0;
-    key_[1] += y_next ? step_[1] : 0;
-    key_[2] += z_next ? step_[2] : 0;
-    t0_ += x_next ? d0_ : 0.0;
-    t1_ += y_next ? d1_ : 0.0;
-    t2_ += z_next ? d2_ : 0.0;
-    if (key_[0] == end_[0] && key_[1] == end_[1] && key_[2] == end_[2]) return false;
-    return !(std::min(std::min(t0_, t1_), t2_) > length_);
-  }
-  // Why a walk stays inside the box with its margin of one voxel (asserted in debug builds
-  // only, the walk being the hot loop; AddressSanitizer sees any write outside): a voxel is entered
-  // only while the ray's parameter is within its length, so every voxel walked touches the segment
-  // up to rounding; coordinates are floats over a tree of 2^16 voxels a side, so rounding is below
-  // 1/256 of a voxel, and a walk can end at most one voxel outside the segment's voxels.
-  void mark(uint64_t* words) const {
-    assert(static_cast<unsigned>(key_[0]) < limit_[0] &&
-           static_cast<unsigned>(key_[1]) < limit_[1] &&
-           static_cast<unsigned>(key_[2]) < limit_[2]);
-    const size_t word = static_cast<size_t>(key_[0] >> 2) * stride_x_ +
-                        static_cast<size_t>(key_[1] >> 2) * stride_y_ +
-                        static_cast<size_t>(key_[2] >> 2);
-    words[word] |=
-        uint64_t{1} << kBrickBit[(key_[0] & 3) | (key_[1] & 3) << 2 | (key_[2] & 3) << 4];
-  }
-
- private:
-  double t0_, t1_, t2_, d0_, d1_, d2_;
-  int key_[3], end_[3], step_[3];
-  unsigned limit_[3];  // keys (relative to the box) at or beyond these are outside it
-  size_t stride_x_, stride_y_;
-  float length_;
-};
-
-// Marks the voxels of the rays origin -> ends[from..to). Two rays are walked in turns:
-// each walk is one long chain of dependent steps, and two of them keep the core busier.
-void castRays(const octomap::OcTree& tree, const point3d& origin, const std::vector<point3d>& ends,
-              size_t from, size_t to, const BrickBox& box, std::vector<uint64_t>& bit_words) {
-  uint64_t* const bits = bit_words.data();  // a plain pointer: the loop keeps it in a register
-  size_t next = from;
-  auto load = [&](RayWalk& walk) {
-    while (next < to) {
-      if (walk.start(tree, origin, ends[next++], box)) {
-        walk.mark(bits);  // the origin's voxel
-        return true;
-      }
-    }
-    return false;
-  };
-  RayWalk a, b;
-  bool a_live = load(a), b_live = load(b);
-  while (a_live && b_live) {
-    if (a.advance()) {
-      a.mark(bits);
-    } else {
-      a_live = load(a);
-    }
-    if (b.advance()) {
-      b.mark(bits);
-    } else {
-      b_live = load(b);
-    }
-  }
-  for (RayWalk* walk : {&a, &b}) {
-    for (bool live = walk == &a ? a_live : b_live; live;) {
-      if (walk->advance()) {
-        walk->mark(bits);
-      } else {
-        live = load(*walk);
-      }
-    }
   }
 }
 
@@ -392,7 +233,6 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   // Ray ends: measured points, or the point at max_range along a longer ray (free only).
   std::vector<point3d> ends(points.size());
   std::vector<uint8_t> hit(points.size());
-  BrickBox box;
   OcTreeKey key;
   if (changes != nullptr) changes->clear();
   if (!tree.coordToKeyChecked(origin, key)) return;
@@ -411,15 +251,16 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   // (the voxel's exit is compared with the ray's length in floating point, by OctoMap too,
   // which marks that voxel free as well). Found as a write before the buffer by ASan.
   for (int a = 0; a < 3; ++a) {
-    box.min[a] = std::max(lo[a] - 1, 0) & ~3;
-    box.bricks[a] = (std::min(hi[a] + 1, 0xFFFF) - box.min[a]) / 4 + 1;
+    lo[a] = std::max(lo[a] - 1, 0);
+    hi[a] = std::min(hi[a] + 1, 0xFFFF);
   }
+  const VoxelBox box = VoxelBox::around(lo, hi);
   const size_t words = box.words();
   for (unsigned t = 0; t < threads; ++t) free_bits_[t].assign(words, 0);
   occupied_bits_.assign(words, 0);
 
   auto castRange = [&](unsigned t, size_t from, size_t to) {
-    castRays(tree, origin, ends, from, to, box, free_bits_[t]);
+    castRays(tree, origin, ends, from, to, box, free_bits_[t].data());
   };
   if (threads == 2) {
     runTwo(
@@ -430,56 +271,35 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
   }
   for (size_t i = 0; i < points.size(); ++i) {
     if (hit[i] && tree.coordToKeyChecked(ends[i], key)) {
-      markVoxel(occupied_bits_, box, key[0] - box.min[0], key[1] - box.min[1], key[2] - box.min[2]);
+      markVoxel(occupied_bits_.data(), box, key[0] - box.min[0], key[1] - box.min[1],
+                key[2] - box.min[2]);
     }
   }
 
-  // The touched bricks, sorted by Morton code (the brick's code above its word index).
+  // The touched bricks, sorted by Morton code (the brick's code above its place in bricks_).
+  std::vector<const uint64_t*> free_sets{free_bits_[0].data()};
+  if (threads == 2) free_sets.push_back(free_bits_[1].data());
+  collectBricks(box, free_sets, occupied_bits_.data(), bricks_);
   constexpr unsigned kIndexBits = 22;
-  bricks_.clear();
-  for (size_t w = 0; w < words; ++w) {
-    uint64_t any = free_bits_[0][w] | occupied_bits_[w];
-    if (threads == 2) any |= free_bits_[1][w];
-    if (any == 0) continue;
-    const auto corner = box.brickKey(w);
-    const OcTreeKey brick(static_cast<uint16_t>(corner[0] >> 2),
-                          static_cast<uint16_t>(corner[1] >> 2),
-                          static_cast<uint16_t>(corner[2] >> 2));
-    bricks_.push_back(mortonCode(brick) << kIndexBits | w);
-  }
-  const bool fits = words < (size_t{1} << kIndexBits);
-  if (fits) {
-    radixSort(bricks_, scratch_, counts_, 64);
-  } else {  // a box of more than 4M bricks (256M voxels): rare, sort the slow way
-    std::vector<std::pair<uint64_t, size_t>> order;
-    for (size_t w = 0; w < words; ++w) {
-      uint64_t any = free_bits_[0][w] | occupied_bits_[w];
-      if (threads == 2) any |= free_bits_[1][w];
-      if (any == 0) continue;
-      const auto corner = box.brickKey(w);
-      order.emplace_back(mortonCode(OcTreeKey(static_cast<uint16_t>(corner[0] >> 2),
-                                              static_cast<uint16_t>(corner[1] >> 2),
-                                              static_cast<uint16_t>(corner[2] >> 2))),
-                         w);
-    }
-    std::sort(order.begin(), order.end());
-    bricks_.clear();
-    for (const auto& [code, w] : order) bricks_.push_back(code << kIndexBits | w);
+  order_.clear();
+  if (bricks_.size() < (size_t{1} << kIndexBits)) {
+    for (size_t i = 0; i < bricks_.size(); ++i) order_.push_back(bricks_[i].code << kIndexBits | i);
+    radixSort(order_, scratch_, counts_, 64);
+    for (uint64_t& entry : order_) entry &= (uint64_t{1} << kIndexBits) - 1;
+  } else {  // more than 4M bricks touched (256M voxels): rare, sort the slow way
+    for (size_t i = 0; i < bricks_.size(); ++i) order_.push_back(i);
+    std::sort(order_.begin(), order_.end(),
+              [&](uint64_t a, uint64_t b) { return bricks_[a].code < bricks_[b].code; });
   }
   // Occupied wins over free (as OctoMap's computeUpdate). Each brick's voxels come out in
   // Morton order as its bits do; the code of a voxel is its brick's code and its bit.
   codes_.clear();
-  for (const uint64_t entry : bricks_) {
-    const size_t w = entry & ((uint64_t{1} << kIndexBits) - 1);
-    const uint64_t brick_code = fits ? entry >> kIndexBits : 0;
-    const uint64_t occupied = occupied_bits_[w];
-    uint64_t any = free_bits_[0][w] | occupied;
-    if (threads == 2) any |= free_bits_[1][w];
-    const uint64_t base = (fits ? brick_code : (entry >> kIndexBits)) << 6;
-    while (any != 0) {
+  for (const uint64_t i : order_) {
+    const TouchedBrick& brick = bricks_[i];
+    const uint64_t base = brick.code << 6;
+    for (uint64_t any = brick.any; any != 0; any &= any - 1) {
       const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
-      any &= any - 1;
-      codes_.push_back((base | bit) << 1 | ((occupied >> bit) & 1));
+      codes_.push_back((base | bit) << 1 | ((brick.occupied >> bit) & 1));
     }
   }
   tree.applySortedUpdates(codes_, threads, pool, changes);

@@ -2,9 +2,10 @@
 // same update as OctoMap's insertPointCloud (same rays, same "occupied wins over free"
 // rule, one log-odds update per touched voxel) at a fraction of the cost:
 //  1. rays are cast on all cores into dense bitsets over the cloud's bounding box (no
-//     std::unordered_set), one bitset per thread, OR-ed at the end; each 64-bit word is a
-//     4x4x4 brick with its voxels in Morton order;
-//  2. the touched voxels are listed in Morton order (a radix sort of the bricks only), so that
+//     std::unordered_set), one bitset per thread, eight rays at a time where the CPU has
+//     AVX2 (detail/ray_cast);
+//  2. the touched voxels are gathered into 4x4x4 bricks and listed in Morton order (a radix
+//     sort of the bricks only), so that
 //  3. the tree is updated in one recursive descent that visits each touched subtree once,
 //     updating inner nodes and pruning on the way back up (no per-key updateNode()).
 #pragma once
@@ -16,6 +17,7 @@
 #include <vector>
 
 #include "common/worker_pool.hpp"
+#include "server/fusion/detail/ray_cast.hpp"
 #include "server/fusion/voxel_code.hpp"
 
 namespace stereomap::fusion::detail {
@@ -76,7 +78,8 @@ class BulkInserter {
 
  private:
   std::vector<uint64_t> free_bits_[2], occupied_bits_;
-  std::vector<uint64_t> bricks_, codes_, scratch_;
+  std::vector<TouchedBrick> bricks_;
+  std::vector<uint64_t> order_, codes_, scratch_;
   std::vector<uint32_t> counts_;
 };
 
