@@ -23,6 +23,7 @@ constexpr const char* kStoreHealthy = "stereomap_store_healthy";
 constexpr const char* kStoreErrors = "stereomap_store_write_errors_total";
 constexpr const char* kVehicleBytes = "stereomap_vehicle_received_bytes_total";
 constexpr const char* kPoseLatency = "stereomap_vehicle_pose_latency_seconds";
+constexpr const char* kPublishLag = "stereomap_session_publish_lag_seconds";
 constexpr size_t kMaxVehicleLinks = 1024;
 constexpr size_t kMaxVehicleLinksPerSession = 64;
 constexpr const char* kOtherVehicles = "(other)";  // no valid id: no vehicle is taken for it
@@ -59,6 +60,9 @@ MapServer::MapServer(const MapServerOptions& options)
   metrics_.describe("stereomap_sessions", "gauge", "Sessions known to this server");
   metrics_.describe("stereomap_session_frames_fused", "gauge", "Frames fused, by session");
   metrics_.describe("stereomap_session_occupied_voxels", "gauge", "Occupied voxels, by session");
+  metrics_.describe(kPublishLag, "gauge",
+                    "Seconds from a live frame's arrival to its tiles' publication, by session "
+                    "(p50, p95 since the session was loaded)");
   metrics_.describe("stereomap_session_fusion_backlog", "gauge",
                     "Frames waiting for fusion, by session");
   metrics_.describe("stereomap_session_fusion_seconds", "gauge",
@@ -363,6 +367,7 @@ std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
 }
 
 bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
+  const auto arrived = std::chrono::steady_clock::now();
   FusionJob job;
   // A covered frame (in the restored snapshot) is counted and claimed, not fused: its payload
   // is not decoded, which was most of a restart's time (measured: docs/BENCHMARKS.md).
@@ -377,7 +382,10 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_
     session->countCovered(frame.vehicle_id);
     return true;
   }
-  if (origin == Origin::kLive) job.journal_number = *logged;
+  if (origin == Origin::kLive) {
+    job.journal_number = *logged;
+    job.arrived = arrived;
+  }
   const bool queued = session->enqueue(std::move(job), /*wait_for_room=*/origin == Origin::kReplay);
   if (!queued) {
     metrics_.add(kDropped, {{"session", frame.session_id}});
@@ -523,6 +531,11 @@ std::string MapServer::metricsText() const {
                  static_cast<double>(status.occupied_voxels));
     metrics_.set("stereomap_session_fusion_backlog", labels, static_cast<double>(status.backlog));
     metrics_.set("stereomap_session_fusion_seconds", labels, status.fusion_seconds);
+    for (const double quantile : {0.5, 0.95}) {
+      Labels with_quantile = labels;
+      with_quantile.emplace_back("quantile", quantile == 0.5 ? "0.5" : "0.95");
+      metrics_.set(kPublishLag, with_quantile, status.publish_lag.quantile(quantile));
+    }
   }
   if (const auto heap = common::heapStats()) {
     metrics_.set("stereomap_heap_allocated_bytes", {}, static_cast<double>(heap->allocated));

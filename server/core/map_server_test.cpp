@@ -25,10 +25,17 @@ TEST(MapServer, FusesGoodFramesAndCountsBadOnes) {
   EXPECT_EQ(status.frames_fused, 1u);
   EXPECT_GT(status.occupied_voxels, 50u);
   EXPECT_EQ(status.poses, 1u);
+  // The live frame's lag from arrival to its tiles: one sample, shorter than the test.
+  EXPECT_EQ(status.publish_lag.count(), 1u);
+  EXPECT_GT(status.publish_lag.quantile(0.5), 0.0);
+  EXPECT_LT(status.publish_lag.quantile(0.5), 10.0);
   EXPECT_EQ(server.metrics().get("stereomap_samples_rejected_total",
                                  {{"topic", "CloudFrame"}, {"reason", "decode_failed"}}),
             1.0);
   EXPECT_NE(server.metricsText().find("stereomap_session_occupied_voxels{session=\"a\"}"),
+            std::string::npos);
+  EXPECT_NE(server.metricsText().find(
+                "stereomap_session_publish_lag_seconds{session=\"a\",quantile=\"0.95\"}"),
             std::string::npos);
 }
 

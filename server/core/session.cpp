@@ -453,10 +453,13 @@ uint64_t Session::fuseIntoMap(FusionJob&& job, const Corrections& corrections) {
       }
     }
   }
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const auto published = std::chrono::steady_clock::now();
+  const double seconds = std::chrono::duration<double>(published - start).count();
   std::lock_guard state(state_mutex_);
   fusion_seconds_ += seconds;
+  if (job.arrived != std::chrono::steady_clock::time_point{}) {
+    publish_lag_.add(std::chrono::duration<double>(published - job.arrived).count());
+  }
   return ++frames_fused_;
 }
 
@@ -620,6 +623,7 @@ SessionStatus Session::status() const {
   status.ended_by = ended_by_;
   status.read_only = options_.read_only;
   status.fusion_seconds = fusion_seconds_;
+  status.publish_lag = publish_lag_;
   status.store_error = store_error_;
   status.samples_refused = samples_refused_;
   status.corrections = corrections_set_;

@@ -35,6 +35,7 @@
 #include "common/result.hpp"
 #include "common/worker_pool.hpp"
 #include "proto/messages.hpp"
+#include "server/core/latency.hpp"
 #include "server/core/pose_correction.hpp"
 #include "server/core/receipts.hpp"
 #include "server/fusion/occupancy_map.hpp"
@@ -57,6 +58,8 @@ struct FusionJob {
   double max_range_m = 0;
   // The frame's journal record number; 0: none (no journal), enqueue() numbers it by arrival.
   uint64_t journal_number = 0;
+  // When the server got it (live frames only): the lag to its tiles' publication is kept.
+  std::chrono::steady_clock::time_point arrived{};
 };
 
 struct SessionStatus {
@@ -82,8 +85,10 @@ struct SessionStatus {
   bool read_only = false;     // opened from the store: takes no new samples
   bool closed = false;        // kept in the store only (not loaded)
   double fusion_seconds = 0;  // total time spent inserting clouds and updating tiles
-  uint64_t map_version = 0;   // the tiles' version: bumps with every change of the map
-  uint64_t snapshots = 0;     // snapshots handed to the store
+  // From a live frame's arrival (before its journal write) to its tiles' publication.
+  LatencyHistogram publish_lag;
+  uint64_t map_version = 0;  // the tiles' version: bumps with every change of the map
+  uint64_t snapshots = 0;    // snapshots handed to the store
   // The longest time fusion stopped for a snapshot (the fork of the writer).
   double snapshot_stall_max_seconds = 0;
   // Why the last sample could not be journaled ("" once one could again): it was refused.
@@ -272,6 +277,7 @@ class Session {
   std::vector<int64_t> newest_pose_ns_;                   // by vehicle index
   uint64_t frames_received_ = 0, frames_fused_ = 0, frames_dropped_ = 0, frames_deferred_ = 0;
   double fusion_seconds_ = 0;
+  LatencyHistogram publish_lag_;
   uint64_t snapshots_ = 0;
   double snapshot_stall_max_seconds_ = 0;
   bool ended_ = false;

@@ -40,7 +40,10 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                      {"corrections", s.corrections},
                      {"refusions", s.refusions},
                      {"refusing", s.refusing},
-                     {"refusion_error", textOrNull(s.refusion_error)}});
+                     {"refusion_error", textOrNull(s.refusion_error)},
+                     {"publish_lag_ms",
+                      {{"p50", 1000 * s.publish_lag.quantile(0.5)},
+                       {"p95", 1000 * s.publish_lag.quantile(0.95)}}}});
   if (!s.server.empty()) object["server"] = s.server;
   return object;
 }
