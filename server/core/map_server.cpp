@@ -366,8 +366,10 @@ std::optional<Rejection> fusionJobFrom(const proto::CloudFrameMsg& frame,
   return std::nullopt;
 }
 
-bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number) {
-  const auto arrived = std::chrono::steady_clock::now();
+bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_t journal_number,
+                       std::chrono::steady_clock::time_point arrived) {
+  if (arrived == std::chrono::steady_clock::time_point{})
+    arrived = std::chrono::steady_clock::now();
   FusionJob job;
   // A covered frame (in the restored snapshot) is counted and claimed, not fused: its payload
   // is not decoded, which was most of a restart's time (measured: docs/BENCHMARKS.md).

@@ -97,8 +97,10 @@ class MapServer {
   // taken already: a vehicle's spool or DDS's history sending it again, receipts.hpp) is
   // counted as a duplicate and skipped.
   // `journal_number`: a replayed or covered frame's record number in the journal.
+  // `arrived`: when the frame reached this server (the start of its publication lag); unset:
+  // now.
   bool ingest(const proto::CloudFrameMsg& frame, Origin origin = Origin::kLive,
-              uint64_t journal_number = 0);
+              uint64_t journal_number = 0, std::chrono::steady_clock::time_point arrived = {});
   bool ingest(const proto::PoseMsg& pose, Origin origin = Origin::kLive);
   bool ingest(const proto::SessionEventMsg& event, Origin origin = Origin::kLive);
   // A vehicle's pose graph's correction (newest per vehicle wins): live ones are journaled

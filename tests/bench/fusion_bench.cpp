@@ -19,37 +19,15 @@
 #include "onboard/stereo/depth.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "testing/tum.hpp"
-#include "tests/support/timing.hpp"
+#include "tests/bench/bench_support.hpp"
 
 namespace {
 
 using namespace stereomap;
+using bench::compareInsertion;
+using bench::Frame;
+using bench::frustumFrame;
 using common::Vec3;
-using fusion::OccupancyMap;
-using testing::medianMs;
-
-struct Frame {
-  common::PointCloud cloud;
-  common::Rigid3 pose;
-};
-
-// 50k rays (250 x 200) over 65 x 50 degrees along +x, ending 2-10 m away on a rough surface.
-Frame frustumFrame() {
-  Frame frame;
-  std::mt19937 rng(7);
-  std::uniform_real_distribution<double> jitter(-0.15, 0.15);
-  const double h = 65.0 * M_PI / 180, v = 50.0 * M_PI / 180;
-  for (int r = 0; r < 200; ++r) {
-    for (int c = 0; c < 250; ++c) {
-      const double az = (c / 249.0 - 0.5) * h, el = (r / 199.0 - 0.5) * v;
-      const double range =
-          std::clamp(6.0 + 3.5 * std::sin(3 * az) * std::cos(2 * el) + jitter(rng), 2.0, 10.0);
-      const Vec3 dir(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
-      frame.cloud.points.push_back((dir * range).cast<float>());
-    }
-  }
-  return frame;
-}
 
 Frame simFrame() {
   const sim::Scene scene = sim::Scene::makeRoom({.seed = 1});
@@ -71,30 +49,6 @@ std::vector<Frame> tumFrames(const std::string& dir, size_t count) {
   return frames;
 }
 
-struct Result {
-  double stock_ms, fast_ms;
-  double agreement;
-};
-
-// Each run inserts `frames` into empty maps; the agreement compares the final maps.
-Result compare(const std::vector<Frame>& frames, double resolution, double max_range, int runs,
-               int stock_runs, unsigned threads) {
-  auto build = [&](OccupancyMap::Insertion insertion, OccupancyMap* keep) {
-    OccupancyMap map({.resolution = resolution, .insertion = insertion, .threads = threads});
-    for (const auto& f : frames) map.insertCloud(f.cloud, f.pose, max_range);
-    if (keep != nullptr) return compareClassification(map, *keep).fraction();
-    return 0.0;
-  };
-  Result result{};
-  result.stock_ms =
-      medianMs(stock_runs, [&] { build(OccupancyMap::Insertion::kOctomap, nullptr); });
-  result.fast_ms = medianMs(runs, [&] { build(OccupancyMap::Insertion::kFast, nullptr); });
-  OccupancyMap stock({.resolution = resolution, .insertion = OccupancyMap::Insertion::kOctomap});
-  for (const auto& f : frames) stock.insertCloud(f.cloud, f.pose, max_range);
-  result.agreement = build(OccupancyMap::Insertion::kFast, &stock);
-  return result;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -114,8 +68,8 @@ int main(int argc, char** argv) {
                  double max_range) {
     size_t points = 0;
     for (const auto& f : frames) points += f.cloud.size();
-    const auto one = compare(frames, resolution, max_range, runs, stock_runs, 1);
-    const auto two = compare(frames, resolution, max_range, runs, 1, 2);
+    const auto one = compareInsertion(frames, resolution, max_range, runs, stock_runs, 1);
+    const auto two = compareInsertion(frames, resolution, max_range, runs, 1, 2);
     std::printf("| %s | %zu | %.1f ms | %.1f ms | %.1f ms (%.2f M points/s) | %.1fx | %.3f%% |\n",
                 name, points, one.stock_ms, one.fast_ms, two.fast_ms, points / two.fast_ms / 1000.0,
                 one.stock_ms / two.fast_ms, 100 * two.agreement);

@@ -5,7 +5,8 @@
 // proto, 71/93 map accuracy, 72/84/88 bad input, 73 browser, 74/85 crash recovery, 75 session
 // admin, 76/79 security, 77/78/80 durability, 83 tiles over HTTP, 86 test-docker, 87/89 pose
 // graph end to end, 90/92 landing end to end, 94/95 shaped link, 96 the soak run (tests/soak),
-// 98-102 outages, 103-108 the cluster (tests, benchmark), 109 test-docker's cluster. A
+// 98-102 outages, 103-108 the cluster (tests, benchmark), 109 test-docker's cluster, 110
+// the fleet benchmark's recordings (stereomap-bench-scale). A
 // new test takes a free one and adds it here.
 #pragma once
 
