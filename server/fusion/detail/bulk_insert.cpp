@@ -17,23 +17,25 @@ using octomap::point3d;
 
 namespace {
 
-// LSD radix sort of 64-bit values whose set bits are below `bits`. (Splitting it over two
-// threads measured no faster: it is memory-bound.)
+// LSD radix sort of 64-bit values whose set bits are below `bits`, 11 bits a pass: a frame
+// touches some 10^4 bricks, for which 16-bit digits spent most of the time clearing counts.
+// (Splitting it over two threads measured no faster: it is memory-bound.)
 void radixSort(std::vector<uint64_t>& values, std::vector<uint64_t>& scratch,
                std::vector<uint32_t>& counts, unsigned bits) {
-  constexpr unsigned kDigit = 16;
+  constexpr unsigned kDigit = 11;
+  constexpr uint64_t kMask = (uint64_t{1} << kDigit) - 1;
   scratch.resize(values.size());
   counts.resize(size_t{1} << kDigit);
   for (unsigned shift = 0; shift < bits; shift += kDigit) {
     std::fill(counts.begin(), counts.end(), 0);
-    for (uint64_t v : values) ++counts[(v >> shift) & 0xFFFF];
+    for (uint64_t v : values) ++counts[(v >> shift) & kMask];
     uint32_t sum = 0;
     for (auto& c : counts) {
       const uint32_t n = c;
       c = sum;
       sum += n;
     }
-    for (uint64_t v : values) scratch[counts[(v >> shift) & 0xFFFF]++] = v;
+    for (uint64_t v : values) scratch[counts[(v >> shift) & kMask]++] = v;
     values.swap(scratch);
   }
 }
@@ -51,37 +53,34 @@ void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
   second();
 }
 
-uint64_t mortonCode(const OcTreeKey& key) { return mortonOfKeys(key[0], key[1], key[2]); }
-
-OcTreeKey mortonDecode(uint64_t code) {
-  return OcTreeKey(static_cast<uint16_t>(fusion::detail::compactBits(code)),
-                   static_cast<uint16_t>(fusion::detail::compactBits(code >> 1)),
-                   static_cast<uint16_t>(fusion::detail::compactBits(code >> 2)));
-}
-
 namespace {
 // Subtrees at this depth are the units of parallel work (up to 512 of them).
 constexpr unsigned kTaskDepth = 3;
+// The depth of a brick's node: 4x4x4 voxels, two levels above the voxels.
+constexpr unsigned kBrickDepth = 14;
 
-// [begin, end) split into runs of equal child index at `depth`, calling visit(child, b, e).
+// [begin, end) split into runs of equal child index at `depth` (< kBrickDepth), calling
+// visit(child, b, e).
 template <typename Visit>
-void forEachChildRun(unsigned tree_depth, unsigned depth, const uint64_t* begin,
-                     const uint64_t* end, Visit visit) {
-  const unsigned shift = 3 * (tree_depth - 1 - depth) + 1;  // above the occupied flag
-  for (const uint64_t* run = begin; run != end;) {
-    const unsigned child = static_cast<unsigned>((*run >> shift) & 7);
-    const uint64_t* run_end =
-        std::find_if(run, end, [&](uint64_t c) { return ((c >> shift) & 7) != child; });
+void forEachChildRun(unsigned depth, const TouchedBrick* begin, const TouchedBrick* end,
+                     Visit visit) {
+  const unsigned shift = 3 * (kBrickDepth - 1 - depth);
+  for (const TouchedBrick* run = begin; run != end;) {
+    const auto child = static_cast<unsigned>((run->code >> shift) & 7);
+    const TouchedBrick* run_end = std::find_if(
+        run, end, [&](const TouchedBrick& b) { return ((b.code >> shift) & 7) != child; });
     visit(child, run, run_end);
     run = run_end;
   }
 }
+
+constexpr uint64_t kAllBits = ~uint64_t{0};
 }  // namespace
 
-void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads,
-                                    common::WorkerPool* pool, std::vector<VoxelChange>* changes) {
+void BulkOcTree::applyBricks(const std::vector<TouchedBrick>& bricks, unsigned threads,
+                             common::WorkerPool* pool, std::vector<VoxelChange>* changes) {
   if (changes != nullptr) changes->clear();
-  if (codes.empty()) return;
+  if (bricks.empty()) return;
   changes_ = changes;
   bool created = false;
   if (root == nullptr) {
@@ -89,15 +88,17 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned
     ++tree_size;
     created = true;
   }
+  const Brick* const begin = bricks.data();
+  const Brick* const end = begin + bricks.size();
   if (threads < 2) {
-    descend(root, created, 0, codes.data(), codes.data() + codes.size());
+    descend(root, created, 0, begin, end);
     changes_ = nullptr;
     return;
   }
   // Top levels serially (create or expand the nodes down to kTaskDepth), the subtrees below
   // on two threads, then the top levels' occupancy and pruning serially on the way back up.
   std::vector<Task> tasks;
-  openTop(root, created, 0, codes.data(), codes.data() + codes.size(), tasks);
+  openTop(root, created, 0, begin, end, tasks);
   // The second thread changes nodes through a twin tree with the same sensor model, so that
   // OctoMap's node bookkeeping (tree_size) of the two threads never touches the same counter.
   BulkOcTree twin(getResolution());
@@ -128,28 +129,27 @@ void BulkOcTree::applySortedUpdates(const std::vector<uint64_t>& codes, unsigned
   tree_size += twin.tree_size;  // wraps correctly when the twin pruned more than it made
   twin.tree_size = 0;
   size_changed = true;
-  closeTop(root, 0, codes.data(), codes.data() + codes.size());
+  closeTop(root, 0, begin, end);
 }
 
 void BulkOcTree::openTop(OcTreeNode* node, bool node_just_created, unsigned depth,
-                         const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks) {
+                         const Brick* begin, const Brick* end, std::vector<Task>& tasks) {
   if (depth == kTaskDepth) {
     tasks.push_back({node, node_just_created, begin, end});
     return;
   }
-  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+  forEachChildRun(depth, begin, end, [&](unsigned child, auto b, auto e) {
     const bool created = openChild(node, node_just_created, child);
     openTop(getNodeChild(node, child), created, depth + 1, b, e, tasks);
   });
 }
 
-void BulkOcTree::closeTop(OcTreeNode* node, unsigned depth, const uint64_t* begin,
-                          const uint64_t* end) {
+void BulkOcTree::closeTop(OcTreeNode* node, unsigned depth, const Brick* begin, const Brick* end) {
   if (depth == kTaskDepth) return;
-  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+  forEachChildRun(depth, begin, end, [&](unsigned child, auto b, auto e) {
     closeTop(getNodeChild(node, child), depth + 1, b, e);
   });
-  if (!pruneNode(node)) node->updateOccupancyChildren();
+  close(node);
 }
 
 bool BulkOcTree::openChild(OcTreeNode* node, bool node_just_created, unsigned child) {
@@ -162,56 +162,102 @@ bool BulkOcTree::openChild(OcTreeNode* node, bool node_just_created, unsigned ch
   return true;
 }
 
-// Mirrors OccupancyOcTreeBase::updateNodeRecurs for all keys below `node` at once.
+void BulkOcTree::close(OcTreeNode* node) {
+  if (!pruneNode(node)) node->updateOccupancyChildren();
+}
+
+// Mirrors OccupancyOcTreeBase::updateNodeRecurs for all voxels below `node` at once.
 void BulkOcTree::descend(OcTreeNode* node, bool node_just_created, unsigned depth,
-                         const uint64_t* begin, const uint64_t* end) {
+                         const Brick* begin, const Brick* end) {
+  if (depth == kBrickDepth) {
+    descendBrick(node, node_just_created, begin->code, begin->any, begin->occupied);
+    return;
+  }
   // OctoMap's updateNode() leaves a voxel alone when the node holding it (a leaf, or a pruned
   // block) is already clamped in the update's direction. Below a clamped block whose updates
   // are all of that kind nothing can move: expanding it and pruning it back, as the loop
   // below would, is only allocation churn (every frame, in a mature map's saturated space).
-  if (!node_just_created && !nodeHasChildren(node) && clampedForAll(node, begin, end)) return;
-  if (depth == tree_depth) {
-    // Each key appears once: one hit or one miss, clamped as updateNode() does.
-    const float before = node->getLogOdds();
-    updateNodeLogOdds(node, (*begin & 1) ? prob_hit_log : prob_miss_log);
-    if (changes_ != nullptr) {
-      noteChange(*begin >> 1, depth, node_just_created, before, node->getLogOdds());
-    }
-    return;
+  if (!node_just_created && !nodeHasChildren(node)) {
+    const bool all_missed = std::all_of(begin, end, [](const Brick& b) { return b.occupied == 0; });
+    const bool all_hit =
+        std::all_of(begin, end, [](const Brick& b) { return b.occupied == b.any; });
+    if (clamped(node, all_missed, all_hit)) return;
   }
   // Every voxel below a childless node gets the same update (common in free space near the
   // sensor): OctoMap would create or expand all the children, update them alike and prune
   // them back into this node. Updating the node itself gives the same tree, without the
   // allocations.
   const auto count = static_cast<size_t>(end - begin);
-  if (count == size_t{1} << (3 * (tree_depth - depth)) && !nodeHasChildren(node)) {
-    const uint64_t flag = *begin & 1;
-    if (std::all_of(begin, end, [flag](uint64_t c) { return (c & 1) == flag; })) {
-      const float before = node->getLogOdds();
-      updateNodeLogOdds(node, flag ? prob_hit_log : prob_miss_log);
-      if (changes_ != nullptr) {
-        noteChange(*begin >> 1, depth, node_just_created, before, node->getLogOdds());
-      }
+  if (count == size_t{1} << (3 * (kBrickDepth - depth)) && !nodeHasChildren(node)) {
+    const uint64_t flag = begin->occupied;
+    if ((flag == 0 || flag == kAllBits) && std::all_of(begin, end, [flag](const Brick& b) {
+          return b.any == kAllBits && b.occupied == flag;
+        })) {
+      updateWhole(node, node_just_created, depth, begin->code << 6, flag != 0);
       return;
     }
   }
-  forEachChildRun(tree_depth, depth, begin, end, [&](unsigned child, auto b, auto e) {
+  forEachChildRun(depth, begin, end, [&](unsigned child, auto b, auto e) {
     const bool created = openChild(node, node_just_created, child);
     descend(getNodeChild(node, child), created, depth + 1, b, e);
   });
-  if (!pruneNode(node)) node->updateOccupancyChildren();
+  close(node);
 }
 
-bool BulkOcTree::clampedForAll(const OcTreeNode* node, const uint64_t* begin,
-                               const uint64_t* end) const {
+// A brick's 64 bits are its voxels in Morton order: bits 8c..8c+7 are the octet of child c.
+void BulkOcTree::descendBrick(OcTreeNode* node, bool node_just_created, uint64_t brick_code,
+                              uint64_t any, uint64_t occupied) {
+  const bool childless = !nodeHasChildren(node);
+  if (!node_just_created && childless && clamped(node, occupied == 0, occupied == any)) return;
+  if (childless && any == kAllBits && (occupied == 0 || occupied == kAllBits)) {
+    updateWhole(node, node_just_created, kBrickDepth, brick_code << 6, occupied != 0);
+    return;
+  }
+  for (unsigned child = 0; child < 8; ++child) {
+    const auto octet_any = static_cast<unsigned>((any >> (8 * child)) & 0xFF);
+    if (octet_any == 0) continue;
+    const bool created = openChild(node, node_just_created, child);
+    descendOctet(getNodeChild(node, child), created, brick_code << 6 | 8 * child, octet_any,
+                 static_cast<unsigned>((occupied >> (8 * child)) & 0xFF));
+  }
+  close(node);
+}
+
+void BulkOcTree::descendOctet(OcTreeNode* node, bool node_just_created, uint64_t first_voxel,
+                              unsigned any, unsigned occupied) {
+  const bool childless = !nodeHasChildren(node);
+  if (!node_just_created && childless && clamped(node, occupied == 0, occupied == any)) return;
+  if (childless && any == 0xFF && (occupied == 0 || occupied == 0xFF)) {
+    updateWhole(node, node_just_created, kBrickDepth + 1, first_voxel, occupied != 0);
+    return;
+  }
+  for (unsigned bits = any; bits != 0; bits &= bits - 1) {
+    const auto child = static_cast<unsigned>(__builtin_ctz(bits));
+    const bool created = openChild(node, node_just_created, child);
+    OcTreeNode* voxel = getNodeChild(node, child);
+    // Each voxel gets one hit or one miss, clamped as updateNode() does.
+    const float before = voxel->getLogOdds();
+    updateNodeLogOdds(voxel, ((occupied >> child) & 1) ? prob_hit_log : prob_miss_log);
+    if (changes_ != nullptr) {
+      noteChange(first_voxel | child, tree_depth, created, before, voxel->getLogOdds());
+    }
+  }
+  close(node);
+}
+
+void BulkOcTree::updateWhole(OcTreeNode* node, bool node_just_created, unsigned depth,
+                             uint64_t first_voxel, bool occupied) {
+  const float before = node->getLogOdds();
+  updateNodeLogOdds(node, occupied ? prob_hit_log : prob_miss_log);
+  if (changes_ != nullptr) {
+    noteChange(first_voxel, depth, node_just_created, before, node->getLogOdds());
+  }
+}
+
+bool BulkOcTree::clamped(const OcTreeNode* node, bool all_missed, bool all_hit) const {
   const float log_odds = node->getLogOdds();
-  if (log_odds <= clamping_thres_min) {
-    return std::none_of(begin, end, [](uint64_t c) { return (c & 1) != 0; });
-  }
-  if (log_odds >= clamping_thres_max) {
-    return std::all_of(begin, end, [](uint64_t c) { return (c & 1) != 0; });
-  }
-  return false;
+  return (log_odds <= clamping_thres_min && all_missed) ||
+         (log_odds >= clamping_thres_max && all_hit);
 }
 
 void BulkOcTree::noteChange(uint64_t code, unsigned depth, bool just_created, float before,
@@ -230,79 +276,94 @@ void BulkInserter::insert(BulkOcTree& tree, const std::vector<point3d>& points,
                           const point3d& origin, double max_range, unsigned threads,
                           common::WorkerPool* pool, std::vector<VoxelChange>* changes) {
   threads = std::clamp(threads, 1u, 2u);
-  // Ray ends: measured points, or the point at max_range along a longer ray (free only).
-  std::vector<point3d> ends(points.size());
-  std::vector<uint8_t> hit(points.size());
-  OcTreeKey key;
   if (changes != nullptr) changes->clear();
-  if (!tree.coordToKeyChecked(origin, key)) return;
-  std::array<int, 3> lo{key[0], key[1], key[2]}, hi = lo;
-  for (size_t i = 0; i < points.size(); ++i) {
-    const point3d& p = points[i];
-    hit[i] = max_range < 0.0 || (p - origin).norm() <= max_range;
-    ends[i] = hit[i] ? p : origin + (p - origin).normalized() * static_cast<float>(max_range);
-    if (!tree.coordToKeyChecked(ends[i], key)) continue;
-    for (int a = 0; a < 3; ++a) {
-      lo[a] = std::min<int>(lo[a], key[a]);
-      hi[a] = std::max<int>(hi[a], key[a]);
+  OcTreeKey origin_key;
+  if (!tree.coordToKeyChecked(origin, origin_key)) return;
+  // Each step runs on both threads, each on its share: the points' halves, then the box's.
+  auto onEach = [&](const std::function<void(unsigned t)>& step) {
+    if (threads == 2) {
+      runTwo(
+          pool, [&] { step(0); }, [&] { step(1); });
+    } else {
+      step(0);
     }
-  }
+  };
+  auto share = [&](unsigned t, size_t n) {
+    return std::pair{n * t / threads, n * (t + 1) / threads};
+  };
+  // Ray ends: measured points, or the point at max_range along a longer ray (free only); and
+  // the keys they span.
+  ends_.resize(points.size());
+  hit_.resize(points.size());
+  std::array<std::array<int, 3>, 2> lo{}, hi{};
+  onEach([&](unsigned t) {
+    lo[t] = {origin_key[0], origin_key[1], origin_key[2]};
+    hi[t] = lo[t];
+    const auto [from, to] = share(t, points.size());
+    OcTreeKey key;
+    for (size_t i = from; i < to; ++i) {
+      const point3d& p = points[i];
+      hit_[i] = max_range < 0.0 || (p - origin).norm() <= max_range;
+      ends_[i] = hit_[i] ? p : origin + (p - origin).normalized() * static_cast<float>(max_range);
+      if (!tree.coordToKeyChecked(ends_[i], key)) continue;
+      for (int a = 0; a < 3; ++a) {
+        lo[t][a] = std::min<int>(lo[t][a], key[a]);
+        hi[t][a] = std::max<int>(hi[t][a], key[a]);
+      }
+    }
+  });
   // One voxel of margin on every side: a ray's walk can step one voxel past its end voxel
   // (the voxel's exit is compared with the ray's length in floating point, by OctoMap too,
   // which marks that voxel free as well). Found as a write before the buffer by ASan.
   for (int a = 0; a < 3; ++a) {
-    lo[a] = std::max(lo[a] - 1, 0);
-    hi[a] = std::min(hi[a] + 1, 0xFFFF);
+    lo[0][a] = std::max(std::min(lo[0][a], lo[threads - 1][a]) - 1, 0);
+    hi[0][a] = std::min(std::max(hi[0][a], hi[threads - 1][a]) + 1, 0xFFFF);
   }
-  const VoxelBox box = VoxelBox::around(lo, hi);
-  const size_t words = box.words();
-  for (unsigned t = 0; t < threads; ++t) free_bits_[t].assign(words, 0);
-  occupied_bits_.assign(words, 0);
-
-  auto castRange = [&](unsigned t, size_t from, size_t to) {
-    castRays(tree, origin, ends, from, to, box, free_bits_[t].data());
-  };
-  if (threads == 2) {
-    runTwo(
-        pool, [&] { castRange(0, 0, points.size() / 2); },
-        [&] { castRange(1, points.size() / 2, points.size()); });
-  } else {
-    castRange(0, 0, points.size());
-  }
-  for (size_t i = 0; i < points.size(); ++i) {
-    if (hit[i] && tree.coordToKeyChecked(ends[i], key)) {
-      markVoxel(occupied_bits_.data(), box, key[0] - box.min[0], key[1] - box.min[1],
-                key[2] - box.min[2]);
+  const VoxelBox box = VoxelBox::around(lo[0], hi[0]);
+  // Each thread marks its rays' voxels in bitsets of its own: free ones, and the hits.
+  onEach([&](unsigned t) {
+    free_bits_[t].assign(box.words(), 0);
+    occupied_bits_[t].assign(box.words(), 0);
+    const auto [from, to] = share(t, points.size());
+    castRays(tree, origin, ends_, from, to, box, free_bits_[t].data());
+    OcTreeKey key;
+    for (size_t i = from; i < to; ++i) {
+      if (hit_[i] && tree.coordToKeyChecked(ends_[i], key)) {
+        markVoxel(occupied_bits_[t].data(), box, key[0] - box.min[0], key[1] - box.min[1],
+                  key[2] - box.min[2]);
+      }
     }
+  });
+  // The touched bricks, each thread a share of the box.
+  std::vector<const uint64_t*> free_sets, occupied_sets;
+  for (unsigned t = 0; t < threads; ++t) {
+    free_sets.push_back(free_bits_[t].data());
+    occupied_sets.push_back(occupied_bits_[t].data());
   }
+  onEach([&](unsigned t) {
+    const auto [from, to] = share(t, static_cast<size_t>(box.size[0] / 4));
+    collectBricks(box, free_sets, occupied_sets, static_cast<int>(from), static_cast<int>(to),
+                  bricks_[t]);
+  });
+  if (threads == 2) bricks_[0].insert(bricks_[0].end(), bricks_[1].begin(), bricks_[1].end());
+  const std::vector<TouchedBrick>& bricks = bricks_[0];
 
-  // The touched bricks, sorted by Morton code (the brick's code above its place in bricks_).
-  std::vector<const uint64_t*> free_sets{free_bits_[0].data()};
-  if (threads == 2) free_sets.push_back(free_bits_[1].data());
-  collectBricks(box, free_sets, occupied_bits_.data(), bricks_);
+  // Sorted by Morton code (the brick's code above its place in `bricks`).
   constexpr unsigned kIndexBits = 22;
   order_.clear();
-  if (bricks_.size() < (size_t{1} << kIndexBits)) {
-    for (size_t i = 0; i < bricks_.size(); ++i) order_.push_back(bricks_[i].code << kIndexBits | i);
+  if (bricks.size() < (size_t{1} << kIndexBits)) {
+    for (size_t i = 0; i < bricks.size(); ++i) order_.push_back(bricks[i].code << kIndexBits | i);
     radixSort(order_, scratch_, counts_, 64);
     for (uint64_t& entry : order_) entry &= (uint64_t{1} << kIndexBits) - 1;
   } else {  // more than 4M bricks touched (256M voxels): rare, sort the slow way
-    for (size_t i = 0; i < bricks_.size(); ++i) order_.push_back(i);
+    for (size_t i = 0; i < bricks.size(); ++i) order_.push_back(i);
     std::sort(order_.begin(), order_.end(),
-              [&](uint64_t a, uint64_t b) { return bricks_[a].code < bricks_[b].code; });
+              [&](uint64_t a, uint64_t b) { return bricks[a].code < bricks[b].code; });
   }
-  // Occupied wins over free (as OctoMap's computeUpdate). Each brick's voxels come out in
-  // Morton order as its bits do; the code of a voxel is its brick's code and its bit.
-  codes_.clear();
-  for (const uint64_t i : order_) {
-    const TouchedBrick& brick = bricks_[i];
-    const uint64_t base = brick.code << 6;
-    for (uint64_t any = brick.any; any != 0; any &= any - 1) {
-      const unsigned bit = static_cast<unsigned>(__builtin_ctzll(any));
-      codes_.push_back((base | bit) << 1 | ((brick.occupied >> bit) & 1));
-    }
-  }
-  tree.applySortedUpdates(codes_, threads, pool, changes);
+  // Occupied wins over free (as OctoMap's computeUpdate): a brick's `occupied` marks its hits.
+  sorted_.clear();
+  for (const uint64_t i : order_) sorted_.push_back(bricks[i]);
+  tree.applyBricks(sorted_, threads, pool, changes);
 }
 
 }  // namespace stereomap::fusion::detail

@@ -7,7 +7,8 @@
 //  2. the touched voxels are gathered into 4x4x4 bricks and listed in Morton order (a radix
 //     sort of the bricks only), so that
 //  3. the tree is updated in one recursive descent that visits each touched subtree once,
-//     updating inner nodes and pruning on the way back up (no per-key updateNode()).
+//     updating inner nodes and pruning on the way back up (no per-key updateNode()); down to
+//     the bricks it splits ranges of bricks, below them bit masks.
 #pragma once
 
 #include <octomap/OcTree.h>
@@ -33,34 +34,47 @@ void runTwo(common::WorkerPool* pool, const std::function<void()>& first,
 class BulkOcTree : public octomap::OcTree {
  public:
   explicit BulkOcTree(double resolution) : octomap::OcTree(resolution) {}
-  // `codes`: Morton code of each key shifted left by one, lowest bit set for an occupied
-  // (hit) update and clear for a free (miss) update; sorted ascending, no key twice.
-  // threads >= 2: subtrees below depth 3 are updated on two threads (`pool`'s, or threads
-  // of their own when it is null). `changes` (optional) receives every node whose class or
-  // value changed, sorted by code.
-  void applySortedUpdates(const std::vector<uint64_t>& codes, unsigned threads = 1,
-                          common::WorkerPool* pool = nullptr,
-                          std::vector<VoxelChange>* changes = nullptr);
+  // `bricks`: the touched 4x4x4 bricks, sorted by code, none twice; a voxel marked in
+  // `occupied` gets an occupied (hit) update, one marked in `any` only a free (miss) update.
+  // threads >= 2: subtrees below depth 3 are updated on two threads (`pool`'s, or threads of
+  // their own when it is null). `changes` (optional) receives every node whose class or value
+  // changed, sorted by code.
+  void applyBricks(const std::vector<TouchedBrick>& bricks, unsigned threads = 1,
+                   common::WorkerPool* pool = nullptr, std::vector<VoxelChange>* changes = nullptr);
 
  private:
+  using Brick = TouchedBrick;
   struct Task {
     octomap::OcTreeNode* node;
     bool just_created;
-    const uint64_t* begin;
-    const uint64_t* end;
+    const Brick* begin;
+    const Brick* end;
   };
+  // Nodes down to the bricks' depth (14), a range of bricks below each.
   void descend(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
-               const uint64_t* begin, const uint64_t* end);
+               const Brick* begin, const Brick* end);
+  // A brick's node (depth 14), its 2x2x2 octets (depth 15) and their voxels, from its masks
+  // (`any`, `occupied`: a brick's 64 bits, or an octet's 8 at `first_bit`).
+  void descendBrick(octomap::OcTreeNode* node, bool node_just_created, uint64_t brick_code,
+                    uint64_t any, uint64_t occupied);
+  void descendOctet(octomap::OcTreeNode* node, bool node_just_created, uint64_t first_voxel,
+                    unsigned any, unsigned occupied);
   // The child to descend into exists afterwards; true when it had to be created.
   bool openChild(octomap::OcTreeNode* node, bool node_just_created, unsigned child);
   void openTop(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
-               const uint64_t* begin, const uint64_t* end, std::vector<Task>& tasks);
-  void closeTop(octomap::OcTreeNode* node, unsigned depth, const uint64_t* begin,
-                const uint64_t* end);
-  // True when `node` is at the clamping bound that every update in [begin, end) pushes
-  // towards (all misses at the lower bound, or all hits at the upper): none can change it.
-  bool clampedForAll(const octomap::OcTreeNode* node, const uint64_t* begin,
-                     const uint64_t* end) const;
+               const Brick* begin, const Brick* end, std::vector<Task>& tasks);
+  void closeTop(octomap::OcTreeNode* node, unsigned depth, const Brick* begin, const Brick* end);
+  // Updates a childless node that stands for every voxel below it, when they all get the
+  // same update (hit: `occupied`), as OctoMap would after updating and pruning them.
+  void updateWhole(octomap::OcTreeNode* node, bool node_just_created, unsigned depth,
+                   uint64_t first_voxel, bool occupied);
+  // True when `node` is at the clamping bound that every update below it pushes towards (all
+  // misses at the lower bound, or all hits at the upper): none can change it. `all_missed`,
+  // `all_hit`: what the updates below it are.
+  bool clamped(const octomap::OcTreeNode* node, bool all_missed, bool all_hit) const;
+  // After a node's children were updated: pruned into it when they are alike, else its value
+  // follows theirs.
+  void close(octomap::OcTreeNode* node);
   // Records a node's update in changes_ when its class or quantised value moved.
   void noteChange(uint64_t code, unsigned depth, bool just_created, float before, float after);
 
@@ -77,14 +91,12 @@ class BulkInserter {
               common::WorkerPool* pool = nullptr, std::vector<VoxelChange>* changes = nullptr);
 
  private:
-  std::vector<uint64_t> free_bits_[2], occupied_bits_;
-  std::vector<TouchedBrick> bricks_;
-  std::vector<uint64_t> order_, codes_, scratch_;
+  std::vector<octomap::point3d> ends_;
+  std::vector<uint8_t> hit_;
+  std::vector<uint64_t> free_bits_[2], occupied_bits_[2];  // a pair per thread
+  std::vector<TouchedBrick> bricks_[2], sorted_;
+  std::vector<uint64_t> order_, scratch_;
   std::vector<uint32_t> counts_;
 };
-
-// Morton code of a key: bit b of x, y, z at bits 3b, 3b+1, 3b+2.
-uint64_t mortonCode(const octomap::OcTreeKey& key);
-octomap::OcTreeKey mortonDecode(uint64_t code);
 
 }  // namespace stereomap::fusion::detail

@@ -344,17 +344,18 @@ VoxelBox VoxelBox::around(const std::array<int, 3>& lo, const std::array<int, 3>
 }
 
 void collectBricks(const VoxelBox& box, const std::vector<const uint64_t*>& free_sets,
-                   const uint64_t* occupied, std::vector<TouchedBrick>& bricks) {
+                   const std::vector<const uint64_t*>& occupied_sets, int bx_begin, int bx_end,
+                   std::vector<TouchedBrick>& bricks) {
   bricks.clear();
   const size_t row_words = static_cast<size_t>(box.size[2]) / 64;
-  auto freeWord = [&](size_t w) {
+  auto union_of = [](const std::vector<const uint64_t*>& sets, size_t w) {
     uint64_t bits = 0;
-    for (const uint64_t* set : free_sets) bits |= set[w];
+    for (const uint64_t* set : sets) bits |= set[w];
     return bits;
   };
   // Bricks along x and y, a word of z rows (16 bricks) at a time: first the union of the
   // 16 rows, whose nibbles say which of the 16 bricks were touched at all.
-  for (int bx = 0; bx < box.size[0] / 4; ++bx) {
+  for (int bx = bx_begin; bx < std::min(bx_end, box.size[0] / 4); ++bx) {
     for (int by = 0; by < box.size[1] / 4; ++by) {
       size_t rows[16];
       for (unsigned d = 0; d < 16; ++d) {
@@ -364,7 +365,9 @@ void collectBricks(const VoxelBox& box, const std::vector<const uint64_t*>& free
       }
       for (size_t w = 0; w < row_words; ++w) {
         uint64_t union_bits = 0;
-        for (const size_t row : rows) union_bits |= freeWord(row + w) | occupied[row + w];
+        for (const size_t row : rows) {
+          union_bits |= union_of(free_sets, row + w) | union_of(occupied_sets, row + w);
+        }
         while (union_bits != 0) {
           const unsigned nibble = static_cast<unsigned>(__builtin_ctzll(union_bits)) / 4;
           union_bits &= ~(uint64_t{0xF} << (4 * nibble));
@@ -372,8 +375,10 @@ void collectBricks(const VoxelBox& box, const std::vector<const uint64_t*>& free
           for (unsigned d = 0; d < 16; ++d) {
             const unsigned place = brickBit(d & 3, d >> 2, 0);
             const size_t word = rows[d] + w;
-            brick.any |= kRowBits[(freeWord(word) | occupied[word]) >> (4 * nibble) & 0xF] << place;
-            brick.occupied |= kRowBits[occupied[word] >> (4 * nibble) & 0xF] << place;
+            const uint64_t occupied = union_of(occupied_sets, word);
+            brick.any |= kRowBits[(union_of(free_sets, word) | occupied) >> (4 * nibble) & 0xF]
+                         << place;
+            brick.occupied |= kRowBits[occupied >> (4 * nibble) & 0xF] << place;
           }
           const int bz = static_cast<int>(16 * w + nibble);
           brick.code = mortonOfKeys(static_cast<uint32_t>(box.min[0] / 4 + bx),

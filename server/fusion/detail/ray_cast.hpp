@@ -48,9 +48,11 @@ struct TouchedBrick {
   uint64_t any, occupied;
 };
 
-// The bricks with a marked voxel in any of `free_sets` or in `occupied`, in box order.
+// The bricks with a marked voxel in any of `free_sets` or `occupied_sets`, in box order, of
+// the box's bricks bx_begin <= x / 4 < bx_end (a share of the work for one thread).
 void collectBricks(const VoxelBox& box, const std::vector<const uint64_t*>& free_sets,
-                   const uint64_t* occupied, std::vector<TouchedBrick>& bricks);
+                   const std::vector<const uint64_t*>& occupied_sets, int bx_begin, int bx_end,
+                   std::vector<TouchedBrick>& bricks);
 
 enum class RayKernel { kAuto, kScalar, kAvx2 };
 

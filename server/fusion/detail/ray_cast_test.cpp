@@ -135,8 +135,11 @@ TEST(RayCast, BricksHoldTheMarkedVoxelsInMortonOrder) {
     any.insert(code);
     if (i % 3 == 0) hit.insert(code);
   }
-  std::vector<TouchedBrick> bricks;
-  collectBricks(box, {free_bits.data(), more_free.data()}, occupied.data(), bricks);
+  // In two shares, as two threads take it.
+  std::vector<TouchedBrick> bricks, second;
+  collectBricks(box, {free_bits.data(), more_free.data()}, {occupied.data()}, 0, 2, bricks);
+  collectBricks(box, {free_bits.data(), more_free.data()}, {occupied.data()}, 2, 1000, second);
+  bricks.insert(bricks.end(), second.begin(), second.end());
   std::set<uint64_t> got_any, got_hit;
   for (const auto& brick : bricks) {
     EXPECT_NE(brick.any, 0u);
