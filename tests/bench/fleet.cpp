@@ -1,6 +1,5 @@
 #include "tests/bench/fleet.hpp"
 
-#include <malloc.h>
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -171,13 +170,11 @@ std::vector<FleetStream> fleetStreams(const fs::path& dir, int count, int frames
 }
 
 FleetRun runFleet(const std::vector<FleetStream>& streams, int vehicles, double seconds,
-                  const fs::path& store_dir) {
+                  const fs::path& store_dir, double rss_before) {
   FleetRun run;
   run.vehicles = vehicles;
   std::vector<Due> clouds, others;
   schedule(streams, vehicles, seconds, clouds, others);
-  ::malloc_trim(0);
-  const double rss_before = residentMegabytes();
 
   store::SessionJournals journals(store_dir, 0.1);
   core::MapServer server(

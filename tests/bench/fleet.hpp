@@ -46,7 +46,7 @@ struct FleetRun {
   double lag_p50_ms = 0, lag_p95_ms = 0, lag_max_ms = 0;  // arrival to tiles published
   double late_p95_ms = 0;  // how late the feeders handed samples to the server
   double cpu_percent = 0;  // the process's CPU over the window (100 %: one core)
-  double rss_mb = 0;       // resident memory added by the server (peak - before it)
+  double rss_mb = 0;       // the process's peak RSS during the run, less `rss_before` (runFleet)
   bool ok(double max_lag_ms) const { return dropped == 0 && lag_p95_ms <= max_lag_ms; }
 };
 
@@ -54,7 +54,9 @@ struct FleetRun {
 // clouds and one for poses and events (as DdsIngest's readers), acks taken every 200 ms; a
 // store in `store_dir` (journals with fdatasync, snapshots, deferral, as stereomap-server's).
 // Lag is counted from when a cloud was due, so a feeder running late counts against it.
+// `rss_before`: the process's RSS before the first fleet ran (MB); memory the allocator kept
+// from earlier runs counts too, so a run's figure is an upper bound.
 FleetRun runFleet(const std::vector<FleetStream>& streams, int vehicles, double seconds,
-                  const std::filesystem::path& store_dir);
+                  const std::filesystem::path& store_dir, double rss_before);
 
 }  // namespace stereomap::bench
