@@ -349,7 +349,14 @@ struct HttpServer::Impl {
   void accept() {
     acceptor.async_accept([this](beast::error_code ec, tcp::socket socket) {
       if (ec == asio::error::operation_aborted) return;
-      if (!ec) std::make_shared<HttpSession>(std::move(socket), hub)->start();
+      if (!ec) {
+        // Viewers get many small messages (statuses, tiles, markers): with Nagle's algorithm
+        // one waits for the ACK of the one before, which the client delays (40 ms on Linux).
+        // Measured: live tile markers' p95 26 -> 66 ms once session statuses grew by 40 bytes.
+        beast::error_code ignored;
+        socket.set_option(tcp::no_delay(true), ignored);
+        std::make_shared<HttpSession>(std::move(socket), hub)->start();
+      }
       accept();
     });
   }
