@@ -9,6 +9,10 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <thread>
+#include <vector>
+
+#include <cstdio>
 
 namespace stereomap::testing {
 
@@ -168,14 +172,56 @@ void TestPostgres::stop() {
   if (!postmaster_->waitExit(std::chrono::seconds(30))) postmaster_->kill9();
 }
 
+namespace {
+
+// The processes whose parent is `parent` (from /proc/PID/stat: "pid (comm) state ppid ...").
+std::vector<pid_t> childrenOf(pid_t parent) {
+  std::vector<pid_t> children;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator("/proc", ec)) {
+    const std::string name = entry.path().filename().string();
+    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+    std::ifstream in(entry.path() / "stat");
+    std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const auto close = stat.rfind(')');
+    if (close == std::string::npos) continue;
+    char state = 0;
+    long ppid = 0;
+    if (std::sscanf(stat.c_str() + close + 1, " %c %ld", &state, &ppid) == 2 && ppid == parent) {
+      children.push_back(static_cast<pid_t>(std::stol(name)));
+    }
+  }
+  return children;
+}
+
+// True once `pid` is gone or a zombie: its sockets are closed either way.
+bool dead(pid_t pid) {
+  std::ifstream in("/proc/" + std::to_string(pid) + "/stat");
+  std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto close = stat.rfind(')');
+  return close == std::string::npos || stat.compare(close + 1, 3, " Z ") == 0;
+}
+
+}  // namespace
+
 void TestPostgres::kill9() {
-  if (running()) postmaster_->kill9();
+  if (!running()) return;
+  // A killed postmaster's backends notice its death only at their next wait, which under a
+  // loaded machine (sanitizers) can come after the test's next statement was answered: kill
+  // them too, as a crash of the database's machine would, and wait until their sockets close.
+  const std::vector<pid_t> backends = childrenOf(postmaster_->pid());
+  postmaster_->kill9();
+  for (pid_t backend : backends) ::kill(backend, SIGKILL);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  for (pid_t backend : backends) {
+    while (!dead(backend) && std::chrono::steady_clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+  }
 }
 
 bool TestPostgres::restart(std::string* why) {
   if (running()) stop();
-  // A killed postmaster's backends finish their statement and exit; the new one waits for
-  // the shared memory they hold.
   return launch(why);
 }
 

@@ -41,7 +41,7 @@ class TestPostgres {
 
   bool running();
   void stop();   // a clean shutdown (fast mode)
-  void kill9();  // the postmaster killed; its backends exit by themselves
+  void kill9();  // the postmaster and its backends killed, as in a crash of their machine
   // Starts it again on the same directory and port; false when it does not come up.
   bool restart(std::string* why = nullptr);
 
