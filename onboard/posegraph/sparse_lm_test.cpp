@@ -1,0 +1,161 @@
+#include "onboard/posegraph/sparse_lm.hpp"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+#include <filesystem>
+#include <random>
+
+#include "onboard/posegraph/chordal.hpp"
+
+namespace stereomap::posegraph {
+namespace {
+
+// A walk of `n` poses around a cylinder (3D) or a circle (2D) with odometry and loop edges, the
+// measurements the true relative poses with noise of `sigma` (radians and metres).
+G2oGraph cylinderGraph(int n, int dimension, double sigma, uint32_t seed) {
+  std::mt19937 random(seed);
+  std::normal_distribution<double> noise(0.0, sigma);
+  G2oGraph graph;
+  graph.dimension = dimension;
+  graph.has_estimates = true;
+  std::vector<common::Rigid3> truth;
+  for (int v = 0; v < n; ++v) {
+    const double a = 2 * M_PI * v / 20.0;
+    common::Rigid3 pose;
+    pose.rotation = Eigen::AngleAxisd(a + M_PI / 2, Eigen::Vector3d::UnitZ());
+    if (dimension == 3)
+      pose.rotation =
+          pose.rotation * Eigen::AngleAxisd(0.3 * std::sin(a), Eigen::Vector3d::UnitX());
+    pose.translation =
+        Eigen::Vector3d(5 * std::cos(a), 5 * std::sin(a), dimension == 3 ? 0.2 * v : 0);
+    truth.push_back(pose);
+  }
+  auto measure = [&](int i, int j) {
+    G2oEdge edge;
+    edge.from = i;
+    edge.to = j;
+    common::Rigid3 relative = truth[i].inverse() * truth[j];
+    Eigen::Vector3d w(noise(random), noise(random), noise(random)),
+        t(noise(random), noise(random), noise(random));
+    if (dimension == 2) w.head<2>().setZero(), t.z() = 0;
+    relative.rotation =
+        relative.rotation *
+        Eigen::Quaterniond(Eigen::AngleAxisd(
+            w.norm(), w.norm() > 0 ? Eigen::Vector3d(w.normalized()) : Eigen::Vector3d::UnitZ()));
+    relative.translation += t;
+    edge.T_from_to = relative;
+    edge.information = Mat6::Zero();
+    edge.information.diagonal() << 100, 100, 100, 400, 400, 400;
+    if (dimension == 2)
+      edge.information(2, 2) = edge.information(3, 3) = edge.information(4, 4) = 0;
+    graph.edges.push_back(edge);
+  };
+  for (int v = 0; v + 1 < n; ++v) measure(v, v + 1);
+  for (int v = 0; v + 20 < n; v += 3) measure(v, v + 20);
+  // The file's estimates: the odometry chained, as a vehicle's would be.
+  common::Rigid3 pose = truth[0];
+  graph.vertices.push_back({0, pose});
+  for (int v = 1; v < n; ++v) {
+    pose = pose * graph.edges[v - 1].T_from_to;
+    graph.vertices.push_back({v, pose});
+  }
+  return graph;
+}
+
+class SparseLMTest : public ::testing::TestWithParam<std::tuple<int, Weights>> {};
+
+TEST_P(SparseLMTest, ANoiseFreeGraphIsSolvedToZeroCostFromItsChordalStartOrItsDriftedOne) {
+  const auto [dimension, weights] = GetParam();
+  const G2oGraph graph = cylinderGraph(100, dimension, 0.0, 1);
+  GraphProblem chordal(graph, weights);
+  ASSERT_TRUE(chordalInitialise(chordal));
+  EXPECT_LT(chordal.cost(), 1e-18) << "the relaxation is exact without noise";
+  // A drifted start: every vertex moved.
+  G2oGraph drifted = graph;
+  std::mt19937 random(3);
+  std::normal_distribution<double> noise(0, 0.1);
+  for (auto& vertex : drifted.vertices) {
+    if (vertex.id == 0) continue;
+    vertex.T_world_vertex.translation +=
+        Eigen::Vector3d(noise(random), noise(random), dimension == 3 ? noise(random) : 0);
+    vertex.T_world_vertex.rotation =
+        vertex.T_world_vertex.rotation * Eigen::AngleAxisd(noise(random), Eigen::Vector3d::UnitZ());
+  }
+  GraphProblem problem(drifted, weights);
+  const auto summary = solveSparseLM(problem);
+  EXPECT_TRUE(summary.converged) << summary.termination;
+  EXPECT_LT(summary.final_cost, 1e-16);
+  for (int v = 0; v < problem.size(); ++v) {
+    EXPECT_LT((problem.poses()[v].t - graph.vertices[v].T_world_vertex.translation).norm(), 1e-7);
+  }
+}
+
+// With noise, the chordal start and a start at the truth's drifted odometry reach one optimum,
+// and one thread or two give the same bits.
+TEST_P(SparseLMTest, TheOptimumDoesNotDependOnTheStartOrTheThreads) {
+  const auto [dimension, weights] = GetParam();
+  const G2oGraph graph = cylinderGraph(200, dimension, 0.02, 5);
+  GraphProblem from_file(graph, weights), from_chordal(graph, weights), one_thread(graph, weights);
+  ASSERT_TRUE(chordalInitialise(from_chordal));
+  ASSERT_TRUE(chordalInitialise(one_thread));
+  const double start_cost = from_chordal.cost();
+  const auto a = solveSparseLM(from_file);
+  const auto b = solveSparseLM(from_chordal);
+  SparseLMOptions single;
+  single.threads = 1;
+  const auto c = solveSparseLM(one_thread, single);
+  ASSERT_TRUE(a.converged && b.converged && c.converged);
+  EXPECT_NEAR(a.final_cost, b.final_cost, 1e-9 * b.final_cost);
+  EXPECT_EQ(b.final_cost, c.final_cost);
+  EXPECT_LT(b.final_cost, start_cost);
+  EXPECT_GT(b.final_cost, 1.0) << "a cost, not zero: the noise";
+}
+
+INSTANTIATE_TEST_SUITE_P(DimensionsAndWeights, SparseLMTest,
+                         ::testing::Combine(::testing::Values(2, 3),
+                                            ::testing::Values(Weights::kFile,
+                                                              Weights::kIsotropic)));
+
+TEST(SparseLM, AGraphOfEdgesAloneIsSolvedFromItsChordalStart) {
+  G2oGraph graph = cylinderGraph(120, 3, 0.02, 9);
+  GraphProblem with_vertices(graph, Weights::kIsotropic);
+  ASSERT_TRUE(chordalInitialise(with_vertices));
+  solveSparseLM(with_vertices);
+  auto edges_only = parseG2o(formatG2o([&] {
+    G2oGraph g = graph;
+    g.vertices.clear();
+    return g;
+  }()));
+  ASSERT_TRUE(edges_only) << edges_only.error().message;
+  ASSERT_FALSE(edges_only->has_estimates);
+  GraphProblem problem(*edges_only, Weights::kIsotropic);
+  ASSERT_TRUE(chordalInitialise(problem));
+  solveSparseLM(problem);
+  EXPECT_NEAR(problem.seSyncF(), with_vertices.seSyncF(), 1e-9 * with_vertices.seSyncF());
+}
+
+// SE-Sync's certified optima (../shared/data/posegraph/README.md), within the rounding of the
+// printed figure, from the chordal start.
+TEST(SparseLM, ReachesSeSyncsCertifiedOptimaOnTheFieldsGraphs) {
+  const std::filesystem::path dir = std::filesystem::path(STEREOMAP_DATA_DIR) / "posegraph";
+  if (!std::filesystem::exists(dir)) GTEST_SKIP() << dir << " is absent";
+  struct Reference {
+    const char* file;
+    double f, rounding;
+  };
+  for (const Reference& reference :
+       {Reference{"smallGrid3D.g2o", 1025.398, 0.0005}, Reference{"intel.g2o", 52.35, 0.005},
+        Reference{"parking-garage.g2o", 1.263, 0.0005}, Reference{"sphere2500.g2o", 1687, 0.5}}) {
+    auto graph = readG2o((dir / reference.file).string());
+    ASSERT_TRUE(graph) << graph.error().message;
+    GraphProblem problem(*graph, Weights::kIsotropic);
+    ASSERT_TRUE(chordalInitialise(problem));
+    const auto summary = solveSparseLM(problem);
+    EXPECT_TRUE(summary.converged) << reference.file << ": " << summary.termination;
+    EXPECT_NEAR(problem.seSyncF(), reference.f, reference.rounding) << reference.file;
+  }
+}
+
+}  // namespace
+}  // namespace stereomap::posegraph
