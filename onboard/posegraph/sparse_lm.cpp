@@ -189,8 +189,6 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
     linearise();
     const double new_cost = halves[0].cost;
     const double rho = (cost - new_cost) / predicted;
-    fprintf(stderr, "it %d cost %.12g new %.12g pred %.3g rho %.4f lambda %.3g\n", iteration, cost,
-            new_cost, predicted, rho, lambda);
     if (std::isfinite(new_cost) && rho > 1e-3) {
       const double decrease = cost - new_cost;
       cost = new_cost;
