@@ -3,6 +3,8 @@
 #include <Eigen/Cholesky>
 #include <charconv>
 #include <cmath>
+#include <cstdio>
+#include <filesystem>
 #include <string_view>
 #include <unordered_map>
 
@@ -17,10 +19,20 @@ using common::ErrorCode;
 // Indices of an SE(2) graph's (x, y, theta) in the 6x6 (g2o's 3D order: x y z rx ry rz).
 constexpr int kPlanar[3] = {0, 1, 5};
 
-// A field as an error names it: quoted, at most 40 characters.
+// A field as an error names it: quoted, at most 40 bytes, any byte that is not printable
+// ASCII written as \xNN (a binary file's bytes never reach the terminal).
 std::string quoted(std::string_view field) {
   std::string out(1, '\'');
-  out.append(field.substr(0, 40));
+  for (const char c : field.substr(0, 40)) {
+    const auto byte = static_cast<unsigned char>(c);
+    if (byte >= 0x20 && byte < 0x7f) {
+      out += c;
+    } else {
+      char escaped[5];
+      std::snprintf(escaped, sizeof(escaped), "\\x%02x", byte);
+      out += escaped;
+    }
+  }
   out += '\'';
   return out;
 }
@@ -165,8 +177,8 @@ common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& na
     }
     if (!se3_vertex && !se2_vertex && !se3_edge && !se2_edge) {
       return reader.fault(
-          "unknown line '" + std::string(tag.substr(0, 40)) +
-          "': VERTEX_SE3:QUAT, EDGE_SE3:QUAT, VERTEX_SE2, EDGE_SE2 and FIX are read");
+          "unknown line " + quoted(tag) +
+          ": VERTEX_SE3:QUAT, EDGE_SE3:QUAT, VERTEX_SE2, EDGE_SE2 and FIX are read");
     }
     const int line_dimension = se3_vertex || se3_edge ? 3 : 2;
     if (dimension == 0) {
@@ -241,6 +253,19 @@ common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& na
 }
 
 common::Result<G2oGraph> readG2o(const std::string& path) {
+  // Read whole: a device or a pipe (/dev/zero) would never end, a huge file would fill memory.
+  std::error_code error;
+  const auto status = std::filesystem::status(path, error);
+  if (!error && status.type() != std::filesystem::file_type::regular &&
+      status.type() != std::filesystem::file_type::not_found) {
+    return common::makeError(ErrorCode::kInvalidArgument, path + " is not a regular file");
+  }
+  const auto size = std::filesystem::file_size(path, error);
+  if (!error && size > kMaxG2oBytes) {
+    return common::makeError(ErrorCode::kTooLarge,
+                             path + " has " + std::to_string(size) + " bytes, more than the " +
+                                 std::to_string(kMaxG2oBytes) + " a graph may have");
+  }
   auto bytes = common::readWholeFile(path);
   if (!bytes) return bytes.error();
   return parseG2o(std::string(bytes->begin(), bytes->end()), path);

@@ -46,7 +46,11 @@ struct G2oGraph {
   std::vector<int64_t> fixed;  // ids named by FIX lines
 };
 
-// Reads and checks a whole file: an error (kInvalidArgument, or kIo/kNotFound for the file)
+// The largest file readG2o reads (a graph of millions of edges is a few hundred MB).
+inline constexpr uint64_t kMaxG2oBytes = uint64_t{1} << 30;
+
+// Reads and checks a whole file (a regular file of at most kMaxG2oBytes, else kInvalidArgument
+// or kTooLarge): an error (kInvalidArgument, or kIo/kNotFound for the file)
 // names the line and what is wrong with it: an unknown tag, a missing or extra field, a number
 // that is not finite, a quaternion far from unit length (within 1 % it is normalised), an
 // information matrix that is not positive definite, a duplicate vertex id, an edge from a vertex

@@ -116,6 +116,19 @@ TEST(G2o, BadInputIsRefusedNamingTheLine) {
   }
 }
 
+TEST(G2o, ADeviceIsRefusedBeforeItIsRead) {
+  auto graph = readG2o("/dev/zero");  // would never end
+  ASSERT_FALSE(graph);
+  EXPECT_NE(graph.error().message.find("not a regular file"), std::string::npos);
+}
+
+TEST(G2o, BinaryBytesAreEscapedInTheError) {
+  auto graph = parseG2o(std::string("\x01\xff\x1b[31m 1 2\n", 12), "f.g2o");
+  ASSERT_FALSE(graph);
+  EXPECT_NE(graph.error().message.find("'\\x01\\xff\\x1b[31m'"), std::string::npos)
+      << graph.error().message;
+}
+
 TEST(G2o, AMissingFileIsNotFound) {
   auto graph = readG2o("/nonexistent/graph.g2o");
   ASSERT_FALSE(graph);

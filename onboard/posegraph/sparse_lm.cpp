@@ -101,6 +101,11 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
     summary.seconds = secondsSince(start);
     return summary;
   }
+  if (!std::isfinite(summary.initial_cost)) {
+    summary.termination = "the cost is not finite at the start (numbers too large for squares)";
+    summary.seconds = secondsSince(start);
+    return summary;
+  }
   Cholesky cholesky(layout, options.ordering);
   summary.factor_nonzeros = cholesky.factorNonzeros();
   common::WorkerPool pool(1);

@@ -135,6 +135,16 @@ TEST(SparseLM, AGraphOfEdgesAloneIsSolvedFromItsChordalStart) {
   EXPECT_NEAR(problem.seSyncF(), with_vertices.seSyncF(), 1e-9 * with_vertices.seSyncF());
 }
 
+TEST(SparseLM, ACostThatOverflowsIsReportedNotIterated) {
+  G2oGraph graph = cylinderGraph(10, 3, 0.0, 1);
+  graph.vertices[3].T_world_vertex.translation.x() = 1e300;  // its square overflows
+  GraphProblem problem(graph, Weights::kFile);
+  const auto summary = solveSparseLM(problem);
+  EXPECT_FALSE(summary.converged);
+  EXPECT_EQ(summary.iterations, 0);
+  EXPECT_NE(summary.termination.find("not finite"), std::string::npos) << summary.termination;
+}
+
 // SE-Sync's certified optima (../shared/data/posegraph/README.md), within the rounding of the
 // printed figure, from the chordal start.
 TEST(SparseLM, ReachesSeSyncsCertifiedOptimaOnTheFieldsGraphs) {
