@@ -56,7 +56,6 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;
 
-  const auto start = std::chrono::steady_clock::now();
   auto graph = readG2o(input);
   if (!graph) {
     std::fprintf(stderr, "%s\n", graph.error().message.c_str());
@@ -103,7 +102,6 @@ int main(int argc, char** argv) {
     }
     std::printf("wrote %s\n", output.c_str());
   }
-  (void)start;
   std::printf("posegraph %s: %d poses, %zu edges, SE-Sync f %.9g, g2o chi2 %.9g, %.3f s\n",
               input.c_str(), problem.size(), problem.edges().size(), problem.seSyncF(),
               problem.g2oChi2(), solve_seconds);

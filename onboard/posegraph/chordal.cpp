@@ -19,10 +19,10 @@ Eigen::Matrix3d nearestRotation(const Eigen::Matrix3d& M) {
   return svd.matrixU() * D * svd.matrixV().transpose();
 }
 
-// Adds the k x k block `value` at block (a, b) of the layout's upper triangle (a, b >= 0).
+// Adds the 3 x 3 block `value` at block (a, b) of the layout's upper triangle (a, b >= 0).
 void addBlock(const BlockLayout& layout, double* values, int a, int b, int slot,
-              const Eigen::MatrixXd& value) {
-  const int k = layout.k;
+              const Eigen::Matrix3d& value) {
+  const int k = 3;
   if (a > b) {
     addBlock(layout, values, b, a, slot, value.transpose());
     return;

@@ -16,9 +16,6 @@ namespace {
 
 using common::ErrorCode;
 
-// Indices of an SE(2) graph's (x, y, theta) in the 6x6 (g2o's 3D order: x y z rx ry rz).
-constexpr int kPlanar[3] = {0, 1, 5};
-
 // A field as an error names it: quoted, at most 40 bytes, any byte that is not printable
 // ASCII written as \xNN (a binary file's bytes never reach the terminal).
 std::string quoted(std::string_view field) {
@@ -210,8 +207,8 @@ common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& na
         !reader.id(2, &edge.to, &why) ||
         !(se3_edge ? readSe3(reader, 3, &edge.T_from_to, &why)
                    : readSe2(reader, 3, &edge.T_from_to, &why)) ||
-        !readInformation(reader, se3_edge ? 10 : 6, se3_edge ? 6 : 3, se3_edge ? kSpatial : kPlanar,
-                         &edge.information, &why)) {
+        !readInformation(reader, se3_edge ? 10 : 6, se3_edge ? 6 : 3,
+                         se3_edge ? kSpatial : kSe2Places, &edge.information, &why)) {
       return reader.fault(why);
     }
     if (edge.from == edge.to) {
@@ -296,7 +293,7 @@ void appendPose(std::string* out, const common::Rigid3& pose, int dimension) {
 std::string formatG2o(const G2oGraph& graph) {
   const bool planar = graph.dimension == 2;
   const int n = planar ? 3 : 6;
-  const int* places = planar ? kPlanar : kSpatial;
+  const int* places = planar ? kSe2Places : kSpatial;
   std::string out;
   for (const auto& vertex : graph.vertices) {
     out += planar ? "VERTEX_SE2 " : "VERTEX_SE3:QUAT ";

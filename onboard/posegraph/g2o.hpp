@@ -31,6 +31,7 @@ struct G2oVertex {
 
 // An SE(2) graph's information (x, y, theta) sits in the 6x6 at the places of (x, y, rz): rows
 // and columns 0, 1 and 5; the others are zero.
+inline constexpr int kSe2Places[3] = {0, 1, 5};
 struct G2oEdge {
   int64_t from = 0, to = 0;  // vertex ids
   common::Rigid3 T_from_to;  // the measured pose of `to` in `from`'s frame

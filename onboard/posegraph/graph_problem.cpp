@@ -11,8 +11,6 @@ namespace stereomap::posegraph {
 
 namespace {
 
-constexpr int kPlanar[3] = {0, 1, 5};  // an SE(2) edge's (x, y, theta) in the 6x6
-
 Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
   Eigen::Matrix3d m;
   m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
@@ -76,7 +74,7 @@ GraphProblem::GraphProblem(const G2oGraph& graph, Weights weights)
     } else {
       Eigen::Matrix3d omega;
       for (int r = 0; r < 3; ++r) {
-        for (int c = 0; c < 3; ++c) omega(r, c) = read.information(kPlanar[r], kPlanar[c]);
+        for (int c = 0; c < 3; ++c) omega(r, c) = read.information(kSe2Places[r], kSe2Places[c]);
       }
       edge.whitening.topLeftCorner<3, 3>() =
           Eigen::LLT<Eigen::Matrix3d>(omega).matrixL().transpose();
@@ -106,15 +104,22 @@ GraphProblem::GraphProblem(const G2oGraph& graph, Weights weights)
   }
 }
 
-int GraphProblem::residualSize() const {
-  if (weights_ == Weights::kFile) return dimension_ == 3 ? 6 : 3;
+int GraphProblem::residualSize() const { return residualSize(weights_); }
+
+int GraphProblem::residualSize(Weights weights) const {
+  if (weights == Weights::kFile) return dimension_ == 3 ? 6 : 3;
   return dimension_ == 3 ? 12 : 6;
 }
 
 void GraphProblem::evaluate(const ProblemEdge& edge, double* r, double* J_i, double* J_j) const {
+  evaluateAs(weights_, edge, r, J_i, J_j);
+}
+
+void GraphProblem::evaluateAs(Weights weights, const ProblemEdge& edge, double* r, double* J_i,
+                              double* J_j) const {
   const ProblemPose& a = poses_[edge.i];
   const ProblemPose& b = poses_[edge.j];
-  const int m = residualSize(), k = tangentSize();
+  const int m = residualSize(weights), k = tangentSize();
   Eigen::Map<Eigen::VectorXd> residual(r, m);
   using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
   std::optional<Eigen::Map<RowMajor>> Ji, Jj;
@@ -123,7 +128,7 @@ void GraphProblem::evaluate(const ProblemEdge& edge, double* r, double* J_i, dou
   if (Ji) Ji->setZero();
   if (Jj) Jj->setZero();
 
-  if (dimension_ == 3 && weights_ == Weights::kFile) {
+  if (dimension_ == 3 && weights == Weights::kFile) {
     const Eigen::Vector3d p_ab = a.R.transpose() * (b.t - a.t);
     const Eigen::Quaterniond dq =
         shortQuaternion(edge.R_meas * (a.R.transpose() * b.R).transpose());
@@ -161,7 +166,7 @@ void GraphProblem::evaluate(const ProblemEdge& edge, double* r, double* J_i, dou
   }
   const Eigen::Matrix2d Ra = planar(a.R), Rb = planar(b.R), Rm = planar(edge.R_meas);
   const Eigen::Vector2d d = (b.t - a.t).head<2>(), tm = edge.t_meas.head<2>();
-  if (weights_ == Weights::kFile) {
+  if (weights == Weights::kFile) {
     Eigen::Vector3d e;
     e << Ra.transpose() * d - tm, angleOf(Rm.transpose() * Ra.transpose() * Rb);
     residual = edge.whitening.topLeftCorner<3, 3>() * e;
@@ -224,12 +229,14 @@ void GraphProblem::curvature(const ProblemEdge& edge, double* S_i, double* S_j) 
   }
 }
 
-double GraphProblem::cost() const {
+double GraphProblem::cost() const { return costAs(weights_); }
+
+double GraphProblem::costAs(Weights weights) const {
   double sum = 0;
   double r[kMaxResiduals];
-  const int m = residualSize();
+  const int m = residualSize(weights);
   for (const auto& edge : edges_) {
-    evaluate(edge, r, nullptr, nullptr);
+    evaluateAs(weights, edge, r, nullptr, nullptr);
     for (int k = 0; k < m; ++k) sum += r[k] * r[k];
   }
   return 0.5 * sum;
@@ -277,12 +284,7 @@ double GraphProblem::g2oChi2() const {
   return chi2;
 }
 
-double GraphProblem::ceresHalfSum() const {
-  if (weights_ == Weights::kFile) return cost();
-  GraphProblem as_file = *this;
-  as_file.weights_ = Weights::kFile;
-  return as_file.cost();
-}
+double GraphProblem::ceresHalfSum() const { return costAs(Weights::kFile); }
 
 G2oGraph GraphProblem::solved(const G2oGraph& read) const {
   G2oGraph out = read;

@@ -93,6 +93,11 @@ class GraphProblem {
   G2oGraph solved(const G2oGraph& read) const;
 
  private:
+  int residualSize(Weights weights) const;
+  void evaluateAs(Weights weights, const ProblemEdge& edge, double* r, double* J_i,
+                  double* J_j) const;
+  double costAs(Weights weights) const;
+
   int dimension_ = 3;
   Weights weights_;
   int pieces_ = 0;

@@ -33,10 +33,9 @@ G2oGraph twoVertexGraph(std::mt19937& random, int dimension) {
   Mat6 A = Mat6::Random();
   edge.information = A * A.transpose() + Mat6::Identity();
   if (dimension == 2) {
-    const int places[3] = {0, 1, 5};
     Mat6 planar = Mat6::Zero();
-    for (int r : places) {
-      for (int c : places) planar(r, c) = edge.information(r, c);
+    for (int r : kSe2Places) {
+      for (int c : kSe2Places) planar(r, c) = edge.information(r, c);
     }
     edge.information = planar;
   }

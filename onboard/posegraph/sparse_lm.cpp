@@ -138,7 +138,7 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
   double cost = halves[0].cost;
   std::vector<double> hessian = halves[0].values, gradient = halves[0].gradient;
   double lambda = options.initial_lambda, nu = 2.0;
-  std::vector<double> step, minus_gradient(gradient.size());
+  std::vector<double> step, minus_gradient(gradient.size()), damping(layout.size());
   std::vector<ProblemPose> saved;
   const int k = layout.k;
   summary.termination = "the iteration limit";
@@ -154,7 +154,6 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
     // Marquardt: H + lambda diag(H), the diagonal kept within CHOLMOD's reach.
     double* values = cholesky.values();
     std::copy(hessian.begin(), hessian.end(), values);
-    std::vector<double> damping(layout.size());
     for (int J = 0; J < layout.blocks; ++J) {
       for (int c = 0; c < k; ++c) {
         const int at = layout.diagonal(J, c);
