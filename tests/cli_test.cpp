@@ -19,9 +19,9 @@ namespace fs = std::filesystem;
 std::string binary(const std::string& name) { return std::string(STEREOMAP_BIN_DIR) + "/" + name; }
 
 TEST(Cli, EveryBinaryHelpsAndRefusesBadUsageWithExitTwo) {
-  for (const char* name :
-       {"stereomap-onboard", "stereomap-server", "stereomap-store", "stereomap-eval",
-        "stereomap-calibrate", "stereomap-depth", "stereomap-landing-eval"}) {
+  for (const char* name : {"stereomap-onboard", "stereomap-server", "stereomap-store",
+                           "stereomap-eval", "stereomap-calibrate", "stereomap-depth",
+                           "stereomap-landing-eval", "stereomap-posegraph"}) {
     const auto help = runTool({binary(name), "--help"});
     EXPECT_EQ(help.exit_code, 0) << name << ": " << help.output;
     EXPECT_NE(help.output.find(name), std::string::npos) << help.output;
