@@ -204,7 +204,7 @@ TEST_F(ClusterJournalTest, AppendsFailWhileTheDatabaseIsDownAndResumeAfter) {
   ASSERT_TRUE(a.db->placeSession("s", 0.1));
   a.journal->adopt("s", 1, 0);
   ASSERT_TRUE(a.journal->append(poseOf("s", "v", 0)));
-  postgres().kill9();
+  postgres().crash();
   auto refused = a.journal->append(poseOf("s", "v", 1));
   ASSERT_FALSE(refused);
   EXPECT_EQ(refused.error().code, common::ErrorCode::kUnavailable) << refused.error().message;

@@ -62,7 +62,7 @@ TEST_F(PgTest, ErrorsCarryTheirStateAndALostConnectionIsUnavailable) {
   EXPECT_EQ(duplicate.error().code, common::ErrorCode::kConflict);
   EXPECT_EQ((*db)->lastState(), "23505");
 
-  postgres().kill9();
+  postgres().crash();
   auto lost = (*db)->exec("SELECT 1");
   ASSERT_FALSE(lost);
   EXPECT_EQ(lost.error().code, common::ErrorCode::kUnavailable) << lost.error().message;

@@ -205,10 +205,11 @@ bool dead(pid_t pid) {
 }  // namespace
 
 void TestPostgres::kill9() {
+  if (running()) postmaster_->kill9();
+}
+
+void TestPostgres::crash() {
   if (!running()) return;
-  // A killed postmaster's backends notice its death only at their next wait, which under a
-  // loaded machine (sanitizers) can come after the test's next statement was answered: kill
-  // them too, as a crash of the database's machine would, and wait until their sockets close.
   const std::vector<pid_t> backends = childrenOf(postmaster_->pid());
   postmaster_->kill9();
   for (pid_t backend : backends) ::kill(backend, SIGKILL);

@@ -5,7 +5,7 @@
 //
 //   auto db = TestPostgres::start();       // nullopt + why when PostgreSQL is not installed
 //   std::string url = db->url();           //
-//   postgresql://stereomap:PASSWORD@127.0.0.1:PORT/postgres db->kill9(); db->restart(); // the
+//   postgresql://stereomap:PASSWORD@127.0.0.1:PORT/postgres db->crash(); db->restart(); // the
 //   database failing under a running cluster
 #pragma once
 
@@ -40,8 +40,14 @@ class TestPostgres {
                                  const std::string& database = "postgres");
 
   bool running();
-  void stop();   // a clean shutdown (fast mode)
-  void kill9();  // the postmaster and its backends killed, as in a crash of their machine
+  void stop();  // a clean shutdown (fast mode)
+  // The postmaster killed; its backends notice at their next wait and exit, finishing the
+  // statement under way (its client gets the answer).
+  void kill9();
+  // The postmaster and every backend killed at once, as in a crash of the database's machine,
+  // and returns once their sockets are closed: a connection is certainly lost, and a statement
+  // under way may have committed without its client hearing so.
+  void crash();
   // Starts it again on the same directory and port; false when it does not come up.
   bool restart(std::string* why = nullptr);
 
