@@ -46,12 +46,13 @@ int main(int argc, char** argv) {
   app.add_option("--max-iterations", max_iterations, "Levenberg-Marquardt steps at most")
       ->check(CLI::Range(1, 100000))
       ->capture_default_str();
-  app.add_option("--threads", threads, "Threads evaluating the edges (1 or 2)")
+  app.add_option("--threads", threads,
+                 "Threads evaluating the edges and factorising (1 or 2; the same result)")
       ->check(CLI::Range(1, 2))
       ->capture_default_str();
   app.add_option("--ordering", ordering,
-                 "Fill-reducing ordering of the sparse Cholesky: auto (CHOLMOD's choice by "
-                 "fill), amd, nesdis (nested dissection), metis")
+                 "Fill-reducing ordering of the sparse Cholesky's blocks: auto (CHOLMOD's "
+                 "choice by fill), amd, nesdis (nested dissection), metis")
       ->check(CLI::IsMember({"auto", "amd", "nesdis", "metis"}))
       ->capture_default_str();
   if (auto exit_code = stereomap::common::parseCommandLine(app, argc, argv)) return *exit_code;

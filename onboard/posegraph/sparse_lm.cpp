@@ -106,9 +106,9 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
     summary.seconds = secondsSince(start);
     return summary;
   }
-  Cholesky cholesky(layout, options.ordering);
-  summary.factor_nonzeros = cholesky.factorNonzeros();
   common::WorkerPool pool(1);
+  Cholesky cholesky(layout, options.ordering, options.threads > 1 ? &pool : nullptr);
+  summary.factor_nonzeros = cholesky.factorNonzeros();
   Accumulator halves[2];
 
   auto linearise = [&] {
@@ -151,7 +151,7 @@ SparseLMSummary solveSparseLM(GraphProblem& problem, const SparseLMOptions& opti
       summary.termination = "the gradient vanished";
       break;
     }
-    // Marquardt: H + lambda diag(H), the diagonal kept within CHOLMOD's reach.
+    // Marquardt: H + lambda diag(H), the diagonal kept within a double's reach.
     double* values = cholesky.values();
     std::copy(hessian.begin(), hessian.end(), values);
     for (int J = 0; J < layout.blocks; ++J) {

@@ -1,8 +1,9 @@
 // Levenberg-Marquardt for a GraphProblem (graph_problem.hpp), made for graphs of thousands of
 // poses: the edges' analytic Jacobians evaluated on both cores straight into the blocks of the
-// normal equations (no Jacobian matrix), one symbolic analysis and a supernodal Cholesky
-// factorisation per iteration (CHOLMOD), the fill-reducing ordering chosen by measurement
-// (docs/BENCHMARKS.md: nested dissection on loop-rich graphs, AMD on corridors).
+// normal equations (no Jacobian matrix), one symbolic analysis and a Cholesky factorisation in
+// dense k x k blocks per iteration (detail/block_cholesky.hpp; two subtrees of the elimination
+// tree at once, then the last separators' products split between the threads), the
+// fill-reducing ordering CHOLMOD's (docs/BENCHMARKS.md).
 //
 //   const SparseLMSummary summary = solveSparseLM(problem);   // moves problem.poses()
 #pragma once
@@ -25,9 +26,9 @@ struct SparseLMOptions {
   // optimum (chordal); a worse start costs a few refused steps (measured on the four graphs of
   // ../shared/data/posegraph: 87 steps in all from 1e-8, 111 from 1e-4).
   double initial_lambda = 1e-8;
-  int threads = 2;  // edge evaluation; 1: the calling thread alone
-  // kAuto: CHOLMOD tries AMD, then METIS and nested dissection when AMD fills much, and keeps
-  // the ordering with the least fill.
+  int threads = 2;  // edge evaluation and factorisation; 1: the calling thread alone
+  // Of the graph's blocks. kAuto: CHOLMOD tries AMD, then METIS and nested dissection when AMD
+  // fills much, and keeps the ordering with the least fill.
   FillOrdering ordering = FillOrdering::kAuto;
 };
 

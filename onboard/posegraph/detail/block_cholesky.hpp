@@ -1,18 +1,21 @@
 // The sparse symmetric systems of a pose graph: the pattern of k x k blocks its edges make
-// (one block per free vertex, one per pair of free vertices an edge joins), stored as CHOLMOD's
-// upper triangle in compressed columns, and a supernodal Cholesky factorisation of it, analysed
-// once and factorised again for every new set of values. Used by the Gauss-Newton solver
-// (6 x 6 or 3 x 3 blocks) and the chordal initialisation (3 x 3 and 1 x 1).
+// (one block per free vertex, one per pair of free vertices an edge joins), stored as an upper
+// triangle in compressed columns, and a Cholesky factorisation of it in dense k x k blocks,
+// analysed once and factorised again for every new set of values. Used by the Gauss-Newton
+// solver (6 x 6 or 3 x 3 blocks) and the chordal initialisation (3 x 3 and 1 x 1).
+//
+// Why not CHOLMOD's numeric factorisation: a pose graph's factor is made of small dense blocks.
+// CHOLMOD's supernodal code hands them to BLAS a few rows at a time and its simplicial code
+// works entry by entry; a block factor whose every update (source block, target block) is
+// listed once in the analysis runs a fixed-size k x k product per update. CHOLMOD still
+// chooses the fill-reducing ordering, on the graph of blocks.
 #pragma once
 
 #include <vector>
 
+#include "common/worker_pool.hpp"
 #include "onboard/posegraph/graph_problem.hpp"
 #include "onboard/posegraph/sparse_lm.hpp"
-
-struct cholmod_common_struct;
-struct cholmod_sparse_struct;
-struct cholmod_factor_struct;
 
 namespace stereomap::posegraph::detail {
 
@@ -41,16 +44,16 @@ struct BlockLayout {
   int diagonal(int J, int c) const { return position(J, diagonal_slot[J], c, c); }
 };
 
-// CHOLMOD's workspace, the matrix of a layout and its factor, released together.
+// The matrix of a layout and its block factor L (A = P L L^T P^T, P a permutation of blocks).
 class Cholesky {
  public:
-  Cholesky(const BlockLayout& layout, FillOrdering ordering);
-  ~Cholesky();
-  Cholesky(const Cholesky&) = delete;
-  Cholesky& operator=(const Cholesky&) = delete;
+  // Throws std::runtime_error when the factor would not fit in memory. With a pool, two
+  // disjoint subtrees of the elimination tree are factorised at once (the result is the same
+  // to the bit: every column is computed by the same operations in the same order).
+  Cholesky(const BlockLayout& layout, FillOrdering ordering, common::WorkerPool* pool = nullptr);
 
-  double* values();  // the stored upper triangle, in the layout's order
-  long factorNonzeros() const;
+  double* values() { return upper_.data(); }  // the upper triangle, in the layout's order
+  long factorNonzeros() const { return factor_nonzeros_; }
 
   // Factorises the matrix as it is now and solves it for the `columns` right-hand sides in `b`
   // (column-major, size() rows); false when it is not positive definite or the solution is
@@ -58,10 +61,33 @@ class Cholesky {
   bool solve(const std::vector<double>& b, int columns, std::vector<double>* x);
 
  private:
-  void release();
-  cholmod_common_struct* common_;
-  cholmod_sparse_struct* matrix_ = nullptr;
-  cholmod_factor_struct* factor_ = nullptr;
+  // Block target -= block a * block b^T, blocks by their slots.
+  struct Update {
+    int target, a, b;
+  };
+  void splitForTwoThreads();
+  template <int K>
+  void applyUpdates(long begin, long end);
+  template <int K>
+  bool factoriseColumn(int j, bool split);
+  template <int K>
+  bool factorise();
+  template <int K>
+  void substitute(double* y) const;
+
+  int k_ = 0, blocks_ = 0;
+  long factor_nonzeros_ = 0;
+  std::vector<double> upper_;
+  std::vector<int> order_;         // block column of L -> block of the layout
+  std::vector<int> column_start_;  // block column of L -> its first slot; slot 0 the diagonal
+  std::vector<int> rows_;          // slot -> block row of L, ascending within a column
+  std::vector<double> factor_;     // k * k values per slot, column-major
+  std::vector<std::pair<long, long>> load_;  // (factor_ index, upper_ index)
+  std::vector<long> update_start_;           // block column of L -> its first update
+  std::vector<Update> updates_;
+  common::WorkerPool* pool_;
+  std::vector<int> subtrees_[2], top_;  // columns of each thread's subtrees, then the rest
+  std::vector<long> update_split_;      // column -> its first update of the second thread
 };
 
 }  // namespace stereomap::posegraph::detail
