@@ -54,7 +54,7 @@ struct Flags {
   std::string camera_preset;
   double noise_sigma = 0, blur_sigma = 0;
   std::string vo = "fast";
-  std::string trajectory_out, kitti_out, odometry_out, truth_out;
+  std::string trajectory_out, kitti_out, odometry_out, truth_out, graph_out;
   bool no_publish = false;
   double wait_s = 3.0;
   double paper_resolution = 0;
@@ -145,10 +145,17 @@ void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--trajectory-out", f.trajectory_out,
                  "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw; with "
                  "--pose-graph, every frame through the final graph");
-  app.add_flag("--pose-graph", f.pipeline.pose_graph,
-               "Correct the odometry with a pose graph over its keyframes: loop closures and "
-               "joins of lost tracks by place recognition, solved on a worker thread; the "
-               "corrected keyframe poses are sent to the server, which fuses its map again");
+  auto* pose_graph =
+      app.add_flag("--pose-graph", f.pipeline.pose_graph,
+                   "Correct the odometry with a pose graph over its keyframes: loop closures and "
+                   "joins of lost tracks by place recognition, solved on a worker thread; the "
+                   "corrected keyframe poses are sent to the server, which fuses its map again");
+  app.add_option("--graph-out", f.graph_out,
+                 "Write the final keyframe graph as g2o (VERTEX_SE3:QUAT: each keyframe's left "
+                 "camera in the odometry's world frame as solved; EDGE_SE3:QUAT: odometry, "
+                 "joins and loops with their information, in the convention Ceres' example "
+                 "and stereomap-posegraph read)")
+      ->needs(pose_graph);
   app.add_option("--odometry-trajectory-out", f.odometry_out,
                  "Write the odometry's own poses (T_map_body, TUM), before any correction");
   app.add_option("--truth-out", f.truth_out,
@@ -369,6 +376,15 @@ class TrajectoryFiles {
         return false;
       }
       spdlog::info("wrote {} poses to {}", frames_, path);
+    }
+    if (!f_.graph_out.empty()) {
+      if (auto written = posegraph::writeG2o(f_.graph_out, summary.keyframe_graph); !written) {
+        spdlog::error("{}", written.error().message);
+        return false;
+      }
+      spdlog::info("wrote the keyframe graph ({} keyframes, {} edges) to {}",
+                   summary.keyframe_graph.vertices.size(), summary.keyframe_graph.edges.size(),
+                   f_.graph_out);
     }
     return true;
   }

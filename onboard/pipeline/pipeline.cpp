@@ -395,6 +395,7 @@ class PipelineRun {
         summary_.corrected_T_map_body.push_back(*anchor_ * poses[i] * T_body_cameras_[i].inverse());
       }
       summary_.graph = graph_->stats();
+      summary_.keyframe_graph = graph_->keyframeGraph();
     }
     return summary_;
   }

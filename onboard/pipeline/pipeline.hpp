@@ -114,6 +114,7 @@ struct PipelineSummary {
   // With pose_graph: T_map_body of every frame through the final graph, and what it found.
   std::vector<common::Rigid3> corrected_T_map_body;
   posegraph::FollowerStats graph;
+  posegraph::G2oGraph keyframe_graph;  // the final graph, for --graph-out
   uint64_t corrections = 0;  // corrections the graph made (PoseCorrection samples, if publishing)
   // With landing: frames the pad was tracked in, and those with a pose published.
   uint64_t landing_tracked = 0, landing_poses = 0;

@@ -51,6 +51,8 @@ class GraphFollower {
   // One frame, in order; returns its pose corrected by the graph as it stands.
   common::Rigid3 follow(const FollowedFrame& frame);
   std::vector<common::Rigid3> finish();
+  // The keyframe graph for a g2o file (KeyframeGraph::toG2o), as it stands.
+  G2oGraph keyframeGraph() const { return graph_.toG2o(); }
   // Every keyframe's pose after the newest solve that found a place and moved some keyframe
   // by more than the options' report_min_change since the poses last reported; empty when
   // there was none since the last call.

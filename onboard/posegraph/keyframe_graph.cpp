@@ -82,6 +82,11 @@ Rigid3 KeyframeGraph::correct(int keyframe, const Rigid3& T_world_camera) const 
          T_world_camera;
 }
 
+G2oGraph KeyframeGraph::toG2o() const {
+  std::lock_guard lock(mutex_);
+  return posegraph::toG2o(graph_);
+}
+
 std::vector<int> KeyframeGraph::candidates(int current) const {
   // By the current estimates: places near where the new keyframe is thought to be, allowing
   // for the drift of the path flown since.

@@ -65,6 +65,9 @@ class KeyframeGraph {
   int64_t stamp(int keyframe) const;
   // A pose of the odometry corrected through keyframe `keyframe` (its latest keyframe).
   common::Rigid3 correct(int keyframe, const common::Rigid3& T_world_camera) const;
+  // The graph as it stands, for a g2o file (toG2o): vertex k is keyframe k's left camera in
+  // the odometry's world frame; odometry, join and loop edges.
+  G2oGraph toG2o() const;
 
  private:
   std::vector<int> candidates(int current) const;

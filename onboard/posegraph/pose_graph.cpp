@@ -142,4 +142,26 @@ SolveReport PoseGraph::solveOnce(const SolveOptions& options) {
   return report;
 }
 
+G2oGraph toG2o(const PoseGraph& graph) {
+  G2oGraph out;
+  out.dimension = 3;
+  out.has_estimates = true;
+  for (int v = 0; v < graph.size(); ++v) {
+    out.vertices.push_back({v, graph.pose(v)});
+    if (graph.fixed(v)) out.fixed.push_back(v);
+  }
+  for (size_t e = 0; e < graph.edges().size(); ++e) {
+    if (graph.rejected(e)) continue;
+    const Edge& edge = graph.edges()[e];
+    const Eigen::Matrix3d R = edge.T_from_to.rotation.normalized().toRotationMatrix();
+    Mat6 N = Mat6::Zero();  // rows (rotation, translation) of ours, columns the file's
+    N.topRightCorner<3, 3>() = -R.transpose();
+    N.bottomLeftCorner<3, 3>() = R.transpose();
+    Mat6 information = N.transpose() * edge.information * N;
+    information = 0.5 * (information + information.transpose());
+    out.edges.push_back({edge.from, edge.to, edge.T_from_to, information, 0});
+  }
+  return out;
+}
+
 }  // namespace stereomap::posegraph

@@ -14,6 +14,7 @@
 
 #include "common/geometry.hpp"
 #include "common/result.hpp"
+#include "onboard/posegraph/g2o.hpp"
 #include "onboard/posegraph/se3.hpp"
 
 namespace stereomap::posegraph {
@@ -56,6 +57,7 @@ class PoseGraph {
   // that is not finite, symmetric and positive definite.
   common::Status addEdge(const Edge& edge);
   void setFixed(int vertex, bool fixed);
+  bool fixed(int vertex) const { return fixed_.at(vertex); }
 
   SolveReport optimise(const SolveOptions& options = {});
 
@@ -75,6 +77,15 @@ class PoseGraph {
 
   SolveReport solveOnce(const SolveOptions& options);
 };
+
+// The graph as a g2o file holds it (stereomap-posegraph and other tools solve it again): the
+// vertices at their current poses, fixed ones on FIX lines, the edges not set aside. The
+// information is carried over to the error the file's readers use (Ceres' example, SE-Sync,
+// GTSAM: e = [R_i^T (t_j - t_i) - t~ ; rotation angle-axis of R~ R_ij^T], translation first),
+// which is, to first order, this graph's e = log(T~^-1 T_ij) turned by
+// N = [0, -R~^T; R~^T, 0]: the file's information is N^T Omega N. So the file's optimum is this
+// graph's (near it by the errors' second order); the robust loss is not in the file.
+G2oGraph toG2o(const PoseGraph& graph);
 
 // The error of one edge, as Ceres sees it: 6 residuals sqrt(Omega) * log(T_ij^-1 T_i^-1 T_j)
 // over the blocks (q_i, t_i, q_j, t_j), quaternions in Eigen's order (x, y, z, w). Public for

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <random>
 
+#include "onboard/posegraph/graph_problem.hpp"
 #include "onboard/posegraph/ground_test.hpp"
 #include "onboard/posegraph/marker_pose.hpp"
 #include "onboard/posegraph/pose_graph.hpp"
@@ -199,6 +200,43 @@ TEST(PoseGraph, OneWrongLoopClosureBarelyBendsTheGraph) {
   EXPECT_EQ(report.rejected_edges, 1);
   EXPECT_TRUE(graph.rejected(19));
   EXPECT_NEAR(graph.pose(19).translation.x(), 19.0, 1e-6);
+}
+
+// The g2o file's edge (Ceres' example's error with the converted information) costs what the
+// vehicle's edge costs, to first order in the error: their difference shrinks faster than the
+// cost as the poses near the measurement (10x closer: the relative gap 10x smaller).
+TEST(PoseGraph, AsG2oAnEdgeCostsWhatItCostsTheVehicle) {
+  std::mt19937 random(5);
+  std::normal_distribution<double> normal;
+  Mat6 A;
+  for (int i = 0; i < 36; ++i) A(i / 6, i % 6) = normal(random);
+  const Mat6 information = A * A.transpose() + Mat6::Identity();  // correlated, as VO's
+  const common::Rigid3 T_a_b{Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Vec3(1, 2, 3).normalized())),
+                             Vec3(1.0, -0.5, 0.3)};
+  double previous_gap = 0;
+  for (const double scale : {1e-2, 1e-3, 1e-4}) {
+    PoseGraph graph;
+    graph.addVertex({});
+    Vec6 xi;
+    for (int i = 0; i < 6; ++i) xi[i] = scale * normal(random);
+    Eigen::Quaterniond q;
+    Vec3 t;
+    se3Exp(xi, q, t);
+    graph.addVertex(T_a_b * common::Rigid3{q, t});
+    ASSERT_TRUE(graph.addEdge({0, 1, T_a_b, information, EdgeKind::kLoop}));
+    const G2oGraph file = toG2o(graph);
+    ASSERT_EQ(file.edges.size(), 1u);
+    EXPECT_EQ(file.fixed, std::vector<int64_t>{0});
+    const GraphProblem problem(file, Weights::kFile);
+    const double vehicle = graph.edgeCost(graph.edges()[0]);
+    const double ours = 2 * problem.ceresHalfSum();
+    const double gap = std::abs(ours - vehicle) / vehicle;
+    EXPECT_LT(gap, scale) << scale;  // measured 0.09-0.11 times the scale
+    if (previous_gap > 0) {
+      EXPECT_LT(gap, 0.3 * previous_gap) << scale;
+    }
+    previous_gap = gap;
+  }
 }
 
 TEST(PoseGraph, RefusesBadEdges) {
