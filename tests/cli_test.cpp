@@ -33,6 +33,14 @@ TEST(Cli, EveryBinaryHelpsAndRefusesBadUsageWithExitTwo) {
   }
 }
 
+// A graph file needs a graph: said at once, not after the flight.
+TEST(Cli, GraphOutNeedsThePoseGraph) {
+  const auto run = runTool({binary("stereomap-onboard"), "--no-publish", "--frames", "1",
+                            "--graph-out", makeTempDir("stereomap-cli-graph") + "/g.g2o"});
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  EXPECT_NE(run.output.find("--pose-graph"), std::string::npos) << run.output;
+}
+
 // Options that are "auto" or a number refuse what is neither, however it is written, with exit 2
 // and a message (not a crash: std::stoi on "nan" or "99999999999" aborted the vehicle).
 TEST(Cli, AutoOrNumberOptionsRefuseWhatIsNeither) {
