@@ -234,15 +234,17 @@ TEST_F(ClusterTest, AStaleOwnerIsFencedAndCommitsNothing) {
   expectWholeSessions(2);
 }
 
-// The database killed under load and started again: the servers stay up, refuse samples
-// meanwhile (the vehicles keep them), and take them again by themselves.
+// The database killed under load (the postmaster and its backends: commits under way lose
+// their answers) and started again: the servers stay up, refuse samples meanwhile (the
+// vehicles keep them), and take them again by themselves; a group committed without its
+// answer is undone before the session's next write (ClusterJournal's doubt).
 TEST_F(ClusterTest, TheDatabaseRestartedUnderLoadLosesNothing) {
   startServer(kDatabaseDomain, "a");
   startServer(kDatabaseDomain, "b");
   for (int i = 0; i < 2; ++i) startVehicle(kDatabaseDomain, i, 300);
   ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
   std::this_thread::sleep_for(6s);
-  cluster_->db().kill9();
+  cluster_->db().crash();
   std::this_thread::sleep_for(5s);
   std::string why;
   ASSERT_TRUE(cluster_->db().restart(&why)) << why;

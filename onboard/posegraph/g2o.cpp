@@ -93,7 +93,9 @@ class LineReader {
   const std::vector<std::string_view>& fields_;
 };
 
-// x y z qx qy qz qw, the quaternion normalised when within 1 % of unit length.
+// x y z qx qy qz qw, the quaternion normalised when within 1 % of unit length (and kept as it
+// is when unit to its rounding: normalising again would move its last bits, and a graph
+// written by formatG2o must read back to the bit).
 bool readSe3(const LineReader& reader, size_t first, common::Rigid3* out, std::string* why) {
   double v[7];
   if (!reader.numbers(first, 7, v, why)) return false;
@@ -103,7 +105,8 @@ bool readSe3(const LineReader& reader, size_t first, common::Rigid3* out, std::s
            std::to_string(v[5]) + ", " + std::to_string(v[6]) + ") is not of unit length";
     return false;
   }
-  *out = {q.normalized(), Eigen::Vector3d(v[0], v[1], v[2])};
+  const bool unit = std::abs(q.squaredNorm() - 1.0) <= 1e-15;
+  *out = {unit ? q : q.normalized(), Eigen::Vector3d(v[0], v[1], v[2])};
   return true;
 }
 

@@ -143,9 +143,22 @@ void ClusterJournal::commitLoop() {
   }
 }
 
-common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows) {
+common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows, std::string* state) {
+  state->clear();
   if (!writer_->connected()) {
     if (auto reconnected = writer_->reconnect(); !reconnected) return reconnected.error();
+  }
+  // Rows of an earlier group that may have committed unacknowledged: gone before these.
+  std::map<std::string, std::pair<int64_t, uint64_t>> doubts;  // session -> (epoch, from)
+  {
+    std::lock_guard lock(mutex_);
+    for (const Pending* row : rows) {
+      const auto owned = owned_.find(row->session);
+      if (owned != owned_.end() && owned->second.doubt_from != 0 &&
+          owned->second.epoch == row->epoch) {
+        doubts[row->session] = {row->epoch, owned->second.doubt_from};
+      }
+    }
   }
   std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record) VALUES ";
   std::vector<PgParam> params;
@@ -165,22 +178,61 @@ common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows) {
     params.push_back(PgParam::bytes(std::string_view(
         reinterpret_cast<const char*>(rows[i]->record.data()), rows[i]->record.size())));
   }
-  auto inserted = writer_->exec(sql, params);
-  if (!inserted) return inserted.error();
+  if (doubts.empty()) {
+    auto inserted = writer_->exec(sql, params);
+    if (!inserted) {
+      *state = writer_->lastState();
+      return inserted.error();
+    }
+    return common::Ok{};
+  }
+  // One transaction: if this one's answer is lost too, the doubt stays as it was. A fenced
+  // session's INSERT fails, and its DELETE is rolled back with it: the rows may be the new
+  // owner's to keep (it read them when it took the session).
+  auto transaction = [&]() -> common::Status {
+    if (auto begun = writer_->exec("BEGIN"); !begun) return begun.error();
+    for (const auto& [session, doubt] : doubts) {
+      auto deleted =
+          writer_->exec("DELETE FROM sm_journal WHERE session = $1 AND epoch = $2 AND number >= $3",
+                        {session, doubt.first, doubt.second});
+      if (!deleted) return deleted.error();
+      if (deleted->affected() > 0) {
+        spdlog::warn(
+            "session '{}': {} journal rows from {} on were committed without an answer (the "
+            "connection was lost) and never acknowledged; deleted before writing again",
+            session, deleted->affected(), doubt.second);
+      }
+    }
+    if (auto inserted = writer_->exec(sql, params); !inserted) return inserted.error();
+    if (auto committed = writer_->exec("COMMIT"); !committed) return committed.error();
+    return common::Ok{};
+  };
+  auto written = transaction();
+  if (!written) {
+    *state = writer_->lastState();  // before ROLLBACK's answer replaces it
+    if (writer_->connected()) (void)writer_->exec("ROLLBACK");
+    return written;
+  }
+  std::lock_guard lock(mutex_);
+  for (const auto& [session, doubt] : doubts) {
+    const auto owned = owned_.find(session);
+    if (owned != owned_.end() && owned->second.epoch == doubt.first) owned->second.doubt_from = 0;
+  }
   return common::Ok{};
 }
 
 void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
-  auto committed = insertRows(group);
+  std::string state;
+  auto committed = insertRows(group, &state);
   std::vector<std::pair<std::string, std::string>> fenced;
-  if (!committed && writer_->lastState() == kFencedState) {
+  if (!committed && state == kFencedState) {
     // One session's stale epoch refused the whole group: each session again on its own, so
     // that the others commit.
     std::map<std::string, std::vector<Pending*>> by_session;
     for (Pending* p : group) by_session[p->session].push_back(p);
     for (auto& [session, rows] : by_session) {
-      auto alone = insertRows(rows);
-      const bool stale = !alone && writer_->lastState() == kFencedState;
+      auto alone = insertRows(rows, &state);
+      const bool stale = !alone && state == kFencedState;
       if (stale) fenced.emplace_back(session, alone.error().message);
       for (Pending* p : rows) {
         if (!alone) {
@@ -203,10 +255,15 @@ void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
     for (Pending* p : group) {
       if (p->error) {
         // Numbers are given back: nothing numbered after them was written meanwhile (this
-        // thread alone numbers rows), so the journal keeps no gap.
+        // thread alone numbers rows), so the journal keeps no gap. Whether the failed
+        // statement committed may be unknown (its answer lost with the connection): its rows
+        // are in doubt until the session's next write deletes them.
         if (auto owned = owned_.find(p->session);
             owned != owned_.end() && owned->second.epoch == p->epoch) {
           owned->second.next_number = std::min(owned->second.next_number, p->number);
+          owned->second.doubt_from = owned->second.doubt_from == 0
+                                         ? p->number
+                                         : std::min(owned->second.doubt_from, p->number);
         }
       } else {
         const double seconds = static_cast<double>(now - p->enqueued_ns) * 1e-9;
@@ -250,7 +307,14 @@ common::Result<PgResult> ClusterJournal::readerExec(std::string_view sql,
   if (!reader_->connected()) {
     if (auto reconnected = reader_->reconnect(); !reconnected) return reconnected.error();
   }
-  return reader_->exec(sql, params);
+  auto result = reader_->exec(sql, params);
+  // A connection the database lost while idle (a restart) shows only when used: once more on
+  // a new one. (Reads repeat safely; a snapshot's INSERT ... ON CONFLICT too.)
+  if (!result && !reader_->connected()) {
+    if (auto reconnected = reader_->reconnect(); !reconnected) return reconnected.error();
+    result = reader_->exec(sql, params);
+  }
+  return result;
 }
 
 common::Status ClusterJournal::forEachFrame(

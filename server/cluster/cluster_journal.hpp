@@ -86,7 +86,8 @@ class ClusterJournal : public core::IngestLog,
   void commitLoop();
   // Writes one group; the sessions the database fenced are dropped and reported.
   void commitGroup(std::vector<Pending*>& group);
-  common::Status insertRows(std::vector<Pending*>& rows);
+  // `state`: the failing statement's SQLSTATE ("" when none came from the database).
+  common::Status insertRows(std::vector<Pending*>& rows, std::string* state);
   common::Result<PgResult> readerExec(std::string_view sql,
                                       const std::vector<PgParam>& params) const;
 
@@ -101,6 +102,11 @@ class ClusterJournal : public core::IngestLog,
   struct Owned {
     int64_t epoch = 0;
     uint64_t next_number = 1;
+    // A failed group's outcome may be unknown: a connection lost after the database committed
+    // it, before its answer came. Its rows, from this number on, were never acknowledged, and
+    // their numbers were given back; the next write of the session deletes them first, in the
+    // same transaction. 0: nothing in doubt.
+    uint64_t doubt_from = 0;
   };
   std::map<std::string, Owned> owned_;
   std::deque<Pending*> waiting_;
