@@ -1,0 +1,53 @@
+// Foxglove's message schemas (docs.foxglove.dev, "Message schemas") encoded as protobuf, and
+// the descriptor sets that define them (protoc's, of proto/foxglove): what a session's MCAP
+// export and the Foxglove WebSocket server send, so that Foxglove and Lichtblick show them
+// without plug-ins. Protobuf, not JSON: a cloud's points travel as raw bytes, not base64, and
+// every reader of MCAP decodes it from the descriptors in the file (docs/BENCHMARKS.md).
+//
+//   mcap.addSchema(std::string(schemaName(Schema::kPointCloud)), "protobuf",
+//                  descriptorSet(Schema::kPointCloud));
+//   mcap.write(channel, stamp, pointCloud(stamp, "map", T_map_sensor, cloud));
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
+
+namespace stereomap::foxglove {
+
+enum class Schema { kFrameTransform, kPosesInFrame, kPointCloud, kSceneUpdate, kGrid };
+
+std::string_view schemaName(Schema schema);     // "foxglove.PointCloud"
+std::string_view descriptorSet(Schema schema);  // a serialised FileDescriptorSet, imports included
+
+// foxglove.FrameTransform: child's pose in parent's frame.
+std::string frameTransform(int64_t stamp_ns, std::string_view parent, std::string_view child,
+                           const common::Rigid3& T_parent_child);
+// foxglove.PosesInFrame.
+std::string posesInFrame(int64_t stamp_ns, std::string_view frame,
+                         const std::vector<common::Rigid3>& poses);
+// foxglove.PointCloud of x, y, z (float32, 12 bytes a point; and intensity, uint8, when the
+// cloud has it: 13), the points in `pose`'s frame placed in `frame`.
+std::string pointCloud(int64_t stamp_ns, std::string_view frame, const common::Rigid3& pose,
+                       const common::PointCloud& cloud);
+
+// foxglove.SceneUpdate of entities made of axis-aligned cubes.
+struct Cube {
+  common::Vec3 centre;
+  double size = 0;
+  float r = 1, g = 1, b = 1, a = 1;
+};
+struct Entity {
+  std::string id;
+  std::vector<Cube> cubes;
+  std::vector<std::pair<std::string, std::string>> metadata;
+};
+std::string sceneUpdate(int64_t stamp_ns, std::string_view frame,
+                        const std::vector<Entity>& entities);
+
+}  // namespace stereomap::foxglove
