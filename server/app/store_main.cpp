@@ -4,7 +4,10 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include <unistd.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -23,6 +26,7 @@
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
 #include "server/fusion/octomap_log.hpp"
+#include "server/interop/session_mcap.hpp"
 #include "server/store/map_import.hpp"
 #include "server/store/store_admin.hpp"
 
@@ -201,6 +205,7 @@ struct Args {
   std::string id;
   core::ExportRequest request{.format = ""};
   std::string out;
+  std::string mcap_out;
   bool yes = false;
   std::string map_file;
   std::string first, second, into;
@@ -260,7 +265,61 @@ int showSession(Store& store, Args& a) {
   return 0;
 }
 
+// The session as MCAP (server/interop/session_mcap.hpp), written as the journal is read,
+// into a temporary file renamed at the end; progress on stderr.
+int exportMcap(Store& store, Args& a) {
+  const auto start = std::chrono::steady_clock::now();
+  auto session = replayed(store, a.id);
+  if (!session) return fail(session.error().message);
+  const fs::path out = a.mcap_out;
+  const fs::path partial = out.string() + ".partial";
+  std::ofstream file(partial, std::ios::binary | std::ios::trunc);
+  if (!file) return fail("cannot write " + partial.string());
+  interop::McapExportOptions options;
+  const bool tty = ::isatty(STDERR_FILENO) != 0;
+  auto last = std::chrono::steady_clock::now();
+  options.progress = [&](uint64_t records) {
+    const auto now = std::chrono::steady_clock::now();
+    if (now - last < std::chrono::seconds(1)) return;
+    last = now;
+    std::fprintf(stderr, tty ? "\r%llu journal records written" : "%llu journal records written\n",
+                 static_cast<unsigned long long>(records));
+  };
+  auto written = interop::writeSessionMcap(
+      **session, store.admin->root() / a.id / store::kJournalName,
+      [&](std::string_view bytes) {
+        file.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+        return file.good();
+      },
+      options);
+  if (tty) std::fprintf(stderr, "\n");
+  if (written && !file.flush()) written = common::makeError(common::ErrorCode::kIo, "flush");
+  file.close();
+  std::error_code ignored;
+  if (!written) {
+    fs::remove(partial, ignored);
+    return fail("cannot write " + out.string() + ": " + written.error().message);
+  }
+  fs::rename(partial, out, ignored);
+  if (ignored) return fail("cannot rename " + partial.string() + ": " + ignored.message());
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf(
+      "%s: %llu messages (%llu poses, %llu clouds, %zu map cubes at level %u), %llu bytes, "
+      "%.1f s\n",
+      out.c_str(), static_cast<unsigned long long>(written->messages),
+      static_cast<unsigned long long>(written->poses),
+      static_cast<unsigned long long>(written->clouds), written->map_cubes, written->map_level,
+      static_cast<unsigned long long>(written->bytes), seconds);
+  if (written->unreadable_clouds > 0) {
+    spdlog::warn("{} clouds did not decode and were left out", written->unreadable_clouds);
+  }
+  return 0;
+}
+
 int exportFile(Store& store, Args& a) {
+  if (!a.mcap_out.empty()) return exportMcap(store, a);
+  if (a.request.format.empty()) return fail("export needs --format FORMAT or --mcap FILE");
   auto session = replayed(store, a.id);
   if (!session) return fail(session.error().message);
   const auto exported = core::exportSession(**session, a.id, a.request);
@@ -342,9 +401,13 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
 
   auto* export_cmd = app.add_subcommand("export", "Replay one session and write a file");
   export_cmd->add_option("session", a.id, "Session id")->required();
-  export_cmd->add_option("--format", a.request.format, "bt | ot | ply | png | tum")
-      ->required()
-      ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
+  auto* format = export_cmd->add_option("--format", a.request.format, "bt | ot | ply | png | tum")
+                     ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
+  export_cmd
+      ->add_option("--mcap", a.mcap_out,
+                   "Write the whole session as MCAP for Foxglove: poses, trajectories, clouds, "
+                   "the map and map.bt (instead of --format)")
+      ->excludes(format);
   export_cmd->add_option("--out", a.out, "Output file (default: SESSION.FORMAT)");
   export_cmd->add_option("--zmin", a.request.z_min, "png: lowest voxel centre height, m");
   export_cmd->add_option("--zmax", a.request.z_max, "png: highest voxel centre height, m");

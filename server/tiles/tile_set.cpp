@@ -27,13 +27,12 @@ uint64_t tileCodeOf(const TileKey& key) {
   return fusion::voxelCode(first) >> kTileCodeShift;
 }
 
-// Inside a tile: the 6-bit coordinates of a level-0 code.
-fusion::VoxelIndex localOf(uint32_t code) {
+}  // namespace
+
+fusion::VoxelIndex cellInTile(uint32_t code) {
   const fusion::VoxelIndex v = fusion::voxelOfCode(code);
   return {v.x + fusion::kKeyOffset, v.y + fusion::kKeyOffset, v.z + fusion::kKeyOffset};
 }
-
-}  // namespace
 
 TileKey tileOf(const fusion::VoxelIndex& voxel) {
   return {voxel.x >> kTileBits, voxel.y >> kTileBits, voxel.z >> kTileBits};
@@ -62,7 +61,7 @@ std::vector<fusion::VoxelIndex> Tile::voxels() const {
   voxels.reserve(levels_[0].size());
   const fusion::VoxelIndex base{key_.x << kTileBits, key_.y << kTileBits, key_.z << kTileBits};
   for (const uint32_t code : levels_[0].codes) {
-    const auto local = localOf(code);
+    const auto local = cellInTile(code);
     voxels.push_back({base.x + local.x, base.y + local.y, base.z + local.z});
   }
   return voxels;
@@ -71,7 +70,7 @@ std::vector<fusion::VoxelIndex> Tile::voxels() const {
 std::pair<fusion::VoxelIndex, fusion::VoxelIndex> Tile::extent() const {
   fusion::VoxelIndex low{1 << kTileBits, 1 << kTileBits, 1 << kTileBits}, high{-1, -1, -1};
   for (const uint32_t code : levels_[0].codes) {
-    const auto v = localOf(code);
+    const auto v = cellInTile(code);
     low = {std::min(low.x, v.x), std::min(low.y, v.y), std::min(low.z, v.z)};
     high = {std::max(high.x, v.x), std::max(high.y, v.y), std::max(high.z, v.z)};
   }

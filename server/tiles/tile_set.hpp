@@ -34,6 +34,8 @@ using proto::tiles::TileKey;
 
 // The tile holding a voxel, and a voxel's code inside its tile.
 TileKey tileOf(const fusion::VoxelIndex& voxel);
+// Inside a tile: a cell's coordinates from its code, at any level (6 - level bits per axis).
+fusion::VoxelIndex cellInTile(uint32_t code);
 
 class Tile {
  public:

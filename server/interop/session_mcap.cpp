@@ -1,0 +1,214 @@
+#include "server/interop/session_mcap.hpp"
+
+#include <algorithm>
+#include <map>
+
+#include "proto/cloud_codec.hpp"
+#include "proto/journal/journal.hpp"
+#include "server/foxglove/messages.hpp"
+#include "server/tiles/tile_set.hpp"
+
+namespace stereomap::interop {
+
+namespace {
+
+using foxglove::Schema;
+
+common::Rigid3 rigid(const std::array<double, 3>& p, const std::array<double, 4>& q) {
+  return {common::Quat(q[3], q[0], q[1], q[2]).normalized(), common::Vec3(p[0], p[1], p[2])};
+}
+
+// Every n-th pose so that at most `most` remain, the last always.
+std::vector<common::Rigid3> thinned(const std::vector<common::Rigid3>& poses, size_t most) {
+  if (poses.size() <= most || most < 2) return poses;
+  std::vector<common::Rigid3> out;
+  out.reserve(most);
+  for (size_t i = 0; i + 1 < most; ++i) out.push_back(poses[i * (poses.size() - 1) / (most - 1)]);
+  out.push_back(poses.back());
+  return out;
+}
+
+// Height as colour: blue low, green middle, red high.
+void heightColour(double t, foxglove::Cube* cube) {
+  t = std::clamp(t, 0.0, 1.0);
+  cube->r = static_cast<float>(t);
+  cube->g = static_cast<float>(1.0 - std::abs(2.0 * t - 1.0));
+  cube->b = static_cast<float>(1.0 - t);
+}
+
+class Export {
+ public:
+  Export(const core::Session& session, const mcap::McapWriter::Sink& sink,
+         const McapExportOptions& options)
+      : session_(session), options_(options), mcap_(sink) {
+    for (Schema schema : {Schema::kFrameTransform, Schema::kPosesInFrame, Schema::kPointCloud,
+                          Schema::kSceneUpdate}) {
+      schemas_[schema] = mcap_.addSchema(std::string(foxglove::schemaName(schema)), "protobuf",
+                                         foxglove::descriptorSet(schema));
+    }
+    tf_ = mcap_.addChannel(schemas_[Schema::kFrameTransform], "/tf", "protobuf");
+  }
+
+  void map(int64_t stamp_ns) {
+    const auto tiles = session_.tiles().all();
+    const double resolution = session_.tiles().resolution();
+    unsigned level = 0;
+    for (; level + 1 < tiles::kLevels; ++level) {
+      size_t cells = 0;
+      for (const auto& tile : tiles) cells += tile->cells(level).size();
+      if (cells <= options_.max_map_cubes) break;
+    }
+    summary_.map_level = level;
+    const common::Box3 bounds = session_.tiles().summary().bounds;
+    const double z_low = bounds.min.z(), z_span = std::max(bounds.max.z() - bounds.min.z(), 1e-9);
+    const uint16_t channel = mcap_.addChannel(schemas_[Schema::kSceneUpdate], "/map", "protobuf",
+                                              {{"level", std::to_string(level)}});
+    const int step = 1 << level;
+    for (const auto& tile : tiles) {
+      const auto& cells = tile->cells(level);
+      if (cells.size() == 0) continue;
+      foxglove::Entity entity;
+      entity.id = "tile/" + tile->key().text();
+      entity.metadata = {{"level", std::to_string(level)},
+                         {"cell_m", std::to_string(resolution * step)}};
+      const fusion::VoxelIndex base{tile->key().x << tiles::kTileBits,
+                                    tile->key().y << tiles::kTileBits,
+                                    tile->key().z << tiles::kTileBits};
+      for (const uint32_t code : cells.codes) {
+        const fusion::VoxelIndex c = tiles::cellInTile(code);
+        foxglove::Cube cube;
+        cube.centre = common::Vec3((base.x + c.x * step + 0.5 * step) * resolution,
+                                   (base.y + c.y * step + 0.5 * step) * resolution,
+                                   (base.z + c.z * step + 0.5 * step) * resolution);
+        cube.size = resolution * step;
+        heightColour((cube.centre.z() - z_low) / z_span, &cube);
+        entity.cubes.push_back(cube);
+      }
+      summary_.map_cubes += entity.cubes.size();
+      write(channel, stamp_ns, foxglove::sceneUpdate(stamp_ns, "map", {entity}));
+    }
+  }
+
+  void record(proto::journal::JournalRecord&& record) {
+    if (auto* pose = std::get_if<proto::PoseMsg>(&record)) {
+      const common::Rigid3 T = rigid(pose->position, pose->orientation);
+      write(tf_, pose->stamp_ns,
+            foxglove::frameTransform(pose->stamp_ns, "map", pose->vehicle_id, T));
+      Vehicle& v = vehicle(pose->vehicle_id);
+      v.poses.push_back(T);
+      if (v.poses.size() == 1) v.path_sent_ns = pose->stamp_ns;
+      if (pose->stamp_ns - v.path_sent_ns >= options_.trajectory_every_ns) {
+        write(v.trajectory, pose->stamp_ns,
+              foxglove::posesInFrame(pose->stamp_ns, "map",
+                                     thinned(v.poses, options_.max_trajectory_poses)));
+        v.path_sent_ns = pose->stamp_ns;
+      }
+      ++summary_.poses;
+    } else if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+      auto cloud = proto::decodeCloud(frame->payload, proto::payloadInfo(*frame));
+      if (!cloud) {
+        ++summary_.unreadable_clouds;
+        return;
+      }
+      const Vehicle& v = vehicle(frame->vehicle_id);
+      write(v.cloud, frame->stamp_ns,
+            foxglove::pointCloud(frame->stamp_ns, "map",
+                                 rigid(frame->sensor_position, frame->sensor_orientation), *cloud));
+      ++summary_.clouds;
+    } else if (std::holds_alternative<proto::PoseCorrectionMsg>(record)) {
+      ++summary_.corrections;
+    }
+  }
+
+  // The corrected trajectories, the map file and the figures; then the summary.
+  common::Result<McapExportSummary> finish() {
+    const int64_t end = summary_.messages > 0 ? summary_.end_ns : 0;
+    std::map<std::string, std::vector<common::Rigid3>> corrected;
+    for (const auto& pose : session_.trajectory()) {
+      corrected[pose.vehicle_id].push_back(pose.T_map_body);
+    }
+    for (const auto& [id, poses] : corrected) {
+      write(vehicle(id).trajectory, end,
+            foxglove::posesInFrame(end, "map", thinned(poses, options_.max_trajectory_poses)));
+    }
+    if (auto map = session_.mapBinary(); map && !map->empty()) {
+      mcap_.attach("map.bt", "application/octet-stream", static_cast<uint64_t>(end), *map);
+    }
+    const core::SessionStatus status = session_.status();
+    std::string vehicles;
+    for (const auto& id : status.vehicles) vehicles += (vehicles.empty() ? "" : ",") + id;
+    mcap_.metadata("stereomap.session",
+                   {{"id", status.id},
+                    {"state", core::stateName(status)},
+                    {"resolution_m", std::to_string(status.resolution)},
+                    {"vehicles", vehicles},
+                    {"frames", std::to_string(status.frames_received)},
+                    {"poses", std::to_string(status.poses)},
+                    {"occupied_voxels", std::to_string(status.occupied_voxels)},
+                    {"corrections", std::to_string(status.corrections)},
+                    {"map_level", std::to_string(summary_.map_level)}});
+    if (auto closed = mcap_.close(); !closed) return closed.error();
+    summary_.bytes = mcap_.bytesWritten();
+    return summary_;
+  }
+
+ private:
+  struct Vehicle {
+    uint16_t trajectory = 0, cloud = 0;
+    std::vector<common::Rigid3> poses;
+    int64_t path_sent_ns = 0;
+  };
+
+  Vehicle& vehicle(const std::string& id) {
+    auto [it, added] = vehicles_.try_emplace(id);
+    if (added) {
+      const std::map<std::string, std::string> metadata{{"vehicle", id}};
+      it->second.trajectory = mcap_.addChannel(
+          schemas_[Schema::kPosesInFrame], "/vehicles/" + id + "/trajectory", "protobuf", metadata);
+      it->second.cloud = mcap_.addChannel(schemas_[Schema::kPointCloud],
+                                          "/vehicles/" + id + "/cloud", "protobuf", metadata);
+    }
+    return it->second;
+  }
+
+  void write(uint16_t channel, int64_t stamp_ns, const std::string& bytes) {
+    const auto t = static_cast<uint64_t>(std::max<int64_t>(stamp_ns, 0));
+    mcap_.write(channel, t, bytes);
+    if (summary_.messages == 0) summary_.start_ns = summary_.end_ns = static_cast<int64_t>(t);
+    summary_.start_ns = std::min<int64_t>(summary_.start_ns, static_cast<int64_t>(t));
+    summary_.end_ns = std::max<int64_t>(summary_.end_ns, static_cast<int64_t>(t));
+    ++summary_.messages;
+  }
+
+  const core::Session& session_;
+  const McapExportOptions& options_;
+  mcap::McapWriter mcap_;
+  std::map<Schema, uint16_t> schemas_;
+  uint16_t tf_ = 0;
+  std::map<std::string, Vehicle> vehicles_;
+  McapExportSummary summary_;
+};
+
+}  // namespace
+
+common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
+                                                   const std::filesystem::path& journal,
+                                                   const mcap::McapWriter::Sink& sink,
+                                                   const McapExportOptions& options) {
+  Export out(session, sink, options);
+  // The map first, at the first pose's time: the finished map is there from the start.
+  const auto first = session.trajectory(0, 1);
+  out.map(first.empty() ? 0 : first.front().stamp_ns);
+  uint64_t records = 0;
+  auto read = proto::journal::visitJournal(journal, 0,
+                                           [&](proto::journal::JournalRecord&& record, uint64_t) {
+                                             out.record(std::move(record));
+                                             if (++records % 256 == 0 && options.progress)
+                                               options.progress(records);
+                                           });
+  if (!read) return read.error();
+  if (options.progress) options.progress(records);
+  return out.finish();
+}
+
+}  // namespace stereomap::interop

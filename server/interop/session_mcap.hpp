@@ -1,0 +1,45 @@
+// A stored session as an MCAP file Foxglove (or Lichtblick) plays without plug-ins: every
+// vehicle's poses as transforms from the map (/tf, foxglove.FrameTransform), its trajectory
+// (/vehicles/ID/trajectory, foxglove.PosesInFrame: every 10 s the path so far, and at the end
+// the path as corrected), its clouds (/vehicles/ID/cloud, foxglove.PointCloud: the journal's
+// payloads decoded to x, y, z), the map (/map, foxglove.SceneUpdate: one entity of cubes per
+// tile, at the finest level whose cells fit max_map_cubes), map.bt as an attachment and the
+// session's figures as metadata. Protobuf encoding (server/foxglove). The journal is read as a
+// stream and the file written as it goes: memory holds one chunk and the trajectories.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+
+#include "common/result.hpp"
+#include "server/core/session.hpp"
+#include "server/mcap/mcap_writer.hpp"
+
+namespace stereomap::interop {
+
+struct McapExportOptions {
+  size_t max_map_cubes = 250000;
+  size_t max_trajectory_poses = 1000;  // per PosesInFrame message (evenly thinned)
+  int64_t trajectory_every_ns = 10'000'000'000;
+  // Called now and then with the journal records read so far.
+  std::function<void(uint64_t records)> progress;
+};
+
+struct McapExportSummary {
+  uint64_t messages = 0, poses = 0, clouds = 0, corrections = 0;
+  uint64_t unreadable_clouds = 0;  // payloads that did not decode (skipped)
+  uint64_t bytes = 0;
+  unsigned map_level = 0;
+  size_t map_cubes = 0;
+  int64_t start_ns = 0, end_ns = 0;  // the messages' log times
+};
+
+// `session`: the session replayed (its map and corrected trajectory); `journal`: its journal
+// file. kIo when the sink fails; the journal's own damage is skipped, as replay skips it.
+common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
+                                                   const std::filesystem::path& journal,
+                                                   const mcap::McapWriter::Sink& sink,
+                                                   const McapExportOptions& options = {});
+
+}  // namespace stereomap::interop
