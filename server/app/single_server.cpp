@@ -6,6 +6,7 @@
 
 #include "server/app/run.hpp"
 #include "server/ingest/dds_ingest.hpp"
+#include "server/interop/session_mcap.hpp"
 #include "server/store/session_journals.hpp"
 
 namespace stereomap::app {
@@ -86,7 +87,24 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   auto acks = proto::Writer<proto::AckMsg>::create(participant, proto::everyPartition());
   if (!acks) return fail(acks.error());
 
-  auto http_server = net::HttpServer::create(http, server, admin->get());
+  // GET /api/sessions/{id}/session.mcap: a loaded session (live or opened), from its journal.
+  net::HttpServerOptions http_options = http;
+  http_options.session_mcap = [&server, root = flags.store_dir](
+                                  const std::string& id,
+                                  const std::function<bool(std::string_view)>& sink) {
+    const auto session = server.find(id);
+    if (!session) {
+      return common::Status(common::makeError(
+          common::ErrorCode::kNotFound, "no session '" + id +
+                                            "' is loaded (a closed one: POST /api/sessions/" + id +
+                                            "/open first)"));
+    }
+    auto written = interop::writeSessionMcap(
+        *session, std::filesystem::path(root) / id / store::kJournalName, sink);
+    if (!written) return common::Status(written.error());
+    return common::Status(common::Ok{});
+  };
+  auto http_server = net::HttpServer::create(http_options, server, admin->get());
   if (!http_server) return fail(http_server.error());
   (*http_server)->start();
   shutdown.onStop([&ingest] { (*ingest)->stop(); });

@@ -200,6 +200,10 @@ common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
   const auto first = session.trajectory(0, 1);
   out.map(first.empty() ? 0 : first.front().stamp_ns);
   uint64_t records = 0;
+  std::error_code absent;
+  if (!std::filesystem::exists(journal, absent)) {  // an imported map: no journal, no flight
+    return out.finish();
+  }
   auto read = proto::journal::visitJournal(journal, 0,
                                            [&](proto::journal::JournalRecord&& record, uint64_t) {
                                              out.record(std::move(record));

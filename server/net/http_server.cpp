@@ -10,13 +10,16 @@
 #include <atomic>
 #include <functional>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <thread>
 
 #include "common/time.hpp"
 #include "common/url.hpp"
 #include "server/core/api.hpp"
+#include "server/core/validate.hpp"
 #include "server/net/admin_worker.hpp"
+#include "server/net/streamed_downloads.hpp"
 #include "server/net/viewer_files.hpp"
 #include "server/viewers/viewer_hub.hpp"
 
@@ -62,6 +65,7 @@ struct Hub {
   std::map<viewers::ViewerHub::Id, std::shared_ptr<WebSocketSession>> connections;
   std::atomic<size_t> viewer_count{0};
   AdminWorker admin_worker;
+  StreamedDownloads downloads;
 };
 
 // One viewer's WebSocket: moves the ViewerHub's messages (server/viewers, protocol 2) to the
@@ -214,6 +218,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
           ->start(request, token_given);
       return;
     }
+    if (auto session = mcapSession(target)) return streamMcap(*session, request);
     if (core::isAdminRequest(method, target)) {
       const bool queued =
           hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
@@ -269,6 +274,48 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     if (!head) response->body() = file->content;
     write(response, request.keep_alive(),
           head ? std::optional(file->content.size()) : std::nullopt);
+  }
+
+  // The session of /api/sessions/{id}/session.mcap (a query is allowed), else nullopt.
+  static std::optional<std::string> mcapSession(std::string_view target) {
+    const std::string_view path = target.substr(0, target.find('?'));
+    constexpr std::string_view kPrefix = "/api/sessions/", kSuffix = "/session.mcap";
+    if (path.size() <= kPrefix.size() + kSuffix.size() || !path.starts_with(kPrefix) ||
+        !path.ends_with(kSuffix)) {
+      return std::nullopt;
+    }
+    return std::string(path.substr(kPrefix.size(), path.size() - kPrefix.size() - kSuffix.size()));
+  }
+
+  // The export runs on a download thread that takes this connection's socket.
+  void streamMcap(const std::string& session, const http::request<http::string_body>& request) {
+    if (request.method() != http::verb::get) {
+      return sendError(http::status::method_not_allowed, "session.mcap is fetched with GET",
+                       request.keep_alive());
+    }
+    if (!hub_.options.session_mcap) {
+      return sendError(http::status::not_implemented,
+                       "this server does not export MCAP (a cluster's servers do not yet)",
+                       request.keep_alive());
+    }
+    if (!core::isValidId(session)) {
+      return sendError(http::status::bad_request, "not a session id", request.keep_alive());
+    }
+    stream_.expires_never();
+    beast::error_code ec;
+    const int fd = stream_.release_socket().release(ec);
+    if (ec) return;
+    auto export_mcap = hub_.options.session_mcap;
+    const bool started = hub_.downloads.start(
+        fd, "application/octet-stream", session + ".mcap",
+        [export_mcap, session](const std::function<bool(std::string_view)>& sink) {
+          return export_mcap(session, sink);
+        });
+    if (!started) {
+      refuseDownload(fd, 503,
+                     std::to_string(StreamedDownloads::kMaxRunning) +
+                         " MCAP exports are under way already; try again later");
+    }
   }
 
   void sendAnswer(core::HttpAnswer answer, unsigned version, bool head, bool keep_alive) {
@@ -435,6 +482,7 @@ void HttpServer::stop() {
   if (impl_->stopped) return;
   impl_->stopped = true;
   impl_->hub.admin_worker.stop();
+  impl_->hub.downloads.stop();
   asio::post(impl_->io, [this] {
     beast::error_code ignored;
     impl_->acceptor.close(ignored);

@@ -10,8 +10,10 @@
 #include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "common/result.hpp"
 #include "server/core/map_server.hpp"
@@ -32,6 +34,12 @@ struct HttpServerOptions {
   // closed with the reason (the others never wait for it).
   std::chrono::milliseconds stuck_after{10'000};
   size_t max_queued_bytes = 4u << 20;
+  // GET /api/sessions/{id}/session.mcap: writes that session's MCAP through the sink (false:
+  // the client is gone), streamed on a thread of its own (streamed_downloads.hpp). Empty: not
+  // offered (501).
+  std::function<common::Status(const std::string& session,
+                               const std::function<bool(std::string_view)>& sink)>
+      session_mcap;
 };
 
 class HttpServer {
