@@ -8,7 +8,7 @@
 //
 //   node tests/interop/mcap_export.mjs --bin-dir build/bin --dds-config config/cyclonedds-loopback.xml --domain 111
 import { spawn, spawnSync } from 'node:child_process';
-import { mkdtemp, readFile, rm } from 'node:fs/promises';
+import { mkdtemp, readFile, rm, writeFile } from 'node:fs/promises';
 import { createRequire } from 'node:module';
 import net from 'node:net';
 import { tmpdir } from 'node:os';
@@ -92,7 +92,18 @@ async function flySession(store, domain) {
       if (status.fusion_backlog === 0 && status.vehicles.length === 2) break;
       await new Promise((r) => setTimeout(r, 100));
     }
-    return status;
+    // The same export over REST, streamed (chunked) by the running server.
+    const reply = await fetch(`http://127.0.0.1:${port}/api/sessions/flight/session.mcap`);
+    check(reply.status === 200 && reply.headers.get('transfer-encoding') === 'chunked' &&
+      (reply.headers.get('content-disposition') ?? '').includes('flight.mcap'),
+      `GET session.mcap: ${reply.status}, ${reply.headers.get('transfer-encoding')}`);
+    const rest = Buffer.from(await reply.arrayBuffer());
+    const missing = await fetch(`http://127.0.0.1:${port}/api/sessions/nobody/session.mcap`);
+    const missingBody = await missing.json();
+    check(missing.status === 404 && /nobody/.test(missingBody.error), `an unknown session: ${missing.status} ${missingBody.error}`);
+    const bad = await fetch(`http://127.0.0.1:${port}/api/sessions/a%20b/session.mcap`);
+    check(bad.status === 400, `a malformed id: ${bad.status}`);
+    return { status, rest };
   } finally {
     server.kill('SIGTERM');
     await new Promise((resolve) => server.on('exit', resolve));
@@ -107,10 +118,11 @@ async function main() {
   const dir = await mkdtemp(path.join(tmpdir(), 'stereomap-mcap-'));
   try {
     const store = path.join(dir, 'store');
-    const status = await flySession(store, args.domain);
+    const { status, rest } = await flySession(store, args.domain);
     const file = path.join(dir, 'flight.mcap');
     const printed = run('stereomap-store', ['--store', store, 'export', 'flight', '--mcap', file]);
     console.log(printed.trim());
+    await writeFile(path.join(dir, 'rest.mcap'), rest);
     const tum = {};
     for (const vehicle of status.vehicles) {
       run('stereomap-store', ['--store', store, 'export', 'flight', '--format', 'tum', '--vehicle', vehicle, '--out', path.join(dir, `${vehicle}.tum`)]);
@@ -119,7 +131,19 @@ async function main() {
     run('stereomap-store', ['--store', store, 'export', 'flight', '--format', 'bt', '--out', path.join(dir, 'map.bt')]);
     const mapBt = await readFile(path.join(dir, 'map.bt'));
 
-    const bytes = await readFile(file);
+    for (const [label, exported] of [['stereomap-store export', file], ['REST', path.join(dir, 'rest.mcap')]]) {
+      console.log(`-- ${label}`);
+      await verify(await readFile(exported), status, tum, mapBt);
+    }
+  } finally {
+    await rm(dir, { recursive: true, force: true });
+  }
+  console.log(`${failures.length === 0 ? 'PASS' : 'FAIL'}: mcap export${failures.length ? ' — ' + failures.join('; ') : ''}`);
+  process.exit(failures.length === 0 ? 0 : 1);
+}
+
+async function verify(bytes, status, tum, mapBt) {
+  {
     const readable = { size: async () => BigInt(bytes.length), read: async (offset, length) => bytes.subarray(Number(offset), Number(offset + length)) };
     const reader = await McapIndexedReader.Initialize({ readable, decompressHandlers: await loadDecompressHandlers() });
     check(true, `indexed: ${reader.chunkIndexes.length} chunks, ${reader.channelsById.size} channels, summary CRC checked by the reader`);
@@ -192,11 +216,7 @@ async function main() {
     const metadata = [];
     for await (const record of reader.readMetadata()) metadata.push(record);
     check(metadata.length === 1 && metadata[0].metadata.get('id') === 'flight', 'the session\'s metadata');
-  } finally {
-    await rm(dir, { recursive: true, force: true });
   }
-  console.log(`${failures.length === 0 ? 'PASS' : 'FAIL'}: mcap export${failures.length ? ' — ' + failures.join('; ') : ''}`);
-  process.exit(failures.length === 0 ? 0 : 1);
 }
 
 main().catch((error) => {
