@@ -322,14 +322,27 @@ int exportFile(Store& store, Args& a) {
   if (a.request.format.empty()) return fail("export needs --format FORMAT or --mcap FILE");
   auto session = replayed(store, a.id);
   if (!session) return fail(session.error().message);
-  const auto exported = core::exportSession(**session, a.id, a.request);
-  if (!exported) return fail(exported.error().message);
-  const std::string& content = exported->content;
-  const std::string out = a.out.empty() ? a.id + "." + a.request.format : a.out;
-  std::ofstream file(out, std::ios::binary | std::ios::trunc);
-  file.write(content.data(), static_cast<std::streamsize>(content.size()));
-  if (!file.flush()) return fail("cannot write " + out);
-  std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
+  // grid: the band as map_server's two files, PREFIX.pgm and PREFIX.yaml naming it.
+  const bool grid = a.request.format == "grid";
+  const std::string prefix = a.out.empty() ? a.id : a.out;
+  std::vector<std::pair<std::string, std::string>> files;  // (format, path)
+  if (grid) {
+    files = {{"pgm", prefix + ".pgm"}, {"yaml", prefix + ".yaml"}};
+    a.request.grid_image = fs::path(prefix + ".pgm").filename().string();
+  } else {
+    files = {{a.request.format, a.out.empty() ? a.id + "." + a.request.format : a.out}};
+  }
+  for (const auto& [format, out] : files) {
+    core::ExportRequest request = a.request;
+    request.format = format;
+    const auto exported = core::exportSession(**session, a.id, request);
+    if (!exported) return fail(exported.error().message);
+    const std::string& content = exported->content;
+    std::ofstream file(out, std::ios::binary | std::ios::trunc);
+    file.write(content.data(), static_cast<std::streamsize>(content.size()));
+    if (!file.flush()) return fail("cannot write " + out);
+    std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
+  }
   return 0;
 }
 
@@ -401,16 +414,21 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
 
   auto* export_cmd = app.add_subcommand("export", "Replay one session and write a file");
   export_cmd->add_option("session", a.id, "Session id")->required();
-  auto* format = export_cmd->add_option("--format", a.request.format, "bt | ot | ply | png | tum")
-                     ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum"}));
+  auto* format =
+      export_cmd
+          ->add_option("--format", a.request.format,
+                       "bt | ot | ply | png | tum | grid (map_server's PGM + YAML of the "
+                       "--zmin..--zmax band: free, occupied and unknown cells) | pgm | yaml")
+          ->check(CLI::IsMember({"bt", "ot", "ply", "png", "tum", "grid", "pgm", "yaml"}));
   export_cmd
       ->add_option("--mcap", a.mcap_out,
                    "Write the whole session as MCAP for Foxglove: poses, trajectories, clouds, "
                    "the map and map.bt (instead of --format)")
       ->excludes(format);
-  export_cmd->add_option("--out", a.out, "Output file (default: SESSION.FORMAT)");
-  export_cmd->add_option("--zmin", a.request.z_min, "png: lowest voxel centre height, m");
-  export_cmd->add_option("--zmax", a.request.z_max, "png: highest voxel centre height, m");
+  export_cmd->add_option("--out", a.out,
+                         "Output file (default: SESSION.FORMAT; grid: the files' prefix)");
+  export_cmd->add_option("--zmin", a.request.z_min, "png, grid: lowest voxel centre height, m");
+  export_cmd->add_option("--zmax", a.request.z_max, "png, grid: highest voxel centre height, m");
   export_cmd->add_option("--scale", a.request.scale, "png: pixels per voxel")
       ->check(CLI::Range(1, 16));
   export_cmd->add_option("--vehicle", a.request.vehicle, "tum: the vehicle (default: the first)");

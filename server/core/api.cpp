@@ -251,16 +251,13 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   }
   // Resource -> export format; the height band and scale come from the query.
   static const std::map<std::string, std::string, std::less<>> kFormats = {
-      {"trajectory.tum", "tum"},
-      {"map.ot", "ot"},
-      {"map.ply", "ply"},
-      {"map.png", "png"},
-      {"map.bt", "bt"}};
+      {"trajectory.tum", "tum"}, {"map.ot", "ot"},     {"map.ply", "ply"},    {"map.png", "png"},
+      {"map.bt", "bt"},          {"map2d.pgm", "pgm"}, {"map2d.yaml", "yaml"}};
   const auto format = parts.size() == 4 ? kFormats.find(parts[3]) : kFormats.end();
   if (format != kFormats.end()) {
     ExportRequest request{format->second};
     request.vehicle = vehicle;
-    if (request.format == "png") {
+    if (request.format == "png" || request.format == "pgm" || request.format == "yaml") {
       // Height band in metres: ?zmin=0.5&zmax=2.0 (default: all heights).
       try {
         if (auto v = queryValue(target, "zmin"); !v.empty()) request.z_min = std::stod(v);

@@ -6,6 +6,7 @@
 #include "common/png.hpp"
 #include "common/time.hpp"
 #include "common/trajectory.hpp"
+#include "server/core/occupancy_grid.hpp"
 
 namespace stereomap::core {
 
@@ -24,6 +25,19 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
     if (!png) return png.error();
     return ExportFile{std::move(*png), "image/png", name};
   }
+  if (request.format == "pgm" || request.format == "yaml") {
+    auto bt = session.mapBinary();
+    if (!bt) return bt.error();
+    std::istringstream in(*bt);
+    auto map = fusion::OccupancyMap::load(in);
+    if (!map) return map.error();
+    auto grid = occupancyGrid(**map, request.z_min, request.z_max);
+    if (!grid) return grid.error();
+    if (request.format == "pgm")
+      return ExportFile{gridPgm(*grid), "image/x-portable-graymap", name};
+    const std::string image = request.grid_image.empty() ? id + ".pgm" : request.grid_image;
+    return ExportFile{gridYaml(*grid, image), "application/yaml", name};
+  }
   if (request.format == "tum") {
     const auto vehicles = session.status().vehicles;
     const std::string& wanted = request.vehicle;
@@ -37,7 +51,7 @@ common::Result<ExportFile> exportSession(const Session& session, const std::stri
   }
   return common::makeError(
       common::ErrorCode::kInvalidArgument,
-      "unknown export format '" + request.format + "' (bt, ot, ply, png, tum)");
+      "unknown export format '" + request.format + "' (bt, ot, ply, png, pgm, yaml, tum)");
 }
 
 std::string occupiedPly(const Session& session) {

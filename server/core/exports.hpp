@@ -11,14 +11,17 @@
 
 namespace stereomap::core {
 
-// format "bt", "ot", "ply", "png" (the height band z_min..z_max, scale pixels per voxel) or
-// "tum" (one vehicle: the given one, else the session's first). kNotFound names what is
+// format "bt", "ot", "ply", "png" (the height band z_min..z_max, scale pixels per voxel),
+// "pgm" and "yaml" (the band as a 2D occupancy grid, map_server's files: occupancy_grid.hpp;
+// the YAML names the image {id}.pgm) or "tum" (one vehicle: the given one, else the session's
+// first). kNotFound names what is
 // missing (the vehicle, or voxels in the band); the caller checks the request's values.
 struct ExportRequest {
   std::string format;
   double z_min = -1e9, z_max = 1e9;
   int scale = 1;
   std::string vehicle;
+  std::string grid_image;  // yaml: the image's file name ("": {id}.pgm)
 };
 struct ExportFile {
   std::string content;

@@ -101,7 +101,7 @@ Proto packedField(std::string_view name, uint32_t offset, int numeric_type) {
   return p;
 }
 
-constexpr int kUint8 = 1, kFloat32 = 7;
+constexpr int kUint8 = 1, kInt8 = 2, kFloat32 = 7;
 
 }  // namespace
 
@@ -176,6 +176,23 @@ std::string pointCloud(int64_t stamp_ns, std::string_view frame, const common::R
   p.message(5, packedField("z", 8, kFloat32));
   if (intensity) p.message(5, packedField("intensity", 12, kUint8));
   p.bytes(6, data);
+  return p.take();
+}
+
+std::string grid(int64_t stamp_ns, std::string_view frame, const common::Rigid3& origin,
+                 uint32_t columns, double cell_m, const std::vector<int8_t>& cells) {
+  Proto p, cell_size;
+  cell_size.float64(1, cell_m);
+  cell_size.float64(2, cell_m);
+  p.message(1, timestamp(stamp_ns));
+  p.bytes(2, frame);
+  p.message(3, pose(origin));
+  p.fixed32(4, columns);
+  p.message(5, cell_size);
+  p.fixed32(6, columns);  // row stride, bytes
+  p.fixed32(7, 1);        // cell stride
+  p.message(8, packedField("occupancy", 0, kInt8));
+  p.bytes(9, std::string_view(reinterpret_cast<const char*>(cells.data()), cells.size()));
   return p.take();
 }
 

@@ -36,6 +36,11 @@ std::string posesInFrame(int64_t stamp_ns, std::string_view frame,
 std::string pointCloud(int64_t stamp_ns, std::string_view frame, const common::Rigid3& pose,
                        const common::PointCloud& cloud);
 
+// foxglove.Grid of one int8 field "occupancy" (nav_msgs' values: -1 unknown, 0 free, 100
+// occupied), `columns` cells a row, rows along +y from `origin` (the first cell's corner).
+std::string grid(int64_t stamp_ns, std::string_view frame, const common::Rigid3& origin,
+                 uint32_t columns, double cell_m, const std::vector<int8_t>& cells);
+
 // foxglove.SceneUpdate of entities made of axis-aligned cubes.
 struct Cube {
   common::Vec3 centre;

@@ -110,6 +110,29 @@ Occupancy OccupancyMap::query(const common::Vec3& p_map) const {
                                                                : Occupancy::kUnknown;
 }
 
+void OccupancyMap::visitKnown(const common::Box3& box, const LeafVisitor& visit) const {
+  if (box.empty()) return;
+  // Clipped to the tree's key range (OctoMap's coordToKey is unchecked: see insertCloud).
+  const double limit = impl_->tree.getResolution() * 32767.0;
+  const common::Vec3 low = box.min.cwiseMax(-limit), high = box.max.cwiseMin(limit);
+  if ((low.array() > high.array()).any()) return;
+  auto& tree = impl_->tree;
+  for (auto it = tree.begin_leafs_bbx(octomap::point3d(low.x(), low.y(), low.z()),
+                                      octomap::point3d(high.x(), high.y(), high.z())),
+            end = tree.end_leafs_bbx();
+       it != end; ++it) {
+    const double edge = it.getSize();
+    const common::Vec3 corner(it.getX() - edge / 2, it.getY() - edge / 2, it.getZ() - edge / 2);
+    Occupancy occupancy = Occupancy::kUnknown;
+    if (tree.isNodeOccupied(*it)) {
+      occupancy = Occupancy::kOccupied;
+    } else if (it->getOccupancy() <= impl_->options.free_threshold) {
+      occupancy = Occupancy::kFree;
+    }
+    if (occupancy != Occupancy::kUnknown) visit(corner, edge, occupancy);
+  }
+}
+
 std::vector<VoxelIndex> OccupancyMap::occupiedCells(unsigned depth) const {
   depth = std::clamp(depth, 1u, kTreeDepth);
   const auto& tree = impl_->tree;

@@ -98,6 +98,11 @@ class OccupancyMap {
   double cellSize(unsigned depth) const;
   // Occupied voxels (finest) inside the box, sorted.
   std::vector<VoxelIndex> occupiedVoxelsIn(const common::Box3& box) const;
+  // Calls visit(min corner, edge, class) for every known node (a voxel or a pruned block)
+  // that meets the box, in no particular order; unknown space has no node and is not visited.
+  using LeafVisitor =
+      std::function<void(const common::Vec3& min_corner, double edge, Occupancy occupancy)>;
+  void visitKnown(const common::Box3& box, const LeafVisitor& visit) const;
   // Bounds of the occupied voxels' cells; empty when nothing is occupied.
   common::Box3 occupiedBounds() const;
   common::Vec3 voxelCentre(const VoxelIndex& index) const;

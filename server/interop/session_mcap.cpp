@@ -2,9 +2,11 @@
 
 #include <algorithm>
 #include <map>
+#include <sstream>
 
 #include "proto/cloud_codec.hpp"
 #include "proto/journal/journal.hpp"
+#include "server/core/occupancy_grid.hpp"
 #include "server/foxglove/messages.hpp"
 #include "server/tiles/tile_set.hpp"
 
@@ -42,7 +44,7 @@ class Export {
          const McapExportOptions& options)
       : session_(session), options_(options), mcap_(sink) {
     for (Schema schema : {Schema::kFrameTransform, Schema::kPosesInFrame, Schema::kPointCloud,
-                          Schema::kSceneUpdate}) {
+                          Schema::kSceneUpdate, Schema::kGrid}) {
       schemas_[schema] = mcap_.addSchema(std::string(foxglove::schemaName(schema)), "protobuf",
                                          foxglove::descriptorSet(schema));
     }
@@ -87,6 +89,34 @@ class Export {
       summary_.map_cubes += entity.cubes.size();
       write(channel, stamp_ns, foxglove::sceneUpdate(stamp_ns, "map", {entity}));
     }
+  }
+
+  // The band above the lowest occupied voxel, from a copy of the map (the session's own is
+  // never held up): nothing when the map is empty or nothing is known in the band.
+  void grid(int64_t stamp_ns) {
+    const common::Box3 bounds = session_.tiles().summary().bounds;
+    if (bounds.empty()) return;
+    auto bt = session_.mapBinary();
+    if (!bt) return;
+    std::istringstream in(*bt);
+    auto map = fusion::OccupancyMap::load(in);
+    if (!map) return;
+    const double r = (*map)->resolution();
+    const double floor = bounds.min.z() + r / 2;  // the lowest occupied voxel's centre
+    auto grid =
+        core::occupancyGrid(**map, floor + options_.grid_above_m, floor + options_.grid_below_m);
+    if (!grid) return;
+    const uint16_t channel =
+        mcap_.addChannel(schemas_[Schema::kGrid], "/map2d", "protobuf",
+                         {{"z_min", std::to_string(floor + options_.grid_above_m)},
+                          {"z_max", std::to_string(floor + options_.grid_below_m)}});
+    common::Rigid3 origin;
+    origin.translation = common::Vec3(grid->origin_x, grid->origin_y, floor);
+    write(channel, stamp_ns,
+          foxglove::grid(stamp_ns, "map", origin, static_cast<uint32_t>(grid->width), r,
+                         grid->cells));
+    summary_.grid_width = grid->width;
+    summary_.grid_height = grid->height;
   }
 
   void record(proto::journal::JournalRecord&& record) {
@@ -199,6 +229,7 @@ common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
   // The map first, at the first pose's time: the finished map is there from the start.
   const auto first = session.trajectory(0, 1);
   out.map(first.empty() ? 0 : first.front().stamp_ns);
+  out.grid(first.empty() ? 0 : first.front().stamp_ns);
   uint64_t records = 0;
   std::error_code absent;
   if (!std::filesystem::exists(journal, absent)) {  // an imported map: no journal, no flight

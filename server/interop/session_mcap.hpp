@@ -3,9 +3,11 @@
 // (/vehicles/ID/trajectory, foxglove.PosesInFrame: every 10 s the path so far, and at the end
 // the path as corrected), its clouds (/vehicles/ID/cloud, foxglove.PointCloud: the journal's
 // payloads decoded to x, y, z), the map (/map, foxglove.SceneUpdate: one entity of cubes per
-// tile, at the finest level whose cells fit max_map_cubes), map.bt as an attachment and the
-// session's figures as metadata. Protobuf encoding (server/foxglove). The journal is read as a
-// stream and the file written as it goes: memory holds one chunk and the trajectories.
+// tile, at the finest level whose cells fit max_map_cubes), a 2D occupancy grid of a height
+// band for ground robots (/map2d, foxglove.Grid: occupancy_grid.hpp), map.bt as an
+// attachment and the session's figures as metadata. Protobuf encoding (server/foxglove). The
+// journal is read as a stream and the file written as it goes: memory holds one chunk and the
+// trajectories.
 #pragma once
 
 #include <cstdint>
@@ -22,6 +24,9 @@ struct McapExportOptions {
   size_t max_map_cubes = 250000;
   size_t max_trajectory_poses = 1000;  // per PosesInFrame message (evenly thinned)
   int64_t trajectory_every_ns = 10'000'000'000;
+  // The 2D grid's band (/map2d, foxglove.Grid): voxel centres from the lowest occupied
+  // voxel's centre + grid_above_m to + grid_below_m, where a ground robot meets obstacles.
+  double grid_above_m = 0.2, grid_below_m = 2.0;
   // Called now and then with the journal records read so far.
   std::function<void(uint64_t records)> progress;
 };
@@ -32,7 +37,8 @@ struct McapExportSummary {
   uint64_t bytes = 0;
   unsigned map_level = 0;
   size_t map_cubes = 0;
-  int64_t start_ns = 0, end_ns = 0;  // the messages' log times
+  int grid_width = 0, grid_height = 0;  // 0: no grid (nothing known in the band)
+  int64_t start_ns = 0, end_ns = 0;     // the messages' log times
 };
 
 // `session`: the session replayed (its map and corrected trajectory); `journal`: its journal

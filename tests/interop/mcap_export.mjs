@@ -103,7 +103,11 @@ async function flySession(store, domain) {
     check(missing.status === 404 && /nobody/.test(missingBody.error), `an unknown session: ${missing.status} ${missingBody.error}`);
     const bad = await fetch(`http://127.0.0.1:${port}/api/sessions/a%20b/session.mcap`);
     check(bad.status === 400, `a malformed id: ${bad.status}`);
-    return { status, rest };
+    // The 2D grid of a band over REST (compared with the CLI's below).
+    const band = 'zmin=0.3&zmax=1.8';
+    const pgm = Buffer.from(await (await fetch(`http://127.0.0.1:${port}/api/sessions/flight/map2d.pgm?${band}`)).arrayBuffer());
+    const yaml = await (await fetch(`http://127.0.0.1:${port}/api/sessions/flight/map2d.yaml?${band}`)).text();
+    return { status, rest, grid: { pgm, yaml } };
   } finally {
     server.kill('SIGTERM');
     await new Promise((resolve) => server.on('exit', resolve));
@@ -118,7 +122,7 @@ async function main() {
   const dir = await mkdtemp(path.join(tmpdir(), 'stereomap-mcap-'));
   try {
     const store = path.join(dir, 'store');
-    const { status, rest } = await flySession(store, args.domain);
+    const { status, rest, grid } = await flySession(store, args.domain);
     const file = path.join(dir, 'flight.mcap');
     const printed = run('stereomap-store', ['--store', store, 'export', 'flight', '--mcap', file]);
     console.log(printed.trim());
@@ -131,9 +135,19 @@ async function main() {
     run('stereomap-store', ['--store', store, 'export', 'flight', '--format', 'bt', '--out', path.join(dir, 'map.bt')]);
     const mapBt = await readFile(path.join(dir, 'map.bt'));
 
+    run('stereomap-store', ['--store', store, 'export', 'flight', '--format', 'grid', '--zmin', '0.3', '--zmax', '1.8', '--out', path.join(dir, 'band')]);
+    const cliPgm = await readFile(path.join(dir, 'band.pgm'));
+    const cliYaml = await readFile(path.join(dir, 'band.yaml'), 'utf8');
+    check(Buffer.compare(cliPgm, grid.pgm) === 0 && cliYaml.replace('image: band.pgm', 'image: flight.pgm') === grid.yaml,
+      `map2d.pgm and map2d.yaml over REST equal the CLI's grid (${grid.pgm.length} bytes)`);
+    check(/^mode: trinary$/m.test(grid.yaml) && /^occupied_thresh: 0.65$/m.test(grid.yaml) && /^free_thresh: 0.196$/m.test(grid.yaml) && /^origin: \[/m.test(grid.yaml),
+      'map2d.yaml: map_server\'s fields');
     for (const [label, exported] of [['stereomap-store export', file], ['REST', path.join(dir, 'rest.mcap')]]) {
       console.log(`-- ${label}`);
-      await verify(await readFile(exported), status, tum, mapBt);
+      await verify(await readFile(exported), status, tum, mapBt, async (zmin, zmax) => {
+        run('stereomap-store', ['--store', store, 'export', 'flight', '--format', 'grid', '--zmin', zmin, '--zmax', zmax, '--out', path.join(dir, 'mcap-band')]);
+        return { pgm: await readFile(path.join(dir, 'mcap-band.pgm')), yaml: await readFile(path.join(dir, 'mcap-band.yaml'), 'utf8') };
+      });
     }
   } finally {
     await rm(dir, { recursive: true, force: true });
@@ -142,7 +156,16 @@ async function main() {
   process.exit(failures.length === 0 ? 0 : 1);
 }
 
-async function verify(bytes, status, tum, mapBt) {
+// A PGM (P5) as { width, height, pixels }.
+function parsePgm(bytes) {
+  const text = bytes.subarray(0, 64).toString('latin1');
+  const match = /^P5\s+(\d+)\s+(\d+)\s+255\s/.exec(text);
+  if (!match) throw new Error('not a P5 PGM');
+  const width = Number(match[1]), height = Number(match[2]);
+  return { width, height, pixels: bytes.subarray(match[0].length) };
+}
+
+async function verify(bytes, status, tum, mapBt, gridOfBand) {
   {
     const readable = { size: async () => BigInt(bytes.length), read: async (offset, length) => bytes.subarray(Number(offset), Number(offset + length)) };
     const reader = await McapIndexedReader.Initialize({ readable, decompressHandlers: await loadDecompressHandlers() });
@@ -164,6 +187,7 @@ async function verify(bytes, status, tum, mapBt) {
     const tf = {};
     let cubes = 0, points = 0, decodeErrors = 0;
     const trajectories = {};
+    const grids = [];
     for await (const message of reader.readMessages({ validateCrcs: true })) {
       const channel = reader.channelsById.get(message.channelId);
       const schema = schemaOf.get(message.channelId);
@@ -186,6 +210,8 @@ async function verify(bytes, status, tum, mapBt) {
         for (const entity of decoded.entities) cubes += entity.cubes.length;
       } else if (schema.name === 'foxglove.PosesInFrame') {
         trajectories[channel.topic] = decoded;
+      } else if (schema.name === 'foxglove.Grid') {
+        grids.push({ decoded, metadata: channel.metadata });
       }
     }
     check(decodeErrors === 0, `every message decodes with @foxglove/schemas' definitions (${decodeErrors} did not)`);
@@ -208,6 +234,26 @@ async function verify(bytes, status, tum, mapBt) {
       check(worst < 1e-5, `${vehicle}: ${sent.length} transforms equal the journal's ${truth.length} poses (largest difference ${worst})`);
       const path = trajectories[`/vehicles/${vehicle}/trajectory`];
       check(path && path.poses.length === Math.min(truth.length, 1000), `${vehicle}: its last trajectory holds ${path?.poses.length} poses`);
+    }
+    // The grid, cell by cell against the CLI's map_server files of the same band.
+    check(grids.length === 1, `/map2d: ${grids.length} grid`);
+    if (grids.length === 1) {
+      const { decoded: g, metadata } = grids[0];
+      const files = await gridOfBand(metadata.get('z_min'), metadata.get('z_max'));
+      const pgm = parsePgm(files.pgm);
+      const rows = g.data.length / g.row_stride;
+      let differing = g.fields[0]?.name === 'occupancy' && g.fields[0]?.type === 'INT8' ? 0 : Infinity;
+      for (let row = 0; row < rows && pgm.width === g.column_count && pgm.height === rows; ++row) {
+        for (let column = 0; column < g.column_count; ++column) {
+          const cell = Buffer.from(g.data.buffer, g.data.byteOffset, g.data.length).readInt8(row * g.row_stride + column * g.cell_stride);
+          const pixel = pgm.pixels[(pgm.height - 1 - row) * pgm.width + column];
+          if (pixel !== (cell === 100 ? 0 : cell === 0 ? 254 : 205)) ++differing;
+        }
+      }
+      const origin = /origin: \[([^,]+), ([^,]+),/.exec(files.yaml);
+      check(pgm.width === g.column_count && pgm.height === rows && differing === 0 &&
+        Math.abs(Number(origin[1]) - g.pose.position.x) < 1e-9 && Math.abs(Number(origin[2]) - g.pose.position.y) < 1e-9,
+        `/map2d: ${g.column_count} x ${rows} cells (band ${metadata.get('z_min')}..${metadata.get('z_max')} m) equal the CLI's grid cell by cell (${differing} differ)`);
     }
     const attachments = [];
     for await (const attachment of reader.readAttachments({ validateCrcs: true })) attachments.push(attachment);
