@@ -6,7 +6,8 @@ namespace stereomap::foxglove {
 
 namespace detail {
 extern const std::string_view kFrameTransformDescriptors, kPosesInFrameDescriptors,
-    kPointCloudDescriptors, kSceneUpdateDescriptors, kGridDescriptors;
+    kPointCloudDescriptors, kCompressedPointCloudDescriptors, kSceneUpdateDescriptors,
+    kGridDescriptors;
 }  // namespace detail
 
 namespace {
@@ -113,6 +114,8 @@ std::string_view schemaName(Schema schema) {
       return "foxglove.PosesInFrame";
     case Schema::kPointCloud:
       return "foxglove.PointCloud";
+    case Schema::kCompressedPointCloud:
+      return "foxglove.CompressedPointCloud";
     case Schema::kSceneUpdate:
       return "foxglove.SceneUpdate";
     case Schema::kGrid:
@@ -129,6 +132,8 @@ std::string_view descriptorSet(Schema schema) {
       return detail::kPosesInFrameDescriptors;
     case Schema::kPointCloud:
       return detail::kPointCloudDescriptors;
+    case Schema::kCompressedPointCloud:
+      return detail::kCompressedPointCloudDescriptors;
     case Schema::kSceneUpdate:
       return detail::kSceneUpdateDescriptors;
     case Schema::kGrid:
@@ -176,6 +181,17 @@ std::string pointCloud(int64_t stamp_ns, std::string_view frame, const common::R
   p.message(5, packedField("z", 8, kFloat32));
   if (intensity) p.message(5, packedField("intensity", 12, kUint8));
   p.bytes(6, data);
+  return p.take();
+}
+
+std::string compressedPointCloud(int64_t stamp_ns, std::string_view frame, const common::Rigid3& T,
+                                 std::string_view data, std::string_view format) {
+  Proto p;
+  p.message(1, timestamp(stamp_ns));
+  p.bytes(2, frame);
+  p.message(3, pose(T));
+  p.bytes(4, data);
+  p.bytes(5, format);
   return p.take();
 }
 

@@ -20,7 +20,14 @@
 
 namespace stereomap::foxglove {
 
-enum class Schema { kFrameTransform, kPosesInFrame, kPointCloud, kSceneUpdate, kGrid };
+enum class Schema {
+  kFrameTransform,
+  kPosesInFrame,
+  kPointCloud,
+  kCompressedPointCloud,
+  kSceneUpdate,
+  kGrid
+};
 
 std::string_view schemaName(Schema schema);     // "foxglove.PointCloud"
 std::string_view descriptorSet(Schema schema);  // a serialised FileDescriptorSet, imports included
@@ -40,6 +47,12 @@ std::string pointCloud(int64_t stamp_ns, std::string_view frame, const common::R
 // occupied), `columns` cells a row, rows along +y from `origin` (the first cell's corner).
 std::string grid(int64_t stamp_ns, std::string_view frame, const common::Rigid3& origin,
                  uint32_t columns, double cell_m, const std::vector<int8_t>& cells);
+
+// foxglove.CompressedPointCloud: a payload as it came (`format` "draco": the vehicle's own
+// Draco bytes, decoded by the reader), placed by `pose` in `frame`.
+std::string compressedPointCloud(int64_t stamp_ns, std::string_view frame,
+                                 const common::Rigid3& pose, std::string_view data,
+                                 std::string_view format);
 
 // foxglove.SceneUpdate of entities made of axis-aligned cubes.
 struct Cube {

@@ -23,7 +23,7 @@ TEST(Foxglove, AFrameTransformIsProtobufsBytes) {
 
 TEST(Foxglove, EveryDescriptorSetNamesItsMessage) {
   for (Schema schema : {Schema::kFrameTransform, Schema::kPosesInFrame, Schema::kPointCloud,
-                        Schema::kSceneUpdate, Schema::kGrid}) {
+                        Schema::kCompressedPointCloud, Schema::kSceneUpdate, Schema::kGrid}) {
     const std::string_view name = schemaName(schema);
     const std::string_view descriptors = descriptorSet(schema);
     ASSERT_GT(descriptors.size(), 100u) << name;

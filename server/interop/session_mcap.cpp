@@ -44,7 +44,7 @@ class Export {
          const McapExportOptions& options)
       : session_(session), options_(options), mcap_(sink) {
     for (Schema schema : {Schema::kFrameTransform, Schema::kPosesInFrame, Schema::kPointCloud,
-                          Schema::kSceneUpdate, Schema::kGrid}) {
+                          Schema::kCompressedPointCloud, Schema::kSceneUpdate, Schema::kGrid}) {
       schemas_[schema] = mcap_.addSchema(std::string(foxglove::schemaName(schema)), "protobuf",
                                          foxglove::descriptorSet(schema));
     }
@@ -135,15 +135,35 @@ class Export {
       }
       ++summary_.poses;
     } else if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+      Vehicle& v = vehicle(frame->vehicle_id);
+      const common::Rigid3 pose = rigid(frame->sensor_position, frame->sensor_orientation);
+      if (frame->encoding == proto::CloudEncoding::kDraco) {
+        // As it came: Foxglove decodes Draco itself (no decoding here, a twentieth the bytes).
+        if (v.draco == 0) {
+          v.draco = mcap_.addChannel(schemas_[Schema::kCompressedPointCloud],
+                                     "/vehicles/" + frame->vehicle_id + "/cloud", "protobuf",
+                                     {{"vehicle", frame->vehicle_id}});
+        }
+        write(v.draco, frame->stamp_ns,
+              foxglove::compressedPointCloud(
+                  frame->stamp_ns, "map", pose,
+                  std::string_view(reinterpret_cast<const char*>(frame->payload.data()),
+                                   frame->payload.size()),
+                  "draco"));
+        ++summary_.clouds;
+        return;
+      }
       auto cloud = proto::decodeCloud(frame->payload, proto::payloadInfo(*frame));
       if (!cloud) {
         ++summary_.unreadable_clouds;
         return;
       }
-      const Vehicle& v = vehicle(frame->vehicle_id);
-      write(v.cloud, frame->stamp_ns,
-            foxglove::pointCloud(frame->stamp_ns, "map",
-                                 rigid(frame->sensor_position, frame->sensor_orientation), *cloud));
+      if (v.points == 0) {
+        v.points = mcap_.addChannel(schemas_[Schema::kPointCloud],
+                                    "/vehicles/" + frame->vehicle_id + "/cloud/points", "protobuf",
+                                    {{"vehicle", frame->vehicle_id}});
+      }
+      write(v.points, frame->stamp_ns, foxglove::pointCloud(frame->stamp_ns, "map", pose, *cloud));
       ++summary_.clouds;
     } else if (std::holds_alternative<proto::PoseCorrectionMsg>(record)) {
       ++summary_.corrections;
@@ -184,7 +204,8 @@ class Export {
 
  private:
   struct Vehicle {
-    uint16_t trajectory = 0, cloud = 0;
+    uint16_t trajectory = 0;
+    uint16_t draco = 0, points = 0;  // cloud channels, made when a first cloud comes
     std::vector<common::Rigid3> poses;
     int64_t path_sent_ns = 0;
   };
@@ -195,8 +216,6 @@ class Export {
       const std::map<std::string, std::string> metadata{{"vehicle", id}};
       it->second.trajectory = mcap_.addChannel(
           schemas_[Schema::kPosesInFrame], "/vehicles/" + id + "/trajectory", "protobuf", metadata);
-      it->second.cloud = mcap_.addChannel(schemas_[Schema::kPointCloud],
-                                          "/vehicles/" + id + "/cloud", "protobuf", metadata);
     }
     return it->second;
   }

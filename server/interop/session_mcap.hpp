@@ -1,10 +1,11 @@
 // A stored session as an MCAP file Foxglove (or Lichtblick) plays without plug-ins: every
 // vehicle's poses as transforms from the map (/tf, foxglove.FrameTransform), its trajectory
 // (/vehicles/ID/trajectory, foxglove.PosesInFrame: every 10 s the path so far, and at the end
-// the path as corrected), its clouds (/vehicles/ID/cloud, foxglove.PointCloud: the journal's
-// payloads decoded to x, y, z), the map (/map, foxglove.SceneUpdate: one entity of cubes per
-// tile, at the finest level whose cells fit max_map_cubes), a 2D occupancy grid of a height
-// band for ground robots (/map2d, foxglove.Grid: occupancy_grid.hpp), map.bt as an
+// the path as corrected), its clouds (/vehicles/ID/cloud, foxglove.CompressedPointCloud: the
+// journal's Draco payloads as they came; clouds in another encoding decoded to x, y, z on
+// /vehicles/ID/cloud/points, foxglove.PointCloud), the map (/map, foxglove.SceneUpdate: one entity
+// of cubes per tile, at the finest level whose cells fit max_map_cubes), a 2D occupancy grid of a
+// height band for ground robots (/map2d, foxglove.Grid: occupancy_grid.hpp), map.bt as an
 // attachment and the session's figures as metadata. Protobuf encoding (server/foxglove). The
 // journal is read as a stream and the file written as it goes: memory holds one chunk and the
 // trajectories.

@@ -58,9 +58,14 @@ Measured measure(const std::vector<std::string>& argv) {
 int main(int argc, char** argv) {
   CLI::App app{"stereomap-bench-interop: a session's MCAP export (size, time, memory)"};
   double minutes = 2;
+  bool whole = false;
   app.add_option("--minutes", minutes, "Minutes of sim flight at 10 Hz")
       ->check(CLI::Range(0.1, 120.0))
       ->capture_default_str();
+  app.add_flag("--whole-clouds", whole,
+               "Every cloud sent whole, as the tests fly (the worst case); default: the "
+               "vehicle's own defaults (clouds thinned to the map, skipped when nothing is new, "
+               "1 Mbit/s)");
   if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
 
   const std::string dir = makeTempDir("stereomap-bench-interop");
@@ -71,8 +76,12 @@ int main(int argc, char** argv) {
     std::printf("flying %d frames (%.1f min at 10 Hz) into %s...\n", frames, minutes,
                 store.c_str());
     std::fflush(stdout);
-    ChildProcess onboard(onboardArgs(kDomain, "flight", frames, {"--rate", "0"}),
-                         dir + "/onboard.log");
+    std::vector<std::string> flags = {"--rate", "0"};
+    if (!whole) {  // onboardArgs' test defaults give way to the vehicle's own
+      flags.insert(flags.end(),
+                   {"--min-new", "0.1", "--map-resolution", "0.1", "--link-budget", "1Mbit"});
+    }
+    ChildProcess onboard(onboardArgs(kDomain, "flight", frames, flags), dir + "/onboard.log");
     if (auto code = onboard.waitExit(std::chrono::hours(3)); !code || *code != 0) {
       std::fprintf(stderr, "the vehicle failed; its log: %s/onboard.log\n", dir.c_str());
       return 1;

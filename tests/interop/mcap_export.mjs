@@ -1,6 +1,6 @@
 // Issue 42: a session exported as MCAP (`stereomap-store export ID --mcap F`) read by Foxglove's
 // own readers from npm (nobody on this project wrote them): @mcap/core's indexed reader with
-// @mcap/support's decompressors, every CRC checked (chunks and the attachment by the reader,
+// @mcap/support's decompressors and Google's Draco decoder (draco3d), every CRC checked (chunks and the attachment by the reader,
 // the summary's by its footer, the data section's here); every message decoded with protobufjs
 // against @foxglove/schemas' definitions (their generator's .proto, not ours); counts and
 // poses equal to the journal's (the store's own TUM export of each vehicle), the map's cubes to
@@ -21,6 +21,30 @@ const { loadDecompressHandlers } = require('@mcap/support');
 const { crc32 } = require('@foxglove/crc');
 const { foxgloveMessageSchemas, foxgloveEnumSchemas, generateProto } = require('@foxglove/schemas/internal');
 const protobuf = require('protobufjs');
+const draco3d = require('draco3d');
+
+// Google's own Draco decoder (WebAssembly, from npm): a CompressedPointCloud's points.
+let draco;
+function dracoPoints(bytes) {
+  const buffer = new draco.DecoderBuffer();
+  const decoder = new draco.Decoder();
+  const cloud = new draco.PointCloud();
+  try {
+    buffer.Init(new Int8Array(bytes.buffer, bytes.byteOffset, bytes.length), bytes.length);
+    if (!decoder.DecodeBufferToPointCloud(buffer, cloud).ok()) return -1;
+    const positions = new draco.DracoFloat32Array();
+    const attribute = decoder.GetAttribute(cloud, decoder.GetAttributeId(cloud, draco.POSITION));
+    decoder.GetAttributeFloatForAllPoints(cloud, attribute, positions);
+    for (let i = 0; i < positions.size(); ++i) if (!Number.isFinite(positions.GetValue(i))) return -1;
+    const n = cloud.num_points();
+    draco.destroy(positions);
+    return n;
+  } finally {
+    draco.destroy(cloud);
+    draco.destroy(decoder);
+    draco.destroy(buffer);
+  }
+}
 
 const { values: args } = parseArgs({
   options: {
@@ -119,6 +143,7 @@ function tumPoses(text) {
 }
 
 async function main() {
+  draco = await draco3d.createDecoderModule({});
   const dir = await mkdtemp(path.join(tmpdir(), 'stereomap-mcap-'));
   try {
     const store = path.join(dir, 'store');
@@ -202,6 +227,10 @@ async function verify(bytes, status, tum, mapBt, gridOfBand) {
       }
       if (schema.name === 'foxglove.FrameTransform') {
         (tf[decoded.child_frame_id] ??= []).push(decoded);
+      } else if (schema.name === 'foxglove.CompressedPointCloud') {
+        const n = decoded.format === 'draco' ? dracoPoints(decoded.data) : -1;
+        if (n <= 0) ++decodeErrors;
+        points += n;
       } else if (schema.name === 'foxglove.PointCloud') {
         const names = decoded.fields.map((f) => `${f.name}:${f.type}@${f.offset}`).join(',');
         if (!names.startsWith('x:FLOAT32@0,y:FLOAT32@4,z:FLOAT32@8') || decoded.data.length % decoded.point_stride !== 0) ++decodeErrors;
@@ -216,8 +245,8 @@ async function verify(bytes, status, tum, mapBt, gridOfBand) {
     }
     check(decodeErrors === 0, `every message decodes with @foxglove/schemas' definitions (${decodeErrors} did not)`);
     check(counts['/tf'] === status.poses, `/tf: ${counts['/tf']} transforms, the session's ${status.poses} poses`);
-    const clouds = status.vehicles.reduce((n, v) => n + (counts[`/vehicles/${v}/cloud`] ?? 0), 0);
-    check(clouds === status.frames, `clouds: ${clouds}, the session's ${status.frames} frames (${points} points)`);
+    const clouds = status.vehicles.reduce((n, v) => n + (counts[`/vehicles/${v}/cloud`] ?? 0) + (counts[`/vehicles/${v}/cloud/points`] ?? 0), 0);
+    check(clouds === status.frames, `clouds: ${clouds}, the session's ${status.frames} frames (${points} points, Draco decoded by Google's decoder)`);
     check(cubes === status.occupied_voxels, `/map: ${cubes} cubes, the session's ${status.occupied_voxels} voxels`);
     for (const vehicle of status.vehicles) {
       const sent = tf[vehicle] ?? [];
