@@ -12,14 +12,18 @@
 
 namespace stereomap::core {
 
+std::string errorBody(const std::string& message) {
+  return nlohmann::json{{"error", message}}.dump(-1, ' ', false,
+                                                 nlohmann::json::error_handler_t::replace) +
+         "\n";
+}
+
 namespace {
 
 using nlohmann::json;
 
-// Messages may quote request bytes: invalid UTF-8 is replaced, never thrown.
 HttpAnswer error(int status, const std::string& message) {
-  return {status, "application/json",
-          json{{"error", message}}.dump(-1, ' ', false, json::error_handler_t::replace) + "\n", ""};
+  return {status, "application/json", errorBody(message), ""};
 }
 
 // Ids come from URLs and bodies and name directories: checked before anything else sees them.
@@ -273,9 +277,10 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
     auto file = exportSession(*session, parts[2], request);
     if (!file) {
       const auto code = file.error().code;
-      return error(code == common::ErrorCode::kTooLarge ? 413
-                   : code == common::ErrorCode::kIo     ? 500
-                                                        : 404,
+      return error(code == common::ErrorCode::kTooLarge          ? 413
+                   : code == common::ErrorCode::kIo              ? 500
+                   : code == common::ErrorCode::kInvalidArgument ? 400
+                                                                 : 404,
                    file.error().message);
     }
     return HttpAnswer{200, file->content_type, std::move(file->content), file->name};

@@ -27,6 +27,10 @@ struct HttpAnswer {
   std::vector<std::pair<std::string, std::string>> headers;  // more response headers
 };
 
+// The body of every error answer, {"error": MESSAGE}: a message may quote request bytes, so
+// invalid UTF-8 in it is replaced, never thrown.
+std::string errorBody(const std::string& message);
+
 // True for the paths answerApi() serves (/healthz, /metrics, /api/...).
 bool isApiPath(std::string_view target);
 // True for the API paths that need the token when one is set: all but /healthz, which

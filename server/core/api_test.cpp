@@ -72,6 +72,23 @@ TEST(Api, ListsSessionsAndServesTrajectoryAndMap) {
             400);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map.png?scale=40")->status,
             400);
+  // The 2D grid: map_server's files; a band that is not one is the request's fault.
+  auto pgm = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map2d.pgm?zmin=-1&zmax=1");
+  ASSERT_TRUE(pgm && pgm->status == 200);
+  EXPECT_EQ(pgm->body.rfind("P5\n", 0), 0u);
+  auto yaml = answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map2d.yaml?zmin=-1&zmax=1");
+  ASSERT_TRUE(yaml && yaml->status == 200);
+  EXPECT_NE(yaml->body.find("image: flight-1.pgm\n"), std::string::npos);
+  for (const char* band : {"zmin=inf&zmax=inf", "zmin=-inf&zmax=1", "zmin=2&zmax=1"}) {
+    EXPECT_EQ(
+        answerApi(server, nullptr, "GET", std::string("/api/sessions/flight-1/map2d.pgm?") + band)
+            ->status,
+        400)
+        << band;
+  }
+  EXPECT_EQ(
+      answerApi(server, nullptr, "GET", "/api/sessions/flight-1/map2d.pgm?zmin=50&zmax=60")->status,
+      404);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/sessions/nope/map.bt")->status, 404);
   EXPECT_EQ(answerApi(server, nullptr, "POST", "/api/sessions")->status, 405);
   EXPECT_EQ(answerApi(server, nullptr, "GET", "/api/other")->status, 404);

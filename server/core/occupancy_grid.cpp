@@ -12,7 +12,7 @@ common::Result<OccupancyGrid> occupancyGrid(const fusion::OccupancyMap& map, dou
                                             double z_max) {
   if (!(z_min <= z_max) || !std::isfinite(z_min) || !std::isfinite(z_max)) {
     return common::makeError(common::ErrorCode::kInvalidArgument,
-                             "the band's zmin must be a number not above zmax");
+                             "the band's zmin and zmax must be finite, zmin not above zmax");
   }
   const double r = map.resolution();
   const double huge = std::numeric_limits<double>::max();

@@ -6,6 +6,7 @@
 
 #include "proto/cloud_codec.hpp"
 #include "proto/journal/journal.hpp"
+#include "proto/pose_fields.hpp"
 #include "server/core/occupancy_grid.hpp"
 #include "server/foxglove/messages.hpp"
 #include "server/tiles/tile_set.hpp"
@@ -15,10 +16,6 @@ namespace stereomap::interop {
 namespace {
 
 using foxglove::Schema;
-
-common::Rigid3 rigid(const std::array<double, 3>& p, const std::array<double, 4>& q) {
-  return {common::Quat(q[3], q[0], q[1], q[2]).normalized(), common::Vec3(p[0], p[1], p[2])};
-}
 
 // Every n-th pose so that at most `most` remain, the last always.
 std::vector<common::Rigid3> thinned(const std::vector<common::Rigid3>& poses, size_t most) {
@@ -121,7 +118,7 @@ class Export {
 
   void record(proto::journal::JournalRecord&& record) {
     if (auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-      const common::Rigid3 T = rigid(pose->position, pose->orientation);
+      const common::Rigid3 T = proto::rigidFromFields(pose->position, pose->orientation);
       write(tf_, pose->stamp_ns,
             foxglove::frameTransform(pose->stamp_ns, "map", pose->vehicle_id, T));
       Vehicle& v = vehicle(pose->vehicle_id);
@@ -136,7 +133,8 @@ class Export {
       ++summary_.poses;
     } else if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
       Vehicle& v = vehicle(frame->vehicle_id);
-      const common::Rigid3 pose = rigid(frame->sensor_position, frame->sensor_orientation);
+      const common::Rigid3 pose =
+          proto::rigidFromFields(frame->sensor_position, frame->sensor_orientation);
       if (frame->encoding == proto::CloudEncoding::kDraco) {
         // As it came: Foxglove decodes Draco itself (no decoding here, a twentieth the bytes).
         if (v.draco == 0) {

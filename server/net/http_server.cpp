@@ -43,13 +43,7 @@ std::string tokenFrom(const http::request<http::string_body>& request) {
   return common::queryParameter(target, "token").value_or("");
 }
 
-// JSON text of an error message that may carry bytes from a request (invalid UTF-8 is
-// replaced rather than thrown).
-std::string errorBody(const std::string& message) {
-  return nlohmann::json{{"error", message}}.dump(-1, ' ', false,
-                                                 nlohmann::json::error_handler_t::replace) +
-         "\n";
-}
+using core::errorBody;
 
 }  // namespace
 

@@ -4,9 +4,9 @@
 #include <sys/time.h>
 #include <unistd.h>
 
-#include <nlohmann/json.hpp>
-
 #include <cstdio>
+
+#include "server/core/api.hpp"
 
 namespace stereomap::net {
 
@@ -92,9 +92,7 @@ void serve(int fd, const std::string& content_type, const std::string& filename,
 }  // namespace
 
 std::string errorAnswer(int status, const std::string& message) {
-  const std::string body = nlohmann::json{{"error", message}}.dump(
-                               -1, ' ', false, nlohmann::json::error_handler_t::replace) +
-                           "\n";
+  const std::string body = core::errorBody(message);
   return "HTTP/1.1 " + std::to_string(status) + " " + reason(status) +
          "\r\nServer: stereomap\r\nContent-Type: application/json\r\nContent-Length: " +
          std::to_string(body.size()) + "\r\nConnection: close\r\n\r\n" + body;
