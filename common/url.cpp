@@ -30,6 +30,18 @@ std::optional<std::string> percentDecoded(std::string_view text) {
   return out;
 }
 
+bool listsToken(std::string_view list, std::string_view token) {
+  while (!list.empty()) {
+    const size_t comma = list.find(',');
+    std::string_view item = list.substr(0, comma);
+    list = comma == std::string_view::npos ? std::string_view{} : list.substr(comma + 1);
+    while (!item.empty() && (item.front() == ' ' || item.front() == '\t')) item.remove_prefix(1);
+    while (!item.empty() && (item.back() == ' ' || item.back() == '\t')) item.remove_suffix(1);
+    if (item == token) return true;
+  }
+  return false;
+}
+
 std::optional<std::string> queryParameter(std::string_view target, std::string_view name) {
   const size_t question = target.find('?');
   if (question == std::string_view::npos) return std::nullopt;

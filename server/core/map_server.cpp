@@ -387,6 +387,8 @@ bool MapServer::ingest(const proto::CloudFrameMsg& frame, Origin origin, uint64_
   if (origin == Origin::kLive) {
     job.journal_number = *logged;
     job.arrived = arrived;
+    // A copy of its payload (a few kB as Draco) for live clients (the Foxglove server).
+    session->setLiveCloud(std::make_shared<const proto::CloudFrameMsg>(frame));
   }
   const bool queued = session->enqueue(std::move(job), /*wait_for_room=*/origin == Origin::kReplay);
   if (!queued) {

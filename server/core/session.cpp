@@ -653,6 +653,23 @@ std::vector<proto::LandingTargetMsg> Session::landingTargets() const {
   return out;
 }
 
+void Session::setLiveCloud(std::shared_ptr<const proto::CloudFrameMsg> frame) {
+  std::lock_guard state(state_mutex_);
+  const std::string vehicle = frame->vehicle_id;
+  live_cloud_[vehicle] = {++live_clouds_, std::move(frame)};
+}
+
+std::vector<std::pair<uint64_t, std::shared_ptr<const proto::CloudFrameMsg>>> Session::liveClouds(
+    uint64_t after) const {
+  std::lock_guard state(state_mutex_);
+  std::vector<std::pair<uint64_t, std::shared_ptr<const proto::CloudFrameMsg>>> out;
+  for (const auto& [vehicle, cloud] : live_cloud_) {
+    if (cloud.first > after) out.push_back(cloud);
+  }
+  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  return out;
+}
+
 std::vector<fusion::VoxelIndex> Session::occupiedVoxels() const {
   std::vector<fusion::VoxelIndex> voxels;
   for (const auto& tile : tiles_.all()) {

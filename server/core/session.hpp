@@ -187,6 +187,11 @@ class Session {
   // pad is only worth its moment). An older stamp than the one kept is ignored.
   void setLandingTarget(const proto::LandingTargetMsg& target);
   std::vector<proto::LandingTargetMsg> landingTargets() const;
+  // Each vehicle's newest live cloud as it came, numbered in order of arrival (kept in memory:
+  // what the Foxglove server streams). liveClouds(after): those numbered after `after`.
+  void setLiveCloud(std::shared_ptr<const proto::CloudFrameMsg> frame);
+  std::vector<std::pair<uint64_t, std::shared_ptr<const proto::CloudFrameMsg>>> liveClouds(
+      uint64_t after) const;
   // The map as tiles: what viewers and tile requests read.
   const tiles::TileSet& tiles() const { return tiles_; }
   // Occupied voxels (finest), sorted by (x, y, z): read from the tiles (exports, tests).
@@ -272,6 +277,9 @@ class Session {
     common::Rigid3 body() const;     // T_map_body, exactly as it came
   };
   static_assert(sizeof(StoredPose) == 72);
+  uint64_t live_clouds_ = 0;  // numbers them
+  std::map<std::string, std::pair<uint64_t, std::shared_ptr<const proto::CloudFrameMsg>>>
+      live_cloud_;                                        // by vehicle
   PoseRecord poseRecord(const StoredPose& stored) const;  // under state_mutex_
   std::deque<StoredPose> trajectory_;                     // each vehicle's poses in stamp order
   std::vector<int64_t> newest_pose_ns_;                   // by vehicle index

@@ -1,5 +1,6 @@
 #include "server/foxglove/messages.hpp"
 
+#include <algorithm>
 #include <cstring>
 
 namespace stereomap::foxglove {
@@ -124,6 +125,24 @@ std::string_view schemaName(Schema schema) {
   return {};
 }
 
+std::string base64(std::string_view bytes) {
+  static constexpr char kAlphabet[] =
+      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  out.reserve((bytes.size() + 2) / 3 * 4);
+  for (size_t i = 0; i < bytes.size(); i += 3) {
+    const size_t n = std::min<size_t>(3, bytes.size() - i);
+    uint32_t group = 0;
+    for (size_t k = 0; k < 3; ++k) {
+      group = (group << 8) | (k < n ? static_cast<uint8_t>(bytes[i + k]) : 0u);
+    }
+    for (size_t k = 0; k < 4; ++k) {
+      out.push_back(k <= n ? kAlphabet[(group >> (18 - 6 * k)) & 63] : '=');
+    }
+  }
+  return out;
+}
+
 std::string_view descriptorSet(Schema schema) {
   switch (schema) {
     case Schema::kFrameTransform:
@@ -213,9 +232,16 @@ std::string grid(int64_t stamp_ns, std::string_view frame, const common::Rigid3&
 }
 
 std::string sceneUpdate(int64_t stamp_ns, std::string_view frame,
-                        const std::vector<Entity>& entities) {
+                        const std::vector<Entity>& entities,
+                        const std::vector<std::string>& deleted) {
   Proto update;
   const Proto stamp = timestamp(stamp_ns);
+  for (const std::string& id : deleted) {
+    Proto deletion;  // foxglove.SceneEntityDeletion, type MATCHING_ID (0, the default)
+    deletion.message(1, stamp);
+    deletion.bytes(3, id);
+    update.message(1, deletion);
+  }
   Proto identity = quaternion(common::Quat::Identity());
   for (const Entity& entity : entities) {
     Proto e;  // foxglove.SceneEntity

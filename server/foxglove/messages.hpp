@@ -31,6 +31,8 @@ enum class Schema {
 
 std::string_view schemaName(Schema schema);     // "foxglove.PointCloud"
 std::string_view descriptorSet(Schema schema);  // a serialised FileDescriptorSet, imports included
+// RFC 4648 base64 (with padding): how a Foxglove WebSocket channel carries its descriptor set.
+std::string base64(std::string_view bytes);
 
 // foxglove.FrameTransform: child's pose in parent's frame.
 std::string frameTransform(int64_t stamp_ns, std::string_view parent, std::string_view child,
@@ -54,7 +56,8 @@ std::string compressedPointCloud(int64_t stamp_ns, std::string_view frame,
                                  const common::Rigid3& pose, std::string_view data,
                                  std::string_view format);
 
-// foxglove.SceneUpdate of entities made of axis-aligned cubes.
+// foxglove.SceneUpdate of entities made of axis-aligned cubes; `deleted`: ids of entities
+// removed (a live map's tile that emptied).
 struct Cube {
   common::Vec3 centre;
   double size = 0;
@@ -66,6 +69,7 @@ struct Entity {
   std::vector<std::pair<std::string, std::string>> metadata;
 };
 std::string sceneUpdate(int64_t stamp_ns, std::string_view frame,
-                        const std::vector<Entity>& entities);
+                        const std::vector<Entity>& entities,
+                        const std::vector<std::string>& deleted = {});
 
 }  // namespace stereomap::foxglove

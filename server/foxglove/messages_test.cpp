@@ -44,5 +44,24 @@ TEST(Foxglove, APointCloudCarriesTwelveBytesAPoint) {
             std::string::npos);
 }
 
+TEST(Foxglove, Base64IsRfc4648s) {  // its test vectors (section 10)
+  EXPECT_EQ(base64(""), "");
+  EXPECT_EQ(base64("f"), "Zg==");
+  EXPECT_EQ(base64("fo"), "Zm8=");
+  EXPECT_EQ(base64("foo"), "Zm9v");
+  EXPECT_EQ(base64("foob"), "Zm9vYg==");
+  EXPECT_EQ(base64("fooba"), "Zm9vYmE=");
+  EXPECT_EQ(base64("foobar"), "Zm9vYmFy");
+  EXPECT_EQ(base64(std::string("\xff\xfe\x00", 3)), "//4A");
+}
+
+TEST(Foxglove, ASceneUpdateCarriesDeletionsBeforeEntities) {
+  const std::string none = sceneUpdate(5, "map", {});
+  const std::string deleting = sceneUpdate(5, "map", {}, {"tile/1_2_3"});
+  EXPECT_GT(deleting.size(), none.size());
+  EXPECT_EQ(deleting[0], 0x0a);  // field 1 (deletions), length-delimited
+  EXPECT_NE(deleting.find("tile/1_2_3"), std::string::npos);
+}
+
 }  // namespace
 }  // namespace stereomap::foxglove

@@ -21,6 +21,7 @@
 #include "server/net/admin_worker.hpp"
 #include "server/net/streamed_downloads.hpp"
 #include "server/net/viewer_files.hpp"
+#include "server/viewers/foxglove_hub.hpp"
 #include "server/viewers/viewer_hub.hpp"
 
 namespace stereomap::net {
@@ -55,37 +56,54 @@ struct Hub {
   core::SessionAdmin* admin;  // may be null
   HttpServerOptions options;
   viewers::ViewerHub viewers;
+  viewers::FoxgloveHub foxglove;
   ViewerFiles files;
-  std::map<viewers::ViewerHub::Id, std::shared_ptr<WebSocketSession>> connections;
+  std::map<const WebSocketSession*, std::shared_ptr<WebSocketSession>> connections;
   std::atomic<size_t> viewer_count{0};
   AdminWorker admin_worker;
   StreamedDownloads downloads;
 };
 
-// One viewer's WebSocket: moves the ViewerHub's messages (server/viewers, protocol 2) to the
-// socket, one write at a time, and the viewer's messages to the hub.
+// One WebSocket of either protocol: moves its endpoint's messages (server/viewers: ours, /ws,
+// or Foxglove's) to the socket, one write at a time, and the client's messages to the
+// endpoint.
 class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
  public:
-  WebSocketSession(tcp::socket socket, Hub& hub) : ws_(std::move(socket)), hub_(hub) {}
+  using Connect = std::function<viewers::Endpoint::Id()>;
+  // `subprotocol`: the one chosen from the client's offer ("": none).
+  WebSocketSession(tcp::socket socket, Hub& hub, viewers::Endpoint& endpoint,
+                   std::string subprotocol)
+      : ws_(std::move(socket)),
+        hub_(hub),
+        endpoint_(endpoint),
+        subprotocol_(std::move(subprotocol)) {}
 
-  void start(const http::request<http::string_body>& request, bool authorised) {
+  void start(const http::request<http::string_body>& request, Connect connect) {
     ws_.set_option(websocket::stream_base::timeout::suggested(beast::role_type::server));
+    if (!subprotocol_.empty()) {
+      ws_.set_option(websocket::stream_base::decorator(
+          [chosen = subprotocol_](websocket::response_type& response) {
+            response.set(http::field::sec_websocket_protocol, chosen);
+          }));
+    }
     ws_.read_message_max(kMaxRequestBodyBytes);
-    ws_.async_accept(request, [self = shared_from_this(), authorised](beast::error_code ec) {
-      if (ec) return;
-      self->id_ = self->hub_.viewers.connect(authorised, common::nowNs());
-      self->hub_.connections[self->id_] = self;
-      self->hub_.viewer_count = self->hub_.connections.size();
-      self->read();
-    });
+    ws_.async_accept(
+        request, [self = shared_from_this(), connect = std::move(connect)](beast::error_code ec) {
+          if (ec) return;
+          self->id_ = connect();
+          self->hub_.connections[self.get()] = self;
+          self->hub_.viewer_count = self->hub_.connections.size();
+          self->read();
+          self->pump();
+        });
   }
 
   // Writes the hub's next message when none is in flight; closes when the hub says so.
   void pump() {
     if (finished_) return;
-    if (auto order = hub_.viewers.closing(id_)) return closeWith(*order);
+    if (auto order = endpoint_.closing(id_)) return closeWith(*order);
     if (writing_) return;
-    auto message = hub_.viewers.next(id_, common::nowNs());
+    auto message = endpoint_.next(id_, common::nowNs());
     if (!message) return;
     writing_ = true;
     ws_.binary(message->binary);
@@ -94,7 +112,7 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
         [self = shared_from_this(), bytes = message->bytes](beast::error_code ec, size_t) {
           self->writing_ = false;
           if (ec) return self->finish();
-          self->hub_.viewers.written(self->id_);
+          self->endpoint_.written(self->id_);
           self->pump();
         });
   }
@@ -103,8 +121,8 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
   void finish() {
     if (finished_) return;
     finished_ = true;
-    hub_.viewers.disconnect(id_);
-    hub_.connections.erase(id_);
+    endpoint_.disconnect(id_);
+    hub_.connections.erase(this);
     hub_.viewer_count = hub_.connections.size();
     beast::error_code ignored;
     beast::get_lowest_layer(ws_).socket().shutdown(tcp::socket::shutdown_both, ignored);
@@ -117,7 +135,8 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
   void closeWith(const viewers::CloseOrder& order) {
     if (closing_) return;
     closing_ = true;
-    spdlog::warn("viewer {}: closing ({})", id_, order.reason);
+    spdlog::warn("{} {}: closing ({})", subprotocol_.empty() ? "viewer" : "foxglove client", id_,
+                 order.reason);
     if (writing_) return finish();
     beast::get_lowest_layer(ws_).expires_after(std::chrono::seconds(2));
     ws_.async_close(
@@ -135,11 +154,11 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
         }
         return self->finish();
       }
+      const std::string bytes = beast::buffers_to_string(self->buffer_.data());
       if (self->ws_.got_text()) {
-        const std::string text = beast::buffers_to_string(self->buffer_.data());
-        self->hub_.viewers.receive(self->id_, text, common::nowNs());
+        self->endpoint_.receive(self->id_, bytes, common::nowNs());
       } else {
-        self->hub_.viewers.receiveBinary(self->id_, self->buffer_.size());
+        self->endpoint_.receiveBinary(self->id_, bytes);
       }
       self->buffer_.consume(self->buffer_.size());
       self->pump();
@@ -149,7 +168,9 @@ class WebSocketSession : public std::enable_shared_from_this<WebSocketSession> {
 
   websocket::stream<beast::tcp_stream> ws_;
   Hub& hub_;
-  viewers::ViewerHub::Id id_ = 0;
+  viewers::Endpoint& endpoint_;
+  const std::string subprotocol_;
+  viewers::Endpoint::Id id_ = 0;
   beast::flat_buffer buffer_;
   bool writing_ = false, closing_ = false, finished_ = false;
 };
@@ -203,15 +224,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
                        "a valid token is required (Authorization: Bearer T or ?token=T)",
                        request.keep_alive());
     }
-    if (websocket::is_upgrade(request)) {
-      if (target.substr(0, target.find('?')) != "/ws") {
-        return sendError(http::status::not_found, "the WebSocket endpoint is /ws", false);
-      }
-      stream_.expires_never();
-      std::make_shared<WebSocketSession>(stream_.release_socket(), hub_)
-          ->start(request, token_given);
-      return;
-    }
+    if (websocket::is_upgrade(request)) return upgrade(request, target, token_given);
     if (auto session = mcapSession(target)) return streamMcap(*session, request);
     if (core::isAdminRequest(method, target)) {
       const bool queued =
@@ -268,6 +281,50 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     if (!head) response->body() = file->content;
     write(response, request.keep_alive(),
           head ? std::optional(file->content.size()) : std::nullopt);
+  }
+
+  // Foxglove's protocol for a client that offers it (at / or /foxglove, ?session=ID for one
+  // session's channels; the token is needed at the upgrade: Foxglove has no hello), else ours
+  // at /ws.
+  void upgrade(const http::request<http::string_body>& request, std::string_view target,
+               bool token_given) {
+    const std::string_view path = target.substr(0, target.find('?'));
+    const std::string offered(request[http::field::sec_websocket_protocol]);
+    std::string chosen;
+    for (const char* protocol : {"foxglove.websocket.v1", "foxglove.sdk.v1"}) {
+      if (chosen.empty() && common::listsToken(offered, protocol)) chosen = protocol;
+    }
+    if (chosen.empty()) {
+      if (path != "/ws") {
+        return sendError(http::status::not_found,
+                         "the WebSocket endpoints are /ws (the viewer's protocol) and / or "
+                         "/foxglove (Foxglove's, subprotocol foxglove.websocket.v1)",
+                         false);
+      }
+      stream_.expires_never();
+      std::make_shared<WebSocketSession>(stream_.release_socket(), hub_, hub_.viewers, "")
+          ->start(request, [hub = &hub_, token_given] {
+            return hub->viewers.connect(token_given, common::nowNs());
+          });
+      return;
+    }
+    if (path != "/" && path != "/foxglove") {
+      return sendError(http::status::not_found,
+                       "Foxglove's WebSocket endpoint is / or /foxglove (?session=ID for one)",
+                       false);
+    }
+    if (!token_given) {
+      return sendError(http::status::unauthorized,
+                       "a valid token is required (?token=T or Authorization: Bearer T)", false);
+    }
+    const std::string session = common::queryParameter(target, "session").value_or("");
+    if (!session.empty() && !core::isValidId(session)) {
+      return sendError(http::status::bad_request, "session must be a session id", false);
+    }
+    stream_.expires_never();
+    std::make_shared<WebSocketSession>(stream_.release_socket(), hub_, hub_.foxglove, chosen)
+        ->start(request,
+                [hub = &hub_, session] { return hub->foxglove.connect(session, common::nowNs()); });
   }
 
   // The session of /api/sessions/{id}/session.mcap (a query is allowed), else nullopt.
@@ -380,6 +437,9 @@ struct HttpServer::Impl {
                                 .stuck_after = options.stuck_after,
                                 .max_queued_bytes = options.max_queued_bytes,
                                 .server_name = "stereomap 0.2.0"}),
+            viewers::FoxgloveHub(server, {.stuck_after = options.stuck_after,
+                                          .max_queued_bytes = options.max_queued_bytes,
+                                          .server_name = "stereomap 0.2.0"}),
             {},
             {},
             {},
@@ -407,6 +467,7 @@ struct HttpServer::Impl {
     timer.async_wait([this](beast::error_code ec) {
       if (ec) return;
       hub.viewers.poll(common::nowNs());
+      hub.foxglove.poll(common::nowNs());
       const auto connections = hub.connections;  // pump() may end a connection
       for (const auto& [id, connection] : connections) connection->pump();
       schedulePush();

@@ -1,7 +1,8 @@
 // The server's one network port (Boost.Beast): the REST API (server/core/api.hpp), the
-// viewer's static files, and the viewer WebSocket at /ws (protocol 2, whose logic is
-// server/viewers' ViewerHub). Runs on its own thread; owns everything network-side. See
-// docs/PROTOCOL.md.
+// viewer's static files, the viewer WebSocket at /ws (protocol 2, whose logic is
+// server/viewers' ViewerHub) and Foxglove's WebSocket protocol at / or /foxglove for clients
+// that offer its subprotocol (server/viewers' FoxgloveHub). Runs on its own thread; owns everything
+// network-side. See docs/PROTOCOL.md.
 //
 //   auto http = HttpServer::create({.address = "127.0.0.1", .port = 8080}, map_server);
 //   (*http)->start();  ...  (*http)->stop();

@@ -4,19 +4,18 @@
 
 #include <algorithm>
 #include <cmath>
-#include <condition_variable>
 #include <deque>
-#include <mutex>
 #include <set>
-#include <thread>
 #include <utility>
 #include <variant>
 
+#include "common/keyed_worker.hpp"
 #include "common/time.hpp"
 #include "common/url.hpp"
 #include "server/core/api.hpp"
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
+#include "server/viewers/json_nesting.hpp"
 #include "server/viewers/view_planner.hpp"
 
 namespace stereomap::viewers {
@@ -35,31 +34,6 @@ using Text = std::shared_ptr<const std::string>;
 Text textOf(const json& message) {
   return std::make_shared<const std::string>(
       message.dump(-1, ' ', false, json::error_handler_t::replace));
-}
-
-// How deeply `text` nests arrays and objects (strings skipped), to refuse hostile nesting
-// before the parser sees it.
-int nesting(std::string_view text) {
-  int depth = 0, deepest = 0;
-  bool in_string = false, escaped = false;
-  for (const char c : text) {
-    if (in_string) {
-      if (escaped) {
-        escaped = false;
-      } else if (c == '\\') {
-        escaped = true;
-      } else if (c == '"') {
-        in_string = false;
-      }
-    } else if (c == '"') {
-      in_string = true;
-    } else if (c == '[' || c == '{') {
-      deepest = std::max(deepest, ++depth);
-    } else if (c == ']' || c == '}') {
-      --depth;
-    }
-  }
-  return deepest;
 }
 
 // A finite number from `message[name]`, or nullopt when missing; throws a message when it is
@@ -190,64 +164,13 @@ struct ViewerHub::Viewer {
 
 namespace {
 
-// Makes replays off the network thread, one at a time; only each viewer's newest request is
-// made (a slider dragged across a flight asks for many).
-class ReplayWorker {
- public:
-  struct Job {
-    uint64_t viewer = 0, request = 0;
-    std::string id;
-    int64_t until_ns = 0;
-  };
-  struct Done {
-    uint64_t viewer = 0, request = 0;
-    std::string id;
-    int64_t until_ns = 0;
-    common::Result<std::shared_ptr<core::Session>> session;
-  };
-  explicit ReplayWorker(const core::SessionAdmin* admin) : admin_(admin) {}
-  ~ReplayWorker() {
-    {
-      std::lock_guard lock(mutex_);
-      stopping_ = true;
-    }
-    changed_.notify_one();
-    if (thread_.joinable()) thread_.join();
-  }
-  void post(Job job) {
-    std::lock_guard lock(mutex_);
-    jobs_[job.viewer] = std::move(job);  // replaces an older request of the same viewer
-    if (!thread_.joinable()) thread_ = std::thread([this] { run(); });
-    changed_.notify_one();
-  }
-  std::vector<Done> take() {
-    std::lock_guard lock(mutex_);
-    return std::exchange(done_, {});
-  }
-
- private:
-  void run() {
-    for (;;) {
-      Job job;
-      {
-        std::unique_lock lock(mutex_);
-        changed_.wait(lock, [this] { return stopping_ || !jobs_.empty(); });
-        if (stopping_) return;
-        job = std::move(jobs_.begin()->second);
-        jobs_.erase(jobs_.begin());
-      }
-      auto session = admin_->replay(job.id, job.until_ns);
-      std::lock_guard lock(mutex_);
-      done_.push_back({job.viewer, job.request, job.id, job.until_ns, std::move(session)});
-    }
-  }
-  const core::SessionAdmin* admin_;
-  std::mutex mutex_;
-  std::condition_variable changed_;
-  std::map<uint64_t, Job> jobs_;  // by viewer
-  std::vector<Done> done_;
-  bool stopping_ = false;
-  std::thread thread_;
+// A replay made off the network thread (one at a time; only each viewer's newest request is
+// made: a slider dragged across a flight asks for many).
+struct ReplayDone {
+  uint64_t request = 0;
+  std::string id;
+  int64_t until_ns = 0;
+  common::Result<std::shared_ptr<core::Session>> session;
 };
 
 }  // namespace
@@ -271,7 +194,7 @@ struct ViewerHub::Impl {
   std::map<std::string, Feed> feeds;
   std::map<std::string, std::string> statuses;  // as last broadcast, by session
   HubStats stats;
-  ReplayWorker replays{admin};
+  common::KeyedWorker<Id, ReplayDone> replays;  // by viewer
 
   void closeViewer(Viewer& viewer, uint16_t code, std::string reason) {
     if (viewer.close) return;
@@ -463,16 +386,18 @@ struct ViewerHub::Impl {
     }
     if (!until) return bad(viewer, "replay: \"until\" (seconds since the epoch) is missing");
     const uint64_t request = ++viewer.replay_request;
-    replays.post({id, request, session_id->get<std::string>(),
-                  static_cast<int64_t>(std::llround(*until * 1e9))});
+    replays.post(id, [admin = admin, request, session = session_id->get<std::string>(),
+                      until_ns = static_cast<int64_t>(std::llround(*until * 1e9))] {
+      return ReplayDone{request, session, until_ns, admin->replay(session, until_ns)};
+    });
     queueText(viewer, textOf({{"type", "replaying"}, {"session", *session_id}, {"until", *until}}),
               false);
   }
 
   // Replays made since the last poll: each viewer switches to its newest.
   void takeReplays() {
-    for (auto& done : replays.take()) {
-      const auto found = viewers.find(done.viewer);
+    for (auto& [viewer_id, done] : replays.take()) {
+      const auto found = viewers.find(viewer_id);
       if (found == viewers.end() || found->second.replay_request != done.request) continue;
       Viewer& viewer = found->second;
       if (!done.session) {
@@ -634,7 +559,7 @@ struct ViewerHub::Impl {
 
   void receive(Id id, Viewer& viewer, std::string_view text) {
     if (viewer.close) return;
-    if (nesting(text) > kMaxNesting) return bad(viewer, "message nested too deeply");
+    if (jsonNesting(text) > kMaxNesting) return bad(viewer, "message nested too deeply");
     const json message = json::parse(text, nullptr, false);
     if (message.is_discarded() || !message.is_object()) {
       return bad(viewer, "not a JSON object (" + std::to_string(text.size()) + " bytes)");
@@ -849,11 +774,11 @@ void ViewerHub::receive(Id id, std::string_view text, int64_t /*now_ns*/) {
   if (found != impl_->viewers.end()) impl_->receive(id, found->second, text);
 }
 
-void ViewerHub::receiveBinary(Id id, size_t bytes) {
+void ViewerHub::receiveBinary(Id id, std::string_view bytes) {
   const auto found = impl_->viewers.find(id);
   if (found == impl_->viewers.end()) return;
   impl_->bad(found->second, "binary messages are not part of protocol 2 (got " +
-                                std::to_string(bytes) + " bytes)");
+                                std::to_string(bytes.size()) + " bytes)");
 }
 
 void ViewerHub::poll(int64_t now_ns) {

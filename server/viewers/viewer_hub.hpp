@@ -32,6 +32,7 @@
 
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
+#include "server/viewers/endpoint.hpp"
 
 namespace stereomap::viewers {
 
@@ -47,46 +48,34 @@ struct HubOptions {
   std::string server_name = "stereomap";
 };
 
-struct Outgoing {
-  std::shared_ptr<const std::string> bytes;
-  bool binary = false;  // tiles (proto/tiles/FORMAT.md); else JSON text
-};
-
-// RFC 6455 close codes used, with the reason sent in the close frame.
-struct CloseOrder {
-  uint16_t code = 1000;
-  std::string reason;
-};
-
 struct HubStats {
   size_t viewers = 0;
   uint64_t tiles_sent = 0, tile_bytes_sent = 0, messages_sent = 0;
   uint64_t closed_stuck = 0, closed_bad = 0;
 };
 
-class ViewerHub {
+class ViewerHub : public Endpoint {
  public:
-  using Id = uint64_t;
   ViewerHub(const core::MapServer& server, const core::SessionAdmin* admin, HubOptions options);
-  ~ViewerHub();
+  ~ViewerHub() override;
   ViewerHub(const ViewerHub&) = delete;
   ViewerHub& operator=(const ViewerHub&) = delete;
 
   // A new connection; `authorised`: its upgrade request carried the token (or none is set).
   Id connect(bool authorised, int64_t now_ns);
-  void disconnect(Id id);
+  void disconnect(Id id) override;
   // A text message from the viewer (JSON). Errors are answered; what must not go on closes.
-  void receive(Id id, std::string_view text, int64_t now_ns);
+  void receive(Id id, std::string_view text, int64_t now_ns) override;
   // A binary message from the viewer: not part of the protocol.
-  void receiveBinary(Id id, size_t bytes);
+  void receiveBinary(Id id, std::string_view bytes) override;
   // Pushes to subscribers what changed since the last poll (tiles, poses, statuses) and
   // closes stuck or silent viewers.
-  void poll(int64_t now_ns);
+  void poll(int64_t now_ns) override;
   // The next message for `id` while none is being written (nullopt: nothing to send now).
-  std::optional<Outgoing> next(Id id, int64_t now_ns);
-  void written(Id id);  // the message from next() has been written
+  std::optional<Outgoing> next(Id id, int64_t now_ns) override;
+  void written(Id id) override;  // the message from next() has been written
   // Set when the viewer must be closed; the transport closes it and calls disconnect().
-  std::optional<CloseOrder> closing(Id id) const;
+  std::optional<CloseOrder> closing(Id id) const override;
   std::vector<Id> ids() const;
   HubStats stats() const;
 

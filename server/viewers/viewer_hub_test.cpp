@@ -458,7 +458,7 @@ TEST(ViewerHub, BadMessagesAreAnsweredAndTooManyClose) {
   for (int i = 0; i < 20 && !hub.closing(id); ++i) hub.receive(id, "nonsense", 0);
   ASSERT_TRUE(hub.closing(id));
   EXPECT_NE(hub.closing(id)->reason.find("too many bad messages"), std::string::npos);
-  hub.receiveBinary(id, 10);  // after closing: ignored, no crash
+  hub.receiveBinary(id, std::string(10, 'x'));  // after closing: ignored, no crash
 }
 
 TEST(ViewerHub, AViewerThatStopsReadingIsClosedWithAReason) {

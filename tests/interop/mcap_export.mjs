@@ -10,41 +10,18 @@
 import { spawn, spawnSync } from 'node:child_process';
 import { mkdtemp, readFile, rm, writeFile } from 'node:fs/promises';
 import { createRequire } from 'node:module';
-import net from 'node:net';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
 import { parseArgs } from 'node:util';
+
+import { compareGrid, decodeOptions, dracoDecoder, foxgloveTypes, freePort } from './foxglove_support.mjs';
 
 const require = createRequire(new URL('../../web/package.json', import.meta.url));
 const { McapIndexedReader } = require('@mcap/core');
 const { loadDecompressHandlers } = require('@mcap/support');
 const { crc32 } = require('@foxglove/crc');
-const { foxgloveMessageSchemas, foxgloveEnumSchemas, generateProto } = require('@foxglove/schemas/internal');
-const protobuf = require('protobufjs');
-const draco3d = require('draco3d');
 
-// Google's own Draco decoder (WebAssembly, from npm): a CompressedPointCloud's points.
-let draco;
-function dracoPoints(bytes) {
-  const buffer = new draco.DecoderBuffer();
-  const decoder = new draco.Decoder();
-  const cloud = new draco.PointCloud();
-  try {
-    buffer.Init(new Int8Array(bytes.buffer, bytes.byteOffset, bytes.length), bytes.length);
-    if (!decoder.DecodeBufferToPointCloud(buffer, cloud).ok()) return -1;
-    const positions = new draco.DracoFloat32Array();
-    const attribute = decoder.GetAttribute(cloud, decoder.GetAttributeId(cloud, draco.POSITION));
-    decoder.GetAttributeFloatForAllPoints(cloud, attribute, positions);
-    for (let i = 0; i < positions.size(); ++i) if (!Number.isFinite(positions.GetValue(i))) return -1;
-    const n = cloud.num_points();
-    draco.destroy(positions);
-    return n;
-  } finally {
-    draco.destroy(cloud);
-    draco.destroy(decoder);
-    draco.destroy(buffer);
-  }
-}
+let dracoPoints;  // Google's own Draco decoder: a CompressedPointCloud's points
 
 const { values: args } = parseArgs({
   options: {
@@ -61,16 +38,6 @@ const check = (ok, what) => {
   console.log(`${ok ? 'ok  ' : 'FAIL'} ${what}`);
 };
 
-async function freePort() {
-  return new Promise((resolve) => {
-    const server = net.createServer();
-    server.listen(0, '127.0.0.1', () => {
-      const { port } = server.address();
-      server.close(() => resolve(port));
-    });
-  });
-}
-
 function run(name, argv) {
   const result = spawnSync(bin(name), argv, { env, encoding: 'utf8', timeout: 300_000 });
   if (result.status !== 0) {
@@ -78,21 +45,6 @@ function run(name, argv) {
   }
   return result.stdout;
 }
-
-// Foxglove's schemas as protobufjs types, from @foxglove/schemas' own generator.
-function foxgloveTypes() {
-  const root = new protobuf.Root();
-  root.addJSON(protobuf.common['google/protobuf/timestamp.proto'].nested);
-  root.addJSON(protobuf.common['google/protobuf/duration.proto'].nested);
-  for (const [name, schema] of Object.entries(foxgloveMessageSchemas)) {
-    const enums = Object.values(foxgloveEnumSchemas).filter((e) => e.parentSchemaName === name);
-    protobuf.parse(generateProto(schema, enums), root, { keepCase: true });
-  }
-  root.resolveAll();
-  return root;
-}
-
-const decodeOptions = { longs: Number, enums: String, bytes: Buffer, defaults: true, arrays: true };
 
 async function flySession(store, domain) {
   const port = await freePort();
@@ -143,7 +95,7 @@ function tumPoses(text) {
 }
 
 async function main() {
-  draco = await draco3d.createDecoderModule({});
+  dracoPoints = await dracoDecoder();
   const dir = await mkdtemp(path.join(tmpdir(), 'stereomap-mcap-'));
   try {
     const store = path.join(dir, 'store');
@@ -179,15 +131,6 @@ async function main() {
   }
   console.log(`${failures.length === 0 ? 'PASS' : 'FAIL'}: mcap export${failures.length ? ' — ' + failures.join('; ') : ''}`);
   process.exit(failures.length === 0 ? 0 : 1);
-}
-
-// A PGM (P5) as { width, height, pixels }.
-function parsePgm(bytes) {
-  const text = bytes.subarray(0, 64).toString('latin1');
-  const match = /^P5\s+(\d+)\s+(\d+)\s+255\s/.exec(text);
-  if (!match) throw new Error('not a P5 PGM');
-  const width = Number(match[1]), height = Number(match[2]);
-  return { width, height, pixels: bytes.subarray(match[0].length) };
 }
 
 async function verify(bytes, status, tum, mapBt, gridOfBand) {
@@ -269,20 +212,8 @@ async function verify(bytes, status, tum, mapBt, gridOfBand) {
     if (grids.length === 1) {
       const { decoded: g, metadata } = grids[0];
       const files = await gridOfBand(metadata.get('z_min'), metadata.get('z_max'));
-      const pgm = parsePgm(files.pgm);
-      const rows = g.data.length / g.row_stride;
-      let differing = g.fields[0]?.name === 'occupancy' && g.fields[0]?.type === 'INT8' ? 0 : Infinity;
-      for (let row = 0; row < rows && pgm.width === g.column_count && pgm.height === rows; ++row) {
-        for (let column = 0; column < g.column_count; ++column) {
-          const cell = Buffer.from(g.data.buffer, g.data.byteOffset, g.data.length).readInt8(row * g.row_stride + column * g.cell_stride);
-          const pixel = pgm.pixels[(pgm.height - 1 - row) * pgm.width + column];
-          if (pixel !== (cell === 100 ? 0 : cell === 0 ? 254 : 205)) ++differing;
-        }
-      }
-      const origin = /origin: \[([^,]+), ([^,]+),/.exec(files.yaml);
-      check(pgm.width === g.column_count && pgm.height === rows && differing === 0 &&
-        Math.abs(Number(origin[1]) - g.pose.position.x) < 1e-9 && Math.abs(Number(origin[2]) - g.pose.position.y) < 1e-9,
-        `/map2d: ${g.column_count} x ${rows} cells (band ${metadata.get('z_min')}..${metadata.get('z_max')} m) equal the CLI's grid cell by cell (${differing} differ)`);
+      const { rows, differing, same } = compareGrid(g, files);
+      check(same, `/map2d: ${g.column_count} x ${rows} cells (band ${metadata.get('z_min')}..${metadata.get('z_max')} m) equal the CLI's grid cell by cell (${differing} differ)`);
     }
     const attachments = [];
     for await (const attachment of reader.readAttachments({ validateCrcs: true })) attachments.push(attachment);

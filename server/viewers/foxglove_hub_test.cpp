@@ -1,0 +1,266 @@
+// The Foxglove WebSocket protocol without the network, over a real MapServer fusing real
+// clouds: the handshake, channels per session (scoped and not), subscriptions and their
+// first messages, coalescing, unsubscribing, and the closing of hostile, stuck or slow clients.
+// (Foxglove's own client decodes what a live server sends: tests/interop/foxglove_live.mjs.)
+#include "server/viewers/foxglove_hub.hpp"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include <map>
+
+#include "common/time.hpp"
+#include "testing/synthetic.hpp"
+
+namespace stereomap::viewers {
+namespace {
+
+using nlohmann::json;
+
+proto::CloudFrameMsg wallFrame(const std::string& session, int seq) {
+  return testing::planeFrame("v1", session, static_cast<uint64_t>(seq),
+                             testing::planeCloud(2.05 + 0.3 * seq, 0.5, 0.03));
+}
+
+proto::PoseMsg pose(const std::string& session, int seq) {
+  proto::PoseMsg msg;
+  msg.vehicle_id = "v1";
+  msg.session_id = session;
+  msg.seq = static_cast<uint64_t>(seq);
+  msg.stamp_ns = 1000 + seq;
+  msg.position = {0.1 * seq, 0, 0};
+  return msg;
+}
+
+struct Data {
+  uint32_t subscription;
+  uint64_t time;
+  size_t bytes;
+};
+
+struct Received {
+  std::vector<json> texts;
+  std::vector<Data> data;
+  std::map<std::string, uint32_t> channels;  // topic -> id
+  std::vector<json> ofOp(const std::string& op) const {
+    std::vector<json> out;
+    for (const auto& t : texts)
+      if (t["op"] == op) out.push_back(t);
+    return out;
+  }
+  size_t from(uint32_t subscription) const {
+    size_t n = 0;
+    for (const auto& d : data) n += d.subscription == subscription;
+    return n;
+  }
+};
+
+void drain(FoxgloveHub& hub, FoxgloveHub::Id id, Received& into) {
+  while (auto message = hub.next(id, common::nowNs())) {
+    const std::string& bytes = *message->bytes;
+    if (message->binary) {
+      ASSERT_GE(bytes.size(), 13u);
+      ASSERT_EQ(bytes[0], 1);  // messageData
+      Data d{0, 0, bytes.size() - 13};
+      for (int i = 0; i < 4; ++i) d.subscription |= uint32_t{uint8_t(bytes[1 + i])} << (8 * i);
+      for (int i = 0; i < 8; ++i) d.time |= uint64_t{uint8_t(bytes[5 + i])} << (8 * i);
+      into.data.push_back(d);
+    } else {
+      into.texts.push_back(json::parse(bytes));
+      const auto& t = into.texts.back();
+      if (t["op"] == "advertise") {
+        for (const auto& c : t["channels"]) into.channels[c["topic"]] = c["id"];
+      }
+    }
+    hub.written(id);
+  }
+}
+
+std::string subscribe(uint32_t id, uint32_t channel) {
+  return json{{"op", "subscribe"}, {"subscriptions", {{{"id", id}, {"channelId", channel}}}}}
+      .dump();
+}
+
+class FlyingSession : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(server.ingest(wallFrame("s", 0)));
+    ASSERT_TRUE(server.ingest(pose("s", 0)));
+    server.find("s")->waitUntilIdle();
+  }
+  void fly(int frames) {
+    for (int i = 0; i < frames; ++i, ++seq) {
+      ASSERT_TRUE(server.ingest(wallFrame("s", seq)));
+      ASSERT_TRUE(server.ingest(pose("s", seq)));
+    }
+    server.find("s")->waitUntilIdle();
+  }
+  core::MapServer server{{.resolution = 0.1}};
+  FoxgloveHub hub{server, {.trajectory_every = std::chrono::milliseconds(0)}};
+  int seq = 1;
+};
+
+TEST_F(FlyingSession, AClientIsToldTheServerAndEverySessionsChannels) {
+  const auto id = hub.connect("", 0);
+  Received got;
+  drain(hub, id, got);
+  ASSERT_GE(got.texts.size(), 2u);
+  EXPECT_EQ(got.texts[0]["op"], "serverInfo");
+  EXPECT_EQ(got.texts[0]["capabilities"], json::array());
+  for (const char* topic : {"/s/tf", "/s/map", "/s/map2d", "/s/vehicles/v1/trajectory",
+                            "/s/vehicles/v1/cloud"}) {
+    EXPECT_TRUE(got.channels.count(topic)) << topic;
+  }
+  const auto advertised = got.ofOp("advertise");
+  ASSERT_FALSE(advertised.empty());
+  for (const auto& channel : advertised[0]["channels"]) {
+    EXPECT_EQ(channel["encoding"], "protobuf");
+    EXPECT_EQ(channel["schemaEncoding"], "protobuf");
+    EXPECT_TRUE(channel["schemaName"].get<std::string>().starts_with("foxglove."));
+    EXPECT_GT(channel["schema"].get<std::string>().size(), 100u);
+  }
+  // A new session's channels come as it appears.
+  ASSERT_TRUE(server.ingest(wallFrame("t", 0)));
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  EXPECT_TRUE(got.channels.count("/t/map"));
+}
+
+TEST_F(FlyingSession, AScopedClientSeesOneSessionNamedAsItsExport) {
+  ASSERT_TRUE(server.ingest(wallFrame("other", 0)));
+  const auto id = hub.connect("s", 0);
+  Received got;
+  drain(hub, id, got);
+  EXPECT_TRUE(got.channels.count("/tf"));
+  EXPECT_TRUE(got.channels.count("/map"));
+  EXPECT_TRUE(got.channels.count("/vehicles/v1/trajectory"));
+  for (const auto& [topic, channel] : got.channels) EXPECT_FALSE(topic.starts_with("/other"));
+  // A session not loaded: a warning, and its channels once it is.
+  const auto later = hub.connect("late", 0);
+  Received late;
+  drain(hub, later, late);
+  ASSERT_EQ(late.ofOp("status").size(), 1u);
+  EXPECT_TRUE(late.channels.empty());
+  ASSERT_TRUE(server.ingest(wallFrame("late", 0)));
+  hub.poll(common::nowNs());
+  drain(hub, later, late);
+  EXPECT_TRUE(late.channels.count("/map"));
+}
+
+TEST_F(FlyingSession, SubscribersGetTheNewestAtOnceThenWhatChangesUntilTheyUnsubscribe) {
+  const auto id = hub.connect("s", 0);
+  Received got;
+  drain(hub, id, got);
+  hub.receive(id, subscribe(1, got.channels.at("/map")), 0);
+  hub.receive(id, subscribe(2, got.channels.at("/tf")), 0);
+  hub.receive(id, subscribe(3, got.channels.at("/vehicles/v1/trajectory")), 0);
+  hub.receive(id, subscribe(4, got.channels.at("/vehicles/v1/cloud")), 0);
+  drain(hub, id, got);
+  EXPECT_EQ(got.from(1), server.find("s")->tiles().list().size());  // an entity per tile
+  EXPECT_EQ(got.from(2), 1u);                                       // the newest transform
+  EXPECT_EQ(got.from(3), 1u);
+  EXPECT_EQ(got.from(4), 1u);
+  EXPECT_TRUE(got.ofOp("status").empty());
+
+  fly(3);
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  EXPECT_EQ(got.from(2), 4u);  // every pose
+  EXPECT_EQ(got.from(3), 2u);  // the path once a poll
+  EXPECT_EQ(got.from(4), 2u);  // the newest cloud once a poll: older unsent ones replaced
+  EXPECT_GT(got.from(1), server.find("s")->tiles().list().size());
+
+  hub.receive(id, R"({"op": "unsubscribe", "subscriptionIds": [1, 2, 3, 4]})", 0);
+  const size_t before = got.data.size();
+  fly(2);
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  EXPECT_EQ(got.data.size(), before);
+  EXPECT_TRUE(got.ofOp("status").empty());
+}
+
+TEST_F(FlyingSession, HostileMessagesAreAnsweredThenTheClientIsClosed) {
+  const auto id = hub.connect("s", 0);
+  Received got;
+  drain(hub, id, got);
+  const std::vector<std::string> hostile = {
+      "nonsense",
+      "[]",
+      R"({"op": 5})",
+      R"({"op": "subscribe"})",
+      R"({"op": "subscribe", "subscriptions": [{"id": -1, "channelId": 1}]})",
+      R"({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 4294967296}]})",
+      R"({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 999}]})",
+      R"({"op": "subscribe", "subscriptions": [{"id": 1.5, "channelId": 1}]})",
+      R"({"op": "unsubscribe", "subscriptionIds": [77]})",
+      R"({"op": "advertise", "channels": []})",
+      R"({"op": "subscribe", "subscriptions": [[[[[[1]]]]]]})",
+  };
+  for (const auto& text : hostile) {
+    const size_t before = got.ofOp("status").size();
+    hub.receive(id, text, 0);
+    drain(hub, id, got);
+    EXPECT_EQ(got.ofOp("status").size(), before + 1) << text;
+    EXPECT_EQ(got.ofOp("status").back()["level"], 2) << text;
+  }
+  EXPECT_FALSE(hub.closing(id));
+  // A subscription id used twice: the second is refused, the first stays.
+  hub.receive(id, subscribe(9, got.channels.at("/tf")), 0);
+  hub.receive(id, subscribe(9, got.channels.at("/map")), 0);
+  drain(hub, id, got);
+  hub.receiveBinary(id, std::string("\x01\0\0\0\0xyz", 8));
+  for (int i = 0; i < 20 && !hub.closing(id); ++i) hub.receive(id, "{", 0);
+  ASSERT_TRUE(hub.closing(id));
+  EXPECT_EQ(hub.closing(id)->code, 1008);
+  EXPECT_NE(hub.closing(id)->reason.find("too many bad messages"), std::string::npos);
+  EXPECT_FALSE(hub.next(id, 0));
+}
+
+TEST_F(FlyingSession, StuckAndSlowClientsAreClosedAndOthersGoOn) {
+  FoxgloveHub small(server, {.stuck_after = std::chrono::milliseconds(500),
+                             .max_queued_bytes = 1000});
+  const auto stuck = small.connect("s", 0);
+  const auto slow = small.connect("s", 0);
+  const auto fine = small.connect("s", 0);
+  Received s1, s2, s3;
+  drain(small, slow, s2);
+  drain(small, fine, s3);
+  small.receive(slow, subscribe(1, s2.channels.at("/tf")), 0);
+  small.receive(fine, subscribe(1, s3.channels.at("/tf")), 0);
+  ASSERT_TRUE(small.next(stuck, 1'000'000'000));  // a write that never completes
+  small.poll(1'400'000'000);
+  EXPECT_FALSE(small.closing(stuck));
+  small.poll(1'600'000'000);
+  ASSERT_TRUE(small.closing(stuck));
+  EXPECT_NE(small.closing(stuck)->reason.find("stuck"), std::string::npos);
+  // `slow` reads nothing while 40 transforms (about 40 bytes each) come.
+  for (int i = 0; i < 40; ++i) {
+    fly(1);
+    small.poll(common::nowNs());
+    drain(small, fine, s3);
+  }
+  ASSERT_TRUE(small.closing(slow));
+  EXPECT_NE(small.closing(slow)->reason.find("too slow"), std::string::npos);
+  EXPECT_FALSE(small.closing(fine));
+  EXPECT_EQ(s3.from(1), 41u);
+  EXPECT_EQ(small.stats().closed_stuck, 2u);
+}
+
+TEST_F(FlyingSession, ASessionThatGoesIsUnadvertised) {
+  const auto id = hub.connect("", 0);
+  Received got;
+  drain(hub, id, got);
+  hub.receive(id, subscribe(1, got.channels.at("/s/tf")), 0);
+  ASSERT_TRUE(server.unload("s"));
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  ASSERT_EQ(got.ofOp("unadvertise").size(), 1u);
+  EXPECT_EQ(got.ofOp("unadvertise")[0]["channelIds"].size(), 5u);
+  // Its subscription went with it: unsubscribing it now is a mistake.
+  hub.receive(id, R"({"op": "unsubscribe", "subscriptionIds": [1]})", 0);
+  drain(hub, id, got);
+  EXPECT_EQ(got.ofOp("status").size(), 1u);
+}
+
+}  // namespace
+}  // namespace stereomap::viewers
