@@ -231,48 +231,56 @@ std::string grid(int64_t stamp_ns, std::string_view frame, const common::Rigid3&
   return p.take();
 }
 
+std::string sceneEntityField(int64_t stamp_ns, std::string_view frame, const Entity& entity) {
+  const Proto stamp = timestamp(stamp_ns);
+  const Proto identity = quaternion(common::Quat::Identity());
+  Proto e;  // foxglove.SceneEntity
+  e.message(1, stamp);
+  e.bytes(2, frame);
+  e.bytes(3, entity.id);
+  for (const auto& [key, value] : entity.metadata) {
+    Proto pair;
+    pair.bytes(1, key);
+    pair.bytes(2, value);
+    e.message(6, pair);
+  }
+  for (const Cube& cube : entity.cubes) {
+    Proto c, where, size, color;  // foxglove.CubePrimitive
+    where.message(1, vector3(cube.centre));
+    where.message(2, identity);
+    size.float64(1, cube.size);
+    size.float64(2, cube.size);
+    size.float64(3, cube.size);
+    color.float64(1, cube.r);
+    color.float64(2, cube.g);
+    color.float64(3, cube.b);
+    color.float64(4, cube.a);
+    c.message(1, where);
+    c.message(2, size);
+    c.message(3, color);
+    e.message(8, c);
+  }
+  Proto field;
+  field.message(2, e);
+  return field.take();
+}
+
+std::string sceneDeletionField(int64_t stamp_ns, std::string_view id) {
+  Proto deletion;  // foxglove.SceneEntityDeletion, type MATCHING_ID (0, the default)
+  deletion.message(1, timestamp(stamp_ns));
+  deletion.bytes(3, id);
+  Proto field;
+  field.message(1, deletion);
+  return field.take();
+}
+
 std::string sceneUpdate(int64_t stamp_ns, std::string_view frame,
                         const std::vector<Entity>& entities,
                         const std::vector<std::string>& deleted) {
-  Proto update;
-  const Proto stamp = timestamp(stamp_ns);
-  for (const std::string& id : deleted) {
-    Proto deletion;  // foxglove.SceneEntityDeletion, type MATCHING_ID (0, the default)
-    deletion.message(1, stamp);
-    deletion.bytes(3, id);
-    update.message(1, deletion);
-  }
-  Proto identity = quaternion(common::Quat::Identity());
-  for (const Entity& entity : entities) {
-    Proto e;  // foxglove.SceneEntity
-    e.message(1, stamp);
-    e.bytes(2, frame);
-    e.bytes(3, entity.id);
-    for (const auto& [key, value] : entity.metadata) {
-      Proto pair;
-      pair.bytes(1, key);
-      pair.bytes(2, value);
-      e.message(6, pair);
-    }
-    for (const Cube& cube : entity.cubes) {
-      Proto c, where, size, color;  // foxglove.CubePrimitive
-      where.message(1, vector3(cube.centre));
-      where.message(2, identity);
-      size.float64(1, cube.size);
-      size.float64(2, cube.size);
-      size.float64(3, cube.size);
-      color.float64(1, cube.r);
-      color.float64(2, cube.g);
-      color.float64(3, cube.b);
-      color.float64(4, cube.a);
-      c.message(1, where);
-      c.message(2, size);
-      c.message(3, color);
-      e.message(8, c);
-    }
-    update.message(2, e);
-  }
-  return update.take();
+  std::string update;
+  for (const std::string& id : deleted) update += sceneDeletionField(stamp_ns, id);
+  for (const Entity& entity : entities) update += sceneEntityField(stamp_ns, frame, entity);
+  return update;
 }
 
 }  // namespace stereomap::foxglove

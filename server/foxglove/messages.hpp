@@ -71,5 +71,10 @@ struct Entity {
 std::string sceneUpdate(int64_t stamp_ns, std::string_view frame,
                         const std::vector<Entity>& entities,
                         const std::vector<std::string>& deleted = {});
+// One entity, and one deletion, as the SceneUpdate fields they are: a SceneUpdate's bytes are
+// any concatenation of them (protobuf's repeated fields), so an update can be put together from
+// entities encoded once (the live map: server/viewers/foxglove_hub).
+std::string sceneEntityField(int64_t stamp_ns, std::string_view frame, const Entity& entity);
+std::string sceneDeletionField(int64_t stamp_ns, std::string_view id);
 
 }  // namespace stereomap::foxglove

@@ -44,13 +44,12 @@ std::optional<CloudMessage> cloudMessage(const proto::CloudFrameMsg& frame) {
   const common::Rigid3 pose =
       proto::rigidFromFields(frame.sensor_position, frame.sensor_orientation);
   if (frame.encoding == proto::CloudEncoding::kDraco) {
-    return CloudMessage{
-        foxglove::Schema::kCompressedPointCloud,
-        foxglove::compressedPointCloud(
-            frame.stamp_ns, kMapFrame, pose,
-            std::string_view(reinterpret_cast<const char*>(frame.payload.data()),
-                             frame.payload.size()),
-            "draco")};
+    return CloudMessage{foxglove::Schema::kCompressedPointCloud,
+                        foxglove::compressedPointCloud(
+                            frame.stamp_ns, kMapFrame, pose,
+                            std::string_view(reinterpret_cast<const char*>(frame.payload.data()),
+                                             frame.payload.size()),
+                            "draco")};
   }
   auto cloud = proto::decodeCloud(frame.payload, proto::payloadInfo(frame));
   if (!cloud) return std::nullopt;
@@ -70,29 +69,63 @@ unsigned mapLevel(const std::vector<tiles::TileInfo>& tiles, size_t max_cubes) {
 
 std::string tileEntityId(const tiles::TileKey& key) { return "tile/" + key.text(); }
 
+namespace {
+
+// The cube of a tile's cell (`code` at `level`), coloured by its height.
+foxglove::Cube cubeOf(const tiles::Tile& tile, uint32_t code, unsigned level, double resolution,
+                      double z_low, double z_span) {
+  const int step = 1 << level;
+  const fusion::VoxelIndex base{tile.key().x << tiles::kTileBits, tile.key().y << tiles::kTileBits,
+                                tile.key().z << tiles::kTileBits};
+  const fusion::VoxelIndex c = tiles::cellInTile(code);
+  foxglove::Cube cube;
+  cube.centre = common::Vec3((base.x + c.x * step + 0.5 * step) * resolution,
+                             (base.y + c.y * step + 0.5 * step) * resolution,
+                             (base.z + c.z * step + 0.5 * step) * resolution);
+  cube.size = resolution * step;
+  heightColour((cube.centre.z() - z_low) / std::max(z_span, 1e-9), &cube);
+  return cube;
+}
+
+std::vector<std::pair<std::string, std::string>> entityMetadata(unsigned level, double resolution) {
+  return {{"level", std::to_string(level)}, {"cell_m", std::to_string(resolution * (1 << level))}};
+}
+
+}  // namespace
+
 foxglove::Entity tileEntity(const tiles::Tile& tile, unsigned level, double resolution,
                             double z_low, double z_span) {
-  const int step = 1 << level;
   foxglove::Entity entity;
   entity.id = tileEntityId(tile.key());
-  entity.metadata = {{"level", std::to_string(level)},
-                     {"cell_m", std::to_string(resolution * step)}};
-  const fusion::VoxelIndex base{tile.key().x << tiles::kTileBits,
-                                tile.key().y << tiles::kTileBits,
-                                tile.key().z << tiles::kTileBits};
+  entity.metadata = entityMetadata(level, resolution);
   const auto& cells = tile.cells(level);
   entity.cubes.reserve(cells.size());
   for (const uint32_t code : cells.codes) {
-    const fusion::VoxelIndex c = tiles::cellInTile(code);
-    foxglove::Cube cube;
-    cube.centre = common::Vec3((base.x + c.x * step + 0.5 * step) * resolution,
-                               (base.y + c.y * step + 0.5 * step) * resolution,
-                               (base.z + c.z * step + 0.5 * step) * resolution);
-    cube.size = resolution * step;
-    heightColour((cube.centre.z() - z_low) / std::max(z_span, 1e-9), &cube);
-    entity.cubes.push_back(cube);
+    entity.cubes.push_back(cubeOf(tile, code, level, resolution, z_low, z_span));
   }
   return entity;
+}
+
+std::map<uint16_t, foxglove::Entity> tileBlocks(const tiles::Tile& tile, unsigned level,
+                                                double resolution, double z_low, double z_span) {
+  // 4 x 4 x 4 blocks a tile. Measured on a sim flight's live map: 8 x 8 x 8 sent 30 % fewer bytes
+  // as fusion went on (14.5 MB for 20.8), in 3.5 times the entities (281 for 81).
+  constexpr int kBlockBits = tiles::kTileBits - 2;
+  std::map<uint16_t, foxglove::Entity> blocks;
+  for (const uint32_t code : tile.cells(level).codes) {
+    const fusion::VoxelIndex c = tiles::cellInTile(code);
+    constexpr int kPerAxis = tiles::kTileBits - kBlockBits;  // bits of a block's index per axis
+    const auto block = static_cast<uint16_t>((((c.x << level) >> kBlockBits) << (2 * kPerAxis)) |
+                                             (((c.y << level) >> kBlockBits) << kPerAxis) |
+                                             ((c.z << level) >> kBlockBits));
+    auto [it, added] = blocks.try_emplace(block);
+    if (added) {
+      it->second.id = tileEntityId(tile.key()) + "/" + std::to_string(block);
+      it->second.metadata = entityMetadata(level, resolution);
+    }
+    it->second.cubes.push_back(cubeOf(tile, code, level, resolution, z_low, z_span));
+  }
+  return blocks;
 }
 
 common::Result<GroundGrid> groundGrid(const core::Session& session, int64_t stamp_ns,

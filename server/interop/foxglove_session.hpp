@@ -8,6 +8,7 @@
 //   write(cloudTopic(frame.vehicle_id, cloud->schema), cloud->bytes);
 #pragma once
 
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -44,6 +45,10 @@ unsigned mapLevel(const std::vector<tiles::TileInfo>& tiles, size_t max_cubes);
 foxglove::Entity tileEntity(const tiles::Tile& tile, unsigned level, double resolution,
                             double z_low, double z_span);
 std::string tileEntityId(const tiles::TileKey& key);
+// The same cubes as entities of one 16-voxel block each ("tile/X_Y_Z/B", B in 0..63), by B:
+// what changes of a tile as fusion goes on is then sent alone (the live map).
+std::map<uint16_t, foxglove::Entity> tileBlocks(const tiles::Tile& tile, unsigned level,
+                                                double resolution, double z_low, double z_span);
 
 // The band a ground robot meets obstacles in: voxel centres from the lowest occupied voxel's
 // centre + above_m to + below_m, as a foxglove.Grid (read from a copy of the map: the session's

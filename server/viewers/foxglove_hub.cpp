@@ -59,9 +59,11 @@ struct Client {
   std::deque<std::shared_ptr<Slot>> data;
   std::unordered_map<std::string, std::shared_ptr<Slot>> pending;  // by coalescing key
   size_t queued_bytes = 0;
-  std::map<uint32_t, uint32_t> subscriptions;           // id -> channel
-  std::map<uint32_t, std::set<uint32_t>> by_channel;    // channel -> subscription ids
+  std::map<uint32_t, uint32_t> subscriptions;         // id -> channel
+  std::map<uint32_t, std::set<uint32_t>> by_channel;  // channel -> subscription ids
   std::set<uint32_t> advertised;
+  // What each /map subscription holds of each tile: its blocks' content hashes.
+  std::map<std::pair<uint32_t, tiles::TileKey>, std::map<uint16_t, uint64_t>> held;
   bool writing = false;
   int64_t write_started_ns = 0;
 
@@ -73,18 +75,30 @@ struct Feed {
   std::map<std::pair<Kind, std::string>, uint32_t> channels;  // by kind and vehicle (or "")
   size_t poses = 0;
   uint64_t trajectory_version = 0;
-  std::map<std::string, std::vector<common::Rigid3>> paths;        // by vehicle
-  std::map<std::string, int64_t> newest_stamp;                     // by vehicle
+  std::map<std::string, std::vector<common::Rigid3>> paths;  // by vehicle
+  std::map<std::string, int64_t> newest_stamp;               // by vehicle
   std::set<std::string> paths_changed;
   int64_t paths_sent_ns = 0;
   uint64_t tile_version = 0;
   unsigned map_level = 0;
   bool map_level_current = false;  // false: choose it again before tiles are sent
+  double z_low = 0, z_span = 1;    // the cubes' colours by height: set with the level
+  uint64_t level_epoch = 0;        // bumps when the level (or the colours) change
   int64_t map_changed_ns = 0;
+  // Each tile's blocks as SceneUpdate fields, made once for every subscriber.
+  struct Block {
+    uint64_t hash = 0;  // of its cubes
+    std::string field;
+  };
+  struct EncodedTile {
+    uint64_t version = 0, epoch = 0;
+    std::map<uint16_t, Block> blocks;
+  };
+  std::map<tiles::TileKey, EncodedTile> encoded;
   uint64_t cloud_number = 0;
   std::map<std::string, std::shared_ptr<const proto::CloudFrameMsg>> newest_cloud;  // by vehicle
-  Text grid;                     // the newest grid made
-  uint64_t grid_version = 0;     // the map version the newest grid asked for was made of
+  Text grid;                  // the newest grid made
+  uint64_t grid_version = 0;  // the map version the newest grid asked for was made of
   int64_t grid_asked_ns = 0;
   bool grid_asked = false;
 };
@@ -163,7 +177,8 @@ struct FoxgloveHub::Impl {
                         {"schema", schemas[channel.schema]},
                         {"schemaEncoding", "protobuf"}});
       }
-      if (!list.empty()) client.control.push_back(textOf({{"op", "advertise"}, {"channels", list}}));
+      if (!list.empty())
+        client.control.push_back(textOf({{"op", "advertise"}, {"channels", list}}));
     }
   }
 
@@ -174,6 +189,8 @@ struct FoxgloveHub::Impl {
     subs.erase(subscription);
     if (subs.empty()) client.by_channel.erase(found->second);
     client.subscriptions.erase(found);
+    std::erase_if(client.held,
+                  [&](const auto& entry) { return entry.first.first == subscription; });
     std::erase_if(client.data, [&](const std::shared_ptr<Slot>& slot) {
       if (slot->subscription != subscription) return false;
       if (slot->payload) client.queued_bytes -= slot->payload->size();
@@ -270,8 +287,8 @@ struct FoxgloveHub::Impl {
 
   // --- sessions ---------------------------------------------------------------------------
 
-  uint32_t channelFor(Feed& feed, const std::string& session, Kind kind,
-                      const std::string& vehicle, Schema schema, std::string topic) {
+  uint32_t channelFor(Feed& feed, const std::string& session, Kind kind, const std::string& vehicle,
+                      Schema schema, std::string topic) {
     auto [it, added] = feed.channels.try_emplace({kind, vehicle}, 0);
     if (added) {
       it->second = next_channel++;
@@ -366,8 +383,7 @@ struct FoxgloveHub::Impl {
 
   void syncPaths(Feed& feed, int64_t now_ns) {
     if (feed.paths_changed.empty() ||
-        now_ns - feed.paths_sent_ns <
-            std::chrono::nanoseconds(options.trajectory_every).count()) {
+        now_ns - feed.paths_sent_ns < std::chrono::nanoseconds(options.trajectory_every).count()) {
       return;
     }
     feed.paths_sent_ns = now_ns;
@@ -386,15 +402,29 @@ struct FoxgloveHub::Impl {
                                 ? Schema::kCompressedPointCloud
                                 : Schema::kPointCloud;
       const uint32_t channel =
-          channelFor(feed, session.id(), Kind::kCloud, cloudKey(frame->vehicle_id, schema),
-                     schema, interop::cloudTopic(frame->vehicle_id, schema));
+          channelFor(feed, session.id(), Kind::kCloud, cloudKey(frame->vehicle_id, schema), schema,
+                     interop::cloudTopic(frame->vehicle_id, schema));
       feed.newest_cloud[cloudKey(frame->vehicle_id, schema)] = frame;
       if (!subscribed(channel)) continue;
       if (auto cloud = interop::cloudMessage(*frame)) {
-        publish(channel, frame->stamp_ns, std::make_shared<const std::string>(std::move(cloud->bytes)),
-                true);
+        publish(channel, frame->stamp_ns,
+                std::make_shared<const std::string>(std::move(cloud->bytes)), true);
       }
     }
+  }
+
+  // The map's level for a session's subscribers, and its colours' height range (kept until
+  // the level changes: a tile's cubes keep their colours as the map grows).
+  void chooseLevel(Feed& feed, const std::vector<tiles::TileInfo>& list,
+                   const common::Box3& bounds) {
+    const unsigned level = interop::mapLevel(list, options.max_map_cubes);
+    if (feed.map_level_current && level == feed.map_level) return;
+    feed.map_level = level;
+    feed.map_level_current = true;
+    feed.z_low = bounds.empty() ? 0 : bounds.min.z();
+    feed.z_span = bounds.empty() ? 1 : bounds.max.z() - bounds.min.z();
+    ++feed.level_epoch;
+    feed.encoded.clear();
   }
 
   void syncMap(const core::Session& session, Feed& feed) {
@@ -406,16 +436,16 @@ struct FoxgloveHub::Impl {
       feed.tile_version = summary.version;
       feed.map_changed_ns = summary.changed_ns;
       feed.map_level_current = false;
+      feed.encoded.clear();
       return;
     }
     auto changed = tiles.changedSince(feed.tile_version);
     const auto list = tiles.list();
-    const unsigned level = interop::mapLevel(list, options.max_map_cubes);
+    const uint64_t epoch = feed.level_epoch;
+    chooseLevel(feed, list, summary.bounds);
     feed.tile_version = summary.version;
     feed.map_changed_ns = summary.changed_ns;
-    if (!changed || level != feed.map_level || !feed.map_level_current) {  // every tile again
-      feed.map_level_current = true;
-      feed.map_level = level;
+    if (!changed || epoch != feed.level_epoch) {  // every tile again
       changed.emplace();
       for (const auto& info : list) changed->emplace_back(info.key, info.version);
     }
@@ -441,10 +471,10 @@ struct FoxgloveHub::Impl {
     feed.grid_asked_ns = now_ns;
     feed.grid_version = feed.tile_version;
     const int64_t stamp = feed.map_changed_ns;
-    grids.post(session->id(), [session, stamp, above = options.grid_above_m,
-                               below = options.grid_below_m] {
-      return interop::groundGrid(*session, stamp, above, below);
-    });
+    grids.post(session->id(),
+               [session, stamp, above = options.grid_above_m, below = options.grid_below_m] {
+                 return interop::groundGrid(*session, stamp, above, below);
+               });
   }
 
   void takeGrids() {
@@ -477,7 +507,8 @@ struct FoxgloveHub::Impl {
       return bad(client, "subscribe wants {\"subscriptions\": [{\"id\": N, \"channelId\": N}]}");
     }
     for (const auto& entry : *list) {
-      const auto id = entry.is_object() && entry.contains("id") ? uint32Of(entry["id"]) : std::nullopt;
+      const auto id =
+          entry.is_object() && entry.contains("id") ? uint32Of(entry["id"]) : std::nullopt;
       const auto channel_id = entry.is_object() && entry.contains("channelId")
                                   ? uint32Of(entry["channelId"])
                                   : std::nullopt;
@@ -552,9 +583,18 @@ struct FoxgloveHub::Impl {
         return;
       case Kind::kMap: {
         const auto list = session->tiles().list();
-        if (!feed.map_level_current) {
-          feed.map_level = interop::mapLevel(list, options.max_map_cubes);
-          feed.map_level_current = true;
+        const uint64_t epoch = feed.level_epoch;
+        chooseLevel(feed, list, session->tiles().summary().bounds);
+        if (epoch != feed.level_epoch) {  // a new level: every subscriber gets every tile again
+          for (auto& [id, other] : clients) {
+            const auto subs = other.by_channel.find(channel_id);
+            if (subs == other.by_channel.end() || &other == &client) continue;
+            for (const uint32_t s : subs->second) {
+              for (const auto& info : list) {
+                sendTile(other, s, channel.session, info.key, feed.map_changed_ns);
+              }
+            }
+          }
         }
         for (const auto& info : list) {
           sendTile(client, sub, channel.session, info.key, feed.map_changed_ns);
@@ -600,23 +640,54 @@ struct FoxgloveHub::Impl {
 
   // --- writing ----------------------------------------------------------------------------
 
-  // A map tile's message as the tile is now (an entity deletion when it emptied).
-  Text tileMessage(const Slot& slot) {
+  // A tile's blocks as SceneUpdate fields, as the tile is now (made once per version).
+  const Feed::EncodedTile& encodedTile(Feed& feed, const tiles::TileSet& tiles,
+                                       const tiles::TileKey& key) {
+    const auto tile = tiles.find(key);
+    Feed::EncodedTile& encoded = feed.encoded[key];
+    const uint64_t version = tile ? tile->version() : 0;
+    if (encoded.version == version && encoded.epoch == feed.level_epoch) return encoded;
+    encoded = {version, feed.level_epoch, {}};
+    if (!tile) return encoded;
+    for (const auto& [index, entity] :
+         interop::tileBlocks(*tile, feed.map_level, tiles.resolution(), feed.z_low, feed.z_span)) {
+      uint64_t hash = entity.cubes.size();
+      for (const auto& cube : entity.cubes) {
+        for (const double v : {cube.centre.x(), cube.centre.y(), cube.centre.z(), cube.size}) {
+          hash = (hash ^ std::hash<double>{}(v)) * 0x100000001b3ull;
+        }
+      }
+      encoded.blocks[index] = {
+          hash, foxglove::sceneEntityField(feed.map_changed_ns, interop::kMapFrame, entity)};
+    }
+    return encoded;
+  }
+
+  // What of a tile this subscription does not hold yet: its blocks that changed, deletions of
+  // those that emptied. Null when nothing did.
+  Text tileMessage(Client& client, const Slot& slot) {
     const auto session = server.find(slot.session);
     const auto feed = feeds.find(slot.session);
     if (!session || feed == feeds.end()) return nullptr;
-    const auto& tiles = session->tiles();
-    const auto tile = tiles.find(slot.tile);
-    const auto stamp = static_cast<int64_t>(slot.time);
-    if (!tile || tile->cells(feed->second.map_level).size() == 0) {
-      return std::make_shared<const std::string>(foxglove::sceneUpdate(
-          stamp, interop::kMapFrame, {}, {interop::tileEntityId(slot.tile)}));
+    const Feed::EncodedTile& encoded = encodedTile(feed->second, session->tiles(), slot.tile);
+    auto& held = client.held[{slot.subscription, slot.tile}];
+    std::string update;
+    for (const auto& [index, block] : encoded.blocks) {
+      const auto found = held.find(index);
+      if (found == held.end() || found->second != block.hash) update += block.field;
     }
-    const common::Box3 bounds = tiles.summary().bounds;
-    return std::make_shared<const std::string>(foxglove::sceneUpdate(
-        stamp, interop::kMapFrame,
-        {interop::tileEntity(*tile, feed->second.map_level, tiles.resolution(), bounds.min.z(),
-                             bounds.max.z() - bounds.min.z())}));
+    for (const auto& [index, hash] : held) {
+      if (!encoded.blocks.count(index)) {
+        update += foxglove::sceneDeletionField(
+            static_cast<int64_t>(slot.time),
+            interop::tileEntityId(slot.tile) + "/" + std::to_string(index));
+      }
+    }
+    held.clear();
+    for (const auto& [index, block] : encoded.blocks) held[index] = block.hash;
+    if (held.empty()) client.held.erase({slot.subscription, slot.tile});
+    if (update.empty()) return nullptr;
+    return std::make_shared<const std::string>(std::move(update));
   }
 
   std::optional<Outgoing> next(Client& client) {
@@ -630,14 +701,15 @@ struct FoxgloveHub::Impl {
       client.data.pop_front();
       if (!slot->key.empty()) client.pending.erase(slot->key);
       if (slot->payload) client.queued_bytes -= slot->payload->size();
-      const Text payload = slot->payload ? slot->payload : tileMessage(*slot);
+      const Text payload = slot->payload ? slot->payload : tileMessage(client, *slot);
       if (!payload) continue;
       auto frame = std::make_shared<std::string>(13 + payload->size(), '\0');
       (*frame)[0] = static_cast<char>(kMessageData);
       for (int i = 0; i < 4; ++i) {
         (*frame)[1 + i] = static_cast<char>((slot->subscription >> (8 * i)) & 0xff);
       }
-      for (int i = 0; i < 8; ++i) (*frame)[5 + i] = static_cast<char>((slot->time >> (8 * i)) & 0xff);
+      for (int i = 0; i < 8; ++i)
+        (*frame)[5 + i] = static_cast<char>((slot->time >> (8 * i)) & 0xff);
       std::copy(payload->begin(), payload->end(), frame->begin() + 13);
       ++stats.messages_sent;
       stats.bytes_sent += frame->size();

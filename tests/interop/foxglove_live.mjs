@@ -79,7 +79,7 @@ async function main() {
       check(channel.encoding === 'protobuf' && channel.schemaEncoding === 'protobuf' && types.lookupType(channel.schemaName) &&
         Buffer.from(channel.schema, 'base64').length > 100, `${topic}: ${channel.schemaName}, protobuf, a descriptor set`);
     }
-    const got = { tf: [], paths: [], clouds: [], grids: [], entities: new Map(), mapMessages: 0, badDecodes: [] };
+    const got = { tf: [], paths: [], clouds: [], grids: [], entities: new Map(), mapMessages: 0, mapBytes: 0, badDecodes: [] };
     a.onMessage((topic, schemaName, bytes, timestamp) => {
       let m;
       try {
@@ -94,6 +94,7 @@ async function main() {
       else if (topic === '/map2d') got.grids.push(m);
       else if (topic === '/map') {
         ++got.mapMessages;
+        got.mapBytes += bytes.length;
         for (const d of m.deletions) got.entities.delete(d.id);
         for (const e of m.entities) got.entities.set(e.id, e.cubes.length);
       }
@@ -143,8 +144,9 @@ async function main() {
     let cubes = 0;
     for (const n of got.entities.values()) cubes += n;
     const tiles = await tileCount(base, 'live');
-    check(cubes === status.occupied_voxels && got.entities.size === tiles,
-      `the map: ${got.entities.size} entities, ${cubes} cubes; the session: ${tiles} tiles, ${status.occupied_voxels} voxels (${got.mapMessages} SceneUpdates)`);
+    const tilesShown = new Set([...got.entities.keys()].map((id) => id.split('/')[1])).size;
+    check(cubes === status.occupied_voxels && tilesShown === tiles,
+      `the map: ${got.entities.size} entities of ${tilesShown} tiles, ${cubes} cubes; the session: ${tiles} tiles, ${status.occupied_voxels} voxels (${got.mapMessages} SceneUpdates, ${(got.mapBytes / 1e6).toFixed(1)} MB)`);
     // The last grid, cell by cell against map_server's files of its band over REST.
     const grid = got.grids.at(-1);
     const floor = status.bounds.min[2] + status.resolution / 2;  // the lowest occupied voxel's centre
