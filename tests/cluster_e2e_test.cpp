@@ -126,6 +126,51 @@ class ClusterTest : public ::testing::Test {
         << session << ": the live map is not its journal's";
   }
 
+  // The session as MCAP from its owner through the proxy, read from the cluster's database as
+  // it is written: a whole file (its magic at both ends, its footer's summary) whose statistics
+  // count a message at least for every journaled pose and cloud.
+  void expectMcapThroughTheProxy(int port, const std::string& session) {
+    const auto reply = httpGet(port, "/api/sessions/" + session + "/session.mcap");
+    ASSERT_EQ(reply.status, 200) << reply.body.substr(0, 300);
+    std::string file;
+    if (reply.headers.find("chunked") != std::string::npos) {
+      for (size_t at = 0;;) {  // chunk sizes in hex, each line ended by CRLF
+        const size_t line_end = reply.body.find("\r\n", at);
+        ASSERT_NE(line_end, std::string::npos);
+        const size_t size = std::stoul(reply.body.substr(at, line_end - at), nullptr, 16);
+        if (size == 0) break;
+        file += reply.body.substr(line_end + 2, size);
+        at = line_end + 2 + size + 2;
+      }
+    } else {
+      file = reply.body;
+    }
+    const std::string magic("\x89MCAP0\r\n", 8);
+    ASSERT_GT(file.size(), 1000u);
+    ASSERT_EQ(file.substr(0, 8), magic);
+    ASSERT_EQ(file.substr(file.size() - 8), magic);
+    const auto u64 = [&](size_t at) {
+      uint64_t v = 0;
+      for (int i = 7; i >= 0; --i) v = (v << 8) | static_cast<uint8_t>(file[at + i]);
+      return v;
+    };
+    const size_t footer = file.size() - 8 - 29;  // opcode, length, three fields
+    ASSERT_EQ(file[footer], 0x02);
+    uint64_t messages = 0;
+    for (size_t at = u64(footer + 9); at < footer; at += 9 + u64(at + 1)) {
+      if (file[at] == 0x0B) messages = u64(at + 9);  // Statistics: message_count first
+    }
+    auto journal = cluster::ClusterJournal::open(cluster_->db().url());
+    ASSERT_TRUE(journal) << journal.error().message;
+    auto stored = (*journal)->read(session);
+    ASSERT_TRUE(stored) << stored.error().message;
+    const auto journaled = samplesIn(stored->records);
+    std::printf("%s as MCAP through the proxy: %zu bytes, %llu messages (%zu poses, %zu clouds)\n",
+                session.c_str(), file.size(), static_cast<unsigned long long>(messages),
+                journaled.poseCount(), journaled.cloudCount());
+    EXPECT_GE(messages, journaled.poseCount() + journaled.cloudCount());
+  }
+
   // Every leaf of an .ot map at the finest depth: key -> log-odds.
   static std::map<std::tuple<int, int, int>, float> leaves(const std::string& ot) {
     std::istringstream in(ot);
@@ -201,6 +246,7 @@ TEST_F(ClusterTest, AKilledServersSessionsAreTakenOverAndNothingIsLost) {
 
   waitForVehicles();
   expectWholeSessions(4);
+  expectMcapThroughTheProxy(nginx->port(), "flight0");
 }
 
 // A server paused past its lease (SIGSTOP) loses its sessions to the other; woken (SIGCONT),

@@ -35,7 +35,17 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   // The HTTP port first: with --http ADDRESS:0 it is known only once bound, and the cluster
   // must know where this server is reached before it is given sessions.
   cluster::ClusterAdmin admin;
-  auto http_server = net::HttpServer::create(http, server, &admin);
+  net::HttpServerOptions http_options = http;
+  http_options.session_mcap =
+      sessionMcap(server, [journal = journal->get()](const std::string& id) {
+        return [journal, id](const std::function<void(proto::journal::JournalRecord &&)>& visit) {
+          auto read = journal->forEachRecord(id, [&](proto::journal::JournalRecord&& record,
+                                                     uint64_t) { visit(std::move(record)); });
+          if (!read) return common::Status(read.error());
+          return common::Status(common::Ok{});
+        };
+      });
+  auto http_server = net::HttpServer::create(http_options, server, &admin);
   if (!http_server) return fail(http_server.error());
   const std::string advertise = flags.advertise.empty()
                                     ? http.address + ":" + std::to_string((*http_server)->port())

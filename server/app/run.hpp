@@ -3,12 +3,14 @@
 // spread over servers: cluster_server.cpp). main.cpp parses the flags and runs one.
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <string>
 
 #include "common/shutdown.hpp"
 #include "proto/dds.hpp"
 #include "server/core/map_server.hpp"
+#include "server/interop/session_mcap.hpp"
 #include "server/net/http_server.hpp"
 #include "server/store/store_admin.hpp"
 
@@ -37,6 +39,14 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
 int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
                      const std::shared_ptr<proto::Participant>& participant,
                      common::Shutdown& shutdown);
+
+// GET /api/sessions/{id}/session.mcap (net::HttpServerOptions::session_mcap): a loaded session
+// (live or opened; a closed one answers 404 with how to open it), its records read by the
+// source `journal_of(id)` gives.
+using McapExport = std::function<common::Status(const std::string& session,
+                                                const std::function<bool(std::string_view)>& sink)>;
+McapExport sessionMcap(const core::MapServer& server,
+                       std::function<interop::JournalSource(const std::string& id)> journal_of);
 
 // Until the shutdown: every second ends silent sessions; every five saves what is due (with
 // a store) and logs the maps' growth.

@@ -31,6 +31,23 @@ void recoverSessions(store::StoreAdmin& admin) {
 
 }  // namespace
 
+McapExport sessionMcap(const core::MapServer& server,
+                       std::function<interop::JournalSource(const std::string& id)> journal_of) {
+  return [&server, journal_of = std::move(journal_of)](
+             const std::string& id, const std::function<bool(std::string_view)>& sink) {
+    const auto session = server.find(id);
+    if (!session) {
+      return common::Status(common::makeError(
+          common::ErrorCode::kNotFound, "no session '" + id +
+                                            "' is loaded (a closed one: POST /api/sessions/" + id +
+                                            "/open first)"));
+    }
+    auto written = interop::writeSessionMcap(*session, journal_of(id), sink);
+    if (!written) return common::Status(written.error());
+    return common::Status(common::Ok{});
+  };
+}
+
 void serveUntilStopped(const Flags& f, core::MapServer& server, store::StoreAdmin* admin,
                        const net::HttpServer& http, const common::Shutdown& shutdown) {
   size_t last_voxels = 0;
@@ -87,23 +104,10 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   auto acks = proto::Writer<proto::AckMsg>::create(participant, proto::everyPartition());
   if (!acks) return fail(acks.error());
 
-  // GET /api/sessions/{id}/session.mcap: a loaded session (live or opened), from its journal.
   net::HttpServerOptions http_options = http;
-  http_options.session_mcap = [&server, root = flags.store_dir](
-                                  const std::string& id,
-                                  const std::function<bool(std::string_view)>& sink) {
-    const auto session = server.find(id);
-    if (!session) {
-      return common::Status(common::makeError(
-          common::ErrorCode::kNotFound, "no session '" + id +
-                                            "' is loaded (a closed one: POST /api/sessions/" + id +
-                                            "/open first)"));
-    }
-    auto written = interop::writeSessionMcap(
-        *session, std::filesystem::path(root) / id / store::kJournalName, sink);
-    if (!written) return common::Status(written.error());
-    return common::Status(common::Ok{});
-  };
+  http_options.session_mcap = sessionMcap(server, [root = flags.store_dir](const std::string& id) {
+    return interop::journalFile(std::filesystem::path(root) / id / store::kJournalName);
+  });
   auto http_server = net::HttpServer::create(http_options, server, admin->get());
   if (!http_server) return fail(http_server.error());
   (*http_server)->start();

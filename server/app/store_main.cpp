@@ -286,7 +286,7 @@ int exportMcap(Store& store, Args& a) {
                  static_cast<unsigned long long>(records));
   };
   auto written = interop::writeSessionMcap(
-      **session, store.admin->root() / a.id / store::kJournalName,
+      **session, interop::journalFile(store.admin->root() / a.id / store::kJournalName),
       [&](std::string_view bytes) {
         file.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
         return file.good();

@@ -360,6 +360,33 @@ common::Status ClusterJournal::saveSnapshot(const std::string& session, uint64_t
   return common::Ok{};
 }
 
+common::Result<ClusterJournal::RecordScan> ClusterJournal::forEachRecord(
+    const std::string& session,
+    const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit)
+    const {
+  RecordScan scan;
+  for (uint64_t from = 0;;) {
+    auto rows = readerExec(
+        "SELECT number, record FROM sm_journal WHERE session = $1 AND number > $2 "
+        "ORDER BY number LIMIT 1024",
+        {session, from});
+    if (!rows) return rows.error();
+    if (rows->rows() == 0) return scan;
+    for (int i = 0; i < rows->rows(); ++i) {
+      const auto number = static_cast<uint64_t>(rows->integer(i, 0));
+      from = scan.last_number = number;
+      const std::string bytes = rows->bytes(i, 1);
+      auto record =
+          journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
+      if (!record) {
+        ++scan.unreadable;
+        continue;
+      }
+      visit(std::move(*record), number);
+    }
+  }
+}
+
 common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
   StoredSession stored;
   auto snapshot = readerExec(
@@ -376,33 +403,18 @@ common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
                    session, ot.error().message);
     }
   }
-  for (uint64_t from = 0;;) {
-    auto rows = readerExec(
-        "SELECT number, record FROM sm_journal WHERE session = $1 AND number > $2 "
-        "ORDER BY number LIMIT 1024",
-        {session, from});
-    if (!rows) return rows.error();
-    if (rows->rows() == 0) break;
-    for (int i = 0; i < rows->rows(); ++i) {
-      const auto number = static_cast<uint64_t>(rows->integer(i, 0));
-      from = number;
-      stored.last_number = number;
-      const std::string bytes = rows->bytes(i, 1);
-      auto record =
-          journal::decodeRecord(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
-      if (!record) {
-        ++stored.unreadable;
-        continue;
-      }
-      // A frame the snapshot holds is counted, never fused: its payload is not kept.
-      if (auto* frame = std::get_if<proto::CloudFrameMsg>(&*record);
-          frame != nullptr && number <= stored.snapshot_number) {
-        std::vector<uint8_t>().swap(frame->payload);
-      }
-      stored.records.push_back(std::move(*record));
-      stored.numbers.push_back(number);
+  auto read = forEachRecord(session, [&](proto::journal::JournalRecord&& record, uint64_t number) {
+    // A frame the snapshot holds is counted, never fused: its payload is not kept.
+    if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+        frame != nullptr && number <= stored.snapshot_number) {
+      std::vector<uint8_t>().swap(frame->payload);
     }
-  }
+    stored.records.push_back(std::move(record));
+    stored.numbers.push_back(number);
+  });
+  if (!read) return read.error();
+  stored.last_number = read->last_number;
+  stored.unreadable = read->unreadable;
   return stored;
 }
 

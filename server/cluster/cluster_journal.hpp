@@ -50,6 +50,16 @@ class ClusterJournal : public core::IngestLog,
 
   // Reads what the database holds of `session` (for recovery after taking it).
   common::Result<StoredSession> read(const std::string& session);
+  // Every journal record of `session` in order, read a page at a time (an export: memory
+  // holds one page); rows that do not decode are skipped and counted.
+  struct RecordScan {
+    uint64_t last_number = 0;  // the last row's, readable or not
+    uint64_t unreadable = 0;
+  };
+  common::Result<RecordScan> forEachRecord(
+      const std::string& session,
+      const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit)
+      const;
 
   // This server writes `session` from now on at `epoch`, numbering after `last_number`.
   void adopt(const std::string& session, int64_t epoch, uint64_t last_number);

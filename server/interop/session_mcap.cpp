@@ -161,7 +161,7 @@ class Export {
 }  // namespace
 
 common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
-                                                   const std::filesystem::path& journal,
+                                                   const JournalSource& journal,
                                                    const mcap::McapWriter::Sink& sink,
                                                    const McapExportOptions& options) {
   Export out(session, sink, options);
@@ -170,19 +170,25 @@ common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
   out.map(first.empty() ? 0 : first.front().stamp_ns);
   out.grid(first.empty() ? 0 : first.front().stamp_ns);
   uint64_t records = 0;
-  std::error_code absent;
-  if (!std::filesystem::exists(journal, absent)) {  // an imported map: no journal, no flight
-    return out.finish();
-  }
-  auto read = proto::journal::visitJournal(journal, 0,
-                                           [&](proto::journal::JournalRecord&& record, uint64_t) {
-                                             out.record(std::move(record));
-                                             if (++records % 256 == 0 && options.progress)
-                                               options.progress(records);
-                                           });
+  auto read = journal([&](proto::journal::JournalRecord&& record) {
+    out.record(std::move(record));
+    if (++records % 256 == 0 && options.progress) options.progress(records);
+  });
   if (!read) return read.error();
   if (options.progress) options.progress(records);
   return out.finish();
+}
+
+JournalSource journalFile(const std::filesystem::path& journal) {
+  return [journal](const std::function<void(proto::journal::JournalRecord &&)>& visit) {
+    std::error_code absent;
+    if (!std::filesystem::exists(journal, absent)) return common::Status(common::Ok{});
+    auto read = proto::journal::visitJournal(
+        journal, 0,
+        [&](proto::journal::JournalRecord&& record, uint64_t) { visit(std::move(record)); });
+    if (!read) return common::Status(read.error());
+    return common::Status(common::Ok{});
+  };
 }
 
 }  // namespace stereomap::interop

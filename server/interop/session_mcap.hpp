@@ -16,6 +16,7 @@
 #include <functional>
 
 #include "common/result.hpp"
+#include "proto/journal/journal.hpp"
 #include "server/core/session.hpp"
 #include "server/mcap/mcap_writer.hpp"
 
@@ -42,11 +43,17 @@ struct McapExportSummary {
   int64_t start_ns = 0, end_ns = 0;     // the messages' log times
 };
 
-// `session`: the session replayed (its map and corrected trajectory); `journal`: its journal
-// file. kIo when the sink fails; the journal's own damage is skipped, as replay skips it.
+// Visits a session's journal records in order: the store's file, or a cluster's database.
+using JournalSource = std::function<common::Status(
+    const std::function<void(proto::journal::JournalRecord&& record)>& visit)>;
+
+// `session`: the session replayed (its map and corrected trajectory); `journal`: its records.
+// kIo when the sink fails; the journal's own damage is skipped, as replay skips it.
 common::Result<McapExportSummary> writeSessionMcap(const core::Session& session,
-                                                   const std::filesystem::path& journal,
+                                                   const JournalSource& journal,
                                                    const mcap::McapWriter::Sink& sink,
                                                    const McapExportOptions& options = {});
+// The store's journal file as a source (none: an imported map, with no flight).
+JournalSource journalFile(const std::filesystem::path& journal);
 
 }  // namespace stereomap::interop

@@ -346,7 +346,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     }
     if (!hub_.options.session_mcap) {
       return sendError(http::status::not_implemented,
-                       "this server does not export MCAP (a cluster's servers do not yet)",
+                       "this server does not export MCAP",
                        request.keep_alive());
     }
     if (!core::isValidId(session)) {
