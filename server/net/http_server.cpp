@@ -345,8 +345,7 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
                        request.keep_alive());
     }
     if (!hub_.options.session_mcap) {
-      return sendError(http::status::not_implemented,
-                       "this server does not export MCAP",
+      return sendError(http::status::not_implemented, "this server does not export MCAP",
                        request.keep_alive());
     }
     if (!core::isValidId(session)) {

@@ -10,8 +10,8 @@
 // sent it; other encodings as foxglove.PointCloud on /vehicles/ID/cloud/points), /map
 // (foxglove.SceneUpdate: cubes at the finest level whose cells fit max_map_cubes, an entity
 // per 16-voxel block of each tile, encoded once for every client; when a tile changes, each
-// client gets the blocks that changed since it was last sent it) and /map2d (foxglove.Grid of the ground
-// band, made on a thread of the hub's own at most every grid_every while the map changes). A
+// client gets the blocks that changed since it was last sent it) and /map2d (foxglove.Grid of the
+// ground band, made on a thread of the hub's own at most every grid_every while the map changes). A
 // connection scoped to one session sees these topics as they are; an unscoped one sees every
 // loaded session's, under /SESSION (e.g. /flight1/tf).
 //

@@ -107,8 +107,8 @@ TEST_F(FlyingSession, AClientIsToldTheServerAndEverySessionsChannels) {
   ASSERT_GE(got.texts.size(), 2u);
   EXPECT_EQ(got.texts[0]["op"], "serverInfo");
   EXPECT_EQ(got.texts[0]["capabilities"], json::array());
-  for (const char* topic : {"/s/tf", "/s/map", "/s/map2d", "/s/vehicles/v1/trajectory",
-                            "/s/vehicles/v1/cloud"}) {
+  for (const char* topic :
+       {"/s/tf", "/s/map", "/s/map2d", "/s/vehicles/v1/trajectory", "/s/vehicles/v1/cloud"}) {
     EXPECT_TRUE(got.channels.count(topic)) << topic;
   }
   const auto advertised = got.ofOp("advertise");
@@ -217,8 +217,8 @@ TEST_F(FlyingSession, HostileMessagesAreAnsweredThenTheClientIsClosed) {
 }
 
 TEST_F(FlyingSession, StuckAndSlowClientsAreClosedAndOthersGoOn) {
-  FoxgloveHub small(server, {.stuck_after = std::chrono::milliseconds(500),
-                             .max_queued_bytes = 1000});
+  FoxgloveHub small(server,
+                    {.stuck_after = std::chrono::milliseconds(500), .max_queued_bytes = 1000});
   const auto stuck = small.connect("s", 0);
   const auto slow = small.connect("s", 0);
   const auto fine = small.connect("s", 0);
