@@ -26,12 +26,8 @@ proto::CloudFrameMsg wallFrame(const std::string& session, int seq, int wall = -
 }
 
 proto::PoseMsg pose(const std::string& session, int seq) {
-  proto::PoseMsg msg;
-  msg.vehicle_id = "v1";
-  msg.session_id = session;
+  auto msg = testing::poseAt(session, 0.1 * seq, 1000 + seq);
   msg.seq = static_cast<uint64_t>(seq);
-  msg.stamp_ns = 1000 + seq;
-  msg.position = {0.1 * seq, 0, 0};
   return msg;
 }
 

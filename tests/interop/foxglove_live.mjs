@@ -12,25 +12,11 @@ import { existsSync } from 'node:fs';
 import { mkdtemp, rm } from 'node:fs/promises';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
-import { parseArgs } from 'node:util';
 
-import { compareGrid, connect, decodeOptions, dracoDecoder, foxgloveTypes, FoxgloveClient, freePort, startServer, tileCount, waitFor, WebSocket } from './foxglove_support.mjs';
+import { compareGrid, connect, decodeOptions, dracoDecoder, FoxgloveClient, foxgloveTypes, freePort, interopTest, startServer, tileCount, waitFor, WebSocket } from './foxglove_support.mjs';
 
-const { values: args } = parseArgs({
-  options: {
-    'bin-dir': { type: 'string' },
-    'dds-config': { type: 'string' },
-    domain: { type: 'string', default: '113' },
-  },
-});
 const kCampusMap = new URL('../../../shared/data/octomap_samples/fr_campus.bt', import.meta.url).pathname;
-const bin = (name) => path.join(args['bin-dir'], name);
-const env = { ...process.env, CYCLONEDDS_URI: `file://${args['dds-config']}` };
-const failures = [];
-const check = (ok, what) => {
-  if (!ok) failures.push(what);
-  console.log(`${ok ? 'ok  ' : 'FAIL'} ${what}`);
-};
+const { args, bin, env, check, failures } = interopTest('113');
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 function runToEnd(name, argv) {

@@ -5,6 +5,8 @@
 import { spawn } from 'node:child_process';
 import { createRequire } from 'node:module';
 import net from 'node:net';
+import path from 'node:path';
+import { parseArgs } from 'node:util';
 
 const require = createRequire(new URL('../../web/package.json', import.meta.url));
 const { foxgloveMessageSchemas, foxgloveEnumSchemas, generateProto } = require('@foxglove/schemas/internal');
@@ -12,6 +14,30 @@ const protobuf = require('protobufjs');
 const draco3d = require('draco3d');
 export const { FoxgloveClient } = require('@foxglove/ws-protocol');
 export const WebSocket = require('ws');
+
+// An interop test's command line (--bin-dir, --dds-config, --domain) and its checks: bin(name)
+// is a binary's path, env the environment with the loopback DDS config, check(ok, what)
+// prints a line and remembers a failure.
+export function interopTest(defaultDomain) {
+  const { values: args } = parseArgs({
+    options: {
+      'bin-dir': { type: 'string' },
+      'dds-config': { type: 'string' },
+      domain: { type: 'string', default: defaultDomain },
+    },
+  });
+  const failures = [];
+  return {
+    args,
+    failures,
+    bin: (name) => path.join(args['bin-dir'], name),
+    env: { ...process.env, CYCLONEDDS_URI: `file://${args['dds-config']}` },
+    check: (ok, what) => {
+      if (!ok) failures.push(what);
+      console.log(`${ok ? 'ok  ' : 'FAIL'} ${what}`);
+    },
+  };
+}
 
 export function foxgloveTypes() {
   const root = new protobuf.Root();

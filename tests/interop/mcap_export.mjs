@@ -12,9 +12,8 @@ import { mkdtemp, readFile, rm, writeFile } from 'node:fs/promises';
 import { createRequire } from 'node:module';
 import { tmpdir } from 'node:os';
 import path from 'node:path';
-import { parseArgs } from 'node:util';
 
-import { compareGrid, decodeOptions, dracoDecoder, foxgloveTypes, freePort } from './foxglove_support.mjs';
+import { compareGrid, decodeOptions, dracoDecoder, foxgloveTypes, freePort, interopTest } from './foxglove_support.mjs';
 
 const require = createRequire(new URL('../../web/package.json', import.meta.url));
 const { McapIndexedReader } = require('@mcap/core');
@@ -23,20 +22,7 @@ const { crc32 } = require('@foxglove/crc');
 
 let dracoPoints;  // Google's own Draco decoder: a CompressedPointCloud's points
 
-const { values: args } = parseArgs({
-  options: {
-    'bin-dir': { type: 'string' },
-    'dds-config': { type: 'string' },
-    domain: { type: 'string', default: '111' },
-  },
-});
-const bin = (name) => path.join(args['bin-dir'], name);
-const env = { ...process.env, CYCLONEDDS_URI: `file://${args['dds-config']}` };
-const failures = [];
-const check = (ok, what) => {
-  if (!ok) failures.push(what);
-  console.log(`${ok ? 'ok  ' : 'FAIL'} ${what}`);
-};
+const { args, bin, env, check, failures } = interopTest('111');
 
 function run(name, argv) {
   const result = spawnSync(bin(name), argv, { env, encoding: 'utf8', timeout: 300_000 });
