@@ -4,7 +4,8 @@
 // @foxglove/schemas' definitions (transforms, paths, Draco clouds through Google's decoder, the
 // map's entities, the 2D grid), the map's cubes equal to the session's voxels and the last
 // transform to its trajectory, a client that unsubscribes sees the flow stop, a client that
-// stops reading a campus map is closed as /ws closes one, and hostile clients are refused.
+// stops reading a campus map is closed as /ws closes one, hostile clients are refused, and a
+// server with a token serves only upgrades that carry it.
 //
 //   node tests/interop/foxglove_live.mjs --bin-dir build/bin --dds-config config/cyclonedds-loopback.xml --domain 113
 import { spawn } from 'node:child_process';
@@ -24,6 +25,19 @@ function runToEnd(name, argv) {
   let err = '';
   child.stderr.on('data', (d) => { err += d; });
   return new Promise((resolve) => child.on('exit', (code) => resolve({ code, err })));
+}
+
+// A WebSocket upgrade's answer: its HTTP status, or 'open'.
+function upgradeAnswer(port, target, protocols, headers = {}) {
+  return new Promise((resolve) => {
+    const ws = new WebSocket(`ws://127.0.0.1:${port}${target}`, protocols, { headers });
+    ws.on('unexpected-response', (_req, res) => resolve(res.statusCode));
+    ws.on('open', () => {
+      resolve('open');
+      ws.close();
+    });
+    ws.on('error', () => {});
+  });
 }
 
 // The last pose of the session's trajectory (TUM over REST).
@@ -122,9 +136,9 @@ async function main() {
       Math.max(...[t.x - truth[1], t.y - truth[2], t.z - truth[3]].map(Math.abs)) <= 5.01e-7 &&
       Math.max(...[q.x - truth[4], q.y - truth[5], q.z - truth[6], q.w - truth[7]].map(Math.abs)) <= 5.01e-10,
       `${got.tf.length} transforms; the last equals the session's last pose (t ${stamp.toFixed(3)}: ${JSON.stringify([t, q])} vs ${truth.join(' ')})`);
-    const path = got.paths.at(-1);
-    check(path && path.frame_id === 'map' && path.poses.length >= Math.min(status.poses, 1000) - 1,
-      `${got.paths.length} paths; the last has ${path?.poses.length} poses (session: ${status.poses})`);
+    const lastPath = got.paths.at(-1);
+    check(lastPath && lastPath.frame_id === 'map' && lastPath.poses.length >= Math.min(status.poses, 1000) - 1,
+      `${got.paths.length} paths; the last has ${lastPath?.poses.length} poses (session: ${status.poses})`);
     check(got.clouds.length >= 10 && got.clouds.every((c) => c.m.format === 'draco' && c.points > 0),
       `${got.clouds.length} clouds, Draco decoded by Google's decoder (${got.clouds.at(-1)?.points} points in the last)`);
     let cubes = 0;
@@ -162,16 +176,7 @@ async function main() {
     }
 
     // --- hostile clients -------------------------------------------------------------------
-    // The upgrade's answer (its status, or 'open').
-    const upgrade = (target, protocols) => new Promise((resolve) => {
-      const ws = new WebSocket(`ws://127.0.0.1:${port}${target}`, protocols);
-      ws.on('unexpected-response', (_req, res) => resolve(res.statusCode));
-      ws.on('open', () => {
-        resolve('open');
-        ws.close();
-      });
-      ws.on('error', () => {});
-    });
+    const upgrade = (target, protocols) => upgradeAnswer(port, target, protocols);
     const foxglove = [FoxgloveClient.SUPPORTED_SUBPROTOCOL];
     check(await upgrade('/foxglove', []) === 404, 'an upgrade at /foxglove without Foxglove\'s subprotocol: 404');
     check(await upgrade('/foxglove', ['something.else']) === 404, 'an upgrade at /foxglove with another subprotocol: 404');
@@ -191,6 +196,20 @@ async function main() {
     await waitFor('the hostile client to be closed', 5000, () => hostileClosed !== null);
     check(hostileClosed.code === 1008 && /too many bad messages/.test(hostileClosed.reason), `then closed: ${hostileClosed.code} ${hostileClosed.reason}`);
     check(!/internal error/.test(server.log()), 'no internal error in the server\'s log');
+
+    // --- a server with a token: Foxglove has no hello, so the upgrade must carry it --------
+    const tokenPort = await freePort();
+    const guarded = await startServer(bin('stereomap-server'), ['--store', path.join(dir, 'guarded'), '--http', `127.0.0.1:${tokenPort}`,
+      '--domain', args.domain], { ...env, STEREOMAP_TOKEN: 'sesame-1234' });
+    try {
+      const at = (target, headers = {}) => upgradeAnswer(tokenPort, target, foxglove, headers);
+      check(await at('/foxglove') === 401, 'with a token set, an upgrade without it: 401');
+      check(await at('/foxglove?token=wrong') === 401, 'with a wrong token: 401');
+      check(await at('/foxglove?token=sesame-1234') === 'open', 'with ?token=: served');
+      check(await at('/foxglove', { Authorization: 'Bearer sesame-1234' }) === 'open', 'with Authorization: Bearer: served');
+    } finally {
+      await guarded.stop();
+    }
   } finally {
     vehicle.kill('SIGTERM');
     await server.stop();
