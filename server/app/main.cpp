@@ -67,7 +67,9 @@ bool isLoopback(const std::string& address) {
 }
 
 void addFlags(CLI::App& app, Flags& f) {
-  app.add_option("--http", f.http_spec, "Address and port for HTTP and WebSocket")
+  app.add_option("--http", f.http_spec,
+                 "Address and port for HTTP and the WebSockets (the viewer's /ws, Foxglove's "
+                 "/foxglove)")
       ->capture_default_str();
   app.add_option("--store", f.store_dir, "Directory where sessions are kept")
       ->capture_default_str();
