@@ -68,10 +68,14 @@ struct MatcherOptions {
   double wls_lambda = 0;
   double wls_sigma = 1.5;
   // Nearer disparities searched on reduced images (RigRange's windows after the first), each
-  // with this matcher's settings at its own scale. A pixel takes the finest window's match;
-  // matches on a window's inner edges (a disparity beyond the window lands there) and pixels
-  // where two windows disagree give none.
+  // with this matcher's settings at its own scale (its block covering as much of the full
+  // image as the first window's). A pixel takes the finest window's match; matches on a
+  // window's inner edges (a disparity beyond the window lands there) give none, and where two
+  // windows disagree the one whose window of the full images fits clearly better wins (none
+  // when neither does).
   std::vector<DisparityWindow> nearer;
+  // Where two windows disagree, let the images decide (above); false: neither is kept.
+  bool arbitrate = true;
   // A second look at the ground: where the image holds a plane whose disparity rises down the
   // image (a road, terrain ahead) too steeply for the block, the rows below its horizon are
   // matched again on a right image sheared by it, and its disparities fill what the windows

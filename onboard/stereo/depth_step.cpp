@@ -13,6 +13,9 @@ MatcherOptions levelMatcher(const MatcherOptions& base, const NoiseLevel& level)
   matcher.block_size = level.block_size;
   matcher.uniqueness_ratio = level.uniqueness_ratio;
   matcher.row_groups = level.row_groups;
+  // Noise is in both windows' fit: a clear winner is rarer and a wrong one reached the map
+  // (sim, typical camera: precision 0.9704 -> 0.9696 with it, map_accuracy_test).
+  matcher.arbitrate = false;
   return matcher;
 }
 
