@@ -4,6 +4,8 @@
 
 #include <cmath>
 #include <cstdio>
+#include <optional>
+#include <utility>
 
 #include "onboard/sim/renderer.hpp"
 #include "onboard/stereo/depth.hpp"
@@ -125,28 +127,35 @@ Matched matched(const cv::Mat& disparity, double from, double to, double truth, 
   return {in / static_cast<double>(disparity.total()), in > 0 ? right / double(in) : 1.0};
 }
 
-TEST(StereoMatcher, ThePyramidFindsNearSurfacesOnRealImages) {
-  // Middlebury's aloe (full size, truth 43-211 px) seen by a rig whose far limit is its farthest
-  // surface: the nearer windows, on halved and quartered images, find what lies beyond the
-  // first window, and find it right.
-  const auto dir = testing::kDataDir / "middlebury" / "aloe";
-  STEREOMAP_SKIP_WITHOUT(dir);
-  const auto pair = loadMiddleburyPair(dir);
-  ASSERT_TRUE(pair.ok()) << pair.error().message;
+// Middlebury's aloe (full size, truth 43-211 px) as a rig whose far limit is its farthest
+// surface (b f / 43 at 0.1 m voxels and 0.1 px), or nullopt without the data.
+std::optional<std::pair<MiddleburyPair, camera::StereoCamera>> aloeRig() {
+  const auto pair = loadMiddleburyPair(testing::kDataDir / "middlebury" / "aloe");
+  if (!pair.ok()) return std::nullopt;
   camera::StereoCamera camera = rig(pair->left.cols, pair->left.rows, pair->left.cols, 1.0);
-  camera.baseline = 0.1 * 43 * 43 / 0.1 / camera.fx;  // far = b f / 43 at 0.1 m, 0.1 px
+  camera.baseline = 0.1 * 43 * 43 / 0.1 / camera.fx;
+  return std::pair{*pair, camera};
+}
+
+TEST(StereoMatcher, ThePyramidFindsNearSurfacesOnRealImages) {
+  // Aloe: the nearer windows, on halved and quartered images, find what lies beyond the first
+  // window, and find it right.
+  STEREOMAP_SKIP_WITHOUT(testing::kDataDir / "middlebury" / "aloe");
+  const auto aloe = aloeRig();
+  ASSERT_TRUE(aloe);
+  const auto& [pair, camera] = *aloe;
   const RigRange range =
       rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1, .window_disparities = 48});
   ASSERT_GE(range.windows.size(), 3u) << range.explain();
   const double first_max = range.windows.front().maxPx();
   auto score = [&](const MatcherOptions& options) {
-    const cv::Mat d = StereoMatcher(options).compute(pair->left, pair->right);
+    const cv::Mat d = StereoMatcher(options).compute(pair.left, pair.right);
     // Over the evaluated pixels whose truth lies beyond the first window: found, and right.
     int beyond = 0, found = 0, right = 0;
     for (int v = 0; v < d.rows; ++v) {
       for (int u = 0; u < d.cols; ++u) {
-        const float truth = pair->ground_truth.at<float>(v, u);
-        if (pair->evaluated.at<uint8_t>(v, u) == 0 || truth < first_max + 2) continue;
+        const float truth = pair.ground_truth.at<float>(v, u);
+        if (pair.evaluated.at<uint8_t>(v, u) == 0 || truth < first_max + 2) continue;
         ++beyond;
         const float got = d.at<float>(v, u);
         if (got < 0) continue;
@@ -220,20 +229,18 @@ TEST(StereoMatcher, WindowsThatDisagreeKeepTheMatchTheImagesAgreeWith) {
   // Aloe seen by a rig whose far limit is its farthest surface (three windows): where two
   // windows match a pixel differently (a repeated texture in the wider one), the pixel takes
   // the match whose window of the images fits better instead of none.
-  const auto dir = testing::kDataDir / "middlebury" / "aloe";
-  STEREOMAP_SKIP_WITHOUT(dir);
-  const auto pair = loadMiddleburyPair(dir);
-  ASSERT_TRUE(pair.ok()) << pair.error().message;
-  camera::StereoCamera camera = rig(pair->left.cols, pair->left.rows, pair->left.cols, 1.0);
-  camera.baseline = 0.1 * 43 * 43 / 0.1 / camera.fx;
+  STEREOMAP_SKIP_WITHOUT(testing::kDataDir / "middlebury" / "aloe");
+  const auto aloe = aloeRig();
+  ASSERT_TRUE(aloe);
+  const auto& [pair, camera] = *aloe;
   const RigRange range = rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1});
   const cv::Mat d = StereoMatcher(fitToWindows(MatcherOptions::fast(), range.windows))
-                        .compute(pair->left, pair->right);
+                        .compute(pair.left, pair.right);
   int evaluated = 0, right = 0;
   for (int v = 0; v < d.rows; ++v) {
     for (int u = 0; u < d.cols; ++u) {
-      const float truth = pair->ground_truth.at<float>(v, u);
-      if (pair->evaluated.at<uint8_t>(v, u) == 0 || truth <= 0) continue;
+      const float truth = pair.ground_truth.at<float>(v, u);
+      if (pair.evaluated.at<uint8_t>(v, u) == 0 || truth <= 0) continue;
       ++evaluated;
       right += std::abs(d.at<float>(v, u) - truth) <= 2.0f;
     }
