@@ -128,10 +128,13 @@ Matched matched(const cv::Mat& disparity, double from, double to, double truth, 
 }
 
 // Middlebury's aloe (full size, truth 43-211 px) as a rig whose far limit is its farthest
-// surface (b f / 43 at 0.1 m voxels and 0.1 px), or nullopt without the data.
+// surface (b f / 43 at 0.1 m voxels and 0.1 px), or nullopt (a failure) when it cannot be read.
 std::optional<std::pair<MiddleburyPair, camera::StereoCamera>> aloeRig() {
   const auto pair = loadMiddleburyPair(testing::kDataDir / "middlebury" / "aloe");
-  if (!pair.ok()) return std::nullopt;
+  if (!pair.ok()) {
+    ADD_FAILURE() << pair.error().message;
+    return std::nullopt;
+  }
   camera::StereoCamera camera = rig(pair->left.cols, pair->left.rows, pair->left.cols, 1.0);
   camera.baseline = 0.1 * 43 * 43 / 0.1 / camera.fx;
   return std::pair{*pair, camera};
