@@ -146,7 +146,8 @@ TEST(StereoMatcher, ThePyramidFindsNearSurfacesOnRealImages) {
   STEREOMAP_SKIP_WITHOUT(testing::kDataDir / "middlebury" / "aloe");
   const auto aloe = aloeRig();
   ASSERT_TRUE(aloe);
-  const auto& [pair, camera] = *aloe;
+  const MiddleburyPair& pair = aloe->first;
+  const camera::StereoCamera& camera = aloe->second;
   const RigRange range =
       rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1, .window_disparities = 48});
   ASSERT_GE(range.windows.size(), 3u) << range.explain();
@@ -235,7 +236,8 @@ TEST(StereoMatcher, WindowsThatDisagreeKeepTheMatchTheImagesAgreeWith) {
   STEREOMAP_SKIP_WITHOUT(testing::kDataDir / "middlebury" / "aloe");
   const auto aloe = aloeRig();
   ASSERT_TRUE(aloe);
-  const auto& [pair, camera] = *aloe;
+  const MiddleburyPair& pair = aloe->first;
+  const camera::StereoCamera& camera = aloe->second;
   const RigRange range = rigRange(camera, {.map_resolution_m = 0.1, .precision_px = 0.1});
   const cv::Mat d = StereoMatcher(fitToWindows(MatcherOptions::fast(), range.windows))
                         .compute(pair.left, pair.right);
