@@ -76,6 +76,13 @@ struct MatcherOptions {
   std::vector<DisparityWindow> nearer;
   // Where two windows disagree, let the images decide (above); false: neither is kept.
   bool arbitrate = true;
+  // Nearer windows on reduced images (block matching only): where block matching finds
+  // nothing, semi-global matching over the same window fills in, if the images confirm the
+  // match (its window fits the right image's clearly better than two unrelated patches would,
+  // and holds texture). Block matching leaves holes in leaves and slanted surfaces that the
+  // semi-global paths bridge. It runs only where block matching found surfaces in the window
+  // (a fiftieth of the image), which it completes.
+  bool fill_nearer = true;
   // A second look at the ground: where the image holds a plane whose disparity rises down the
   // image (a road, terrain ahead) too steeply for the block, the rows below its horizon are
   // matched again on a right image sheared by it, and its disparities fill what the windows
