@@ -55,33 +55,48 @@ class ViewRays {
         origin_(T_map_camera.translation),
         max_depth_(max_depth) {
     const Rigid3 T_camera_map = T_map_camera.inverse();
-    for (const auto& box : scene.boxes())
+    for (const auto& box : scene.boxes()) {
       rects_.push_back(projectedRect(box, T_camera_map, camera, bounds));
+      distance_.push_back((box.min - origin_).cwiseMax(origin_ - box.max).cwiseMax(0.0).norm());
+    }
   }
 
-  // The boxes that pixel row `v` can see.
+  // The boxes that pixel row `v` can see, nearest to the camera first (cast() stops at the
+  // first that cannot be nearer than its best hit).
   void boxesInRow(int v, std::vector<int>& boxes) const {
     boxes.clear();
     for (size_t i = 0; i < rects_.size(); ++i) {
       if (v >= rects_[i].y && v < rects_[i].y + rects_[i].height) boxes.push_back(int(i));
     }
+    std::sort(boxes.begin(), boxes.end(),
+              [&](int a, int b) { return distance_[a] < distance_[b]; });
   }
   Vec3 direction(double u, double v) const { return R_ * camera_.rayThrough(u, v); }
   // Nearest hit within the maximum depth of a ray through pixel column `u` (a point within
   // half a pixel of its centre: the rectangles have a pixel's margin), among `boxes`; the ray
   // given by its direction's component-wise inverse.
+  // The hit is the one testing every box in index order would give: the nearest, and of boxes
+  // entered at the same t the last.
   std::optional<RayHit> cast(int u, const Vec3& inverse, const std::vector<int>& boxes) const {
-    std::optional<RayHit> hit;
+    // A box entered at t lies at least its distance from the camera away, and the ray moves
+    // |direction| per unit of t: t >= distance / |direction| (a millionth kept in hand for
+    // rounding), so boxes (nearest first) from one whose bound passes the best hit on are
+    // all farther.
+    const Vec3 direction = inverse.cwiseInverse();
+    const double per_t = (1.0 - 1e-6) / direction.norm();
+    int best = -1;
     double best_t = max_depth_;
     for (int i : boxes) {
+      if (distance_[i] * per_t > best_t) break;
       if (u < rects_[i].x || u >= rects_[i].x + rects_[i].width) continue;
       const double t = scene_.entryDistance(i, origin_, inverse);
-      if (t > 0 && t <= best_t) {
+      if (t > 0 && (t < best_t || (t == best_t && i > best))) {
         best_t = t;
-        hit = RayHit{t, i};
+        best = i;
       }
     }
-    return hit;
+    if (best < 0) return std::nullopt;
+    return RayHit{best_t, best};
   }
   const Vec3& origin() const { return origin_; }
   const Eigen::Matrix3d& rotation() const { return R_; }
@@ -93,6 +108,7 @@ class ViewRays {
   const Vec3 origin_;
   const double max_depth_;
   std::vector<cv::Rect> rects_;
+  std::vector<double> distance_;  // from the camera to each box (0 inside it)
 };
 
 // Sky: a flat grey with no texture, so stereo finds nothing there (as outdoors).
