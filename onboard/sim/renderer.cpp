@@ -74,15 +74,15 @@ class ViewRays {
   Vec3 direction(double u, double v) const { return R_ * camera_.rayThrough(u, v); }
   // Nearest hit within the maximum depth of a ray through pixel column `u` (a point within
   // half a pixel of its centre: the rectangles have a pixel's margin), among `boxes`; the ray
-  // given by its direction's component-wise inverse.
+  // given by its direction and that direction's component-wise inverse.
   // The hit is the one testing every box in index order would give: the nearest, and of boxes
   // entered at the same t the last.
-  std::optional<RayHit> cast(int u, const Vec3& inverse, const std::vector<int>& boxes) const {
+  std::optional<RayHit> cast(int u, const Vec3& direction, const Vec3& inverse,
+                             const std::vector<int>& boxes) const {
     // A box entered at t lies at least its distance from the camera away, and the ray moves
     // |direction| per unit of t: t >= distance / |direction| (a millionth kept in hand for
     // rounding), so boxes (nearest first) from one whose bound passes the best hit on are
     // all farther.
-    const Vec3 direction = inverse.cwiseInverse();
     const double per_t = (1.0 - 1e-6) / direction.norm();
     int best = -1;
     double best_t = max_depth_;
@@ -195,7 +195,7 @@ class AntiAliasedView {
   Sample trace(const Vec3& direction, int pixel_u, const std::vector<int>& boxes,
                SurfaceShader& shader) const {
     const Vec3 inverse = direction.cwiseInverse();
-    const auto hit = rays_.cast(pixel_u, inverse, boxes);
+    const auto hit = rays_.cast(pixel_u, direction, inverse, boxes);
     if (!hit) return {};
     // The face it enters by (the slab entered last), and the hit put on it exactly: a deck's
     // top then lies on the texture's lattice plane, which halves the texture's cost.
@@ -287,7 +287,7 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
       float* depth_row = depth != nullptr ? depth->ptr<float>(v) : nullptr;
       for (int u = 0; u < camera_.width; ++u) {
         const Vec3 direction = rays.direction(u, v);
-        const auto hit = rays.cast(u, direction.cwiseInverse(), boxes);
+        const auto hit = rays.cast(u, direction, direction.cwiseInverse(), boxes);
         if (depth_row != nullptr) depth_row[u] = hit ? static_cast<float>(hit->t) : 0.0f;
         if (image_row != nullptr) {
           image_row[u] = hit ? static_cast<uint8_t>(
