@@ -1,6 +1,7 @@
 #include "onboard/sources/source_registry.hpp"
 
 #include "onboard/camera/dataset_source.hpp"
+#include "onboard/camera/prefetch_source.hpp"
 #include "onboard/sim/deck.hpp"
 #include "onboard/sim/sim_source.hpp"
 
@@ -26,18 +27,24 @@ double simRate(const SourceOptions& options) {
   return options.rate_hz > 0 ? options.rate_hz : 10.0;  // "as fast as possible" still has a clock
 }
 
+// The simulator renders the next frame while the vehicle works on this one, as a camera's own
+// hardware would: its rendering is not the vehicle's work (nor its frames' latency).
+std::unique_ptr<camera::FrameSource> prefetched(std::unique_ptr<camera::FrameSource> sim) {
+  return std::make_unique<camera::PrefetchSource>(std::move(sim));
+}
+
 Result<OpenedSource> openSim(const std::string&, const SourceOptions& options) {
   sim::SimSourceOptions sim{
       .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
   applyCameraModel(options, sim.render.camera);
-  return OpenedSource{std::make_unique<sim::SimSource>(sim), std::nullopt};
+  return OpenedSource{prefetched(std::make_unique<sim::SimSource>(sim)), std::nullopt};
 }
 
 Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) {
   sim::DeckSourceOptions deck{
       .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
   applyCameraModel(options, deck.render.camera);
-  return OpenedSource{std::make_unique<sim::DeckSource>(deck),
+  return OpenedSource{prefetched(std::make_unique<sim::DeckSource>(deck)),
                       "sim:deck: mapped in the deck's frame, poses from the sim's navigation "
                       "relative to the ship (stands in for a ship-relative GPS/INS)"};
 }
