@@ -58,6 +58,8 @@ class ViewRays {
     for (const auto& box : scene.boxes()) {
       rects_.push_back(projectedRect(box, T_camera_map, camera, bounds));
       distance_.push_back((box.min - origin_).cwiseMax(origin_ - box.max).cwiseMax(0.0).norm());
+      // A millionth kept in hand for rounding, squared: cast() compares it without a root.
+      bound2_.push_back(std::pow(distance_.back() * (1.0 - 1e-6), 2));
     }
   }
 
@@ -80,19 +82,22 @@ class ViewRays {
   std::optional<RayHit> cast(int u, const Vec3& direction, const Vec3& inverse,
                              const std::vector<int>& boxes) const {
     // A box entered at t lies at least its distance from the camera away, and the ray moves
-    // |direction| per unit of t: t >= distance / |direction| (a millionth kept in hand for
-    // rounding), so boxes (nearest first) from one whose bound passes the best hit on are
-    // all farther.
-    const double per_t = (1.0 - 1e-6) / direction.norm();
+    // |direction| per unit of t: t >= distance / |direction|, so boxes (nearest first) from
+    // one whose bound passes the best hit on are all farther. Compared squared, as
+    // distance^2 > t^2 |direction|^2: a root and a division a ray were the room's slowest
+    // instructions (perf).
+    const double length2 = direction.squaredNorm();
     int best = -1;
     double best_t = max_depth_;
+    double reach2 = best_t * best_t * length2;  // no box whose bound2_ passes it is nearer
     for (int i : boxes) {
-      if (distance_[i] * per_t > best_t) break;
+      if (bound2_[i] > reach2) break;
       if (u < rects_[i].x || u >= rects_[i].x + rects_[i].width) continue;
       const double t = scene_.entryDistance(i, origin_, inverse);
       if (t > 0 && (t < best_t || (t == best_t && i > best))) {
         best_t = t;
         best = i;
+        reach2 = best_t * best_t * length2;
       }
     }
     if (best < 0) return std::nullopt;
@@ -109,6 +114,7 @@ class ViewRays {
   const double max_depth_;
   std::vector<cv::Rect> rects_;
   std::vector<double> distance_;  // from the camera to each box (0 inside it)
+  std::vector<double> bound2_;    // (distance_ less a millionth)^2
 };
 
 // Sky: a flat grey with no texture, so stereo finds nothing there (as outdoors).
