@@ -353,7 +353,9 @@ async function pollLanding() {
   // fetch that finds no server is a console error, and the link's status says it already).
   if (!link.connected || (id === landing.sessionId && !live)) return;
   let vehicles = [];
-  if (id !== null) {
+  // A closed session has no vehicles, and the server answers its resources with 409 (open it
+  // first): a console error for a session merely shown (a store's imported map, say).
+  if (id !== null && store.statuses.get(id)?.state !== 'closed') {
     const token = new URLSearchParams(window.location.search).get('token');
     const query = token ? `?token=${encodeURIComponent(token)}` : '';
     try {
