@@ -57,9 +57,10 @@ class ViewRays {
     const Rigid3 T_camera_map = T_map_camera.inverse();
     for (const auto& box : scene.boxes()) {
       rects_.push_back(projectedRect(box, T_camera_map, camera, bounds));
-      distance_.push_back((box.min - origin_).cwiseMax(origin_ - box.max).cwiseMax(0.0).norm());
-      // A millionth kept in hand for rounding, squared: cast() compares it without a root.
-      bound2_.push_back(std::pow(distance_.back() * (1.0 - 1e-6), 2));
+      // From the camera to the box (0 inside it), a millionth kept in hand for rounding,
+      // squared: cast() compares it without a root.
+      const double distance = (box.min - origin_).cwiseMax(origin_ - box.max).cwiseMax(0.0).norm();
+      bound2_.push_back(std::pow(distance * (1.0 - 1e-6), 2));
     }
   }
 
@@ -70,8 +71,7 @@ class ViewRays {
     for (size_t i = 0; i < rects_.size(); ++i) {
       if (v >= rects_[i].y && v < rects_[i].y + rects_[i].height) boxes.push_back(int(i));
     }
-    std::sort(boxes.begin(), boxes.end(),
-              [&](int a, int b) { return distance_[a] < distance_[b]; });
+    std::sort(boxes.begin(), boxes.end(), [&](int a, int b) { return bound2_[a] < bound2_[b]; });
   }
   Vec3 direction(double u, double v) const { return R_ * camera_.rayThrough(u, v); }
   // Nearest hit within the maximum depth of a ray through pixel column `u` (a point within
@@ -113,8 +113,7 @@ class ViewRays {
   const Vec3 origin_;
   const double max_depth_;
   std::vector<cv::Rect> rects_;
-  std::vector<double> distance_;  // from the camera to each box (0 inside it)
-  std::vector<double> bound2_;    // (distance_ less a millionth)^2
+  std::vector<double> bound2_;  // each box's least distance from the camera, squared
 };
 
 // Sky: a flat grey with no texture, so stereo finds nothing there (as outdoors).
