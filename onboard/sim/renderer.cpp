@@ -5,6 +5,7 @@
 #include <cmath>
 #include <functional>
 #include <limits>
+#include <memory>
 
 #include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
@@ -12,6 +13,7 @@
 #include <random>
 
 #include "common/statistics.hpp"
+#include "onboard/sim/surface_shader.hpp"
 
 namespace stereomap::sim {
 
@@ -47,73 +49,97 @@ cv::Rect projectedRect(const SceneBox& box, const Rigid3& T_camera_map,
 // depth exactly, tested only against the boxes whose image rectangle holds the pixel.
 class ViewRays {
  public:
+  // A box as this view sees it: what cast() reads of it, together.
+  struct Candidate {
+    // From the camera to the box (0 inside it), a millionth kept in hand for rounding, squared:
+    // cast() compares it without a root.
+    double bound2;
+    int index;           // in the scene
+    int u_begin, u_end;  // the columns of its image rectangle
+    // box.min - origin and box.max - origin: Scene::entryDistance's slab offsets, once a view.
+    Vec3 lo, hi;
+  };
+
   ViewRays(const Scene& scene, const camera::StereoCamera& camera, const Rigid3& T_map_camera,
            double max_depth, const cv::Rect& bounds)
-      : scene_(scene),
-        camera_(camera),
+      : camera_(camera),
         R_(T_map_camera.rotation.toRotationMatrix()),
         origin_(T_map_camera.translation),
         max_depth_(max_depth) {
     const Rigid3 T_camera_map = T_map_camera.inverse();
-    for (const auto& box : scene.boxes()) {
-      rects_.push_back(projectedRect(box, T_camera_map, camera, bounds));
-      // From the camera to the box (0 inside it), a millionth kept in hand for rounding,
-      // squared: cast() compares it without a root.
+    for (size_t i = 0; i < scene.boxes().size(); ++i) {
+      const SceneBox& box = scene.boxes()[i];
+      const cv::Rect rect = projectedRect(box, T_camera_map, camera, bounds);
       const double distance = (box.min - origin_).cwiseMax(origin_ - box.max).cwiseMax(0.0).norm();
-      bound2_.push_back(std::pow(distance * (1.0 - 1e-6), 2));
+      candidates_.push_back({.bound2 = std::pow(distance * (1.0 - 1e-6), 2),
+                             .index = static_cast<int>(i),
+                             .u_begin = rect.x,
+                             .u_end = rect.x + rect.width,
+                             .lo = box.min - origin_,
+                             .hi = box.max - origin_});
+      rows_.emplace_back(rect.y, rect.y + rect.height);
     }
   }
 
   // The boxes that pixel row `v` can see, nearest to the camera first (cast() stops at the
   // first that cannot be nearer than its best hit).
-  void boxesInRow(int v, std::vector<int>& boxes) const {
+  void boxesInRow(int v, std::vector<Candidate>& boxes) const {
     boxes.clear();
-    for (size_t i = 0; i < rects_.size(); ++i) {
-      if (v >= rects_[i].y && v < rects_[i].y + rects_[i].height) boxes.push_back(int(i));
+    for (size_t i = 0; i < candidates_.size(); ++i) {
+      if (v >= rows_[i].first && v < rows_[i].second) boxes.push_back(candidates_[i]);
     }
-    std::sort(boxes.begin(), boxes.end(), [&](int a, int b) { return bound2_[a] < bound2_[b]; });
+    std::sort(boxes.begin(), boxes.end(),
+              [](const Candidate& a, const Candidate& b) { return a.bound2 < b.bound2; });
   }
   Vec3 direction(double u, double v) const { return R_ * camera_.rayThrough(u, v); }
+
+  struct Hit {
+    double t;  // the depth
+    const Candidate* box;
+  };
   // Nearest hit within the maximum depth of a ray through pixel column `u` (a point within
   // half a pixel of its centre: the rectangles have a pixel's margin), among `boxes`; the ray
   // given by its direction and that direction's component-wise inverse.
   // The hit is the one testing every box in index order would give: the nearest, and of boxes
   // entered at the same t the last.
-  std::optional<RayHit> cast(int u, const Vec3& direction, const Vec3& inverse,
-                             const std::vector<int>& boxes) const {
+  std::optional<Hit> cast(int u, const Vec3& direction, const Vec3& inverse,
+                          const std::vector<Candidate>& boxes) const {
     // A box entered at t lies at least its distance from the camera away, and the ray moves
     // |direction| per unit of t: t >= distance / |direction|, so boxes (nearest first) from
     // one whose bound passes the best hit on are all farther. Compared squared, as
     // distance^2 > t^2 |direction|^2: a root and a division a ray were the room's slowest
     // instructions (perf).
     const double length2 = direction.squaredNorm();
-    int best = -1;
+    const Candidate* best = nullptr;
     double best_t = max_depth_;
-    double reach2 = best_t * best_t * length2;  // no box whose bound2_ passes it is nearer
-    for (int i : boxes) {
-      if (bound2_[i] > reach2) break;
-      if (u < rects_[i].x || u >= rects_[i].x + rects_[i].width) continue;
-      const double t = scene_.entryDistance(i, origin_, inverse);
-      if (t > 0 && (t < best_t || (t == best_t && i > best))) {
+    double reach2 = best_t * best_t * length2;  // no box whose bound2 passes it is nearer
+    for (const Candidate& box : boxes) {
+      if (box.bound2 > reach2) break;
+      if (u < box.u_begin || u >= box.u_end) continue;
+      // Scene::entryDistance, its offsets from the camera taken once a view.
+      const Vec3 t0 = box.lo.cwiseProduct(inverse);
+      const Vec3 t1 = box.hi.cwiseProduct(inverse);
+      const double t = t0.cwiseMin(t1).maxCoeff();
+      if (t > 0 && t <= t0.cwiseMax(t1).minCoeff() &&
+          (t < best_t || (t == best_t && (best == nullptr || box.index > best->index)))) {
         best_t = t;
-        best = i;
+        best = &box;
         reach2 = best_t * best_t * length2;
       }
     }
-    if (best < 0) return std::nullopt;
-    return RayHit{best_t, best};
+    if (best == nullptr) return std::nullopt;
+    return Hit{best_t, best};
   }
   const Vec3& origin() const { return origin_; }
   const Eigen::Matrix3d& rotation() const { return R_; }
 
  private:
-  const Scene& scene_;
   const camera::StereoCamera& camera_;
   const Eigen::Matrix3d R_;
   const Vec3 origin_;
   const double max_depth_;
-  std::vector<cv::Rect> rects_;
-  std::vector<double> bound2_;  // each box's least distance from the camera, squared
+  std::vector<Candidate> candidates_;      // in the scene's order
+  std::vector<std::pair<int, int>> rows_;  // each box's image rows, [first, second)
 };
 
 // Sky: a flat grey with no texture, so stereo finds nothing there (as outdoors).
@@ -144,10 +170,11 @@ class AntiAliasedView {
     image.create(height, width, CV_8UC1);
     if (depth != nullptr) depth->create(height, width, CV_32FC1);
     // First pass: the pixel centres, ring included (row/column k of the grid is pixel k - 1).
-    std::vector<float> grey(static_cast<size_t>(stride) * (height + 2));
-    std::vector<uint64_t> key(grey.size());
+    const size_t grid = static_cast<size_t>(stride) * (height + 2);  // every one written
+    const auto grey = std::make_unique_for_overwrite<float[]>(grid);
+    const auto key = std::make_unique_for_overwrite<uint64_t[]>(grid);
     cv::parallel_for_(cv::Range(-1, height + 1), [&](const cv::Range& rows) {
-      std::vector<int> boxes;
+      std::vector<ViewRays::Candidate> boxes;
       SurfaceShader shader(scene_);
       for (int v = rows.start; v < rows.end; ++v) {
         rays_.boxesInRow(v, boxes);
@@ -168,7 +195,7 @@ class AntiAliasedView {
     // has an edge within it (for a straight edge, always), as has one beside a corner. A box or
     // a stripe of paint narrower than a pixel can fall between the centres and be missed.
     cv::parallel_for_(cv::Range(0, height), [&](const cv::Range& rows) {
-      std::vector<int> boxes;
+      std::vector<ViewRays::Candidate> boxes;
       SurfaceShader shader(scene_);
       for (int v = rows.start; v < rows.end; ++v) {
         rays_.boxesInRow(v, boxes);
@@ -197,37 +224,37 @@ class AntiAliasedView {
   };
 
   // The ray of pixel column `pixel_u` going along `direction`.
-  Sample trace(const Vec3& direction, int pixel_u, const std::vector<int>& boxes,
+  Sample trace(const Vec3& direction, int pixel_u, const std::vector<ViewRays::Candidate>& boxes,
                SurfaceShader& shader) const {
     const Vec3 inverse = direction.cwiseInverse();
     const auto hit = rays_.cast(pixel_u, direction, inverse, boxes);
     if (!hit) return {};
     // The face it enters by (the slab entered last), and the hit put on it exactly: a deck's
     // top then lies on the texture's lattice plane, which halves the texture's cost.
-    const SceneBox& box = scene_.boxes()[hit->box];
-    const Vec3 t_min = (box.min - rays_.origin()).cwiseProduct(inverse);
-    const Vec3 t_max = (box.max - rays_.origin()).cwiseProduct(inverse);
-    const Vec3 entry = t_min.cwiseMin(t_max);
+    const ViewRays::Candidate& box = *hit->box;
+    const Vec3 entry = box.lo.cwiseProduct(inverse).cwiseMin(box.hi.cwiseProduct(inverse));
     const int axis = entry.x() >= entry.y() ? (entry.x() >= entry.z() ? 0 : 2)
                                             : (entry.y() >= entry.z() ? 1 : 2);
     Vec3 p = rays_.origin() + hit->t * direction;
-    p[axis] = direction[axis] > 0 ? box.min[axis] : box.max[axis];
+    const SceneBox& surface = scene_.boxes()[box.index];
+    p[axis] = direction[axis] > 0 ? surface.min[axis] : surface.max[axis];
     // The pixel's footprint on the face (ray differentials): how far the hit moves on the face
     // per pixel along u and along v; the larger is what the texture must not be finer than.
     const Vec3 along_u = ray_per_u_ - (ray_per_u_[axis] * inverse[axis]) * direction;
     const Vec3 along_v = ray_per_v_ - (ray_per_v_[axis] * inverse[axis]) * direction;
     const double footprint =
         hit->t * std::sqrt(std::max(along_u.squaredNorm(), along_v.squaredNorm()));
-    const SurfaceShader::Shade shade = shader.shade(p, hit->box, footprint);
+    const SurfaceShader::Shade shade = shader.shade(p, box.index, footprint);
     return {
         .grey = shade.grey,
-        .key = (static_cast<uint64_t>(hit->box + 1) << 32) | std::bit_cast<uint32_t>(shade.albedo),
+        .key = (static_cast<uint64_t>(box.index + 1) << 32) | std::bit_cast<uint32_t>(shade.albedo),
         .depth = static_cast<float>(hit->t)};
   }
 
   // The mean of s x s rays spread over pixel (u, v) as the pixel centres of an image s times
   // larger; the texture stays band-limited to this pixel's footprint, not the finer one's.
-  float supersampled(int u, int v, const std::vector<int>& boxes, SurfaceShader& shader) const {
+  float supersampled(int u, int v, const std::vector<ViewRays::Candidate>& boxes,
+                     SurfaceShader& shader) const {
     float sum = 0;
     for (int j = 0; j < s_; ++j) {
       for (int i = 0; i < s_; ++i) {
@@ -284,7 +311,7 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
   const ViewRays rays(scene_, camera_, T_map_camera, options_.max_depth,
                       cv::Rect(0, 0, camera_.width, camera_.height));
   cv::parallel_for_(cv::Range(0, camera_.height), [&](const cv::Range& rows) {
-    std::vector<int> boxes;
+    std::vector<ViewRays::Candidate> boxes;
     SurfaceShader shader(scene_);
     for (int v = rows.start; v < rows.end; ++v) {
       rays.boxesInRow(v, boxes);
@@ -295,9 +322,10 @@ void Renderer::renderView(const Rigid3& T_map_camera, cv::Mat* image, cv::Mat* d
         const auto hit = rays.cast(u, direction, direction.cwiseInverse(), boxes);
         if (depth_row != nullptr) depth_row[u] = hit ? static_cast<float>(hit->t) : 0.0f;
         if (image_row != nullptr) {
-          image_row[u] = hit ? static_cast<uint8_t>(
-                                   shader.shade(rays.origin() + hit->t * direction, hit->box).grey)
-                             : kSkyGrey;
+          image_row[u] =
+              hit ? static_cast<uint8_t>(
+                        shader.shade(rays.origin() + hit->t * direction, hit->box->index).grey)
+                  : kSkyGrey;
         }
       }
     }

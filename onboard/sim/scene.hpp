@@ -91,38 +91,4 @@ class Scene {
   uint32_t texture_seed_;
 };
 
-// Shades surface points of a Scene, keeping the texture's lattice values of the cells it last
-// used: consecutive pixels of a row mostly fall in the same cells and then need no hashing.
-// Not thread-safe: one per thread (it is small).
-class SurfaceShader {
- public:
-  explicit SurfaceShader(const Scene& scene) : scene_(scene) {}
-
-  struct Shade {
-    float grey = 0;  // 0..255, not rounded
-    // The albedo there: the box's, or its paint's, times any shadow on it. It changes only at
-    // a marking's edge, which is what anti-aliasing looks for.
-    float albedo = 0;
-  };
-  // Box `box`'s surface at `p`. `footprint_m`: the pixel's size on the surface; each octave of
-  // the texture fades to its mean as its lattice spacing shrinks from two footprints to one, so
-  // that detail finer than the pixels does not alias into noise (0: the exact texture).
-  Shade shade(const common::Vec3& p, int box, double footprint_m = 0);
-
- private:
-  // The value noise's lattice values around one cell: the layer at z (corners 0-3) and, filled
-  // when a point needs it, the layer at z + 1 (corners 4-7).
-  struct LatticeCell {
-    int32_t x = 0, y = 0, z = 0;
-    uint32_t seed = 0;
-    bool lower = false, upper = false;
-    std::array<float, 8> corner{};
-  };
-  // Trilinear value noise in [0, 1] with unit lattice spacing, reusing `cell`'s values.
-  static float valueNoise(const common::Vec3& p, uint32_t seed, LatticeCell& cell);
-
-  const Scene& scene_;
-  std::array<LatticeCell, 2> octaves_;  // fine, coarse
-};
-
 }  // namespace stereomap::sim

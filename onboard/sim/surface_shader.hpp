@@ -1,0 +1,175 @@
+// What a Scene's surfaces look like: a procedural solid texture (two octaves of value noise,
+// band-limited to a pixel's footprint) under the paint of its markings. The renderer's inner
+// loop, so the path every ray takes is inline here.
+//
+//   SurfaceShader shader(scene);               // one per thread
+//   float grey = shader.shade(p, hit.box, footprint_m).grey;
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cstdint>
+#include <vector>
+
+#include "onboard/sim/scene.hpp"
+
+namespace stereomap::sim {
+
+namespace detail {
+
+inline uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+  uint32_t h = seed * 0x9E3779B1u;
+  h ^= static_cast<uint32_t>(x) * 0x85EBCA77u;
+  h = (h << 13) | (h >> 19);
+  h ^= static_cast<uint32_t>(y) * 0xC2B2AE3Du;
+  h = (h << 13) | (h >> 19);
+  h ^= static_cast<uint32_t>(z) * 0x27D4EB2Fu;
+  // murmur3 finaliser
+  h ^= h >> 16;
+  h *= 0x85EBCA6Bu;
+  h ^= h >> 13;
+  h *= 0xC2B2AE35u;
+  h ^= h >> 16;
+  return h;
+}
+
+// The noise's value at a lattice point, in [0, 1].
+inline float lattice(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+  return static_cast<float>(hash3(x, y, z, seed) & 0xFFFFu) * (1.0f / 65535.0f);
+}
+
+inline float lerp(float a, float b, float t) { return a + (b - a) * t; }
+
+// std::floor as an integer, without its library call (x86-64 has no rounding instruction
+// before SSE4.1); the same value for every input in range.
+inline int32_t floorInt(double v) {
+  const auto i = static_cast<int32_t>(v);
+  return i > v ? i - 1 : i;
+}
+
+}  // namespace detail
+
+// Shades surface points of a Scene, keeping the texture's lattice values of the cells it last
+// used: consecutive pixels of a row mostly fall in the same cells and then need no hashing.
+// Not thread-safe: one per thread (it is small).
+class SurfaceShader {
+ public:
+  explicit SurfaceShader(const Scene& scene);
+
+  struct Shade {
+    float grey = 0;  // 0..255, not rounded
+    // The albedo there: the box's, or its paint's, times any shadow on it. It changes only at
+    // a marking's edge, which is what anti-aliasing looks for.
+    float albedo = 0;
+  };
+  // Box `box`'s surface at `p`. `footprint_m`: the pixel's size on the surface; each octave of
+  // the texture fades to its mean as its lattice spacing shrinks from two footprints to one, so
+  // that detail finer than the pixels does not alias into noise (0: the exact texture).
+  Shade shade(const common::Vec3& p, int box, double footprint_m = 0) {
+    const SceneBox& surface = scene_.boxes_[box];
+    const uint32_t seed = scene_.texture_seed_ * 131u + static_cast<uint32_t>(box);
+    // Two octaves: 6 cm detail for matching up close, 25 cm blobs for matching far away.
+    const float fine = octave(0.06, p, footprint_m, seed, octaves_[0]);
+    const float coarse = octave(0.25, p, footprint_m, seed ^ 0x5bd1e995u, octaves_[1]);
+    float albedo = surface.albedo, shade = 1.0f;
+    if (paint_bounds_[box].contains(Eigen::Vector2d(p.x(), p.y())) &&
+        p.z() >= surface.max.z() - 1e-9) {
+      paint(box, p, albedo, shade);
+    }
+    albedo *= shade;
+    const float value = albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
+    return {.grey = std::clamp(value * 255.0f, 0.0f, 255.0f), .albedo = albedo};
+  }
+
+ private:
+  // The value noise's lattice values around one cell: the layer at z (corners 0-3) and the
+  // layer at z + 1 (corners 4-7), each filled when a point first needs it.
+  struct LatticeCell {
+    int32_t x = 0, y = 0, z = 0;
+    uint32_t seed = 0;
+    bool lower = false, upper = false;
+    std::array<float, 8> corner{};
+  };
+  // The cells an octave used last, direct-mapped: a row of pixels steps through cells that the
+  // rows above it used too, so most cells need no hashing (4 lattice values each).
+  class LatticeCells {
+   public:
+    LatticeCells() : cells_(kSize), last_(&cells_[0]) {}
+    // The cell (x, y, z) of `seed`, its values kept if it was used last or is still held,
+    // else emptied for them.
+    LatticeCell& at(int32_t x, int32_t y, int32_t z, uint32_t seed) {
+      if (last_->x == x && last_->y == y && last_->z == z && last_->seed == seed) return *last_;
+      const uint32_t slot =
+          (static_cast<uint32_t>(x) * 0x9E3779B1u ^ static_cast<uint32_t>(y) * 0x85EBCA77u ^
+           static_cast<uint32_t>(z) * 0xC2B2AE3Du ^ seed) >>
+          (32 - kBits);
+      last_ = &cells_[slot];
+      if (last_->x != x || last_->y != y || last_->z != z || last_->seed != seed) {
+        *last_ = {.x = x, .y = y, .z = z, .seed = seed};
+      }
+      return *last_;
+    }
+
+   private:
+    static constexpr int kBits = 12;
+    static constexpr size_t kSize = size_t{1} << kBits;
+    std::vector<LatticeCell> cells_;
+    LatticeCell* last_;
+  };
+
+  // One octave (lattice spacing in metres) at `p`: it fades to its mean (0.5) between lattice
+  // spacings of two and one footprints (band-limiting, as procedural textures are anti-aliased),
+  // and is not evaluated once gone.
+  static float octave(double spacing_m, const common::Vec3& p, double footprint_m, uint32_t seed,
+                      LatticeCells& cells) {
+    double weight = 1.0;  // comparisons first: most points need no division
+    if (footprint_m >= spacing_m) {
+      weight = 0.0;
+    } else if (2 * footprint_m > spacing_m) {
+      weight = spacing_m / footprint_m - 1.0;
+    }
+    if (weight == 0) return 0.5f;
+    const double scale = 1.0 / spacing_m;
+    const float value = valueNoise(p.x() * scale, p.y() * scale, p.z() * scale, seed, cells);
+    return weight == 1 ? value : 0.5f + static_cast<float>(weight) * (value - 0.5f);
+  }
+
+  // Trilinear value noise in [0, 1] with unit lattice spacing at (x, y, z), with the lattice
+  // values of `cells` (an octave's).
+  static float valueNoise(double x, double y, double z, uint32_t seed, LatticeCells& cells) {
+    using detail::lattice;
+    using detail::lerp;
+    const int32_t ix = detail::floorInt(x), iy = detail::floorInt(y), iz = detail::floorInt(z);
+    const float tx = static_cast<float>(x - ix), ty = static_cast<float>(y - iy),
+                tz = static_cast<float>(z - iz);
+    LatticeCell& cell = cells.at(ix, iy, iz, seed);
+    if (!cell.lower) {
+      cell.corner = {lattice(ix, iy, iz, seed), lattice(ix + 1, iy, iz, seed),
+                     lattice(ix, iy + 1, iz, seed), lattice(ix + 1, iy + 1, iz, seed)};
+      cell.lower = true;
+    }
+    const std::array<float, 8>& c = cell.corner;
+    const float lower = lerp(lerp(c[0], c[1], tx), lerp(c[2], c[3], tx), ty);
+    // On a lattice plane (a deck's top at z = 0) the layer above has no weight: lerp(lower,
+    // upper, 0) is `lower` to the bit, so skipping it changes nothing but the time.
+    if (tz == 0) return lower;
+    if (!cell.upper) {
+      cell.corner[4] = lattice(ix, iy, iz + 1, seed);
+      cell.corner[5] = lattice(ix + 1, iy, iz + 1, seed);
+      cell.corner[6] = lattice(ix, iy + 1, iz + 1, seed);
+      cell.corner[7] = lattice(ix + 1, iy + 1, iz + 1, seed);
+      cell.upper = true;
+    }
+    return lerp(lower, lerp(lerp(c[4], c[5], tx), lerp(c[6], c[7], tx), ty), tz);
+  }
+
+  // The markings' paint at `p` on box `box`'s top face: sets `albedo` where one is painted and
+  // multiplies `shade` by each shadow over it.
+  void paint(int box, const common::Vec3& p, float& albedo, float& shade) const;
+
+  const Scene& scene_;
+  std::vector<Eigen::AlignedBox2d> paint_bounds_;  // per box: around all its markings' paint
+  std::array<LatticeCells, 2> octaves_;            // fine, coarse
+};
+
+}  // namespace stereomap::sim
