@@ -1,8 +1,10 @@
 #include "onboard/sim/renderer.hpp"
 
 #include <algorithm>
+#include <array>
 #include <bit>
 #include <cmath>
+#include <cstring>
 #include <functional>
 #include <limits>
 #include <memory>
@@ -13,6 +15,7 @@
 #include <random>
 
 #include "common/statistics.hpp"
+#include "onboard/sim/detail/lanes.hpp"
 #include "onboard/sim/surface_shader.hpp"
 
 namespace stereomap::sim {
@@ -56,8 +59,11 @@ class ViewRays {
     double bound2;
     int index;           // in the scene
     int u_begin, u_end;  // the columns of its image rectangle
-    // box.min - origin and box.max - origin: Scene::entryDistance's slab offsets, once a view.
+    // box.min - origin and box.max - origin: Scene::entryDistance's slab offsets, once a view;
+    // and in floats, for the first pass's four lanes.
     Vec3 lo, hi;
+    std::array<float, 3> lo_f, hi_f, min_f, max_f;  // min_f, max_f: box.min, box.max
+    float albedo;
   };
 
   ViewRays(const Scene& scene, const camera::StereoCamera& camera, const Rigid3& T_map_camera,
@@ -76,7 +82,12 @@ class ViewRays {
                              .u_begin = rect.x,
                              .u_end = rect.x + rect.width,
                              .lo = box.min - origin_,
-                             .hi = box.max - origin_});
+                             .hi = box.max - origin_,
+                             .lo_f = toFloats(box.min - origin_),
+                             .hi_f = toFloats(box.max - origin_),
+                             .min_f = toFloats(box.min),
+                             .max_f = toFloats(box.max),
+                             .albedo = box.albedo});
       rows_.emplace_back(rect.y, rect.y + rect.height);
     }
   }
@@ -132,6 +143,10 @@ class ViewRays {
   }
   const Vec3& origin() const { return origin_; }
   const Eigen::Matrix3d& rotation() const { return R_; }
+  double maxDepth() const { return max_depth_; }
+  static std::array<float, 3> toFloats(const Vec3& v) {
+    return {static_cast<float>(v.x()), static_cast<float>(v.y()), static_cast<float>(v.z())};
+  }
 
  private:
   const camera::StereoCamera& camera_;
@@ -156,13 +171,17 @@ class AntiAliasedView {
       : scene_(scene),
         camera_(camera),
         s_(options.supersample),
+        lanes_(options.lanes),
         // A ring of one pixel around the image is sampled too: an edge just outside a border
         // pixel's centre shows there.
         rays_(scene, camera, T_map_camera, options.max_depth,
               cv::Rect(-1, -1, camera.width + 2, camera.height + 2)),
         T_camera_map_(T_map_camera.inverse()),
         ray_per_u_(rays_.rotation().col(0) / camera.fx),
-        ray_per_v_(rays_.rotation().col(1) / camera.fy) {}
+        ray_per_v_(rays_.rotation().col(1) / camera.fy),
+        origin_f_(ViewRays::toFloats(rays_.origin())),
+        ray_per_u_f_(ViewRays::toFloats(ray_per_u_)),
+        ray_per_v_f_(ViewRays::toFloats(ray_per_v_)) {}
 
   // The image and, if `depth` is given, the depth at the pixel centres.
   void render(cv::Mat& image, cv::Mat* depth) const {
@@ -182,6 +201,10 @@ class AntiAliasedView {
         const size_t row = static_cast<size_t>(v + 1) * stride + 1;
         float* depth_row =
             depth != nullptr && v >= 0 && v < height ? depth->ptr<float>(v) : nullptr;
+        if (lanes_) {
+          firstPassRow(row_direction, boxes, shader, &grey[row - 1], &key[row - 1], depth_row);
+          continue;
+        }
         for (int u = -1; u <= width; ++u) {
           const Sample sample = trace(row_direction + u * ray_per_u_, u, boxes, shader);
           grey[row + u] = sample.grey;
@@ -190,26 +213,45 @@ class AntiAliasedView {
         }
       }
     });
-    const cv::Mat corners = cornerPixels();
     // Second pass: a pixel whose centre differs in box or paint from any of its 8 neighbours'
     // has an edge within it (for a straight edge, always), as has one beside a corner. A box or
     // a stripe of paint narrower than a pixel can fall between the centres and be missed.
+    // A 3 x 3 block differs from its centre where any two neighbours in it differ: each centre
+    // compared with its right and lower neighbours once, in bytes that a row ORs together.
+    cv::Mat edges = cornerPixels();
+    const auto across = std::make_unique_for_overwrite<uint8_t[]>(grid);  // either side of it
+    const auto down = std::make_unique_for_overwrite<uint8_t[]>(grid);    // it or a side, below
+    cv::parallel_for_(cv::Range(0, height + 2), [&](const cv::Range& rows) {
+      std::vector<uint8_t> right(stride);
+      for (int g = rows.start; g < rows.end; ++g) {
+        const uint64_t* k = &key[static_cast<size_t>(g) * stride];
+        for (int c = 0; c + 1 < stride; ++c) right[c] = k[c] != k[c + 1];
+        uint8_t* a = &across[static_cast<size_t>(g) * stride];
+        uint8_t* d = &down[static_cast<size_t>(g) * stride];
+        for (int c = 1; c + 1 < stride; ++c) a[c] = right[c - 1] | right[c];
+        if (g == height + 1) continue;
+        for (int c = 0; c < stride; ++c) right[c] = k[c] != k[c + stride];
+        for (int c = 1; c + 1 < stride; ++c) d[c] = right[c - 1] | right[c] | right[c + 1];
+      }
+    });
+    for (int v = 0; v < height; ++v) {
+      uint8_t* e = edges.ptr<uint8_t>(v);
+      const size_t row = static_cast<size_t>(v + 1) * stride + 1;  // pixel 0's centre
+      for (int u = 0; u < width; ++u) {
+        const size_t i = row + u;
+        e[u] |= across[i - stride] | across[i] | across[i + stride] | down[i - stride] | down[i];
+      }
+    }
     cv::parallel_for_(cv::Range(0, height), [&](const cv::Range& rows) {
       std::vector<ViewRays::Candidate> boxes;
       SurfaceShader shader(scene_);
       for (int v = rows.start; v < rows.end; ++v) {
         rays_.boxesInRow(v, boxes);
         uint8_t* image_row = image.ptr<uint8_t>(v);
-        const uint8_t* corner_row = corners.ptr<uint8_t>(v);
-        const size_t row = static_cast<size_t>(v + 1) * stride + 1;
+        const uint8_t* edge_row = edges.ptr<uint8_t>(v);
+        const float* grey_row = &grey[static_cast<size_t>(v + 1) * stride + 1];
         for (int u = 0; u < width; ++u) {
-          const size_t i = row + u;
-          const uint64_t k = key[i];
-          const bool edge = corner_row[u] != 0 || key[i - 1] != k || key[i + 1] != k ||
-                            key[i - stride - 1] != k || key[i - stride] != k ||
-                            key[i - stride + 1] != k || key[i + stride - 1] != k ||
-                            key[i + stride] != k || key[i + stride + 1] != k;
-          const float value = edge ? supersampled(u, v, boxes, shader) : grey[i];
+          const float value = edge_row[u] != 0 ? supersampled(u, v, boxes, shader) : grey_row[u];
           image_row[u] = static_cast<uint8_t>(value + 0.5f);
         }
       }
@@ -222,6 +264,113 @@ class AntiAliasedView {
     uint64_t key = 0;  // box and paint (0: sky); a change in it is an edge
     float depth = 0;
   };
+
+  // The first pass's row whose ray at column 0 goes along `row_direction`: columns -1 to width,
+  // `grey` and `key` from column -1, `depth` (if given) from column 0. Four neighbouring
+  // columns at a time in floats, as trace() gives each in doubles: the same box and face
+  // (but within a float's rounding of an edge, which the second pass then supersamples), the
+  // same key, the grey within a float's rounding (callgrind: trace() took about 700
+  // instructions a ray).
+  void firstPassRow(const Vec3& row_direction, const std::vector<ViewRays::Candidate>& boxes,
+                    SurfaceShader& shader, float* grey, uint64_t* key, float* depth) const {
+    using namespace detail;
+    const int width = camera_.width;
+    const std::array<float, 3> r = ViewRays::toFloats(row_direction);
+    const std::array<float, 3>& du = ray_per_u_f_;
+    for (int u0 = -1; u0 <= width; u0 += 4) {
+      const F4 u = toFloat(splat(u0) + I4{0, 1, 2, 3});
+      const Lanes lanes = trace4(r[0] + u * du[0], r[1] + u * du[1], r[2] + u * du[2], u, u0,
+                                 u0 + 3, boxes, shader);
+      if (u0 + 3 <= width) {
+        std::memcpy(&grey[u0 + 1], &lanes.grey, sizeof(lanes.grey));
+      } else {
+        for (int l = 0; u0 + l <= width; ++l) grey[u0 + l + 1] = lanes.grey[l];
+      }
+      for (int l = 0; l < 4 && u0 + l <= width; ++l) {
+        key[u0 + l + 1] = lanes.box[l] >= 0 ? (static_cast<uint64_t>(lanes.box[l] + 1) << 32) |
+                                                  std::bit_cast<uint32_t>(lanes.albedo[l])
+                                            : 0;
+      }
+      if (depth != nullptr) {
+        if (u0 >= 0 && u0 + 3 < width) {
+          std::memcpy(&depth[u0], &lanes.depth, sizeof(lanes.depth));
+        } else {
+          for (int l = 0; l < 4; ++l) {
+            if (u0 + l >= 0 && u0 + l < width) depth[u0 + l] = lanes.depth[l];
+          }
+        }
+      }
+    }
+  }
+
+  // Four rays (lanes), each through a point of its pixel column `u`, along (dx, dy, dz): as
+  // trace() on each, in floats (within a float's rounding of it).
+  struct Lanes {
+    detail::F4 grey, albedo, depth;  // depth 0 and grey the sky's where nothing is hit
+    detail::I4 box;                  // -1: nothing hit
+  };
+  [[gnu::always_inline]] Lanes trace4(detail::F4 dx, detail::F4 dy, detail::F4 dz, detail::F4 u,
+                                      int u_first, int u_last,
+                                      const std::vector<ViewRays::Candidate>& boxes,
+                                      SurfaceShader& shader) const {
+    using namespace detail;
+    const std::array<float, 3>&o = origin_f_, &du = ray_per_u_f_, &dv = ray_per_v_f_;
+    const F4 ix = 1.0f / dx, iy = 1.0f / dy, iz = 1.0f / dz;
+    const F4 length2 = dx * dx + dy * dy + dz * dz;
+    F4 best_t = splat(static_cast<float>(rays_.maxDepth()));
+    I4 best = splat(-1), axis = splat(0);
+    F4 face = splat(0.0f), albedo = splat(0.0f);    // the hit face's coordinate, its albedo
+    for (const ViewRays::Candidate& box : boxes) {  // as ViewRays::cast, in lanes
+      const F4 reach2 = best_t * best_t * length2;
+      if (box.bound2 > std::max(std::max(reach2[0], reach2[1]), std::max(reach2[2], reach2[3])))
+        break;
+      if (box.u_end <= u_first || box.u_begin > u_last) continue;
+      const F4 ax = box.lo_f[0] * ix, bx = box.hi_f[0] * ix;
+      const F4 ay = box.lo_f[1] * iy, by = box.hi_f[1] * iy;
+      const F4 az = box.lo_f[2] * iz, bz = box.hi_f[2] * iz;
+      const F4 nx = detail::min(ax, bx), ny = detail::min(ay, by), nz = detail::min(az, bz);
+      const F4 t = detail::max(detail::max(nx, ny), nz);
+      const F4 t_far =
+          detail::min(detail::min(detail::max(ax, bx), detail::max(ay, by)), detail::max(az, bz));
+      const I4 index = splat(box.index);
+      const I4 better = (u >= static_cast<float>(box.u_begin)) &
+                        (u < static_cast<float>(box.u_end)) & (t > 0.0f) & (t <= t_far) &
+                        ((t < best_t) | ((t == best_t) & (index > best)));
+      if (!any(better)) continue;
+      best_t = select(better, t, best_t);
+      best = select(better, index, best);
+      // The face entered last, and its coordinate (the box's near side along that axis).
+      const I4 along_x = (nx >= ny) & (nx >= nz), along_y = ~along_x & (ny >= nz);
+      axis = select(better, select(along_x, splat(0), select(along_y, splat(1), splat(2))), axis);
+      const F4 face_x = select(dx > 0.0f, splat(box.min_f[0]), splat(box.max_f[0]));
+      const F4 face_y = select(dy > 0.0f, splat(box.min_f[1]), splat(box.max_f[1]));
+      const F4 face_z = select(dz > 0.0f, splat(box.min_f[2]), splat(box.max_f[2]));
+      face = select(better, select(along_x, face_x, select(along_y, face_y, face_z)), face);
+      albedo = select(better, splat(box.albedo), albedo);
+    }
+    // The hits put on their faces exactly, as trace() does.
+    const I4 hit = best >= 0;
+    const F4 px = select(axis == 0, face, o[0] + best_t * dx);
+    const F4 py = select(axis == 1, face, o[1] + best_t * dy);
+    const F4 pz = select(axis == 2, face, o[2] + best_t * dz);
+    const I4 top = hit & (axis == 2) & (dz < 0.0f);
+    // The footprint, as trace(): step - (step[axis] / direction[axis]) direction per pixel.
+    const F4 inverse_along = select(axis == 0, ix, select(axis == 1, iy, iz));
+    auto along2 = [&](const std::array<float, 3>& step) {
+      const F4 s =
+          select(axis == 0, splat(step[0]), select(axis == 1, splat(step[1]), splat(step[2]))) *
+          inverse_along;
+      const F4 x = step[0] - s * dx, y = step[1] - s * dy, z = step[2] - s * dz;
+      return x * x + y * y + z * z;
+    };
+    const F4 footprint = best_t * detail::sqrt(detail::max(along2(du), along2(dv)));
+    Lanes lanes{.grey = splat(static_cast<float>(kSkyGrey)),
+                .albedo = albedo,
+                .depth = select(hit, best_t, splat(0.0f)),
+                .box = best};
+    if (any(hit)) shader.shade4(px, py, pz, best, top, footprint, lanes.grey, lanes.albedo);
+    return lanes;
+  }
 
   // The ray of pixel column `pixel_u` going along `direction`.
   Sample trace(const Vec3& direction, int pixel_u, const std::vector<ViewRays::Candidate>& boxes,
@@ -255,14 +404,31 @@ class AntiAliasedView {
   // larger; the texture stays band-limited to this pixel's footprint, not the finer one's.
   float supersampled(int u, int v, const std::vector<ViewRays::Candidate>& boxes,
                      SurfaceShader& shader) const {
+    const int n = s_ * s_;
+    auto direction = [&](int k) {  // ray k of n, row by row
+      return rays_.direction(u + (k % s_ + 0.5) / s_ - 0.5, v + (k / s_ + 0.5) / s_ - 0.5);
+    };
     float sum = 0;
-    for (int j = 0; j < s_; ++j) {
-      for (int i = 0; i < s_; ++i) {
-        const Vec3 direction = rays_.direction(u + (i + 0.5) / s_ - 0.5, v + (j + 0.5) / s_ - 0.5);
-        sum += trace(direction, u, boxes, shader).grey;
-      }
+    if (!lanes_) {
+      for (int k = 0; k < n; ++k) sum += trace(direction(k), u, boxes, shader).grey;
+      return sum / static_cast<float>(n);
     }
-    return sum / static_cast<float>(s_ * s_);
+    // Four rays at a time (the last four padded with copies of its first), summed in order.
+    using namespace detail;
+    for (int first = 0; first < n; first += 4) {
+      alignas(16) std::array<std::array<float, 4>, 3> d;
+      for (int l = 0; l < 4; ++l) {
+        const auto ray = ViewRays::toFloats(direction(first + l < n ? first + l : first));
+        for (int c = 0; c < 3; ++c) d[c][l] = ray[c];
+      }
+      F4 dx, dy, dz;
+      std::memcpy(&dx, d[0].data(), sizeof(dx));
+      std::memcpy(&dy, d[1].data(), sizeof(dy));
+      std::memcpy(&dz, d[2].data(), sizeof(dz));
+      const Lanes lanes = trace4(dx, dy, dz, splat(static_cast<float>(u)), u, u, boxes, shader);
+      for (int l = 0; l < 4 && first + l < n; ++l) sum += lanes.grey[l];
+    }
+    return sum / static_cast<float>(n);
   }
 
   // Non-zero at and around (3 x 3) the pixels holding a box's corner or a marking's vertex: a
@@ -292,9 +458,11 @@ class AntiAliasedView {
   const Scene& scene_;
   const camera::StereoCamera& camera_;
   const int s_;
+  const bool lanes_;
   const ViewRays rays_;
   const Rigid3 T_camera_map_;
   const Vec3 ray_per_u_, ray_per_v_;  // the ray's change per pixel (map frame)
+  const std::array<float, 3> origin_f_, ray_per_u_f_, ray_per_v_f_;  // the same in floats
 };
 
 }  // namespace

@@ -286,6 +286,31 @@ TEST(Renderer, AntiAliasedDeckAgreesWithBruteForceSupersampling) {
   }
 }
 
+// The first pass in four lanes of floats (the default) against the reference in doubles, over
+// the deck descent (clean camera, so only the rendering differs): the same images but for a
+// float's rounding. Measured: 0.012 % of pixels differ, none by more than 1 grey level but at a
+// box's edge (one pixel in 3 million by 9: one of its 9 rays on the other side).
+TEST(Renderer, LanesAgreeWithTheReferenceInDoubles) {
+  int64_t pixels = 0, differ = 0, far_off = 0;
+  for (const double t : {0.0, 20.0, 40.0, 58.0}) {
+    cv::Mat image[2];
+    for (const bool lanes : {true, false}) {
+      DeckSourceOptions options{.max_frames = 1, .start_s = t};
+      options.render.camera = CameraModel::clean();
+      options.render.lanes = lanes;
+      DeckSource source(options);
+      image[lanes ? 0 : 1] = source.next()->left;
+    }
+    cv::Mat difference;
+    cv::absdiff(image[0], image[1], difference);
+    pixels += difference.total();
+    differ += cv::countNonZero(difference > 0);
+    far_off += cv::countNonZero(difference > 1);
+  }
+  EXPECT_LT(differ, pixels / 2000);  // 0.05 %
+  EXPECT_LE(far_off, 4);
+}
+
 TEST(Flight, StaysInsideTheRoomAndClearOfObstacles) {
   for (uint32_t seed : {1u, 2u, 3u}) {
     const Scene room = Scene::makeRoom({.seed = seed});

@@ -9,8 +9,10 @@
 #include <algorithm>
 #include <array>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
+#include "onboard/sim/detail/lanes.hpp"
 #include "onboard/sim/scene.hpp"
 
 namespace stereomap::sim {
@@ -36,6 +38,25 @@ inline uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
 // The noise's value at a lattice point, in [0, 1].
 inline float lattice(int32_t x, int32_t y, int32_t z, uint32_t seed) {
   return static_cast<float>(hash3(x, y, z, seed) & 0xFFFFu) * (1.0f / 65535.0f);
+}
+
+// hash3 and lattice in lanes.
+inline U4 hash3(U4 x, U4 y, U4 z, U4 seed) {
+  U4 h = seed * 0x9E3779B1u;
+  h ^= x * 0x85EBCA77u;
+  h = (h << 13) | (h >> 19);
+  h ^= y * 0xC2B2AE3Du;
+  h = (h << 13) | (h >> 19);
+  h ^= z * 0x27D4EB2Fu;
+  h ^= h >> 16;
+  h *= 0x85EBCA6Bu;
+  h ^= h >> 13;
+  h *= 0xC2B2AE35u;
+  h ^= h >> 16;
+  return h;
+}
+inline F4 lattice4(U4 x, U4 y, U4 z, U4 seed) {
+  return toFloat(reinterpret_cast<I4>(hash3(x, y, z, seed) & 0xFFFFu)) * (1.0f / 65535.0f);
 }
 
 inline float lerp(float a, float b, float t) { return a + (b - a) * t; }
@@ -81,10 +102,36 @@ class SurfaceShader {
     return {.grey = std::clamp(value * 255.0f, 0.0f, 255.0f), .albedo = albedo};
   }
 
+  // Four points at once (the renderer's first pass), in floats: shade() of each within the
+  // rounding of a float (the texture within a hundredth of a grey level; the albedo exact).
+  // Lanes whose `box` is negative are left as they are in `grey` and `albedo`; the others' come
+  // in `albedo` as their box's. `top`: the lanes on their box's top face (where paint may be).
+  void shade4(detail::F4 x, detail::F4 y, detail::F4 z, detail::I4 box, detail::I4 top,
+              detail::F4 footprint_m, detail::F4& grey, detail::F4& albedo) {
+    using namespace detail;
+    const I4 hit = box >= 0;
+    const uint32_t seed = scene_.texture_seed_ * 131u;  // plus the box, as in shade()
+    const F4 fine = octave4(0.06f, x, y, z, footprint_m, seed, 0, box, hit);
+    const F4 coarse = octave4(0.25f, x, y, z, footprint_m, seed, 0x5bd1e995u, box, hit);
+    if (any(top)) {
+      alignas(16) std::array<float, 4> painted;
+      std::memcpy(painted.data(), &albedo, sizeof(albedo));
+      for (int l = 0; l < 4; ++l) {
+        if (top[l] == 0 || !paint_bounds_[box[l]].contains(Eigen::Vector2d(x[l], y[l]))) continue;
+        float shade = 1.0f;
+        paint(box[l], common::Vec3(x[l], y[l], z[l]), painted[l], shade);
+        painted[l] *= shade;
+      }
+      std::memcpy(&albedo, painted.data(), sizeof(albedo));
+    }
+    const F4 value = albedo * (0.25f + 0.45f * fine + 0.55f * coarse);
+    grey = select(hit, detail::min(detail::max(value * 255.0f, splat(0.0f)), splat(255.0f)), grey);
+  }
+
  private:
   // The value noise's lattice values around one cell: the layer at z (corners 0-3) and the
   // layer at z + 1 (corners 4-7), each filled when a point first needs it.
-  struct LatticeCell {
+  struct alignas(64) LatticeCell {  // a cache line each
     int32_t x = 0, y = 0, z = 0;
     uint32_t seed = 0;
     bool lower = false, upper = false;
@@ -111,7 +158,7 @@ class SurfaceShader {
     }
 
    private:
-    static constexpr int kBits = 12;
+    static constexpr int kBits = 10;
     static constexpr size_t kSize = size_t{1} << kBits;
     std::vector<LatticeCell> cells_;
     LatticeCell* last_;
@@ -137,31 +184,88 @@ class SurfaceShader {
   // Trilinear value noise in [0, 1] with unit lattice spacing at (x, y, z), with the lattice
   // values of `cells` (an octave's).
   static float valueNoise(double x, double y, double z, uint32_t seed, LatticeCells& cells) {
-    using detail::lattice;
     using detail::lerp;
     const int32_t ix = detail::floorInt(x), iy = detail::floorInt(y), iz = detail::floorInt(z);
     const float tx = static_cast<float>(x - ix), ty = static_cast<float>(y - iy),
                 tz = static_cast<float>(z - iz);
     LatticeCell& cell = cells.at(ix, iy, iz, seed);
-    if (!cell.lower) {
-      cell.corner = {lattice(ix, iy, iz, seed), lattice(ix + 1, iy, iz, seed),
-                     lattice(ix, iy + 1, iz, seed), lattice(ix + 1, iy + 1, iz, seed)};
-      cell.lower = true;
-    }
+    fillLower(cell);
     const std::array<float, 8>& c = cell.corner;
     const float lower = lerp(lerp(c[0], c[1], tx), lerp(c[2], c[3], tx), ty);
     // On a lattice plane (a deck's top at z = 0) the layer above has no weight: lerp(lower,
     // upper, 0) is `lower` to the bit, so skipping it changes nothing but the time.
     if (tz == 0) return lower;
-    if (!cell.upper) {
-      cell.corner[4] = lattice(ix, iy, iz + 1, seed);
-      cell.corner[5] = lattice(ix + 1, iy, iz + 1, seed);
-      cell.corner[6] = lattice(ix, iy + 1, iz + 1, seed);
-      cell.corner[7] = lattice(ix + 1, iy + 1, iz + 1, seed);
-      cell.upper = true;
-    }
+    fillUpper(cell);
     return lerp(lower, lerp(lerp(c[4], c[5], tx), lerp(c[6], c[7], tx), ty), tz);
   }
+  // A cell's lattice values at its z (corners 0-3) and z + 1 (4-7), hashed when first needed.
+  static void fillLower(LatticeCell& cell) {
+    if (cell.lower) return;
+    using detail::lattice;
+    const int32_t x = cell.x, y = cell.y, z = cell.z;
+    const uint32_t seed = cell.seed;
+    cell.corner[0] = lattice(x, y, z, seed);
+    cell.corner[1] = lattice(x + 1, y, z, seed);
+    cell.corner[2] = lattice(x, y + 1, z, seed);
+    cell.corner[3] = lattice(x + 1, y + 1, z, seed);
+    cell.lower = true;
+  }
+  static void fillUpper(LatticeCell& cell) {
+    if (cell.upper) return;
+    using detail::lattice;
+    const int32_t x = cell.x, y = cell.y, z = cell.z + 1;
+    const uint32_t seed = cell.seed;
+    cell.corner[4] = lattice(x, y, z, seed);
+    cell.corner[5] = lattice(x + 1, y, z, seed);
+    cell.corner[6] = lattice(x, y + 1, z, seed);
+    cell.corner[7] = lattice(x + 1, y + 1, z, seed);
+    cell.upper = true;
+  }
+
+  // octave() on four lanes in floats; `active`: the lanes to evaluate.
+  // A lane's seed is (seed + its box) ^ seed_xor, as shade()'s.
+  static detail::F4 octave4(float spacing_m, detail::F4 x, detail::F4 y, detail::F4 z,
+                            detail::F4 footprint_m, uint32_t seed, uint32_t seed_xor,
+                            detail::I4 box, detail::I4 active) {
+    using namespace detail;
+    const F4 spacing = splat(spacing_m);
+    const F4 weight =
+        select(footprint_m >= spacing, splat(0.0f),
+               select(2.0f * footprint_m > spacing, spacing / footprint_m - 1.0f, splat(1.0f)));
+    active &= weight != 0.0f;
+    if (!any(active)) return splat(0.5f);
+    const U4 seeds = (seed + reinterpret_cast<U4>(box)) ^ seed_xor;
+    const float scale = static_cast<float>(1.0 / spacing_m);
+    const F4 value = valueNoise4(x * scale, y * scale, z * scale, seeds, active);
+    return select(weight == 1.0f, value, 0.5f + weight * (value - 0.5f));
+  }
+
+  // valueNoise() on four lanes in floats; a lane not `active` gives 0.5.
+  static detail::F4 valueNoise4(detail::F4 x, detail::F4 y, detail::F4 z, detail::U4 seed,
+                                detail::I4 active) {
+    using namespace detail;
+    const I4 ix = floorInt(x), iy = floorInt(y), iz = floorInt(z);
+    const F4 tx = x - toFloat(ix), ty = y - toFloat(iy), tz = z - toFloat(iz);
+    // The lattice values hashed in lanes, each lane its own cell's corner: without branches,
+    // faster than looking the cells up (whose misses a row's lanes cannot predict).
+    const U4 x0 = reinterpret_cast<U4>(ix), y0 = reinterpret_cast<U4>(iy),
+             z0 = reinterpret_cast<U4>(iz);
+    const F4 lower =
+        lerp4(lerp4(lattice4(x0, y0, z0, seed), lattice4(x0 + 1, y0, z0, seed), tx),
+              lerp4(lattice4(x0, y0 + 1, z0, seed), lattice4(x0 + 1, y0 + 1, z0, seed), tx), ty);
+    // On a lattice plane (a deck's top) the layer above has no weight, as in valueNoise().
+    const I4 flat = tz == 0.0f;
+    F4 value = lower;
+    if (!all(flat | ~active)) {
+      const U4 z1 = z0 + 1;
+      const F4 upper =
+          lerp4(lerp4(lattice4(x0, y0, z1, seed), lattice4(x0 + 1, y0, z1, seed), tx),
+                lerp4(lattice4(x0, y0 + 1, z1, seed), lattice4(x0 + 1, y0 + 1, z1, seed), tx), ty);
+      value = select(flat, lower, lerp4(lower, upper, tz));
+    }
+    return select(active, value, splat(0.5f));
+  }
+  static detail::F4 lerp4(detail::F4 a, detail::F4 b, detail::F4 t) { return a + (b - a) * t; }
 
   // The markings' paint at `p` on box `box`'s top face: sets `albedo` where one is painted and
   // multiplies `shade` by each shadow over it.
