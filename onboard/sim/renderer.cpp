@@ -271,8 +271,10 @@ class AntiAliasedView {
   // (but within a float's rounding of an edge, which the second pass then supersamples), the
   // same key, the grey within a float's rounding (callgrind: trace() took about 700
   // instructions a ray).
-  void firstPassRow(const Vec3& row_direction, const std::vector<ViewRays::Candidate>& boxes,
-                    SurfaceShader& shader, float* grey, uint64_t* key, float* depth) const {
+  STEREOMAP_LANES_CLONES void firstPassRow(const Vec3& row_direction,
+                                           const std::vector<ViewRays::Candidate>& boxes,
+                                           SurfaceShader& shader, float* grey, uint64_t* key,
+                                           float* depth) const {
     using namespace detail;
     const int width = camera_.width;
     const std::array<float, 3> r = ViewRays::toFloats(row_direction);

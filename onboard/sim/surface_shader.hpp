@@ -106,8 +106,9 @@ class SurfaceShader {
   // rounding of a float (the texture within a hundredth of a grey level; the albedo exact).
   // Lanes whose `box` is negative are left as they are in `grey` and `albedo`; the others' come
   // in `albedo` as their box's. `top`: the lanes on their box's top face (where paint may be).
-  void shade4(detail::F4 x, detail::F4 y, detail::F4 z, detail::I4 box, detail::I4 top,
-              detail::F4 footprint_m, detail::F4& grey, detail::F4& albedo) {
+  STEREOMAP_LANES_CLONES void shade4(detail::F4 x, detail::F4 y, detail::F4 z, detail::I4 box,
+                                     detail::I4 top, detail::F4 footprint_m, detail::F4& grey,
+                                     detail::F4& albedo) {
     using namespace detail;
     const I4 hit = box >= 0;
     const uint32_t seed = scene_.texture_seed_ * 131u;  // plus the box, as in shade()
