@@ -19,13 +19,15 @@ namespace stereomap::sim {
 
 namespace detail {
 
-inline uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
-  uint32_t h = seed * 0x9E3779B1u;
-  h ^= static_cast<uint32_t>(x) * 0x85EBCA77u;
+// A lattice point's hash: of one point (uint32_t) or of four in lanes (U4), the same bits.
+template <class U>
+inline U hash3(U x, U y, U z, U seed) {
+  U h = seed * 0x9E3779B1u;
+  h ^= x * 0x85EBCA77u;
   h = (h << 13) | (h >> 19);
-  h ^= static_cast<uint32_t>(y) * 0xC2B2AE3Du;
+  h ^= y * 0xC2B2AE3Du;
   h = (h << 13) | (h >> 19);
-  h ^= static_cast<uint32_t>(z) * 0x27D4EB2Fu;
+  h ^= z * 0x27D4EB2Fu;
   // murmur3 finaliser
   h ^= h >> 16;
   h *= 0x85EBCA6Bu;
@@ -37,24 +39,12 @@ inline uint32_t hash3(int32_t x, int32_t y, int32_t z, uint32_t seed) {
 
 // The noise's value at a lattice point, in [0, 1].
 inline float lattice(int32_t x, int32_t y, int32_t z, uint32_t seed) {
-  return static_cast<float>(hash3(x, y, z, seed) & 0xFFFFu) * (1.0f / 65535.0f);
+  return static_cast<float>(hash3(static_cast<uint32_t>(x), static_cast<uint32_t>(y),
+                                  static_cast<uint32_t>(z), seed) &
+                            0xFFFFu) *
+         (1.0f / 65535.0f);
 }
-
-// hash3 and lattice in lanes.
-inline U4 hash3(U4 x, U4 y, U4 z, U4 seed) {
-  U4 h = seed * 0x9E3779B1u;
-  h ^= x * 0x85EBCA77u;
-  h = (h << 13) | (h >> 19);
-  h ^= y * 0xC2B2AE3Du;
-  h = (h << 13) | (h >> 19);
-  h ^= z * 0x27D4EB2Fu;
-  h ^= h >> 16;
-  h *= 0x85EBCA6Bu;
-  h ^= h >> 13;
-  h *= 0xC2B2AE35u;
-  h ^= h >> 16;
-  return h;
-}
+// The same in lanes.
 inline F4 lattice4(U4 x, U4 y, U4 z, U4 seed) {
   return toFloat(reinterpret_cast<I4>(hash3(x, y, z, seed) & 0xFFFFu)) * (1.0f / 65535.0f);
 }
