@@ -125,18 +125,22 @@ class SurfaceShader {
   struct alignas(64) LatticeCell {  // a cache line each
     int32_t x = 0, y = 0, z = 0;
     uint32_t seed = 0;
-    bool lower = false, upper = false;
+    std::array<bool, 2> filled{};  // the layers at z and z + 1
     std::array<float, 8> corner{};
   };
   // The cells an octave used last, direct-mapped: a row of pixels steps through cells that the
   // rows above it used too, so most cells need no hashing (4 lattice values each).
   class LatticeCells {
    public:
-    LatticeCells() : cells_(kSize), last_(&cells_[0]) {}
+    LatticeCells() = default;
+    LatticeCells(const LatticeCells&) = delete;  // last_ may point at its own none_
+    LatticeCells& operator=(const LatticeCells&) = delete;
     // The cell (x, y, z) of `seed`, its values kept if it was used last or is still held,
-    // else emptied for them.
+    // else emptied for them. The table is made on the first cell asked for: a shader whose
+    // points all go through shade4() never needs it.
     LatticeCell& at(int32_t x, int32_t y, int32_t z, uint32_t seed) {
       if (last_->x == x && last_->y == y && last_->z == z && last_->seed == seed) return *last_;
+      if (cells_.empty()) cells_.resize(kSize);
       const uint32_t slot =
           (static_cast<uint32_t>(x) * 0x9E3779B1u ^ static_cast<uint32_t>(y) * 0x85EBCA77u ^
            static_cast<uint32_t>(z) * 0xC2B2AE3Du ^ seed) >>
@@ -152,7 +156,8 @@ class SurfaceShader {
     static constexpr int kBits = 10;
     static constexpr size_t kSize = size_t{1} << kBits;
     std::vector<LatticeCell> cells_;
-    LatticeCell* last_;
+    LatticeCell none_;  // matches (0, 0, 0, seed 0) with nothing filled, as an empty slot does
+    LatticeCell* last_ = &none_;
   };
 
   // One octave (lattice spacing in metres) at `p`: it fades to its mean (0.5) between lattice
@@ -180,37 +185,27 @@ class SurfaceShader {
     const float tx = static_cast<float>(x - ix), ty = static_cast<float>(y - iy),
                 tz = static_cast<float>(z - iz);
     LatticeCell& cell = cells.at(ix, iy, iz, seed);
-    fillLower(cell);
+    fillLayer(cell, 0);
     const std::array<float, 8>& c = cell.corner;
     const float lower = lerp(lerp(c[0], c[1], tx), lerp(c[2], c[3], tx), ty);
     // On a lattice plane (a deck's top at z = 0) the layer above has no weight: lerp(lower,
     // upper, 0) is `lower` to the bit, so skipping it changes nothing but the time.
     if (tz == 0) return lower;
-    fillUpper(cell);
+    fillLayer(cell, 1);
     return lerp(lower, lerp(lerp(c[4], c[5], tx), lerp(c[6], c[7], tx), ty), tz);
   }
-  // A cell's lattice values at its z (corners 0-3) and z + 1 (4-7), hashed when first needed.
-  static void fillLower(LatticeCell& cell) {
-    if (cell.lower) return;
+  // A cell's lattice values on layer 0 (its z: corners 0-3) or 1 (z + 1: corners 4-7), hashed
+  // when first needed.
+  static void fillLayer(LatticeCell& cell, int layer) {
+    if (cell.filled[layer]) return;
     using detail::lattice;
-    const int32_t x = cell.x, y = cell.y, z = cell.z;
-    const uint32_t seed = cell.seed;
-    cell.corner[0] = lattice(x, y, z, seed);
-    cell.corner[1] = lattice(x + 1, y, z, seed);
-    cell.corner[2] = lattice(x, y + 1, z, seed);
-    cell.corner[3] = lattice(x + 1, y + 1, z, seed);
-    cell.lower = true;
-  }
-  static void fillUpper(LatticeCell& cell) {
-    if (cell.upper) return;
-    using detail::lattice;
-    const int32_t x = cell.x, y = cell.y, z = cell.z + 1;
-    const uint32_t seed = cell.seed;
-    cell.corner[4] = lattice(x, y, z, seed);
-    cell.corner[5] = lattice(x + 1, y, z, seed);
-    cell.corner[6] = lattice(x, y + 1, z, seed);
-    cell.corner[7] = lattice(x + 1, y + 1, z, seed);
-    cell.upper = true;
+    const int32_t x = cell.x, y = cell.y, z = cell.z + layer;
+    float* corner = &cell.corner[4 * layer];
+    corner[0] = lattice(x, y, z, cell.seed);
+    corner[1] = lattice(x + 1, y, z, cell.seed);
+    corner[2] = lattice(x, y + 1, z, cell.seed);
+    corner[3] = lattice(x + 1, y + 1, z, cell.seed);
+    cell.filled[layer] = true;
   }
 
   // octave() on four lanes in floats; `active`: the lanes to evaluate.
