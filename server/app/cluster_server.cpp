@@ -59,7 +59,9 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   admin.attach(**db, advertise);
   (*http_server)->start();
   auto node =
-      cluster::ClusterNode::start({.default_resolution = flags.options.resolution, .admin = &admin},
+      cluster::ClusterNode::start({.default_resolution = flags.options.resolution,
+                                   .admin = &admin,
+                                   .on_superseded = [&shutdown] { shutdown.requestStop(); }},
                                   **db, **journal, server, participant);
   if (!node) return fail(node.error());
   spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
@@ -70,6 +72,13 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
 
   serveUntilStopped(flags, server, nullptr, **http_server, shutdown);
 
+  if ((*node)->superseded()) {
+    // Restarted elsewhere under the same id: that process serves this id's sessions now.
+    (*node)->stop();
+    (*http_server)->stop();
+    spdlog::error("stopped: superseded by a newer process with server id '{}'", (*db)->serverId());
+    return 1;
+  }
   spdlog::info("stopping (signal {}): handing this server's sessions back to the cluster",
                shutdown.signal());
   (*node)->stop();

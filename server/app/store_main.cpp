@@ -477,7 +477,8 @@ int runInCluster(const Command& command, const Args& a) {
   std::fflush(stdout);
   auto map = store::readImportableMap(a.map_file);
   if (!map) return fail(map.error().message);
-  auto db = cluster::PgConnection::connect(a.cluster_url);
+  // A whole map goes up in one statement: tens of MB on a slow link.
+  auto db = cluster::PgConnection::connect(a.cluster_url, {.deadline = std::chrono::minutes(2)});
   if (!db) return fail(db.error().message);
   if (auto imported = cluster::importSession(**db, a.id, map->resolution, map->ot); !imported) {
     return fail(imported.error().message);

@@ -3,7 +3,9 @@
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <iterator>
 #include <random>
+#include <span>
 
 #include "server/cluster/snapshot_codec.hpp"
 #include "server/core/validate.hpp"
@@ -15,11 +17,14 @@ using common::makeError;
 
 namespace {
 
-// Version 1 of the cluster's schema. Each statement is idempotent. The fencing trigger reads
-// the session's row FOR SHARE: a takeover (UPDATE of the epoch) waits for a write that
-// passed the check to commit, and a write after it sees the new epoch; so no row with a
-// stale epoch commits after a takeover.
-constexpr const char* kSchema[] = {
+// The cluster's schema, one list of statements per version; a database is brought from the
+// version it has to the newest, each version's statements once (migrateSchema). Version 1 is
+// the schema of the first clusters, whose databases have no sm_schema table.
+//
+// The fencing trigger reads the session's row FOR SHARE: a takeover (UPDATE of the epoch)
+// waits for a write that passed the check to commit, and a write after it sees the new epoch;
+// so no row with a stale epoch commits after a takeover.
+constexpr const char* kVersion1[] = {
     R"(CREATE TABLE IF NOT EXISTS sm_servers (
          id text PRIMARY KEY,
          http text NOT NULL,
@@ -66,6 +71,17 @@ constexpr const char* kSchema[] = {
     R"(CREATE OR REPLACE TRIGGER sm_snapshots_fence BEFORE INSERT ON sm_snapshots
          FOR EACH ROW EXECUTE FUNCTION sm_fence())",
 };
+// Version 2: each server process registers with an incarnation of its own, so that a process
+// started again under the same id is told from the one before it (ClusterDb::adopt).
+constexpr const char* kVersion2[] = {
+    R"(ALTER TABLE sm_servers ADD COLUMN IF NOT EXISTS incarnation text NOT NULL DEFAULT '')",
+};
+
+struct SchemaVersion {
+  int version;
+  std::span<const char* const> statements;
+};
+constexpr SchemaVersion kSchemaVersions[] = {{1, kVersion1}, {2, kVersion2}};
 
 // The advisory lock key that serialises schema creation between servers ("smschema").
 constexpr int64_t kSchemaLock = 0x736d736368656d61;
@@ -82,6 +98,15 @@ std::string madeUpServerId() {
          std::to_string(random() % 100000);
 }
 
+// What tells this process from another started under the same server id.
+std::string madeUpIncarnation() {
+  std::random_device random;
+  char text[40];
+  std::snprintf(text, sizeof(text), "%d-%08x%08x", static_cast<int>(::getpid()), random(),
+                random());
+  return text;
+}
+
 std::string interval(std::chrono::milliseconds span) {
   return std::to_string(span.count()) + " milliseconds";
 }
@@ -92,19 +117,72 @@ Ownership ownershipAt(const PgResult& rows, int row) {
 
 }  // namespace
 
+int latestSchemaVersion() { return std::end(kSchemaVersions)[-1].version; }
+
+common::Result<int> schemaVersion(PgConnection& db) {
+  // No sm_schema: version 1 when its tables are there (the first clusters), else none (0).
+  auto tables = db.exec(
+      "SELECT to_regclass('sm_schema') IS NOT NULL, to_regclass('sm_sessions') IS NOT NULL");
+  if (!tables) return tables.error();
+  if (tables->text(0, 0) != "t") return tables->text(0, 1) == "t" ? 1 : 0;
+  auto stored = db.exec("SELECT max(version) FROM sm_schema");
+  if (!stored) return stored.error();
+  return static_cast<int>(stored->integer(0, 0));
+}
+
 common::Status migrateSchema(PgConnection& db) {
-  if (auto begun = db.exec("BEGIN"); !begun) return begun.error();
-  auto fail = [&](const common::Error& error) -> common::Status {
-    (void)db.exec("ROLLBACK");
-    return makeError(error.code, "cannot create the cluster's schema: " + error.message);
+  const auto fail = [](const common::Error& error) -> common::Status {
+    return makeError(error.code, "cannot bring the cluster's schema up to date: " + error.message);
   };
+  // Read without a lock first: on a schema that is up to date (every start but the first
+  // after an upgrade) nothing is locked and no statement changes a table.
+  auto version = schemaVersion(db);
+  if (!version) return fail(version.error());
+  const auto newer = [&](int found) -> common::Status {
+    return makeError(ErrorCode::kConflict,
+                     "the cluster's database has schema version " + std::to_string(found) +
+                         ", newer than this server's " + std::to_string(latestSchemaVersion()) +
+                         ": run the newer stereomap-server");
+  };
+  if (*version > latestSchemaVersion()) return newer(*version);
+  if (*version == latestSchemaVersion()) return common::Ok{};
+
+  if (auto begun = db.exec("BEGIN"); !begun) return fail(begun.error());
+  auto rollback = [&](const common::Error& error) -> common::Status {
+    (void)db.exec("ROLLBACK");
+    return fail(error);
+  };
+  // One server at a time; the others find the new version once this one commits.
   if (auto locked = db.exec("SELECT pg_advisory_xact_lock($1)", {kSchemaLock}); !locked) {
-    return fail(locked.error());
+    return rollback(locked.error());
   }
-  for (const char* statement : kSchema) {
-    if (auto done = db.exec(statement); !done) return fail(done.error());
+  version = schemaVersion(db);
+  if (!version) return rollback(version.error());
+  if (*version > latestSchemaVersion()) {
+    (void)db.exec("ROLLBACK");
+    return newer(*version);
+  }
+  const int from = *version;
+  for (const auto& step : kSchemaVersions) {
+    if (step.version <= from) continue;
+    for (const char* statement : step.statements) {
+      if (auto done = db.exec(statement); !done) return rollback(done.error());
+    }
+  }
+  for (const char* statement : {"CREATE TABLE IF NOT EXISTS sm_schema (version integer NOT NULL, "
+                                "upgraded_at timestamptz NOT NULL DEFAULT now())",
+                                "DELETE FROM sm_schema"}) {
+    if (auto done = db.exec(statement); !done) return rollback(done.error());
+  }
+  if (auto stored = db.exec("INSERT INTO sm_schema (version) VALUES ($1)", {latestSchemaVersion()});
+      !stored) {
+    return rollback(stored.error());
   }
   if (auto committed = db.exec("COMMIT"); !committed) return fail(committed.error());
+  if (from > 0) {
+    spdlog::info("cluster: the database's schema upgraded from version {} to {}", from,
+                 latestSchemaVersion());
+  }
   return common::Ok{};
 }
 
@@ -144,55 +222,112 @@ common::Result<std::unique_ptr<ClusterDb>> ClusterDb::open(const ClusterOptions&
         ErrorCode::kInvalidArgument,
         "server id '" + options.server_id + "' must be 1-64 letters, digits, '-', '_' or '.'");
   }
-  auto db = PgConnection::connect(options.url);
+  auto db = PgConnection::connect(options.url, controlOptions());
   if (!db) return db.error();
-  // A statement that waits on a lock held by a paused server must not wait with it.
-  for (const char* setting :
-       {"SET lock_timeout = '2s'", "SET idle_in_transaction_session_timeout = '5s'"}) {
-    if (auto set = (*db)->exec(setting); !set) return set.error();
-  }
   if (auto migrated = migrateSchema(**db); !migrated) return migrated.error();
-  auto cluster = std::unique_ptr<ClusterDb>(new ClusterDb(std::move(options), std::move(*db)));
+  auto lease = PgConnection::connect(options.url, leaseOptions(options.lease));
+  if (!lease) return lease.error();
+  auto cluster = std::unique_ptr<ClusterDb>(
+      new ClusterDb(std::move(options), std::move(*db), std::move(*lease)));
   if (auto registered = cluster->registerServer(); !registered) return registered.error();
   return cluster;
 }
 
-ClusterDb::ClusterDb(ClusterOptions options, std::unique_ptr<PgConnection> db)
-    : options_(std::move(options)), db_(std::move(db)) {}
+PgOptions ClusterDb::controlOptions() {
+  // Short statements on small tables: a second is long; a takeover's UPDATE may wait for a
+  // journal write that passed the fence (its FOR SHARE lock) to commit.
+  return {.connect_timeout = std::chrono::seconds(2),
+          .deadline = std::chrono::seconds(3),
+          .lock_timeout = std::chrono::seconds(2)};
+}
+
+PgOptions ClusterDb::leaseOptions(std::chrono::milliseconds lease) {
+  // A renewal that takes a quarter of the lease is a database in trouble: said within
+  // seconds (/healthz), long before the lease itself runs out. At least a second, so that
+  // one slow flush is not an outage.
+  const auto deadline = std::max<std::chrono::milliseconds>(std::chrono::seconds(1), lease / 4);
+  return {
+      .connect_timeout = std::chrono::seconds(2), .deadline = deadline, .lock_timeout = deadline};
+}
+
+ClusterDb::ClusterDb(ClusterOptions options, std::unique_ptr<PgConnection> db,
+                     std::unique_ptr<PgConnection> lease)
+    : options_(std::move(options)),
+      incarnation_(madeUpIncarnation()),
+      db_(std::move(db)),
+      lease_db_(std::move(lease)) {}
 
 common::Result<PgResult> ClusterDb::exec(std::string_view sql, const std::vector<PgParam>& params) {
   std::lock_guard lock(mutex_);
-  if (!db_->connected()) {
-    if (auto reconnected = db_->reconnect(); !reconnected) return reconnected.error();
-    for (const char* setting :
-         {"SET lock_timeout = '2s'", "SET idle_in_transaction_session_timeout = '5s'"}) {
-      if (auto set = db_->exec(setting); !set) return set.error();
-    }
+  return execOn(*db_, sql, params);
+}
+
+common::Result<PgResult> ClusterDb::execOn(PgConnection& db, std::string_view sql,
+                                           const std::vector<PgParam>& params) {
+  if (!db.connected()) {
+    if (auto reconnected = db.reconnect(); !reconnected) return reconnected.error();
   }
-  return db_->exec(sql, params);
+  auto result = db.exec(sql, params);
+  // A connection the database lost while idle (a restart) shows only when used: once more on
+  // a new one. Every statement here may run twice: each is one statement in its own
+  // transaction whose second run finds the first's outcome.
+  if (!result && !db.connected() && db.abandoned() == 0) {
+    if (auto reconnected = db.reconnect(); !reconnected) return reconnected.error();
+    result = db.exec(sql, params);
+  }
+  return result;
 }
 
 common::Status ClusterDb::registerServer() {
-  auto done = exec(
-      "INSERT INTO sm_servers (id, http, lease_until) VALUES ($1, $2, now() + $3::interval) "
-      "ON CONFLICT (id) DO UPDATE SET http = EXCLUDED.http, lease_until = EXCLUDED.lease_until",
-      {options_.server_id, options_.http, interval(options_.lease)});
+  // A process started again under the same id takes the row over with its own incarnation:
+  // the one before it (paused, cut off) can renew nothing and adopt nothing from then on.
+  std::lock_guard lock(lease_mutex_);
+  auto done = execOn(
+      *lease_db_,
+      "INSERT INTO sm_servers (id, http, lease_until, incarnation) "
+      "VALUES ($1, $2, now() + $3::interval, $4) "
+      "ON CONFLICT (id) DO UPDATE SET http = EXCLUDED.http, lease_until = EXCLUDED.lease_until, "
+      "incarnation = EXCLUDED.incarnation",
+      {options_.server_id, options_.http, interval(options_.lease), incarnation_});
   if (!done) return done.error();
   return common::Ok{};
 }
 
-common::Status ClusterDb::renewLease() {
-  auto renewed = exec(
-      "UPDATE sm_servers SET lease_until = now() + $2::interval "
-      "WHERE id = $1 AND lease_until > now()",
-      {options_.server_id, interval(options_.lease)});
+common::Result<ClusterDb::Lease> ClusterDb::renewLease() {
+  std::unique_lock lock(lease_mutex_);
+  auto renewed =
+      execOn(*lease_db_,
+             "UPDATE sm_servers v SET lease_until = now() + $3::interval "
+             "FROM (SELECT id, lease_until FROM sm_servers WHERE id = $1 AND incarnation = $2 "
+             "  FOR UPDATE) before "
+             "WHERE v.id = before.id RETURNING before.lease_until > now()",
+             {options_.server_id, incarnation_, interval(options_.lease)});
   if (!renewed) return renewed.error();
-  if (renewed->affected() == 1) return common::Ok{};
-  // Expired (or removed by an operator): back in the cluster, but what it owned may be gone.
-  if (auto registered = registerServer(); !registered) return registered.error();
-  return makeError(ErrorCode::kConflict,
-                   "this server's lease had run out (paused or cut off from the database); "
-                   "its sessions may have been taken by others");
+  // No row of this incarnation: another process registered under this id since.
+  if (renewed->rows() == 0) return Lease::kSuperseded;
+  if (renewed->text(0, 0) == "t") return Lease::kRenewed;
+  return Lease::kRenewedAfterExpiry;
+}
+
+common::Result<Ownership> ClusterDb::adopt(const Ownership& session) {
+  // The epoch rises with every adoption, by whichever process: a write of any earlier one
+  // (this server's own earlier process included) is fenced from now on. The UPDATE waits for
+  // a write that passed the fence to commit, so what is read after it is all there is.
+  auto adopted = exec(
+      "UPDATE sm_sessions s SET epoch = s.epoch + 1, owned_since = clock_timestamp() "
+      "FROM sm_servers v "
+      "WHERE s.id = $1 AND s.owner = $2 AND s.state = 'live' "
+      "AND v.id = $2 AND v.incarnation = $3 AND v.lease_until > now() "
+      "RETURNING s.id, s.owner, s.epoch, s.resolution",
+      {session.session, options_.server_id, incarnation_});
+  if (!adopted) return adopted.error();
+  if (adopted->rows() == 0) {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + session.session +
+                         "' is not this process's to adopt (another server or process has it, "
+                         "or this one's lease ran out)");
+  }
+  return ownershipAt(*adopted, 0);
 }
 
 common::Result<Ownership> ClusterDb::placeSession(const std::string& id, double resolution) {
@@ -241,9 +376,10 @@ common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
       "UPDATE sm_sessions SET owner = $1, epoch = epoch + 1, owned_since = clock_timestamp() "
       "WHERE id IN (SELECT s.id FROM sm_sessions s WHERE s.id IN (SELECT id FROM orphans) "
       "  ORDER BY s.id LIMIT (SELECT n FROM share) FOR UPDATE SKIP LOCKED) "
-      "AND EXISTS (SELECT 1 FROM sm_servers WHERE id = $1 AND lease_until > now()) "
+      "AND EXISTS (SELECT 1 FROM sm_servers WHERE id = $1 AND incarnation = $2 "
+      "  AND lease_until > now()) "
       "RETURNING id, owner, epoch, resolution",
-      {options_.server_id});
+      {options_.server_id, incarnation_});
   if (!taken) return taken.error();
   std::vector<Ownership> out;
   for (int i = 0; i < taken->rows(); ++i) out.push_back(ownershipAt(*taken, i));
@@ -302,7 +438,8 @@ common::Status ClusterDb::release(const Ownership& session, bool closed) {
 }
 
 common::Status ClusterDb::leave() {
-  auto done = exec("UPDATE sm_servers SET lease_until = now() WHERE id = $1", {options_.server_id});
+  auto done = exec("UPDATE sm_servers SET lease_until = now() WHERE id = $1 AND incarnation = $2",
+                   {options_.server_id, incarnation_});
   if (!done) return done.error();
   return common::Ok{};
 }

@@ -6,9 +6,15 @@
 // so an owner that was paused or cut off past its lease can commit nothing once another
 // server has taken its sessions.
 //
-// A server: open() (schema, registration), then every second renewLease(); every poll
-// placeSession() for sessions vehicles announce, owned() for what it must serve, and
-// takeOrphans() for the sessions of servers whose lease ran out.
+// Ownership is per incarnation: each process registers with an incarnation of its own (a
+// process started again under the same --server-id takes the id over), and the epoch rises
+// each time a process adopts a session, so that no two processes ever write at one epoch.
+//
+// A server: open() (schema, registration), then renewLease() on a thread of its own several
+// times per lease; every poll placeSession() for sessions vehicles announce, takeOrphans()
+// for the sessions of servers whose lease ran out, owned() for what it must serve, and
+// adopt() before serving one. Every call has a deadline (pg.hpp): a database that hangs makes
+// it fail with kUnavailable, never wait.
 #pragma once
 
 #include <chrono>
@@ -57,17 +63,26 @@ class ClusterDb {
   const std::string& serverId() const { return options_.server_id; }
   const ClusterOptions& options() const { return options_; }
 
-  // Extends this server's lease by options().lease from the database's now. kConflict when
-  // it had already run out (the server was paused or cut off: others may have taken its
-  // sessions; it registers again, and must check owned() before writing anything);
-  // kUnavailable when the database cannot be reached (reconnects at the next call).
-  common::Status renewLease();
+  // Extends this server's lease by options().lease from the database's now (on a connection of
+  // its own, so that no other statement delays it). kRenewedAfterExpiry when it had run out
+  // (the server was paused or cut off: others may have taken its sessions, and owned() says
+  // which are left); kSuperseded when another process registered under this server id since
+  // (this one must stop serving: it can adopt nothing, and its writes are fenced);
+  // kUnavailable when the database did not answer in time (reconnects at the next call).
+  enum class Lease { kRenewed, kRenewedAfterExpiry, kSuperseded };
+  common::Result<Lease> renewLease();
 
   // The owner of session `id`: placed on the least-loaded live server when it is new
   // (every server may call this for a session it hears of; one placement wins).
   common::Result<Ownership> placeSession(const std::string& id, double resolution);
   // The live sessions this server owns now.
   common::Result<std::vector<Ownership>> owned();
+  // Makes a session owned() by this server this process's to write, at an epoch raised by
+  // one; kConflict when it is not (another owner, another incarnation, or the lease ran out).
+  // What the database holds of the session must be read after this, never before.
+  common::Result<Ownership> adopt(const Ownership& session);
+  // This process's incarnation (unique per process).
+  const std::string& incarnation() const { return incarnation_; }
   // Takes live sessions whose owner's lease ran out (its fair share of them when several
   // servers are live), each with its epoch raised by one.
   common::Result<std::vector<Ownership>> takeOrphans();
@@ -83,17 +98,26 @@ class ClusterDb {
   // Gives up a session this server owns (closed, or its server stopping): no owner until
   // another takes it; refused (kConflict) when the epoch is stale.
   common::Status release(const Ownership& session, bool closed);
-  // Leaves the cluster: the lease ends now, so that others take the sessions at once.
+  // Leaves the cluster: the lease ends now, so that others take the sessions at once (unless
+  // another process has taken this server id over).
   common::Status leave();
 
  private:
-  explicit ClusterDb(ClusterOptions options, std::unique_ptr<PgConnection> db);
+  ClusterDb(ClusterOptions options, std::unique_ptr<PgConnection> db,
+            std::unique_ptr<PgConnection> lease);
+  static PgOptions controlOptions();
+  static PgOptions leaseOptions(std::chrono::milliseconds lease);
   common::Status registerServer();
-  // Runs one statement, reconnecting once when the connection had been lost.
+  // Runs one statement on db_, reconnecting once when the connection had been lost.
   common::Result<PgResult> exec(std::string_view sql, const std::vector<PgParam>& params);
+  static common::Result<PgResult> execOn(PgConnection& db, std::string_view sql,
+                                         const std::vector<PgParam>& params);
   ClusterOptions options_;
+  std::string incarnation_;
   std::mutex mutex_;  // one statement at a time on db_
   std::unique_ptr<PgConnection> db_;
+  std::mutex lease_mutex_;  // the lease's own connection
+  std::unique_ptr<PgConnection> lease_db_;
 };
 
 // Makes a map (OctoMap's full format) a new live session of the cluster: its snapshot of
@@ -103,8 +127,11 @@ class ClusterDb {
 common::Status importSession(PgConnection& db, const std::string& id, double resolution,
                              const std::string& ot);
 
-// Creates the cluster's tables, functions and triggers when missing (idempotent; serialised
-// between servers by an advisory lock).
+// Brings the cluster's schema to this build's version: nothing (no lock, no statement that
+// changes a table) when it is there already; otherwise, under an advisory lock that
+// serialises servers, each newer version's statements once, in one transaction. kConflict
+// when the database's version is newer than this build's.
 common::Status migrateSchema(PgConnection& db);
+int latestSchemaVersion();
 
 }  // namespace stereomap::cluster

@@ -78,8 +78,8 @@ TEST_F(ClusterDbTest, AServerWhoseLeaseRanOutLosesItsSessionsToTheSurvivorsWithA
   // a stops renewing (killed); b and c go on.
   const auto deadline = std::chrono::steady_clock::now() + 1500ms;
   while (std::chrono::steady_clock::now() < deadline) {
-    ASSERT_TRUE(b->renewLease());
-    ASSERT_TRUE(c->renewLease());
+    ASSERT_EQ(b->renewLease().value(), ClusterDb::Lease::kRenewed);
+    ASSERT_EQ(c->renewLease().value(), ClusterDb::Lease::kRenewed);
     std::this_thread::sleep_for(100ms);
   }
   auto by_b = b->takeOrphans();
@@ -96,12 +96,110 @@ TEST_F(ClusterDbTest, AServerWhoseLeaseRanOutLosesItsSessionsToTheSurvivorsWithA
   }
   // a comes back: its lease had run out, which it is told, and it owns nothing.
   auto renewed = a->renewLease();
-  ASSERT_FALSE(renewed);
-  EXPECT_EQ(renewed.error().code, common::ErrorCode::kConflict);
+  ASSERT_TRUE(renewed) << renewed.error().message;
+  EXPECT_EQ(*renewed, ClusterDb::Lease::kRenewedAfterExpiry);
   auto a_owns = a->owned();
   ASSERT_TRUE(a_owns);
   EXPECT_TRUE(a_owns->empty());
-  EXPECT_TRUE(a->renewLease()) << "registered again: renewals go on";
+  renewed = a->renewLease();
+  ASSERT_TRUE(renewed);
+  EXPECT_EQ(*renewed, ClusterDb::Lease::kRenewed) << "renewed in time: renewals go on";
+}
+
+// The fault that lost acknowledged samples: a server paused, a new process started under the
+// same id, the old one resumed. The new process supersedes the old: the old can neither renew,
+// nor adopt, nor end the new one's lease, and each adoption raises the epoch, so the two never
+// write at one epoch.
+TEST_F(ClusterDbTest, AProcessStartedAgainUnderTheSameIdSupersedesTheOldOne) {
+  auto old_process = openServer(url(), "a");
+  auto placed = old_process->placeSession("s", 0.1);
+  ASSERT_TRUE(placed);
+  auto old_adopted = old_process->adopt(*placed);
+  ASSERT_TRUE(old_adopted) << old_adopted.error().message;
+  EXPECT_EQ(old_adopted->epoch, 2) << "placed at 1, adopted at 2";
+
+  auto new_process = openServer(url(), "a");
+  EXPECT_NE(new_process->incarnation(), old_process->incarnation());
+  auto owned = new_process->owned();
+  ASSERT_TRUE(owned);
+  ASSERT_EQ(owned->size(), 1u) << "the server id's sessions";
+  auto new_adopted = new_process->adopt((*owned)[0]);
+  ASSERT_TRUE(new_adopted) << new_adopted.error().message;
+  EXPECT_EQ(new_adopted->epoch, 3) << "a new incarnation, a new epoch";
+
+  auto renewed = old_process->renewLease();
+  ASSERT_TRUE(renewed) << renewed.error().message;
+  EXPECT_EQ(*renewed, ClusterDb::Lease::kSuperseded);
+  auto again = old_process->adopt(*new_adopted);
+  ASSERT_FALSE(again) << "the old process cannot take the session back";
+  EXPECT_EQ(again.error().code, common::ErrorCode::kConflict);
+  EXPECT_TRUE(old_process->takeOrphans()->empty());
+  ASSERT_TRUE(old_process->leave());
+  renewed = new_process->renewLease();
+  ASSERT_TRUE(renewed);
+  EXPECT_EQ(*renewed, ClusterDb::Lease::kRenewed) << "the old one's leave() ended nothing";
+  auto owner = new_process->ownerOf("s");
+  ASSERT_TRUE(owner && owner->has_value());
+  EXPECT_EQ((*owner)->epoch, 3);
+}
+
+// A database with the first clusters' schema (no version table) is upgraded once, keeping
+// its rows; a start on an up-to-date schema takes no lock, so a busy journal (an open
+// transaction holding locks as ingest does) does not hold it up.
+TEST_F(ClusterDbTest, AnOldSchemaIsUpgradedOnceAndAnUpToDateOneIsNotLocked) {
+  auto admin = PgConnection::connect(url());
+  ASSERT_TRUE(admin) << admin.error().message;
+  for (const char* statement : {
+           "CREATE TABLE sm_servers (id text PRIMARY KEY, http text NOT NULL, "
+           "lease_until timestamptz NOT NULL, joined_at timestamptz NOT NULL DEFAULT now())",
+           "CREATE TABLE sm_sessions (id text PRIMARY KEY, owner text, epoch bigint NOT NULL, "
+           "resolution double precision NOT NULL, state text NOT NULL, created_at timestamptz "
+           "NOT NULL DEFAULT now(), owned_since timestamptz NOT NULL DEFAULT clock_timestamp())",
+           "CREATE TABLE sm_journal (session text NOT NULL REFERENCES sm_sessions (id) ON DELETE "
+           "CASCADE, number bigint NOT NULL, epoch bigint NOT NULL, kind smallint NOT NULL, "
+           "record bytea NOT NULL, committed_at timestamptz NOT NULL DEFAULT clock_timestamp(), "
+           "PRIMARY KEY (session, number))",
+           "CREATE TABLE sm_snapshots (session text NOT NULL REFERENCES sm_sessions (id) ON "
+           "DELETE CASCADE, number bigint NOT NULL, epoch bigint NOT NULL, map bytea NOT NULL, "
+           "PRIMARY KEY (session, number))",
+           "INSERT INTO sm_servers VALUES ('old', '127.0.0.1:1', now())",
+           "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
+           "VALUES ('flown', NULL, 4, 0.2, 'live')",
+           "INSERT INTO sm_journal (session, number, epoch, kind, record) "
+           "VALUES ('flown', 1, 4, 2, '\\x00')",
+       }) {
+    ASSERT_TRUE((*admin)->exec(statement)) << statement;
+  }
+  auto upgraded = openServer(url(), "a");
+  ASSERT_NE(upgraded, nullptr);
+  auto version = (*admin)->exec("SELECT version FROM sm_schema");
+  ASSERT_TRUE(version) << version.error().message;
+  EXPECT_EQ(version->integer(0, 0), latestSchemaVersion());
+  auto kept = (*admin)->exec(
+      "SELECT (SELECT count(*) FROM sm_journal), (SELECT epoch FROM sm_sessions WHERE id = "
+      "'flown'), (SELECT count(*) FROM sm_servers WHERE incarnation = '')");
+  ASSERT_TRUE(kept);
+  EXPECT_EQ(kept->integer(0, 0), 1);
+  EXPECT_EQ(kept->integer(0, 1), 4);
+  EXPECT_EQ(kept->integer(0, 2), 1) << "the old server's row, its incarnation empty";
+
+  // Ingest under way: a transaction holding the journal's and the sessions' row locks.
+  auto busy = PgConnection::connect(url());
+  ASSERT_TRUE(busy);
+  ASSERT_TRUE((*busy)->exec("BEGIN"));
+  ASSERT_TRUE((*busy)->exec("LOCK TABLE sm_journal, sm_snapshots IN ROW EXCLUSIVE MODE"));
+  ASSERT_TRUE((*busy)->exec("SELECT * FROM sm_sessions FOR SHARE"));
+  const auto started = std::chrono::steady_clock::now();
+  auto second = openServer(url(), "b");
+  EXPECT_NE(second, nullptr) << "a start on an up-to-date schema waits for no lock";
+  EXPECT_LT(std::chrono::steady_clock::now() - started, 1500ms);
+  ASSERT_TRUE((*busy)->exec("ROLLBACK"));
+
+  // A schema newer than this build is refused with what to do.
+  ASSERT_TRUE((*admin)->exec("UPDATE sm_schema SET version = version + 1"));
+  auto newer = ClusterDb::open({.url = url(), .server_id = "c"});
+  ASSERT_FALSE(newer);
+  EXPECT_NE(newer.error().message.find("newer"), std::string::npos) << newer.error().message;
 }
 
 TEST_F(ClusterDbTest, ReleasingNeedsTheCurrentEpoch) {

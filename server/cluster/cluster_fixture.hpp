@@ -1,5 +1,6 @@
 // One throwaway PostgreSQL per test suite (CTest runs each test case in its own process),
-// and a fresh database for each test. Tests skip (saying why) when PostgreSQL is not installed.
+// and a fresh database for each test. Tests fail (saying why) when PostgreSQL is not installed:
+// scripts/install-deps installs it, so its absence is a broken setup, never a silent pass.
 #pragma once
 
 #include <gtest/gtest.h>
@@ -25,7 +26,7 @@ class PostgresTest : public ::testing::Test {
 
  protected:
   void SetUp() override {
-    if (db_ == nullptr) GTEST_SKIP() << why_;
+    if (db_ == nullptr) GTEST_FAIL() << why_;
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
     database_ = "t" + std::to_string(++count_) + "_" + info->name();
     for (char& c : database_)

@@ -38,9 +38,14 @@ struct ClusterJournal::Pending {
 };
 
 common::Result<std::unique_ptr<ClusterJournal>> ClusterJournal::open(const std::string& url) {
-  auto writer = PgConnection::connect(url);
+  // A group of samples commits in milliseconds (a WAL flush): five seconds is a database in
+  // trouble, and its samples are refused (their vehicles keep them) rather than held.
+  auto writer = PgConnection::connect(
+      url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(5)});
   if (!writer) return writer.error();
-  auto reader = PgConnection::connect(url);
+  // Reads of a page of records and writes of a compressed snapshot (tens of MB) take longer.
+  auto reader = PgConnection::connect(
+      url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(30)});
   if (!reader) return reader.error();
   return std::unique_ptr<ClusterJournal>(
       new ClusterJournal(std::move(*writer), std::move(*reader), url));
@@ -146,7 +151,18 @@ void ClusterJournal::commitLoop() {
 common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows, std::string* state) {
   state->clear();
   if (!writer_->connected()) {
-    if (auto reconnected = writer_->reconnect(); !reconnected) return reconnected.error();
+    // A database known to be down refuses at once, so that samples arriving meanwhile are not
+    // each held for a connect timeout.
+    const auto now = std::chrono::steady_clock::now();
+    if (now < retry_connect_at_) {
+      return makeError(ErrorCode::kUnavailable,
+                       "the cluster's database is unreachable: " + unreachable_why_);
+    }
+    if (auto reconnected = writer_->reconnect(); !reconnected) {
+      retry_connect_at_ = now + std::chrono::milliseconds(500);
+      unreachable_why_ = reconnected.error().message;
+      return reconnected.error();
+    }
   }
   // Rows of an earlier group that may have committed unacknowledged: gone before these.
   std::map<std::string, std::pair<int64_t, uint64_t>> doubts;  // session -> (epoch, from)
@@ -225,14 +241,19 @@ void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
   std::string state;
   auto committed = insertRows(group, &state);
   std::vector<std::pair<std::string, std::string>> fenced;
-  if (!committed && state == kFencedState) {
-    // One session's stale epoch refused the whole group: each session again on its own, so
-    // that the others commit.
+  // A stale epoch, or a row another writer holds at a number this process gave: either way
+  // the session is another's now. Never a reason to delete rows (they are that writer's).
+  const auto another_writer = [](const std::string& sqlstate) {
+    return sqlstate == kFencedState || sqlstate == kUniqueViolationState;
+  };
+  if (!committed && another_writer(state)) {
+    // One session refused the whole group: each session again on its own, so that the others
+    // commit.
     std::map<std::string, std::vector<Pending*>> by_session;
     for (Pending* p : group) by_session[p->session].push_back(p);
     for (auto& [session, rows] : by_session) {
       auto alone = insertRows(rows, &state);
-      const bool stale = !alone && state == kFencedState;
+      const bool stale = !alone && another_writer(state);
       if (stale) fenced.emplace_back(session, alone.error().message);
       for (Pending* p : rows) {
         if (!alone) {
@@ -256,8 +277,10 @@ void ClusterJournal::commitGroup(std::vector<Pending*>& group) {
       if (p->error) {
         // Numbers are given back: nothing numbered after them was written meanwhile (this
         // thread alone numbers rows), so the journal keeps no gap. Whether the failed
-        // statement committed may be unknown (its answer lost with the connection): its rows
-        // are in doubt until the session's next write deletes them.
+        // statement committed may be unknown (its answer lost with the connection, or
+        // abandoned at its deadline): its rows are in doubt until the session's next write
+        // deletes them. They carry this adoption's epoch, which no other process writes at,
+        // and were never acknowledged.
         if (auto owned = owned_.find(p->session);
             owned != owned_.end() && owned->second.epoch == p->epoch) {
           owned->second.next_number = std::min(owned->second.next_number, p->number);

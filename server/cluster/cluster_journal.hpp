@@ -5,8 +5,13 @@
 // the database's commit (a WAL flush) is paid once per group, not per sample.
 //
 // Every row carries its session's ownership epoch; the database refuses a stale one
-// (cluster_db.hpp). A session whose write is refused that way is dropped here and reported
-// to onFenced(): the server must unload it, as another server owns it now.
+// (cluster_db.hpp). A session whose write is refused that way, or collides with a row another
+// writer holds, is dropped here and reported to onFenced(): the server must unload it, as
+// another server owns it now.
+//
+// Every statement has a deadline (pg.hpp), so append() waits a bounded time: a database that
+// hangs or cannot be reached makes appends fail with kUnavailable (at once while a reconnect
+// has just failed), and the samples are not acknowledged; their vehicles send them again.
 #pragma once
 
 #include <chrono>
@@ -119,6 +124,9 @@ class ClusterJournal : public core::IngestLog,
     uint64_t doubt_from = 0;
   };
   std::map<std::string, Owned> owned_;
+  // The commit thread's: when to try connecting again, and why the last try failed.
+  std::chrono::steady_clock::time_point retry_connect_at_{};
+  std::string unreachable_why_;
   std::deque<Pending*> waiting_;
   FencedCallback on_fenced_;
   bool stop_ = false;

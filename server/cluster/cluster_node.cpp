@@ -45,6 +45,7 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
   metrics.describe(kCommitGroups, "counter", "Commits (groups of samples) to the database");
   metrics.describe(kServed, "gauge", "Sessions this server serves in the cluster");
   node->reconcile();  // what this server owns already (a restart), before the first sample
+  node->lease_thread_ = std::thread([raw = node.get()] { raw->leaseLoop(); });
   node->control_ = std::thread([raw = node.get()] { raw->controlLoop(); });
   node->events_thread_ = std::thread([raw = node.get()] { raw->eventLoop(); });
   node->acks_thread_ = std::thread([raw = node.get()] {
@@ -85,9 +86,10 @@ void ClusterNode::stop() {
   }
   wake_.notify_all();
   if (events_) events_->wake();
-  for (auto* thread : {&control_, &events_thread_, &acks_thread_}) {
+  for (auto* thread : {&lease_thread_, &control_, &events_thread_, &acks_thread_}) {
     if (thread->joinable()) thread->join();
   }
+  if (superseded()) return;  // nothing here is this process's to hand back
   std::vector<std::string> ids;
   {
     std::lock_guard lock(mutex_);
@@ -117,8 +119,83 @@ std::map<std::string, int64_t> ClusterNode::served() const {
   return out;
 }
 
+bool ClusterNode::superseded() const {
+  std::lock_guard lock(mutex_);
+  return superseded_;
+}
+
 void ClusterNode::controlLoop() {
   while (sleepFor(options_.poll)) reconcile();
+}
+
+void ClusterNode::leaseLoop() {
+  const auto period =
+      std::max<std::chrono::milliseconds>(std::chrono::milliseconds(100), db_.options().lease / 4);
+  bool down = false;
+  do {
+    auto renewed = db_.renewLease();
+    if (!renewed) {
+      if (!down) {
+        spdlog::error("cluster: cannot renew this server's lease: {}", renewed.error().message);
+      }
+      down = true;
+      // Samples are refused meanwhile (their vehicles keep them); viewers are served from
+      // memory. /healthz says so until the database answers again.
+      server_.reportStoreProblem("the cluster's database does not answer: " +
+                                 renewed.error().message);
+      std::lock_guard lock(mutex_);
+      database_down_ = true;
+      continue;
+    }
+    if (*renewed == ClusterDb::Lease::kSuperseded) {
+      spdlog::error(
+          "cluster: another process has registered as server '{}' since this one started (it "
+          "was restarted while this one was paused or cut off); this process serves nothing "
+          "more and stops",
+          db_.serverId());
+      server_.reportStoreProblem("superseded by a newer process with this server id");
+      stepDown();
+      if (options_.on_superseded) options_.on_superseded();
+      return;
+    }
+    if (down) spdlog::info("cluster: the database answers again");
+    if (*renewed == ClusterDb::Lease::kRenewedAfterExpiry) {
+      spdlog::error(
+          "cluster: this server's lease had run out (it was paused, or the database did not "
+          "answer); its sessions may have been taken by others");
+    }
+    {
+      std::lock_guard lock(mutex_);
+      database_down_ = false;
+      if (down || *renewed == ClusterDb::Lease::kRenewedAfterExpiry) {
+        take_orphans_after_ = Clock::now() + db_.options().lease;
+      }
+    }
+    down = false;
+    // The store is the database: it answers, so it can be written (a sample refused while it
+    // did not would otherwise keep /healthz degraded until the next cloud).
+    server_.reportStoreOk();
+    wake_.notify_all();
+  } while (sleepFor(period));
+}
+
+void ClusterNode::stepDown() {
+  std::map<std::string, Served> all;
+  {
+    std::lock_guard lock(mutex_);
+    superseded_ = true;
+    all.swap(served_);
+  }
+  for (auto& [id, served] : all) {
+    if (served.ingest) {
+      served.ingest->stop();
+      served.ingest->join();
+    }
+    journal_.drop(id);
+    server_.unload(id);
+    server_.forget(id);
+    spdlog::warn("session '{}' (epoch {}) no longer served here: superseded", id, served.epoch);
+  }
 }
 
 void ClusterNode::eventLoop() {
@@ -163,27 +240,16 @@ void ClusterNode::reconcile() {
   }
   for (const auto& [id, why] : fenced) unserve(id, "fenced: another server owns it now");
 
-  // 2. The lease, about four times per lease.
-  const auto now = Clock::now();
-  if (now - last_renewal_ >= db_.options().lease / 4) {
-    auto renewed = db_.renewLease();
-    if (renewed || renewed.error().code == common::ErrorCode::kConflict) {
-      last_renewal_ = now;
-      if (!renewed) spdlog::error("cluster: {}", renewed.error().message);
-      if (database_down_) spdlog::info("cluster: the database is reachable again");
-      database_down_ = false;
-      // The store is the database: reachable, it can be written (a sample refused while it
-      // was not would otherwise keep /healthz degraded until the next cloud).
-      server_.reportStoreOk();
-    } else {
-      if (!database_down_) {
-        spdlog::error("cluster: cannot renew this server's lease: {}", renewed.error().message);
-      }
-      database_down_ = true;
-      server_.reportStoreProblem("the cluster's database cannot be reached: " +
-                                 renewed.error().message);
-      return;  // nothing else can be done without the database
+  // 2. Nothing without the database (the lease thread says when it answers again), nor
+  // once superseded.
+  bool take_orphans = false;
+  {
+    std::lock_guard lock(mutex_);
+    if (superseded_ || database_down_) {
+      for (auto& [id, resolution] : to_place) announced_.emplace(id, resolution);
+      return;
     }
+    take_orphans = Clock::now() >= take_orphans_after_;
   }
 
   // 3. Sessions vehicles announced: placed (on whichever server is least loaded).
@@ -200,7 +266,7 @@ void ClusterNode::reconcile() {
   }
 
   // 4. Orphans of servers whose lease ran out.
-  if (auto taken = db_.takeOrphans(); taken) {
+  if (auto taken = take_orphans ? db_.takeOrphans() : std::vector<Ownership>{}; taken) {
     for (const auto& session : *taken) {
       spdlog::info("cluster: took session '{}' (epoch {}) from a server whose lease ran out",
                    session.session, session.epoch);
@@ -232,7 +298,7 @@ void ClusterNode::reconcile() {
     bool serving = false;
     {
       std::lock_guard lock(mutex_);
-      serving = served_.contains(id) || stopping_;
+      serving = served_.contains(id) || stopping_ || superseded_;
     }
     if (!serving) serve(session);
   }
@@ -255,8 +321,16 @@ void ClusterNode::publishMetrics() {
   metrics.set(kServed, {}, static_cast<double>(served_.size()));
 }
 
-void ClusterNode::serve(const Ownership& owned) {
+void ClusterNode::serve(const Ownership& placed) {
   const auto started = Clock::now();
+  // This process's own epoch first: from here on no other (an earlier process under this
+  // server id included) commits a row, so what is read next is the whole session.
+  auto adopted = db_.adopt(placed);
+  if (!adopted) {
+    spdlog::warn("session '{}': not adopted: {}", placed.session, adopted.error().message);
+    return;  // next round
+  }
+  const Ownership& owned = *adopted;
   auto stored = journal_.read(owned.session);
   if (!stored) {
     spdlog::error("session '{}': cannot read it from the database: {}", owned.session,

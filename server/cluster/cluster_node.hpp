@@ -6,13 +6,20 @@
 // vehicle what is committed. A session it loses (fenced by the database, or found owned by
 // another) is unloaded: its readers, acknowledgements and map go.
 //
-// Threads: the control loop (every `poll`), the session events of every session (one
-// wildcard reader: they announce new sessions), the acknowledgements, and each owned
-// session's readers (ingest::DdsIngest).
+// Threads: the lease (renewed several times per lease on a connection of its own, never
+// behind recovery or a slow query; it also says whether the database answers, for /healthz),
+// the control loop (every `poll`), the session events of every session (one wildcard reader:
+// they announce new sessions), the acknowledgements, and each owned session's readers
+// (ingest::DdsIngest).
+//
+// A process that finds its server id taken over by a newer process (started again while this
+// one was paused or cut off) is superseded: it unloads every session at once, without
+// releasing any, and calls on_superseded (the server then exits).
 #pragma once
 
 #include <chrono>
 #include <condition_variable>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -33,6 +40,7 @@ struct ClusterNodeOptions {
   std::chrono::milliseconds poll{250};  // how often ownership is looked at
   double default_resolution = 0.1;      // for sessions announced without a hint
   ClusterAdmin* admin = nullptr;        // refreshed every round (the API's directory)
+  std::function<void()> on_superseded;  // from the lease thread, once
 };
 
 class ClusterNode {
@@ -50,6 +58,8 @@ class ClusterNode {
   void stop();
   // The sessions served now, with their epochs.
   std::map<std::string, int64_t> served() const;
+  // True once another process took this server id over.
+  bool superseded() const;
 
  private:
   struct Served {
@@ -60,6 +70,9 @@ class ClusterNode {
   ClusterNode(const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
               core::MapServer& server, std::shared_ptr<proto::Participant> participant);
   void controlLoop();
+  void leaseLoop();
+  // Unloads every session: another process has this server id now.
+  void stepDown();
   void eventLoop();
   // One round: the lease, placements, takeovers, and what this server owns now.
   void reconcile();
@@ -82,10 +95,14 @@ class ClusterNode {
   std::map<std::string, Served> served_;       // under mutex_
   std::map<std::string, double> announced_;    // sessions heard of, to place: resolution
   std::map<std::string, std::string> fenced_;  // sessions the database fenced: why
-  std::chrono::steady_clock::time_point last_renewal_{};
-  bool database_down_ = false;  // said once per outage
+  bool database_down_ = false;                 // under mutex_: the lease could not be renewed
+  bool superseded_ = false;                    // under mutex_
+  // Orphans are taken only after this: once a lease renewed late (the database hung, or this
+  // server was paused), every server's lease looks run out for a moment; the others get a
+  // whole lease to renew theirs before their sessions count as orphans.
+  std::chrono::steady_clock::time_point take_orphans_after_{};  // under mutex_
 
-  std::thread control_, events_thread_, acks_thread_;
+  std::thread control_, lease_thread_, events_thread_, acks_thread_;
 };
 
 }  // namespace stereomap::cluster

@@ -25,13 +25,15 @@ ClusterHarness::~ClusterHarness() {
   std::filesystem::remove_all(dir_, ec);
 }
 
-ServerProcess& ClusterHarness::startServer(int domain, const std::string& id, double lease_s) {
+ServerProcess& ClusterHarness::startServer(int domain, const std::string& id, double lease_s,
+                                           const std::string& name) {
   std::ostringstream lease;
   lease << lease_s;
-  servers_[id] = std::make_unique<ServerProcess>(
+  auto& server = servers_[name.empty() ? id : name];
+  server = std::make_unique<ServerProcess>(
       domain,
       std::vector<std::string>{"--cluster", db_->url(), "--server-id", id, "--lease", lease.str()});
-  return *servers_[id];
+  return *server;
 }
 
 bool ClusterHarness::startNginx(std::string* why) {

@@ -21,8 +21,10 @@ class ClusterHarness {
   static std::unique_ptr<ClusterHarness> start(std::string* why);
   ~ClusterHarness();  // vehicles, nginx, servers, then the database
 
-  // A server named `id` on `domain`, with a lease of `lease_s` seconds.
-  ServerProcess& startServer(int domain, const std::string& id, double lease_s = 2);
+  // A server with --server-id `id` on `domain`, with a lease of `lease_s` seconds, known here
+  // as `name` (default: its id; another name for a second process under one id).
+  ServerProcess& startServer(int domain, const std::string& id, double lease_s = 2,
+                             const std::string& name = "");
   ServerProcess& server(const std::string& id) { return *servers_.at(id); }
   std::map<std::string, std::unique_ptr<ServerProcess>>& servers() { return servers_; }
   // nginx in front of every server started so far.

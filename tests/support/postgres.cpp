@@ -221,6 +221,19 @@ void TestPostgres::crash() {
   }
 }
 
+void TestPostgres::pause() {
+  if (!running()) return;
+  // The postmaster first, so that it starts no new backend meanwhile.
+  ::kill(postmaster_->pid(), SIGSTOP);
+  for (pid_t child : childrenOf(postmaster_->pid())) ::kill(child, SIGSTOP);
+}
+
+void TestPostgres::resume() {
+  if (!running()) return;
+  for (pid_t child : childrenOf(postmaster_->pid())) ::kill(child, SIGCONT);
+  ::kill(postmaster_->pid(), SIGCONT);
+}
+
 bool TestPostgres::restart(std::string* why) {
   if (running()) stop();
   return launch(why);

@@ -48,6 +48,10 @@ class TestPostgres {
   // and returns once their sockets are closed: a connection is certainly lost, and a statement
   // under way may have committed without its client hearing so.
   void crash();
+  // Every process of the database stopped (SIGSTOP), as a machine that hangs: connections stay
+  // open and new ones are accepted by the kernel, but nothing answers; resume() continues them.
+  void pause();
+  void resume();
   // Starts it again on the same directory and port; false when it does not come up.
   bool restart(std::string* why = nullptr);
 
