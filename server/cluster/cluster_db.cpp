@@ -77,11 +77,37 @@ constexpr const char* kVersion2[] = {
     R"(ALTER TABLE sm_servers ADD COLUMN IF NOT EXISTS incarnation text NOT NULL DEFAULT '')",
 };
 
+// Version 3: a cloud's row also holds its record without the payload, so that recovery reads
+// the frames a snapshot already holds as a few hundred bytes each, not as their clouds; and
+// the control plane's version counter, raised by every change of who owns what (never by a
+// lease renewal), so that a server's round reads one row instead of scanning the sessions.
+constexpr const char* kVersion3[] = {
+    R"(ALTER TABLE sm_journal ADD COLUMN IF NOT EXISTS meta bytea)",
+    R"(CREATE TABLE IF NOT EXISTS sm_version (
+         one boolean PRIMARY KEY DEFAULT true CHECK (one),
+         version bigint NOT NULL))",
+    R"(INSERT INTO sm_version (one, version) VALUES (true, 1) ON CONFLICT DO NOTHING)",
+    R"(CREATE OR REPLACE FUNCTION sm_bump() RETURNS trigger LANGUAGE plpgsql AS $$
+       BEGIN
+         UPDATE sm_version SET version = version + 1;
+         RETURN NULL;
+       END $$)",
+    R"(CREATE OR REPLACE TRIGGER sm_sessions_changed
+         AFTER INSERT OR DELETE OR UPDATE OF owner, epoch, state ON sm_sessions
+         FOR EACH STATEMENT EXECUTE FUNCTION sm_bump())",
+    R"(CREATE OR REPLACE TRIGGER sm_servers_changed
+         AFTER INSERT OR DELETE OR UPDATE OF http, incarnation ON sm_servers
+         FOR EACH STATEMENT EXECUTE FUNCTION sm_bump())",
+    // Sessions waiting for an owner (imported, handed back), found without a scan.
+    R"(CREATE INDEX IF NOT EXISTS sm_sessions_unowned ON sm_sessions (id)
+         WHERE owner IS NULL AND state = 'live')",
+};
+
 struct SchemaVersion {
   int version;
   std::span<const char* const> statements;
 };
-constexpr SchemaVersion kSchemaVersions[] = {{1, kVersion1}, {2, kVersion2}};
+constexpr SchemaVersion kSchemaVersions[] = {{1, kVersion1}, {2, kVersion2}, {3, kVersion3}};
 
 // The advisory lock key that serialises schema creation between servers ("smschema").
 constexpr int64_t kSchemaLock = 0x736d736368656d61;
@@ -361,6 +387,25 @@ common::Result<std::vector<Ownership>> ClusterDb::owned() {
   std::vector<Ownership> out;
   for (int i = 0; i < rows->rows(); ++i) out.push_back(ownershipAt(*rows, i));
   return out;
+}
+
+common::Result<ClusterDb::Round> ClusterDb::poll() {
+  // One row and two index probes: the servers whose lease ran out that still own live
+  // sessions (the servers' table is small; the sessions' owner index answers each), and the
+  // live sessions with no owner.
+  auto polled = exec(
+      "SELECT (SELECT version FROM sm_version), "
+      "EXISTS (SELECT 1 FROM sm_servers v WHERE v.lease_until <= now() AND EXISTS ("
+      "  SELECT 1 FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live')) "
+      "OR EXISTS (SELECT 1 FROM sm_sessions WHERE owner IS NULL AND state = 'live')",
+      {});
+  if (!polled) return polled.error();
+  return Round{polled->integer(0, 0), polled->text(0, 1) == "t"};
+}
+
+uint64_t ClusterDb::statements() const {
+  // Read without the connections' locks: a count for /metrics, exact enough.
+  return db_->statements() + lease_db_->statements();
 }
 
 common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {

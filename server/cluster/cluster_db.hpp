@@ -75,6 +75,17 @@ class ClusterDb {
   // The owner of session `id`: placed on the least-loaded live server when it is new
   // (every server may call this for a session it hears of; one placement wins).
   common::Result<Ownership> placeSession(const std::string& id, double resolution);
+  // What a control round needs to know, in one cheap statement: the cluster's version (raised
+  // by every change of owners, epochs, states or servers; a round with the same version as
+  // the last has nothing to read again) and whether any live session waits for an owner (its
+  // server's lease ran out, or it has none): only then is takeOrphans() worth its scan.
+  struct Round {
+    int64_t version = 0;
+    bool orphans = false;
+  };
+  common::Result<Round> poll();
+  // Statements this server has sent on its control and lease connections (for /metrics).
+  uint64_t statements() const;
   // The live sessions this server owns now.
   common::Result<std::vector<Ownership>> owned();
   // Makes a session owned() by this server this process's to write, at an epoch raised by

@@ -202,6 +202,34 @@ TEST_F(ClusterDbTest, AnOldSchemaIsUpgradedOnceAndAnUpToDateOneIsNotLocked) {
   EXPECT_NE(newer.error().message.find("newer"), std::string::npos) << newer.error().message;
 }
 
+// A control round reads one row: the version moves with every change of who owns what, never
+// with a lease renewal, and "orphans" says when takeOrphans() has something to take.
+TEST_F(ClusterDbTest, AControlRoundSeesChangesWithoutScanning) {
+  auto a = openServer(url(), "a", 500ms);
+  auto b = openServer(url(), "b", 500ms);
+  auto first = b->poll();
+  ASSERT_TRUE(first) << first.error().message;
+  EXPECT_FALSE(first->orphans);
+  ASSERT_EQ(b->renewLease().value(), ClusterDb::Lease::kRenewed);
+  EXPECT_EQ(b->poll()->version, first->version) << "a renewal changes nothing";
+  auto placed = a->placeSession("s", 0.1);
+  ASSERT_TRUE(placed);
+  const auto after_placement = b->poll()->version;
+  EXPECT_GT(after_placement, first->version);
+  ASSERT_TRUE(a->adopt(*placed));
+  EXPECT_GT(b->poll()->version, after_placement) << "an adoption is a change";
+  // a stops renewing: its session waits for an owner.
+  const auto deadline = std::chrono::steady_clock::now() + 800ms;
+  while (std::chrono::steady_clock::now() < deadline) {
+    ASSERT_TRUE(b->renewLease());
+    std::this_thread::sleep_for(100ms);
+  }
+  EXPECT_TRUE(b->poll()->orphans);
+  ASSERT_EQ(b->takeOrphans()->size(), 1u);
+  EXPECT_FALSE(b->poll()->orphans);
+  EXPECT_GT(b->statements(), 5u);
+}
+
 TEST_F(ClusterDbTest, ReleasingNeedsTheCurrentEpoch) {
   auto a = openServer(url(), "a");
   auto placed = a->placeSession("s", 0.1);

@@ -18,18 +18,36 @@ namespace {
 // The kind column: what a row holds, so that frames can be read without the rest.
 enum Kind : int { kCloud = 1, kPose = 2, kEvent = 3, kCorrection = 4 };
 
-// A group's bounds: PostgreSQL takes at most 65535 parameters (5 per row), and a group
+// A group's bounds: PostgreSQL takes at most 65535 parameters (6 per row), and a group
 // should not hold a commit up for long.
 constexpr size_t kMaxGroupRows = 2000;
 constexpr size_t kMaxGroupBytes = 32u << 20;
 constexpr int kFramesPerRead = 64;
+constexpr size_t kParamsPerRow = 6;
+// A page of records read for recovery or an export: at most this many rows and (but for a
+// first row larger than it) bytes, so that memory stays bounded whatever the clouds' size.
+constexpr int kRowsPerPage = 1024;
+constexpr int64_t kBytesPerPage = 8 << 20;
+
+// A cloud's record without its payload: what recovery needs of a frame a snapshot holds.
+std::vector<uint8_t> withoutPayload(const proto::CloudFrameMsg& frame) {
+  proto::CloudFrameMsg meta = frame;
+  std::vector<uint8_t>().swap(meta.payload);
+  return journal::encodeRecord(meta);
+}
 
 }  // namespace
+
+PgOptions ClusterJournal::readerOptions() {
+  // Pages of records (8 MB) and compressed snapshots (tens of MB) take longer than a group.
+  return {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(30)};
+}
 
 struct ClusterJournal::Pending {
   std::string session;
   int kind = 0;
   std::vector<uint8_t> record;
+  std::optional<std::vector<uint8_t>> meta;  // a cloud's record without its payload
   int64_t enqueued_ns = 0;
   int64_t epoch = 0;
   uint64_t number = 0;
@@ -44,8 +62,7 @@ common::Result<std::unique_ptr<ClusterJournal>> ClusterJournal::open(const std::
       url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(5)});
   if (!writer) return writer.error();
   // Reads of a page of records and writes of a compressed snapshot (tens of MB) take longer.
-  auto reader = PgConnection::connect(
-      url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(30)});
+  auto reader = PgConnection::connect(url, readerOptions());
   if (!reader) return reader.error();
   return std::unique_ptr<ClusterJournal>(
       new ClusterJournal(std::move(*writer), std::move(*reader), url));
@@ -90,7 +107,7 @@ void ClusterJournal::onFenced(FencedCallback callback) {
 }
 
 common::Result<uint64_t> ClusterJournal::append(const proto::CloudFrameMsg& frame) {
-  return appendRecord(frame.session_id, kCloud, frame);
+  return appendRecord(frame.session_id, kCloud, frame, withoutPayload(frame));
 }
 common::Result<uint64_t> ClusterJournal::append(const proto::PoseMsg& pose) {
   return appendRecord(pose.session_id, kPose, pose);
@@ -103,8 +120,9 @@ common::Result<uint64_t> ClusterJournal::append(const proto::PoseCorrectionMsg& 
 }
 
 common::Result<uint64_t> ClusterJournal::appendRecord(const std::string& session, int kind,
-                                                      const journal::JournalRecord& record) {
-  Pending pending{session, kind, journal::encodeRecord(record), common::nowNs()};
+                                                      const journal::JournalRecord& record,
+                                                      std::optional<std::vector<uint8_t>> meta) {
+  Pending pending{session, kind, journal::encodeRecord(record), std::move(meta), common::nowNs()};
   std::unique_lock lock(mutex_);
   if (!owned_.contains(session)) {
     return makeError(ErrorCode::kConflict,
@@ -176,13 +194,17 @@ common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows, std::stri
       }
     }
   }
-  std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record) VALUES ";
+  std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record, meta) VALUES ";
   std::vector<PgParam> params;
-  params.reserve(rows.size() * 5);
+  params.reserve(rows.size() * kParamsPerRow);
+  const auto bytes = [](const std::vector<uint8_t>& data) {
+    return PgParam::bytes(
+        std::string_view(reinterpret_cast<const char*>(data.data()), data.size()));
+  };
   for (size_t i = 0; i < rows.size(); ++i) {
-    const size_t p = i * 5;
+    const size_t p = i * kParamsPerRow;
     if (i > 0) sql += ',';
-    for (size_t k = 1; k <= 5; ++k) {
+    for (size_t k = 1; k <= kParamsPerRow; ++k) {
       sql += k == 1 ? "($" : ",$";
       sql += std::to_string(p + k);
     }
@@ -191,8 +213,8 @@ common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows, std::stri
     params.emplace_back(rows[i]->number);
     params.emplace_back(rows[i]->epoch);
     params.emplace_back(rows[i]->kind);
-    params.push_back(PgParam::bytes(std::string_view(
-        reinterpret_cast<const char*>(rows[i]->record.data()), rows[i]->record.size())));
+    params.push_back(bytes(rows[i]->record));
+    params.push_back(rows[i]->meta ? bytes(*rows[i]->meta) : PgParam::null());
   }
   if (doubts.empty()) {
     auto inserted = writer_->exec(sql, params);
@@ -376,23 +398,44 @@ common::Status ClusterJournal::saveSnapshot(const std::string& session, uint64_t
       "ON CONFLICT (session, number) DO UPDATE SET map = EXCLUDED.map, epoch = EXCLUDED.epoch",
       {session, journal_number, *epoch, PgParam::bytes(packSnapshot(ot))});
   if (!saved) return saved.error();
-  // The older ones are no longer needed: recovery starts from the newest.
-  auto pruned = readerExec("DELETE FROM sm_snapshots WHERE session = $1 AND number < $2",
-                           {session, journal_number});
+  // Recovery starts from the newest; the one before it is kept in case the newest cannot be
+  // read (the frames after it are whole in the journal).
+  auto pruned = readerExec(
+      "DELETE FROM sm_snapshots WHERE session = $1 AND number < (SELECT min(number) FROM ("
+      "  SELECT number FROM sm_snapshots WHERE session = $1 ORDER BY number DESC LIMIT 2) kept)",
+      {session});
   if (!pruned) return pruned.error();
   return common::Ok{};
 }
 
 common::Result<ClusterJournal::RecordScan> ClusterJournal::forEachRecord(
     const std::string& session,
-    const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit)
-    const {
+    const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit,
+    uint64_t without_payloads_up_to) const {
+  return scanRecords(
+      session, without_payloads_up_to,
+      [this](std::string_view sql, const std::vector<PgParam>& params) {
+        return readerExec(sql, params);
+      },
+      visit);
+}
+
+common::Result<ClusterJournal::RecordScan> ClusterJournal::scanRecords(
+    const std::string& session, uint64_t without_payloads_up_to, const Exec& exec,
+    const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit) {
   RecordScan scan;
+  // A page: up to kRowsPerPage rows, cut where their bytes pass kBytesPerPage (the first row
+  // always comes). Clouds up to `without_payloads_up_to` come as their meta when they have it.
+  constexpr const char* kPage =
+      "SELECT number, data FROM ("
+      "  SELECT number, data, sum(octet_length(data)) OVER (ORDER BY number) AS running, "
+      "    row_number() OVER (ORDER BY number) AS nth FROM ("
+      "    SELECT number, CASE WHEN kind = 1 AND number <= $3 AND meta IS NOT NULL THEN meta "
+      "      ELSE record END AS data "
+      "    FROM sm_journal WHERE session = $1 AND number > $2 ORDER BY number LIMIT $4) page"
+      ") sized WHERE nth = 1 OR running <= $5 ORDER BY number";
   for (uint64_t from = 0;;) {
-    auto rows = readerExec(
-        "SELECT number, record FROM sm_journal WHERE session = $1 AND number > $2 "
-        "ORDER BY number LIMIT 1024",
-        {session, from});
+    auto rows = exec(kPage, {session, from, without_payloads_up_to, kRowsPerPage, kBytesPerPage});
     if (!rows) return rows.error();
     if (rows->rows() == 0) return scan;
     for (int i = 0; i < rows->rows(); ++i) {
@@ -411,30 +454,40 @@ common::Result<ClusterJournal::RecordScan> ClusterJournal::forEachRecord(
 }
 
 common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
+  // A connection of its own: recoveries run side by side, and beside the reader's exports and
+  // snapshots.
+  auto db = PgConnection::connect(url_, readerOptions());
+  if (!db) return db.error();
+  const Exec exec = [&db](std::string_view sql, const std::vector<PgParam>& params) {
+    return (*db)->exec(sql, params);
+  };
   StoredSession stored;
-  auto snapshot = readerExec(
-      "SELECT number, map FROM sm_snapshots WHERE session = $1 ORDER BY number DESC LIMIT 1",
-      {session});
-  if (!snapshot) return snapshot.error();
-  if (snapshot->rows() == 1) {
-    auto ot = unpackSnapshot(snapshot->bytes(0, 1));
+  // The newest snapshot that can be read (the one before it when it cannot).
+  auto snapshots =
+      exec("SELECT number, map FROM sm_snapshots WHERE session = $1 ORDER BY number DESC LIMIT 2",
+           {session});
+  if (!snapshots) return snapshots.error();
+  for (int i = 0; i < snapshots->rows(); ++i) {
+    auto ot = unpackSnapshot(snapshots->bytes(i, 1));
     if (ot) {
-      stored.snapshot_number = static_cast<uint64_t>(snapshot->integer(0, 0));
+      stored.snapshot_number = static_cast<uint64_t>(snapshots->integer(i, 0));
       stored.snapshot = std::move(*ot);
-    } else {  // the journal alone then: slower, as complete
-      spdlog::warn("session '{}': its snapshot cannot be read ({}); replaying its whole journal",
-                   session, ot.error().message);
+      break;
     }
+    spdlog::warn("session '{}': its snapshot of record {} cannot be read ({}){}", session,
+                 snapshots->integer(i, 0), ot.error().message,
+                 i + 1 < snapshots->rows() ? "; trying the one before" : "");
   }
-  auto read = forEachRecord(session, [&](proto::journal::JournalRecord&& record, uint64_t number) {
-    // A frame the snapshot holds is counted, never fused: its payload is not kept.
-    if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
-        frame != nullptr && number <= stored.snapshot_number) {
-      std::vector<uint8_t>().swap(frame->payload);
-    }
-    stored.records.push_back(std::move(record));
-    stored.numbers.push_back(number);
-  });
+  // The frames the snapshot holds come without their payloads (counted, never fused again).
+  auto read = scanRecords(session, stored.snapshot_number, exec,
+                          [&](proto::journal::JournalRecord&& record, uint64_t number) {
+                            if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+                                frame != nullptr && number <= stored.snapshot_number) {
+                              std::vector<uint8_t>().swap(frame->payload);
+                            }
+                            stored.records.push_back(std::move(record));
+                            stored.numbers.push_back(number);
+                          });
   if (!read) return read.error();
   stored.last_number = read->last_number;
   stored.unreadable = read->unreadable;

@@ -53,18 +53,21 @@ class ClusterJournal : public core::IngestLog,
   static common::Result<std::unique_ptr<ClusterJournal>> open(const std::string& url);
   ~ClusterJournal() override;
 
-  // Reads what the database holds of `session` (for recovery after taking it).
+  // Reads what the database holds of `session` (for recovery after taking it), on a
+  // connection of its own (recoveries run side by side): the newest snapshot that can be read
+  // (of the two kept), and the records, the clouds that snapshot holds without their payloads.
   common::Result<StoredSession> read(const std::string& session);
-  // Every journal record of `session` in order, read a page at a time (an export: memory
-  // holds one page); rows that do not decode are skipped and counted.
+  // Every journal record of `session` in order, read a page at a time (bounded in rows and
+  // bytes: memory holds one page); rows that do not decode are skipped and counted. Clouds
+  // numbered up to `without_payloads_up_to` may come without their payloads.
   struct RecordScan {
     uint64_t last_number = 0;  // the last row's, readable or not
     uint64_t unreadable = 0;
   };
   common::Result<RecordScan> forEachRecord(
       const std::string& session,
-      const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit)
-      const;
+      const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit,
+      uint64_t without_payloads_up_to = 0) const;
 
   // This server writes `session` from now on at `epoch`, numbering after `last_number`.
   void adopt(const std::string& session, int64_t epoch, uint64_t last_number);
@@ -97,7 +100,14 @@ class ClusterJournal : public core::IngestLog,
   ClusterJournal(std::unique_ptr<PgConnection> writer, std::unique_ptr<PgConnection> reader,
                  std::string url);
   common::Result<uint64_t> appendRecord(const std::string& session, int kind,
-                                        const proto::journal::JournalRecord& record);
+                                        const proto::journal::JournalRecord& record,
+                                        std::optional<std::vector<uint8_t>> meta = std::nullopt);
+  static PgOptions readerOptions();
+  using Exec = std::function<common::Result<PgResult>(std::string_view sql,
+                                                      const std::vector<PgParam>& params)>;
+  static common::Result<RecordScan> scanRecords(
+      const std::string& session, uint64_t without_payloads_up_to, const Exec& exec,
+      const std::function<void(proto::journal::JournalRecord&& record, uint64_t number)>& visit);
   void commitLoop();
   // Writes one group; the sessions the database fenced are dropped and reported.
   void commitGroup(std::vector<Pending*>& group);

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <limits>
+#include <random>
 #include <sstream>
 
 #include "common/time.hpp"
@@ -20,6 +21,7 @@ constexpr const char* kCommitSeconds = "stereomap_cluster_commit_seconds";
 constexpr const char* kCommitted = "stereomap_cluster_committed_samples_total";
 constexpr const char* kCommitGroups = "stereomap_cluster_commit_groups_total";
 constexpr const char* kServed = "stereomap_cluster_sessions_served";
+constexpr const char* kStatements = "stereomap_cluster_control_statements_total";
 
 }  // namespace
 
@@ -44,7 +46,13 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
   metrics.describe(kCommitted, "counter", "Samples committed to the cluster's database");
   metrics.describe(kCommitGroups, "counter", "Commits (groups of samples) to the database");
   metrics.describe(kServed, "gauge", "Sessions this server serves in the cluster");
-  node->reconcile();  // what this server owns already (a restart), before the first sample
+  metrics.describe(kStatements, "counter",
+                   "Statements this server sent to the database to keep its lease and to see "
+                   "and change who owns what (the control plane; not the journal's)");
+  for (int i = 0; i < std::max(1, options.recovery_threads); ++i) {
+    node->recoverers_.emplace_back([raw = node.get()] { raw->recoveryLoop(); });
+  }
+  node->reconcile();  // what this server owns already (a restart), queued at once
   node->lease_thread_ = std::thread([raw = node.get()] { raw->leaseLoop(); });
   node->control_ = std::thread([raw = node.get()] { raw->controlLoop(); });
   node->events_thread_ = std::thread([raw = node.get()] { raw->eventLoop(); });
@@ -85,9 +93,13 @@ void ClusterNode::stop() {
     stopping_ = true;
   }
   wake_.notify_all();
+  recover_wake_.notify_all();
   if (events_) events_->wake();
   for (auto* thread : {&lease_thread_, &control_, &events_thread_, &acks_thread_}) {
     if (thread->joinable()) thread->join();
+  }
+  for (auto& thread : recoverers_) {
+    if (thread.joinable()) thread.join();
   }
   if (superseded()) return;  // nothing here is this process's to hand back
   std::vector<std::string> ids;
@@ -125,7 +137,30 @@ bool ClusterNode::superseded() const {
 }
 
 void ClusterNode::controlLoop() {
-  while (sleepFor(options_.poll)) reconcile();
+  // Jittered, so that servers started together do not poll the database in step.
+  std::minstd_rand random(std::random_device{}());
+  std::uniform_real_distribution<double> jitter(0.8, 1.2);
+  const auto period = [&] {
+    return std::chrono::milliseconds(
+        static_cast<int64_t>(static_cast<double>(options_.poll.count()) * jitter(random)));
+  };
+  while (sleepFor(period())) reconcile();
+}
+
+void ClusterNode::recoveryLoop() {
+  for (;;) {
+    Ownership next;
+    {
+      std::unique_lock lock(mutex_);
+      recover_wake_.wait(lock, [&] { return stopping_ || !to_recover_.empty(); });
+      if (stopping_) return;
+      next = std::move(to_recover_.front());
+      to_recover_.pop_front();
+    }
+    serve(next);
+    std::lock_guard lock(mutex_);
+    recovering_.erase(next.session);
+  }
 }
 
 void ClusterNode::leaseLoop() {
@@ -265,20 +300,31 @@ void ClusterNode::reconcile() {
     }
   }
 
-  // 4. Orphans of servers whose lease ran out.
-  if (auto taken = take_orphans ? db_.takeOrphans() : std::vector<Ownership>{}; taken) {
-    for (const auto& session : *taken) {
-      spdlog::info("cluster: took session '{}' (epoch {}) from a server whose lease ran out",
-                   session.session, session.epoch);
+  // 4. One cheap statement says whether anything changed (the cluster's version) and whether
+  // any session waits for an owner; the scans below run only then, and once a minute in any
+  // case (a server row an operator deleted changes no version).
+  auto round = db_.poll();
+  if (!round) return;
+  const bool full_round = Clock::now() >= next_full_round_;
+  if (full_round) next_full_round_ = Clock::now() + std::chrono::seconds(60);
+  if (take_orphans && (round->orphans || full_round)) {
+    if (auto taken = db_.takeOrphans(); taken) {
+      for (const auto& session : *taken) {
+        spdlog::info("cluster: took session '{}' (epoch {}) from a server whose lease ran out",
+                     session.session, session.epoch);
+      }
     }
   }
 
   publishMetrics();
+  if (round->version == seen_version_ && !full_round && fenced.empty()) return;
 
   // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
   if (options_.admin != nullptr) options_.admin->refresh();
   auto owned = db_.owned();
   if (!owned) return;
+  // Read after the version: a change meanwhile raised it again, and the next round reads.
+  seen_version_ = round->version;
   std::map<std::string, Ownership> wanted;
   for (const auto& session : *owned) wanted[session.session] = session;
   std::vector<std::pair<std::string, std::string>> gone;
@@ -294,13 +340,14 @@ void ClusterNode::reconcile() {
     }
   }
   for (const auto& [id, why] : gone) unserve(id, why);
+  // The new ones to the recovery threads (each at most once in the queue).
+  std::lock_guard lock(mutex_);
+  if (stopping_ || superseded_) return;
   for (const auto& [id, session] : wanted) {
-    bool serving = false;
-    {
-      std::lock_guard lock(mutex_);
-      serving = served_.contains(id) || stopping_ || superseded_;
-    }
-    if (!serving) serve(session);
+    if (served_.contains(id) || recovering_.contains(id)) continue;
+    recovering_.insert(id);
+    to_recover_.push_back(session);
+    recover_wake_.notify_one();
   }
 }
 
@@ -317,6 +364,7 @@ void ClusterNode::publishMetrics() {
   }
   metrics.set(kCommitted, {}, static_cast<double>(journal_.committedSamples()));
   metrics.set(kCommitGroups, {}, static_cast<double>(journal_.committedGroups()));
+  metrics.set(kStatements, {}, static_cast<double>(db_.statements()));
   std::lock_guard lock(mutex_);
   metrics.set(kServed, {}, static_cast<double>(served_.size()));
 }
@@ -366,7 +414,17 @@ void ClusterNode::serve(const Ownership& placed) {
   (*ingest)->start(server_);
   {
     std::lock_guard lock(mutex_);
-    served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
+    if (!stopping_ && !superseded_) {
+      served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
+    }
+  }
+  if (*ingest) {  // stopped or superseded meanwhile: not this process's to serve after all
+    (*ingest)->stop();
+    (*ingest)->join();
+    journal_.drop(owned.session);
+    server_.unload(owned.session);
+    server_.forget(owned.session);
+    return;
   }
   spdlog::info(
       "session '{}' served here (epoch {}): {} frames and {} poses recovered{} in {:.2f} s{}",

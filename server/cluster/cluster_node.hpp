@@ -8,8 +8,9 @@
 //
 // Threads: the lease (renewed several times per lease on a connection of its own, never
 // behind recovery or a slow query; it also says whether the database answers, for /healthz),
-// the control loop (every `poll`), the session events of every session (one wildcard reader:
-// they announce new sessions), the acknowledgements, and each owned session's readers
+// the control loop (every `poll`), the recoveries (a few, side by side: a session is adopted,
+// read and replayed there), the session events of every session (one wildcard reader: they
+// announce new sessions), the acknowledgements, and each owned session's readers
 // (ingest::DdsIngest).
 //
 // A process that finds its server id taken over by a newer process (started again while this
@@ -19,6 +20,7 @@
 
 #include <chrono>
 #include <condition_variable>
+#include <deque>
 #include <functional>
 #include <map>
 #include <memory>
@@ -26,6 +28,7 @@
 #include <set>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "proto/dds.hpp"
 #include "server/cluster/cluster_admin.hpp"
@@ -38,6 +41,9 @@ namespace stereomap::cluster {
 
 struct ClusterNodeOptions {
   std::chrono::milliseconds poll{250};  // how often ownership is looked at
+  // Sessions recovered side by side (each on a database connection of its own while it is),
+  // off the control loop: a server taking many sessions takes them in parallel.
+  int recovery_threads = 4;
   double default_resolution = 0.1;      // for sessions announced without a hint
   ClusterAdmin* admin = nullptr;        // refreshed every round (the API's directory)
   std::function<void()> on_superseded;  // from the lease thread, once
@@ -71,6 +77,7 @@ class ClusterNode {
               core::MapServer& server, std::shared_ptr<proto::Participant> participant);
   void controlLoop();
   void leaseLoop();
+  void recoveryLoop();
   // Unloads every session: another process has this server id now.
   void stepDown();
   void eventLoop();
@@ -101,8 +108,17 @@ class ClusterNode {
   // server was paused), every server's lease looks run out for a moment; the others get a
   // whole lease to renew theirs before their sessions count as orphans.
   std::chrono::steady_clock::time_point take_orphans_after_{};  // under mutex_
+  // The control thread's: the cluster's version when owned() was last read, and when the next
+  // round reads everything whatever the version says.
+  int64_t seen_version_ = -1;
+  std::chrono::steady_clock::time_point next_full_round_{};
+
+  std::deque<Ownership> to_recover_;  // under mutex_: owned, to be served
+  std::set<std::string> recovering_;  // under mutex_: queued or being recovered
+  std::condition_variable recover_wake_;
 
   std::thread control_, lease_thread_, events_thread_, acks_thread_;
+  std::vector<std::thread> recoverers_;
 };
 
 }  // namespace stereomap::cluster

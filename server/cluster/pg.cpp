@@ -279,6 +279,7 @@ common::Result<PgResult> PgConnection::exec(std::string_view sql,
     return common::makeError(common::ErrorCode::kUnavailable,
                              "PostgreSQL at " + redacted_ + ": " + what + ": " + why);
   };
+  statements_.fetch_add(1, std::memory_order_relaxed);
   if (PQsendQueryParams(conn_, statement.c_str(), static_cast<int>(params.size()), nullptr,
                         values.data(), lengths.data(), formats.data(), /*text=*/0) == 0) {
     return lost("cannot send the statement");

@@ -14,6 +14,7 @@
 //   int64_t epoch = rows->integer(0, 0);
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <memory>
@@ -110,6 +111,8 @@ class PgConnection {
   const PgOptions& options() const { return options_; }
   // Statements abandoned at their deadline since connect().
   uint64_t abandoned() const { return abandoned_count_; }
+  // Statements sent since connect() (any thread may read it).
+  uint64_t statements() const { return statements_.load(std::memory_order_relaxed); }
   // The URL without its password, for logs.
   const std::string& redactedUrl() const { return redacted_; }
 
@@ -132,6 +135,7 @@ class PgConnection {
   };
   std::vector<Abandoned> abandoned_;
   uint64_t abandoned_count_ = 0;
+  std::atomic<uint64_t> statements_{0};
 };
 
 // `url` with any password replaced by "***" (postgresql://user:***@host/db, password=***).
