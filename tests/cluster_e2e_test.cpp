@@ -13,12 +13,14 @@
 #include <atomic>
 #include <cmath>
 #include <map>
+#include <regex>
 #include <sstream>
 #include <thread>
 
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_recovery.hpp"
 #include "testing/data.hpp"
+#include "tests/support/cluster_check.hpp"
 #include "tests/support/cluster_harness.hpp"
 #include "tests/support/stream_count.hpp"
 
@@ -29,15 +31,18 @@ using namespace std::chrono_literals;
 using Clock = std::chrono::steady_clock;
 
 constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105, kTilesDomain = 106,
-              kRestartedDomain = 107, kHungDomain = 108;
+              kRestartedDomain = 107, kHungDomain = 108, kPrimaryKilledDomain = 109,
+              kPrimaryHungDomain = 110;
 
 class ClusterTest : public ::testing::Test {
  protected:
+  // Nodes of the database under Patroni (0: one PostgreSQL).
+  virtual int patroniNodes() const { return 0; }
   void SetUp() override {
     std::string why;
-    cluster_ = ClusterHarness::start(&why);
-    // PostgreSQL is installed by scripts/install-deps: its absence is a failure, never a
-    // silent pass.
+    cluster_ = ClusterHarness::start(&why, patroniNodes());
+    // PostgreSQL, Patroni and etcd are installed by scripts/install-deps: their absence is a
+    // failure, never a silent pass.
     if (!cluster_) GTEST_FAIL() << why;
   }
   void TearDown() override { cluster_.reset(); }
@@ -56,77 +61,25 @@ class ClusterTest : public ::testing::Test {
         << why;
   }
 
-  // Every vehicle's samples journaled once each; each map, on the server that owns it, as
-  // fused offline from the journal.
+  // Every vehicle's samples journaled once each, every pose of its --trajectory-out too; each
+  // map, on the server that owns it, as fused offline from the journal.
   void expectWholeSessions(int count) {
-    const auto owner = owners();
     for (int i = 0; i < count; ++i) {
-      const std::string session = "flight" + std::to_string(i);
-      const Sent sent = sentBy(readText(vehicleLog(i)));
-      auto journal = cluster::ClusterJournal::open(cluster_->db().url());
-      ASSERT_TRUE(journal) << journal.error().message;
-      auto stored = (*journal)->read(session);
-      ASSERT_TRUE(stored) << stored.error().message;
-      const auto journaled = samplesIn(stored->records);
-      std::printf("%s: %zu/%zu poses, %zu/%zu clouds journaled, %zu repeated\n", session.c_str(),
-                  journaled.poseCount(), sent.poses, journaled.cloudCount(), sent.clouds,
-                  journaled.repeated);
-      EXPECT_GT(sent.poses, 0u);
-      EXPECT_EQ(journaled.poseCount(), sent.poses) << session;
-      EXPECT_EQ(journaled.cloudCount(), sent.clouds) << session;
-      EXPECT_EQ(journaled.repeated, 0u) << session;
-      expectEveryPoseJournaled(i, stored->records);
-      ASSERT_TRUE(cluster_->servers().contains(owner.at(session))) << owner.at(session);
-      expectMapIsTheJournals(session, cluster_->server(owner.at(session)), *stored, **journal);
+      const auto check = checkFlight(*cluster_, i, /*with_map=*/true);
+      std::printf("%s\n", check.summary().c_str());
+      EXPECT_TRUE(check.problem.empty()) << check.problem;
+      EXPECT_GT(check.sent_poses, 0u);
+      EXPECT_GT(check.trajectory_poses, 100u) << check.session;
+      EXPECT_EQ(check.lost(), 0) << check.session;
+      EXPECT_EQ(check.journaled_poses, check.sent_poses) << check.session;
+      EXPECT_EQ(check.journaled_clouds, check.sent_clouds) << check.session;
+      EXPECT_EQ(check.repeated, 0u) << check.session;
+      EXPECT_EQ(check.trajectory_missing, 0u)
+          << check.session << ": poses it sent that are not journaled";
+      EXPECT_EQ(check.trajectory_poses, check.journaled_poses) << check.session;
+      EXPECT_GT(check.live_leaves, 1000u) << check.session;
+      EXPECT_TRUE(check.map_is_journals) << check.session << ": the live map is not its journal's";
     }
-  }
-
-  // Every pose in vehicle `i`'s --trajectory-out has its journaled pose (the same stamp, to
-  // the microsecond the TUM text keeps), and the journal holds no other.
-  void expectEveryPoseJournaled(int i, const std::vector<proto::journal::JournalRecord>& records) {
-    std::vector<int64_t> journaled_us;
-    for (const auto& record : records) {
-      if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-        journaled_us.push_back((pose->stamp_ns + 500) / 1000);
-      }
-    }
-    std::sort(journaled_us.begin(), journaled_us.end());
-    std::istringstream lines(readText(cluster_->trajectoryOut(i)));
-    size_t sent = 0, missing = 0;
-    for (std::string line; std::getline(lines, line);) {
-      if (line.empty() || line[0] == '#') continue;
-      ++sent;
-      const auto us = static_cast<int64_t>(std::llround(std::stod(line) * 1e6));
-      const auto near = std::lower_bound(journaled_us.begin(), journaled_us.end(), us - 1);
-      missing += near == journaled_us.end() || *near > us + 1;
-    }
-    EXPECT_GT(sent, 100u) << "vehicle " << i;
-    EXPECT_EQ(missing, 0u) << "vehicle " << i << ": poses it sent that are not journaled";
-    EXPECT_EQ(journaled_us.size(), sent) << "vehicle " << i;
-  }
-
-  void expectMapIsTheJournals(const std::string& session, ServerProcess& server,
-                              cluster::StoredSession& stored, cluster::ClusterJournal& journal) {
-    // The live map, once its owner has fused everything it took.
-    ASSERT_TRUE(waitUntil(60s, [&] {
-      const auto reply = server.get("/api/sessions/" + session);
-      return reply.status == 200 && reply.body.find("\"fusion_backlog\":0") != std::string::npos;
-    })) << server.get("/api/sessions/" + session).body;
-    const auto live = server.get("/api/sessions/" + session + "/map.ot");
-    ASSERT_EQ(live.status, 200) << live.body;
-    // Offline: the same records fused from scratch.
-    core::MapServer scratch({.resolution = 0.1, .max_sessions = 1});
-    size_t frames = 0, poses = 0;
-    ASSERT_TRUE(cluster::recoverSession(scratch, journal, {session, "", 0, 0.1}, stored, frames,
-                                        poses, /*wait_until_fused=*/true));
-    auto offline_session = scratch.find(session);
-    ASSERT_TRUE(offline_session);
-    auto offline_ot = offline_session->mapFull();
-    ASSERT_TRUE(offline_ot) << offline_ot.error().message;
-    const auto live_leaves = leaves(live.body);
-    EXPECT_GT(live_leaves.size(), 1000u) << session;
-    EXPECT_TRUE(live_leaves == leaves(*offline_ot))
-        << session << ": the live map is not its journal's";
   }
 
   // The session as MCAP from its owner through the proxy, read from the cluster's database as
@@ -172,21 +125,6 @@ class ClusterTest : public ::testing::Test {
                 session.c_str(), file.size(), static_cast<unsigned long long>(messages),
                 journaled.poseCount(), journaled.cloudCount());
     EXPECT_GE(messages, journaled.poseCount() + journaled.cloudCount());
-  }
-
-  // Every leaf of an .ot map at the finest depth: key -> log-odds.
-  static std::map<std::tuple<int, int, int>, float> leaves(const std::string& ot) {
-    std::istringstream in(ot);
-    std::unique_ptr<octomap::AbstractOcTree> tree(octomap::AbstractOcTree::read(in));
-    std::map<std::tuple<int, int, int>, float> out;
-    auto* octree = dynamic_cast<octomap::OcTree*>(tree.get());
-    if (octree == nullptr) return out;
-    octree->expand();
-    for (auto it = octree->begin_leafs(); it != octree->end_leafs(); ++it) {
-      const auto key = it.getKey();
-      out[{key[0], key[1], key[2]}] = it->getLogOdds();
-    }
-    return out;
   }
 
   std::unique_ptr<ClusterHarness> cluster_;
@@ -382,6 +320,83 @@ TEST_F(ClusterTest, AHungDatabaseIsSeenWithinThreeSecondsAndEverythingResumes) {
   expectWholeSessions(2);
 }
 
+// The database failing over: three PostgreSQL nodes under Patroni, synchronous replication
+// (a sample is acknowledged only once a standby has it), the servers on one multi-host URL.
+class PatroniClusterTest : public ClusterTest {
+ protected:
+  int patroniNodes() const override { return 3; }
+
+  // The database's clock now (before a fault: it may not answer after).
+  std::string databaseNow() {
+    const std::string now = query("SELECT clock_timestamp()");
+    return now.substr(0, now.find('\n'));
+  }
+  // Seconds from `since` until a sample of every session is committed later than `after` (the
+  // database's clock, read just before the fault).
+  double ingestResumed(Clock::time_point since, const std::string& after, int sessions) {
+    if (!waitUntil(
+            60s,
+            [&] {
+              return query("SELECT count(DISTINCT session) FROM sm_journal WHERE committed_at > '" +
+                           after + "'") == std::to_string(sessions) + "\n";
+            },
+            100ms)) {
+      return -1;
+    }
+    return std::chrono::duration<double>(Clock::now() - since).count();
+  }
+};
+
+// The primary's PostgreSQL killed under flying vehicles: a synchronous standby takes over
+// (Patroni), the servers find it on their own, and nothing a vehicle was told is journaled is
+// lost; the killed node comes back as a standby.
+TEST_F(PatroniClusterTest, ThePrimaryKilledUnderLoadLosesNothing) {
+  startServer(kPrimaryKilledDomain, "a");
+  startServer(kPrimaryKilledDomain, "b");
+  for (int i = 0; i < 2; ++i) startVehicle(kPrimaryKilledDomain, i, 300);
+  ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
+  std::this_thread::sleep_for(6s);
+  const std::string before = databaseNow();
+  cluster_->db().crash();
+  const auto killed = Clock::now();
+  const double resumed_s = ingestResumed(killed, before, 2);
+  std::printf("database failover: ingest resumed %.1f s after the primary was killed\n", resumed_s);
+  EXPECT_GT(resumed_s, 0) << "ingest never resumed";
+  EXPECT_LT(resumed_s, 15.0);
+  std::string why;
+  ASSERT_TRUE(cluster_->db().restart(&why)) << why;
+  waitForVehicles();
+  expectWholeSessions(2);
+}
+
+// The primary hung (its PostgreSQL stopped, Patroni not) for 20 s: /healthz says so within 3 s,
+// Patroni fails over once the primary's leader key runs out, ingest resumes before the hang
+// ends, and the old primary, resumed, can commit nothing it would lose: it rejoins as a
+// standby. Nothing acknowledged is lost.
+TEST_F(PatroniClusterTest, APrimaryHungForTwentySecondsIsFailedOverAndLosesNothing) {
+  startServer(kPrimaryHungDomain, "a");
+  startServer(kPrimaryHungDomain, "b");
+  for (int i = 0; i < 2; ++i) startVehicle(kPrimaryHungDomain, i, 400);
+  ASSERT_TRUE(waitUntil(30s, [&] { return owners().size() == 2; }));
+  std::this_thread::sleep_for(6s);
+  const std::string before = databaseNow();
+  cluster_->db().pause();
+  const auto hung = Clock::now();
+  EXPECT_TRUE(waitUntil(
+      3s, [&] { return cluster_->server("a").get("/healthz").status != 200; }, 100ms))
+      << "/healthz stayed 200 with the primary hung";
+  const double resumed_s = ingestResumed(hung, before, 2);
+  std::printf("hung primary: ingest resumed %.1f s after it hung\n", resumed_s);
+  EXPECT_GT(resumed_s, 0) << "ingest never resumed";
+  EXPECT_LT(resumed_s, 20.0) << "resumed only with the hung primary";
+  std::this_thread::sleep_for(20s - (Clock::now() - hung));
+  cluster_->db().resume();
+  std::string why;
+  ASSERT_TRUE(cluster_->db().restart(&why)) << why;
+  waitForVehicles();
+  expectWholeSessions(2);
+}
+
 // A --cluster URL that cannot be reached, or whose credentials are refused, is a clear error
 // at start.
 TEST_F(ClusterTest, AnUnreachableOrRefusedDatabaseIsAClearErrorAtStart) {
@@ -392,9 +407,9 @@ TEST_F(ClusterTest, AnUnreachableOrRefusedDatabaseIsAClearErrorAtStart) {
               30s);
   EXPECT_EQ(unreachable.exit_code, 1) << unreachable.output;
   EXPECT_NE(unreachable.output.find("cannot be reached"), std::string::npos) << unreachable.output;
-  const auto refused = runTool({server, "--http", "127.0.0.1:0", "--cluster",
-                                cluster_->db().urlWithPassword("not-the-password")},
-                               30s);
+  const std::string wrong_password = std::regex_replace(
+      cluster_->db().url(), std::regex("^(postgresql://[^:]*):[^@]*@"), "$1:not-the-password@");
+  const auto refused = runTool({server, "--http", "127.0.0.1:0", "--cluster", wrong_password}, 30s);
   EXPECT_EQ(refused.exit_code, 1) << refused.output;
   EXPECT_NE(refused.output.find("refused the credentials"), std::string::npos) << refused.output;
   EXPECT_EQ(refused.output.find("not-the-password"), std::string::npos) << "the password is shown";

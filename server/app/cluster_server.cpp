@@ -54,7 +54,8 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
       {.url = flags.cluster_url,
        .server_id = flags.server_id,
        .http = advertise,
-       .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000))});
+       .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000)),
+       .capacity = flags.options.max_sessions});
   if (!db) return fail(db.error());
   admin.attach(**db, advertise);
   (*http_server)->start();

@@ -101,6 +101,9 @@ constexpr const char* kVersion3[] = {
     // Sessions waiting for an owner (imported, handed back), found without a scan.
     R"(CREATE INDEX IF NOT EXISTS sm_sessions_unowned ON sm_sessions (id)
          WHERE owner IS NULL AND state = 'live')",
+    // How many sessions a server can hold (its --max-sessions): placement and takeovers stop
+    // there.
+    R"(ALTER TABLE sm_servers ADD COLUMN IF NOT EXISTS capacity integer NOT NULL DEFAULT 256)",
 };
 
 struct SchemaVersion {
@@ -310,11 +313,12 @@ common::Status ClusterDb::registerServer() {
   std::lock_guard lock(lease_mutex_);
   auto done = execOn(
       *lease_db_,
-      "INSERT INTO sm_servers (id, http, lease_until, incarnation) "
-      "VALUES ($1, $2, now() + $3::interval, $4) "
+      "INSERT INTO sm_servers (id, http, lease_until, incarnation, capacity) "
+      "VALUES ($1, $2, now() + $3::interval, $4, $5) "
       "ON CONFLICT (id) DO UPDATE SET http = EXCLUDED.http, lease_until = EXCLUDED.lease_until, "
-      "incarnation = EXCLUDED.incarnation",
-      {options_.server_id, options_.http, interval(options_.lease), incarnation_});
+      "incarnation = EXCLUDED.incarnation, capacity = EXCLUDED.capacity",
+      {options_.server_id, options_.http, interval(options_.lease), incarnation_,
+       static_cast<int64_t>(options_.capacity)});
   if (!done) return done.error();
   return common::Ok{};
 }
@@ -360,16 +364,26 @@ common::Result<Ownership> ClusterDb::placeSession(const std::string& id, double 
   if (!core::isValidId(id)) {
     return makeError(ErrorCode::kInvalidArgument, "session id '" + id + "' is not valid");
   }
-  // The least-loaded live server; ties go to the lowest id, the same choice on every server.
+  // The least-loaded live server with room; ties go to the lowest id, the same choice on
+  // every server. None with room: no owner yet (an orphan, taken once a server has room).
   auto placed = exec(
       "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
-      "SELECT $1, v.id, 1, $2, 'live' FROM sm_servers v WHERE v.lease_until > now() "
-      "ORDER BY (SELECT count(*) FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live'), "
-      "v.id LIMIT 1 "
-      "ON CONFLICT (id) DO NOTHING RETURNING id, owner, epoch, resolution",
+      "SELECT $1, (SELECT v.id FROM sm_servers v "
+      "  CROSS JOIN LATERAL (SELECT count(*) AS n FROM sm_sessions s "
+      "    WHERE s.owner = v.id AND s.state = 'live') load "
+      "  WHERE v.lease_until > now() AND load.n < v.capacity ORDER BY load.n, v.id LIMIT 1), "
+      "1, $2, 'live' "
+      "ON CONFLICT (id) DO NOTHING RETURNING id, coalesce(owner, ''), epoch, resolution",
       {id, resolution});
   if (!placed) return placed.error();
-  if (placed->rows() == 1) return ownershipAt(*placed, 0);
+  if (placed->rows() == 1) {
+    if (placed->text(0, 1).empty()) {
+      return makeError(ErrorCode::kUnavailable, "session '" + id +
+                                                    "' waits for a server with room: every "
+                                                    "live server holds as many as it can");
+    }
+    return ownershipAt(*placed, 0);
+  }
   auto existing = ownerOf(id);
   if (!existing) return existing.error();
   if (!*existing) {
@@ -410,14 +424,18 @@ uint64_t ClusterDb::statements() const {
 
 common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
   // This server's share: the orphans divided among the live servers, rounded up, so that
-  // the survivors of a failure split the work rather than the first one taking it all.
+  // the survivors of a failure split the work rather than the first one taking it all; never
+  // more than its room.
   auto taken = exec(
       "WITH orphans AS ("
       "  SELECT s.id FROM sm_sessions s LEFT JOIN sm_servers v ON v.id = s.owner "
       "  WHERE s.state = 'live' AND (v.id IS NULL OR v.lease_until <= now())), "
       "share AS ("
-      "  SELECT greatest(1, ceil((SELECT count(*) FROM orphans)::numeric / "
-      "    greatest(1, (SELECT count(*) FROM sm_servers WHERE lease_until > now()))))::int AS n) "
+      "  SELECT greatest(0, least("
+      "    greatest(1, ceil((SELECT count(*) FROM orphans)::numeric / "
+      "      greatest(1, (SELECT count(*) FROM sm_servers WHERE lease_until > now()))))::int, "
+      "    (SELECT capacity FROM sm_servers WHERE id = $1) - "
+      "      (SELECT count(*) FROM sm_sessions WHERE owner = $1 AND state = 'live'))) AS n) "
       "UPDATE sm_sessions SET owner = $1, epoch = epoch + 1, owned_since = clock_timestamp() "
       "WHERE id IN (SELECT s.id FROM sm_sessions s WHERE s.id IN (SELECT id FROM orphans) "
       "  ORDER BY s.id LIMIT (SELECT n FROM share) FOR UPDATE SKIP LOCKED) "

@@ -35,6 +35,7 @@ struct ClusterOptions {
   std::string server_id;  // unique per server process; empty: one is made up
   std::string http;       // where this server's HTTP is reached (host:port), for routing
   std::chrono::milliseconds lease{4000};
+  size_t capacity = 256;  // sessions this server can hold (MapServerOptions::max_sessions)
 };
 
 // A session as its owner holds it.
@@ -72,8 +73,9 @@ class ClusterDb {
   enum class Lease { kRenewed, kRenewedAfterExpiry, kSuperseded };
   common::Result<Lease> renewLease();
 
-  // The owner of session `id`: placed on the least-loaded live server when it is new
-  // (every server may call this for a session it hears of; one placement wins).
+  // The owner of session `id`: placed on the least-loaded live server with room when it is
+  // new (every server may call this for a session it hears of; one placement wins);
+  // kUnavailable when no live server has room (it waits, ownerless, for takeOrphans()).
   common::Result<Ownership> placeSession(const std::string& id, double resolution);
   // What a control round needs to know, in one cheap statement: the cluster's version (raised
   // by every change of owners, epochs, states or servers; a round with the same version as
@@ -94,8 +96,9 @@ class ClusterDb {
   common::Result<Ownership> adopt(const Ownership& session);
   // This process's incarnation (unique per process).
   const std::string& incarnation() const { return incarnation_; }
-  // Takes live sessions whose owner's lease ran out (its fair share of them when several
-  // servers are live), each with its epoch raised by one.
+  // Takes live sessions whose owner's lease ran out, or that have no owner (its fair share of
+  // them when several servers are live, never past its capacity), each with its epoch raised
+  // by one.
   common::Result<std::vector<Ownership>> takeOrphans();
   // The owner of session `id` (nullopt: no such session, or closed).
   common::Result<std::optional<Ownership>> ownerOf(const std::string& id);

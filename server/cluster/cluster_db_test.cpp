@@ -230,6 +230,26 @@ TEST_F(ClusterDbTest, AControlRoundSeesChangesWithoutScanning) {
   EXPECT_GT(b->statements(), 5u);
 }
 
+// A server at its capacity is given no more: a session placed when every live server is full
+// waits without an owner, and the next server with room takes it.
+TEST_F(ClusterDbTest, AServerAtItsCapacityIsGivenNoMore) {
+  auto a = ClusterDb::open({.url = url(), .server_id = "a", .http = "127.0.0.1:1", .capacity = 2});
+  ASSERT_TRUE(a) << a.error().message;
+  ASSERT_TRUE((*a)->placeSession("s0", 0.1));
+  ASSERT_TRUE((*a)->placeSession("s1", 0.1));
+  auto full = (*a)->placeSession("s2", 0.1);
+  ASSERT_FALSE(full);
+  EXPECT_EQ(full.error().code, common::ErrorCode::kUnavailable) << full.error().message;
+  EXPECT_TRUE((*a)->poll()->orphans) << "it waits for an owner";
+  EXPECT_TRUE((*a)->takeOrphans()->empty()) << "not past a's capacity";
+  auto b = openServer(url(), "b");
+  auto taken = b->takeOrphans();
+  ASSERT_TRUE(taken);
+  ASSERT_EQ(taken->size(), 1u);
+  EXPECT_EQ((*taken)[0].session, "s2");
+  EXPECT_EQ((*taken)[0].owner, "b");
+}
+
 TEST_F(ClusterDbTest, ReleasingNeedsTheCurrentEpoch) {
   auto a = openServer(url(), "a");
   auto placed = a->placeSession("s", 0.1);

@@ -56,10 +56,10 @@ struct ClusterJournal::Pending {
 };
 
 common::Result<std::unique_ptr<ClusterJournal>> ClusterJournal::open(const std::string& url) {
-  // A group of samples commits in milliseconds (a WAL flush): five seconds is a database in
+  // A group of samples commits in milliseconds (a WAL flush): three seconds is a database in
   // trouble, and its samples are refused (their vehicles keep them) rather than held.
   auto writer = PgConnection::connect(
-      url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(5)});
+      url, {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(3)});
   if (!writer) return writer.error();
   // Reads of a page of records and writes of a compressed snapshot (tens of MB) take longer.
   auto reader = PgConnection::connect(url, readerOptions());

@@ -317,7 +317,9 @@ void ClusterNode::reconcile() {
   }
 
   publishMetrics();
-  if (round->version == seen_version_ && !full_round && fenced.empty()) return;
+  // A recovery that failed (read again: it may have raised no version) counts as a change.
+  const bool retry = reread_.exchange(false);
+  if (round->version == seen_version_ && !full_round && fenced.empty() && !retry) return;
 
   // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
   if (options_.admin != nullptr) options_.admin->refresh();
@@ -376,14 +378,16 @@ void ClusterNode::serve(const Ownership& placed) {
   auto adopted = db_.adopt(placed);
   if (!adopted) {
     spdlog::warn("session '{}': not adopted: {}", placed.session, adopted.error().message);
-    return;  // next round
+    reread_ = true;  // the next round looks again
+    return;
   }
   const Ownership& owned = *adopted;
   auto stored = journal_.read(owned.session);
   if (!stored) {
     spdlog::error("session '{}': cannot read it from the database: {}", owned.session,
                   stored.error().message);
-    return;  // next round
+    reread_ = true;  // the next round tries again
+    return;
   }
   const uint64_t last_number = stored->last_number;
   const uint64_t unreadable = stored->unreadable;
@@ -392,14 +396,25 @@ void ClusterNode::serve(const Ownership& placed) {
   size_t frames = 0, poses = 0;
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
+  // Written at this epoch from here on: the snapshots that fusing the recovered frames makes
+  // due are kept (no sample comes before the readers below exist).
+  journal_.adopt(owned.session, owned.epoch, last_number);
   if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses,
                                       /*wait_until_fused=*/false);
       !recovered) {
-    spdlog::error("session '{}': cannot recover it: {}", owned.session, recovered.error().message);
+    spdlog::error("session '{}': cannot recover it here ({}); handing it back to the cluster",
+                  owned.session, recovered.error().message);
+    journal_.drop(owned.session);
     server_.unload(owned.session);
+    // Another server (or this one, later) takes it: a server that cannot hold it must not keep
+    // it ownerless in name only.
+    if (auto released = db_.release(owned, /*closed=*/false); !released) {
+      spdlog::warn("session '{}': cannot hand it back: {}", owned.session,
+                   released.error().message);
+    }
+    reread_ = true;
     return;
   }
-  journal_.adopt(owned.session, owned.epoch, last_number);
   auto ingest =
       ingest::DdsIngest::create(participant_, {proto::sessionPartition(owned.session)}, false);
   auto acks =
@@ -409,6 +424,7 @@ void ClusterNode::serve(const Ownership& placed) {
                   !ingest ? ingest.error().message : acks.error().message);
     journal_.drop(owned.session);
     server_.unload(owned.session);
+    reread_ = true;
     return;
   }
   (*ingest)->start(server_);

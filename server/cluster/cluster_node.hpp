@@ -18,6 +18,7 @@
 // releasing any, and calls on_superseded (the server then exits).
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <deque>
@@ -111,6 +112,7 @@ class ClusterNode {
   // The control thread's: the cluster's version when owned() was last read, and when the next
   // round reads everything whatever the version says.
   int64_t seen_version_ = -1;
+  std::atomic<bool> reread_{false};  // a recovery failed: the next round reads owners again
   std::chrono::steady_clock::time_point next_full_round_{};
 
   std::deque<Ownership> to_recover_;  // under mutex_: owned, to be served

@@ -38,6 +38,7 @@
 #include "common/time.hpp"
 #include "proto/dds.hpp"
 #include "server/cluster/cluster_journal.hpp"
+#include "tests/support/cluster_check.hpp"
 #include "tests/support/cluster_harness.hpp"
 #include "tests/support/stream_count.hpp"
 
@@ -219,27 +220,6 @@ void tileCache(testing::ClusterHarness& cluster, const std::filesystem::path& ca
   }
 }
 
-// A recorded sim flight (poses and the thinned clouds, as the vehicle sent them), in order.
-std::vector<proto::journal::JournalRecord> recordedFlight(testing::ClusterHarness& cluster) {
-  std::vector<proto::journal::JournalRecord> flight;
-  auto journal = cluster::ClusterJournal::open(cluster.db().url());
-  if (!journal) return flight;
-  auto stored = (*journal)->read("flight1");
-  if (!stored) return flight;
-  std::map<uint64_t, proto::CloudFrameMsg> clouds;  // whole, by record number
-  (void)(*journal)->forEachFrame(
-      "flight1", 0, stored->last_number,
-      [&](const proto::CloudFrameMsg& frame, uint64_t number) { clouds[number] = frame; });
-  for (size_t i = 0; i < stored->records.size(); ++i) {
-    if (std::holds_alternative<proto::PoseMsg>(stored->records[i])) {
-      flight.push_back(stored->records[i]);
-    } else if (auto it = clouds.find(stored->numbers[i]); it != clouds.end()) {
-      flight.push_back(it->second);
-    }
-  }
-  return flight;
-}
-
 // Virtual vehicles replaying `flight` at `rate` samples/s in all, each in its own session
 // partition, with its own stream and seqs.
 void load(testing::ClusterHarness& cluster,
@@ -401,7 +381,8 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "tiles: %s is absent; skipped\n", campus.c_str());
     }
   }
-  if (want("load")) load(*cluster, recordedFlight(*cluster), rate, seconds, vehicles, f);
+  if (want("load"))
+    load(*cluster, testing::recordedFlight(*cluster, "flight1"), rate, seconds, vehicles, f);
   std::printf(
       "cluster: failover %.1f s, ingest resumed %.1f s, viewer back %.1f s; lost %ld, "
       "duplicated %ld; fenced writes %ld; tile cache hits %.1f%%; commit p99 %.1f ms at %.0f "

@@ -8,9 +8,13 @@
 
 namespace stereomap::testing {
 
-std::unique_ptr<ClusterHarness> ClusterHarness::start(std::string* why) {
+std::unique_ptr<ClusterHarness> ClusterHarness::start(std::string* why, int patroni_nodes) {
   auto harness = std::unique_ptr<ClusterHarness>(new ClusterHarness);
-  harness->db_ = TestPostgres::start(why);
+  if (patroni_nodes > 0) {
+    harness->db_ = TestPatroni::start(patroni_nodes, why);
+  } else {
+    harness->db_ = TestPostgres::start(why);
+  }
   if (!harness->db_) return nullptr;
   harness->dir_ = makeTempDir("stereomap-cluster");
   return harness;
@@ -34,6 +38,14 @@ ServerProcess& ClusterHarness::startServer(int domain, const std::string& id, do
       domain,
       std::vector<std::string>{"--cluster", db_->url(), "--server-id", id, "--lease", lease.str()});
   return *server;
+}
+
+std::unique_ptr<ServerProcess> ClusterHarness::takeServer(const std::string& name) {
+  auto it = servers_.find(name);
+  if (it == servers_.end()) return nullptr;
+  auto server = std::move(it->second);
+  servers_.erase(it);
+  return server;
 }
 
 bool ClusterHarness::startNginx(std::string* why) {

@@ -1,6 +1,7 @@
-// A whole cluster on loopback for tests and stereomap-bench-cluster (issue 39): a throwaway
-// PostgreSQL, stereomap-server --cluster processes, nginx in front of them (config/nginx), sim
-// vehicles; what the database says of owners, and a viewer's view through the proxy.
+// A whole cluster on loopback for tests and the cluster's benchmarks: a throwaway database (one
+// PostgreSQL, or a primary with synchronous standbys under Patroni), stereomap-server
+// --cluster processes, nginx in front of them (config/nginx), sim vehicles; what the database
+// says of owners, and a viewer's view through the proxy.
 #pragma once
 
 #include <chrono>
@@ -10,6 +11,7 @@
 #include <vector>
 
 #include "tests/support/nginx.hpp"
+#include "tests/support/patroni.hpp"
 #include "tests/support/postgres.hpp"
 #include "tests/support/server_fixture.hpp"
 
@@ -17,8 +19,9 @@ namespace stereomap::testing {
 
 class ClusterHarness {
  public:
-  // Starts PostgreSQL; nullptr with `why` when it cannot.
-  static std::unique_ptr<ClusterHarness> start(std::string* why);
+  // Starts the database (`patroni_nodes` > 0: that many nodes under Patroni; else one
+  // PostgreSQL); nullptr with `why` when it cannot.
+  static std::unique_ptr<ClusterHarness> start(std::string* why, int patroni_nodes = 0);
   ~ClusterHarness();  // vehicles, nginx, servers, then the database
 
   // A server with --server-id `id` on `domain`, with a lease of `lease_s` seconds, known here
@@ -26,11 +29,14 @@ class ClusterHarness {
   ServerProcess& startServer(int domain, const std::string& id, double lease_s = 2,
                              const std::string& name = "");
   ServerProcess& server(const std::string& id) { return *servers_.at(id); }
+  // The server known as `name`, no longer the harness's (a process replaced by a new one under
+  // its name, kept by the caller until it ends).
+  std::unique_ptr<ServerProcess> takeServer(const std::string& name);
   std::map<std::string, std::unique_ptr<ServerProcess>>& servers() { return servers_; }
   // nginx in front of every server started so far.
   bool startNginx(std::string* why);
   TestNginx& nginx() { return *nginx_; }
-  TestPostgres& db() { return *db_; }
+  TestDatabase& db() { return *db_; }
   const std::string& dir() const { return dir_; }
 
   // Vehicle `i` flying session flight<i> as users fly it, `frames` frames at 10 Hz, with its
@@ -39,6 +45,8 @@ class ClusterHarness {
   std::string vehicleLog(int i) const;
   // The poses vehicle `i` sent (its --trajectory-out, TUM), written when it ends.
   std::string trajectoryOut(int i) const;
+  // Vehicle `i`'s process (running, or ended).
+  ChildProcess& vehicle(int i) { return *vehicles_.at(static_cast<size_t>(i)); }
   // Waits for every vehicle to end; false (with its log in `why`) when one failed.
   bool waitForVehicles(std::chrono::seconds timeout, std::string* why);
 
@@ -51,7 +59,7 @@ class ClusterHarness {
 
  private:
   ClusterHarness() = default;
-  std::unique_ptr<TestPostgres> db_;
+  std::unique_ptr<TestDatabase> db_;
   std::string dir_;
   std::map<std::string, std::unique_ptr<ServerProcess>> servers_;
   std::unique_ptr<TestNginx> nginx_;

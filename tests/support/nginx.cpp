@@ -1,8 +1,5 @@
 #include "tests/support/nginx.hpp"
 
-#include <pwd.h>
-#include <unistd.h>
-
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -12,17 +9,6 @@
 namespace stereomap::testing {
 
 namespace fs = std::filesystem;
-
-namespace {
-
-std::string replaced(std::string text, const std::string& from, const std::string& to) {
-  for (size_t at = text.find(from); at != std::string::npos; at = text.find(from, at + to.size())) {
-    text.replace(at, from.size(), to);
-  }
-  return text;
-}
-
-}  // namespace
 
 std::unique_ptr<TestNginx> TestNginx::start(const std::vector<std::string>& upstreams,
                                             std::string* why) {
@@ -47,37 +33,37 @@ std::unique_ptr<TestNginx> TestNginx::start(const std::vector<std::string>& upst
   config = replaced(config, "@RESOLVER@", "");
   const std::string conf = nginx->prefix_ + "/nginx.conf";
   std::ofstream(conf) << config;
-  const bool root = ::geteuid() == 0;
-  if (root) {
-    const passwd* nobody = ::getpwnam("nobody");
-    std::error_code ec;
-    if (nobody == nullptr || ::chown(nginx->prefix_.c_str(), nobody->pw_uid, nobody->pw_gid) != 0) {
-      if (why) *why = "cannot hand " + nginx->prefix_ + " to the user nobody";
-      return nullptr;
-    }
+  if (!handToUnprivileged(nginx->prefix_)) {
+    if (why) *why = "cannot hand " + nginx->prefix_ + " to the user nobody";
+    return nullptr;
   }
-  std::vector<std::string> argv = {
-      binary, "-p",         nginx->prefix_, "-c", conf, "-e", nginx->prefix_ + "/error.log",
-      "-g",   "daemon off;"};
-  if (root) {
-    argv.insert(argv.begin(),
-                {"/usr/bin/setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"});
-  }
-  nginx->process_ = std::make_unique<ChildProcess>(argv, nginx->prefix_ + "/stdout.log");
+  nginx->argv_ = asUnprivileged({binary, "-p", nginx->prefix_, "-c", conf, "-e",
+                                 nginx->prefix_ + "/error.log", "-g", "daemon off;"});
+  if (!nginx->launch(why)) return nullptr;
+  return nginx;
+}
+
+bool TestNginx::launch(std::string* why) {
+  process_ = std::make_unique<ChildProcess>(argv_, prefix_ + "/stdout.log");
   const bool up = waitUntil(
       std::chrono::seconds(10),
-      [&] {
-        return !nginx->process_->running() || httpGet(nginx->port_, "/_nginx_probe").status != 0;
-      },
+      [&] { return !process_->running() || httpGet(port_, "/_nginx_probe").status != 0; },
       std::chrono::milliseconds(50));
-  if (!up || !nginx->process_->running()) {
-    std::ifstream log(nginx->prefix_ + "/error.log");
+  if (!up || !process_->running()) {
+    std::ifstream log(prefix_ + "/error.log");
     std::stringstream errors;
     errors << log.rdbuf();
     if (why) *why = "nginx did not start: " + errors.str();
-    return nullptr;
+    return false;
   }
-  return nginx;
+  return true;
+}
+
+bool TestNginx::restart(std::string* why) {
+  // Killed as a crash would: its workers too (they would hold the port).
+  if (process_ && process_->running()) killWithChildren(process_->pid());
+  process_.reset();
+  return launch(why);
 }
 
 TestNginx::~TestNginx() {

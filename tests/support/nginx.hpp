@@ -25,9 +25,13 @@ class TestNginx {
   const std::string& prefix() const { return prefix_; }
   // The access log's lines (status, cache status, time, request, upstream).
   std::string accessLog() const;
+  // Killed (with its workers) and started again on the same port and cache.
+  bool restart(std::string* why = nullptr);
 
  private:
   TestNginx() = default;
+  bool launch(std::string* why);
+  std::vector<std::string> argv_;
   std::string prefix_;
   int port_ = 0;
   std::unique_ptr<ChildProcess> process_;

@@ -18,26 +18,7 @@ namespace stereomap::testing {
 
 namespace fs = std::filesystem;
 
-int unusedPort() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  address.sin_port = 0;
-  socklen_t length = sizeof(address);
-  int port = 0;
-  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
-      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
-    port = ntohs(address.sin_port);
-  }
-  ::close(fd);
-  return port;
-}
-
-namespace {
-
-// The newest PostgreSQL's binaries (Debian: /usr/lib/postgresql/<version>/bin).
-std::string postgresBin() {
+std::string postgresBinDir() {
   std::string best;
   std::error_code ec;
   for (const auto& entry : fs::directory_iterator("/usr/lib/postgresql", ec)) {
@@ -57,47 +38,63 @@ std::string randomPassword() {
   return out;
 }
 
-std::string tail(const std::string& path) {
+std::string logTail(const std::string& path) {
   std::ifstream in(path);
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   return text.size() > 2000 ? text.substr(text.size() - 2000) : text;
 }
 
-}  // namespace
-
-std::vector<std::string> TestPostgres::asDatabaseUser(std::vector<std::string> argv) const {
-  if (!drop_root_) return argv;
+std::vector<std::string> asUnprivileged(std::vector<std::string> argv) {
+  if (::geteuid() != 0) return argv;
   std::vector<std::string> wrapped = {"/usr/bin/setpriv", "--reuid=nobody", "--regid=nogroup",
                                       "--clear-groups"};
   wrapped.insert(wrapped.end(), argv.begin(), argv.end());
   return wrapped;
 }
 
+bool handToUnprivileged(const std::string& dir) {
+  if (::geteuid() != 0) return true;
+  const passwd* nobody = ::getpwnam("nobody");
+  return nobody != nullptr && ::chown(dir.c_str(), nobody->pw_uid, nobody->pw_gid) == 0;
+}
+
+int unusedPort() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  address.sin_port = 0;
+  socklen_t length = sizeof(address);
+  int port = 0;
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) == 0 &&
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0) {
+    port = ntohs(address.sin_port);
+  }
+  ::close(fd);
+  return port;
+}
+
 std::unique_ptr<TestPostgres> TestPostgres::start(std::string* why) {
   auto db = std::unique_ptr<TestPostgres>(new TestPostgres);
-  db->bin_ = postgresBin();
+  db->bin_ = postgresBinDir();
   if (db->bin_.empty()) {
     if (why) *why = "PostgreSQL is not installed (no /usr/lib/postgresql/*/bin/postgres)";
     return nullptr;
   }
-  db->drop_root_ = ::geteuid() == 0;
   db->dir_ = makeTempDir("stereomap-pg");
   db->password_ = randomPassword();
-  if (db->drop_root_) {
-    const passwd* nobody = ::getpwnam("nobody");
-    if (nobody == nullptr || ::chown(db->dir_.c_str(), nobody->pw_uid, nobody->pw_gid) != 0) {
-      if (why) *why = "cannot hand " + db->dir_ + " to the user nobody";
-      return nullptr;
-    }
+  if (!handToUnprivileged(db->dir_)) {
+    if (why) *why = "cannot hand " + db->dir_ + " to the user nobody";
+    return nullptr;
   }
   {
     std::ofstream pw(db->dir_ + "/password");
     pw << db->password_ << "\n";
   }
   const auto init =
-      runTool(db->asDatabaseUser({db->bin_ + "/initdb", "-D", db->dir_ + "/data", "-U", "stereomap",
-                                  "--pwfile=" + db->dir_ + "/password", "--auth=scram-sha-256",
-                                  "-E", "UTF8", "--no-instructions", "--no-sync"}));
+      runTool(asUnprivileged({db->bin_ + "/initdb", "-D", db->dir_ + "/data", "-U", "stereomap",
+                              "--pwfile=" + db->dir_ + "/password", "--auth=scram-sha-256", "-E",
+                              "UTF8", "--no-instructions", "--no-sync"}));
   fs::remove(db->dir_ + "/password");
   if (init.exit_code != 0) {
     if (why) *why = "initdb failed: " + init.output;
@@ -111,7 +108,7 @@ std::unique_ptr<TestPostgres> TestPostgres::start(std::string* why) {
 bool TestPostgres::launch(std::string* why) {
   const std::string log = dir_ + "/postgres.log";
   postmaster_ = std::make_unique<ChildProcess>(
-      asDatabaseUser({bin_ + "/postgres", "-D", dir_ + "/data", "-p", std::to_string(port_), "-c",
+      asUnprivileged({bin_ + "/postgres", "-D", dir_ + "/data", "-p", std::to_string(port_), "-c",
                       "listen_addresses=127.0.0.1", "-c", "unix_socket_directories=" + dir_, "-c",
                       "max_connections=200", "-c", "shared_buffers=64MB"}),
       log);
@@ -126,7 +123,7 @@ bool TestPostgres::launch(std::string* why) {
       },
       std::chrono::milliseconds(100));
   if (!ready || !postmaster_->running()) {
-    if (why) *why = "PostgreSQL did not start; its log (" + log + "):\n" + tail(log);
+    if (why) *why = "PostgreSQL did not start; its log (" + log + "):\n" + logTail(log);
     return false;
   }
   return true;
@@ -172,66 +169,20 @@ void TestPostgres::stop() {
   if (!postmaster_->waitExit(std::chrono::seconds(30))) postmaster_->kill9();
 }
 
-namespace {
-
-// The processes whose parent is `parent` (from /proc/PID/stat: "pid (comm) state ppid ...").
-std::vector<pid_t> childrenOf(pid_t parent) {
-  std::vector<pid_t> children;
-  std::error_code ec;
-  for (const auto& entry : fs::directory_iterator("/proc", ec)) {
-    const std::string name = entry.path().filename().string();
-    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
-    std::ifstream in(entry.path() / "stat");
-    std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    const auto close = stat.rfind(')');
-    if (close == std::string::npos) continue;
-    char state = 0;
-    long ppid = 0;
-    if (std::sscanf(stat.c_str() + close + 1, " %c %ld", &state, &ppid) == 2 && ppid == parent) {
-      children.push_back(static_cast<pid_t>(std::stol(name)));
-    }
-  }
-  return children;
-}
-
-// True once `pid` is gone or a zombie: its sockets are closed either way.
-bool dead(pid_t pid) {
-  std::ifstream in("/proc/" + std::to_string(pid) + "/stat");
-  std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  const auto close = stat.rfind(')');
-  return close == std::string::npos || stat.compare(close + 1, 3, " Z ") == 0;
-}
-
-}  // namespace
-
 void TestPostgres::kill9() {
   if (running()) postmaster_->kill9();
 }
 
 void TestPostgres::crash() {
-  if (!running()) return;
-  const std::vector<pid_t> backends = childrenOf(postmaster_->pid());
-  postmaster_->kill9();
-  for (pid_t backend : backends) ::kill(backend, SIGKILL);
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
-  for (pid_t backend : backends) {
-    while (!dead(backend) && std::chrono::steady_clock::now() < deadline) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    }
-  }
+  if (running()) killWithChildren(postmaster_->pid());
 }
 
 void TestPostgres::pause() {
-  if (!running()) return;
-  // The postmaster first, so that it starts no new backend meanwhile.
-  ::kill(postmaster_->pid(), SIGSTOP);
-  for (pid_t child : childrenOf(postmaster_->pid())) ::kill(child, SIGSTOP);
+  if (running()) signalWithChildren(postmaster_->pid(), SIGSTOP);
 }
 
 void TestPostgres::resume() {
-  if (!running()) return;
-  for (pid_t child : childrenOf(postmaster_->pid())) ::kill(child, SIGCONT);
-  ::kill(postmaster_->pid(), SIGCONT);
+  if (running()) signalWithChildren(postmaster_->pid(), SIGCONT);
 }
 
 bool TestPostgres::restart(std::string* why) {

@@ -12,12 +12,39 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "tests/support/process.hpp"
 
 namespace stereomap::testing {
 
-class TestPostgres {
+// The cluster's database as tests and benchmarks drive it: one PostgreSQL (TestPostgres), or a
+// primary with synchronous standbys under Patroni (TestPatroni, patroni.hpp). Its faults are
+// real processes killed, paused and started again.
+class TestDatabase {
+ public:
+  virtual ~TestDatabase() = default;
+  // libpq URL of database `database` (created by createDatabase, or "postgres"); under
+  // Patroni every node, with target_session_attrs=read-write (libpq finds the primary).
+  virtual std::string url(const std::string& database = "postgres") const = 0;
+  // Runs one SQL statement with psql on the primary; its output (tuples only, unaligned),
+  // nullopt on error.
+  virtual std::optional<std::string> sql(const std::string& statement,
+                                         const std::string& database = "postgres") = 0;
+  // The primary's PostgreSQL killed: the postmaster and every backend at once, as in a crash
+  // of its machine; returns once their sockets are closed.
+  virtual void crash() = 0;
+  // Every process of the primary's PostgreSQL stopped (SIGSTOP), as a machine that hangs:
+  // connections stay open and new ones are accepted by the kernel, but nothing answers;
+  // resume() continues them.
+  virtual void pause() = 0;
+  virtual void resume() = 0;
+  // Whole again after crash(): PostgreSQL started again on the same directory and port, or,
+  // under Patroni, every node back and streaming. False (with `why`) when it does not come up.
+  virtual bool restart(std::string* why = nullptr) = 0;
+};
+
+class TestPostgres : public TestDatabase {
  public:
   // Initialises and starts one; nullopt with `why` set when PostgreSQL's binaries are absent
   // or it does not start (its log is named).
@@ -26,8 +53,7 @@ class TestPostgres {
   TestPostgres(const TestPostgres&) = delete;
   TestPostgres& operator=(const TestPostgres&) = delete;
 
-  // libpq URL of database `database` (created by createDatabase, or "postgres").
-  std::string url(const std::string& database = "postgres") const;
+  std::string url(const std::string& database = "postgres") const override;
   // The same with a wrong password, for tests of refused credentials.
   std::string urlWithPassword(const std::string& password,
                               const std::string& database = "postgres") const;
@@ -35,37 +61,40 @@ class TestPostgres {
   const std::string& dir() const { return dir_; }
   // Creates an empty database (psql); false with the output in `why`.
   bool createDatabase(const std::string& name, std::string* why = nullptr);
-  // Runs one SQL statement with psql; its output (tuples only, unaligned), nullopt on error.
   std::optional<std::string> sql(const std::string& statement,
-                                 const std::string& database = "postgres");
+                                 const std::string& database = "postgres") override;
 
   bool running();
   void stop();  // a clean shutdown (fast mode)
   // The postmaster killed; its backends notice at their next wait and exit, finishing the
   // statement under way (its client gets the answer).
   void kill9();
-  // The postmaster and every backend killed at once, as in a crash of the database's machine,
-  // and returns once their sockets are closed: a connection is certainly lost, and a statement
-  // under way may have committed without its client hearing so.
-  void crash();
-  // Every process of the database stopped (SIGSTOP), as a machine that hangs: connections stay
-  // open and new ones are accepted by the kernel, but nothing answers; resume() continues them.
-  void pause();
-  void resume();
-  // Starts it again on the same directory and port; false when it does not come up.
-  bool restart(std::string* why = nullptr);
+  // A connection is certainly lost, and a statement under way may have committed without its
+  // client hearing so.
+  void crash() override;
+  void pause() override;
+  void resume() override;
+  bool restart(std::string* why = nullptr) override;
 
  private:
   TestPostgres() = default;
   bool launch(std::string* why);
-  std::vector<std::string> asDatabaseUser(std::vector<std::string> argv) const;
   std::string bin_, dir_, password_;
   int port_ = 0;
-  bool drop_root_ = false;
   std::unique_ptr<ChildProcess> postmaster_;
 };
 
 // A TCP port on 127.0.0.1 that nothing listens on now.
 int unusedPort();
+
+// What TestPostgres and TestPatroni share: the newest PostgreSQL's binaries (Debian:
+// /usr/lib/postgresql/<version>/bin; "" when absent), a password, the end of a log, and argv
+// run as the user `nobody` when the test runs as root (PostgreSQL refuses to run as root).
+std::string postgresBinDir();
+std::string randomPassword();
+std::string logTail(const std::string& path);
+std::vector<std::string> asUnprivileged(std::vector<std::string> argv);
+// Makes `dir` the unprivileged user's when the test runs as root; false when it cannot.
+bool handToUnprivileged(const std::string& dir);
 
 }  // namespace stereomap::testing

@@ -12,6 +12,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
@@ -20,6 +21,8 @@
 extern char** environ;
 
 namespace stereomap::testing {
+
+namespace fs = std::filesystem;
 
 ChildProcess::ChildProcess(std::vector<std::string> argv, const std::string& log_path) {
   posix_spawn_file_actions_t actions;
@@ -120,7 +123,11 @@ HttpReply httpRequest(int port, const std::string& method, const std::string& pa
   for (ssize_t n; (n = ::recv(fd, buffer, sizeof(buffer), 0)) > 0;) response.append(buffer, n);
   ::close(fd);
   const size_t header_end = response.find("\r\n\r\n");
-  if (response.rfind("HTTP/1.1 ", 0) != 0 || header_end == std::string::npos) return reply;
+  // HTTP/1.0 too (Patroni's REST API, Python's BaseHTTPServer).
+  if ((response.rfind("HTTP/1.1 ", 0) != 0 && response.rfind("HTTP/1.0 ", 0) != 0) ||
+      header_end == std::string::npos) {
+    return reply;
+  }
   reply.status = std::atoi(response.c_str() + 9);
   reply.headers = response.substr(0, header_end + 2);
   reply.body = response.substr(header_end + 4);
@@ -245,6 +252,63 @@ std::string makeTempDir(const std::string& prefix) {
   std::string pattern = std::string(tmp ? tmp : "/tmp") + "/" + prefix + "-XXXXXX";
   if (mkdtemp(pattern.data()) == nullptr) throw std::runtime_error("mkdtemp failed");
   return pattern;
+}
+
+// The processes whose parent is `parent` (from /proc/PID/stat: "pid (comm) state ppid ...").
+std::vector<pid_t> childrenOf(pid_t parent) {
+  std::vector<pid_t> children;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator("/proc", ec)) {
+    const std::string name = entry.path().filename().string();
+    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+    std::ifstream in(entry.path() / "stat");
+    std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const auto close = stat.rfind(')');
+    if (close == std::string::npos) continue;
+    char state = 0;
+    long ppid = 0;
+    if (std::sscanf(stat.c_str() + close + 1, " %c %ld", &state, &ppid) == 2 && ppid == parent) {
+      children.push_back(static_cast<pid_t>(std::stol(name)));
+    }
+  }
+  return children;
+}
+
+// True once `pid` is gone or a zombie: its sockets are closed either way.
+bool isDead(pid_t pid) {
+  std::ifstream in("/proc/" + std::to_string(pid) + "/stat");
+  std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto close = stat.rfind(')');
+  return close == std::string::npos || stat.compare(close + 1, 3, " Z ") == 0;
+}
+
+void killWithChildren(pid_t parent) {
+  const std::vector<pid_t> children = childrenOf(parent);
+  ::kill(parent, SIGKILL);
+  for (pid_t child : children) ::kill(child, SIGKILL);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  for (pid_t pid : children) {
+    while (!isDead(pid) && std::chrono::steady_clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+  }
+  while (!isDead(parent) && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+}
+
+void signalWithChildren(pid_t parent, int signal) {
+  // Stopping: the parent first, so that it starts no new child meanwhile; continuing: last.
+  if (signal == SIGSTOP) ::kill(parent, signal);
+  for (pid_t child : childrenOf(parent)) ::kill(child, signal);
+  if (signal != SIGSTOP) ::kill(parent, signal);
+}
+
+std::string replaced(std::string text, const std::string& from, const std::string& to) {
+  for (size_t at = text.find(from); at != std::string::npos; at = text.find(from, at + to.size())) {
+    text.replace(at, from.size(), to);
+  }
+  return text;
 }
 
 }  // namespace stereomap::testing

@@ -91,4 +91,16 @@ std::chrono::milliseconds scaledTimeout(std::chrono::milliseconds timeout);
 // A fresh empty directory under $TMPDIR, removed by the caller.
 std::string makeTempDir(const std::string& prefix);
 
+// The processes whose parent is `parent` (from /proc).
+std::vector<pid_t> childrenOf(pid_t parent);
+// True once `pid` is gone or a zombie: its sockets are closed either way.
+bool isDead(pid_t pid);
+// `parent` and its children killed at once (SIGKILL), as in a crash of their machine; returns
+// once they are dead (their sockets closed), or after 10 s.
+void killWithChildren(pid_t parent);
+// `signal` to `parent` and its children (SIGSTOP: a machine that hangs; SIGCONT: it resumes).
+void signalWithChildren(pid_t parent, int signal);
+// `text` with every `from` replaced by `to` (filling a configuration template).
+std::string replaced(std::string text, const std::string& from, const std::string& to);
+
 }  // namespace stereomap::testing
