@@ -108,7 +108,54 @@ std::string uniqueName() {
   return name;
 }
 
-pg_conn* open(const std::string& url, const PgOptions& options, const std::string& name) {
+// The URL's hosts (and ports) with `avoid` ("host:port") moved last: after a statement was
+// abandoned on a database that hangs, libpq tries the others first rather than spending its
+// connect timeout on that one every time (a primary that hung is failed over to another
+// host). Empty strings when the URL names one host, or `avoid` is not among them.
+std::pair<std::string, std::string> hostsAvoiding(const std::string& url,
+                                                  const std::string& avoid) {
+  if (avoid.empty()) return {};
+  char* error = nullptr;
+  PQconninfoOption* parsed = PQconninfoParse(url.c_str(), &error);
+  if (error != nullptr) PQfreemem(error);
+  if (parsed == nullptr) return {};
+  std::string hosts, ports;
+  for (PQconninfoOption* option = parsed; option->keyword != nullptr; ++option) {
+    if (option->val == nullptr) continue;
+    if (std::string_view(option->keyword) == "host") hosts = option->val;
+    if (std::string_view(option->keyword) == "port") ports = option->val;
+  }
+  PQconninfoFree(parsed);
+  const auto split = [](const std::string& list) {
+    std::vector<std::string> items;
+    for (size_t at = 0;;) {
+      const size_t comma = list.find(',', at);
+      items.push_back(list.substr(at, comma - at));
+      if (comma == std::string::npos) return items;
+      at = comma + 1;
+    }
+  };
+  std::vector<std::string> host_list = split(hosts), port_list = split(ports);
+  if (host_list.size() < 2) return {};
+  port_list.resize(host_list.size(), port_list.size() == 1 ? port_list[0] : "5432");
+  std::vector<size_t> order;
+  for (size_t i = 0; i < host_list.size(); ++i) {
+    if (host_list[i] + ":" + port_list[i] != avoid) order.push_back(i);
+  }
+  if (order.size() == host_list.size()) return {};
+  for (size_t i = 0; i < host_list.size(); ++i) {
+    if (host_list[i] + ":" + port_list[i] == avoid) order.push_back(i);
+  }
+  std::string new_hosts, new_ports;
+  for (size_t i : order) {
+    new_hosts += (new_hosts.empty() ? "" : ",") + host_list[i];
+    new_ports += (new_ports.empty() ? "" : ",") + port_list[i];
+  }
+  return {new_hosts, new_ports};
+}
+
+pg_conn* open(const std::string& url, const PgOptions& options, const std::string& name,
+              const std::string& avoid = "") {
   const std::string seconds =
       std::to_string(std::max<int64_t>(2, (options.connect_timeout.count() + 999) / 1000));
   // The server gives up a little after the client would: the client's deadline decides, the
@@ -123,20 +170,27 @@ pg_conn* open(const std::string& url, const PgOptions& options, const std::strin
   const std::string user_timeout = std::to_string(options.deadline.count());
   // The URL first (expanded), then what we add: timeouts, and keepalives so that a database
   // gone silent (its machine cut off) is noticed in seconds, not hours.
-  const char* keys[] = {"dbname",
-                        "connect_timeout",
-                        "keepalives",
-                        "keepalives_idle",
-                        "keepalives_interval",
-                        "keepalives_count",
-                        "tcp_user_timeout",
-                        "options",
-                        "application_name",
-                        nullptr};
-  const char* values[] = {
-      url.c_str(),          seconds.c_str(),        "1",          "5",    "2", "3",
-      user_timeout.c_str(), server_options.c_str(), name.c_str(), nullptr};
-  pg_conn* conn = PQconnectdbParams(keys, values, /*expand_dbname=*/1);
+  std::vector<const char*> keys = {"dbname",
+                                   "connect_timeout",
+                                   "keepalives",
+                                   "keepalives_idle",
+                                   "keepalives_interval",
+                                   "keepalives_count",
+                                   "tcp_user_timeout",
+                                   "options",
+                                   "application_name"};
+  std::vector<const char*> values = {
+      url.c_str(),          seconds.c_str(),        "1",         "5", "2", "3",
+      user_timeout.c_str(), server_options.c_str(), name.c_str()};
+  // Later keys override what the expanded URL said.
+  const auto [hosts, ports] = hostsAvoiding(url, avoid);
+  if (!hosts.empty()) {
+    keys.insert(keys.end(), {"host", "port"});
+    values.insert(values.end(), {hosts.c_str(), ports.c_str()});
+  }
+  keys.push_back(nullptr);
+  values.push_back(nullptr);
+  pg_conn* conn = PQconnectdbParams(keys.data(), values.data(), /*expand_dbname=*/1);
   if (conn != nullptr) {
     // The database's notices ("relation already exists, skipping") are not for our logs.
     PQsetNoticeProcessor(
@@ -186,7 +240,7 @@ bool PgConnection::connected() const {
 common::Status PgConnection::reconnect() {
   if (conn_ != nullptr) PQfinish(conn_);
   name_ = uniqueName();
-  conn_ = open(url_, options_, name_);
+  conn_ = open(url_, options_, name_, avoid_);
   if (!connected()) {
     const std::string why = oneLine(conn_ != nullptr ? PQerrorMessage(conn_) : "out of memory");
     return common::makeError(common::ErrorCode::kUnavailable,
@@ -228,6 +282,9 @@ void PgConnection::abandon() {
   // gives none. The backend is ended from the next connection instead.
   const int pid = PQbackendPID(conn_);
   if (pid != 0) abandoned_.push_back({pid, name_});
+  if (const char* host = PQhost(conn_); host != nullptr) {
+    avoid_ = std::string(host) + ":" + PQport(conn_);
+  }
   ++abandoned_count_;
   PQfinish(conn_);
   conn_ = nullptr;

@@ -134,6 +134,7 @@ class PgConnection {
     std::string name;
   };
   std::vector<Abandoned> abandoned_;
+  std::string avoid_;  // host:port of the last abandoned statement: tried last on reconnect
   uint64_t abandoned_count_ = 0;
   std::atomic<uint64_t> statements_{0};
 };

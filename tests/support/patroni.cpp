@@ -121,17 +121,7 @@ std::string TestPatroni::url(const std::string& database) const {
 
 std::optional<std::string> TestPatroni::sql(const std::string& statement,
                                             const std::string& database) {
-  const auto run = runTool({bin_ + "/psql", "-X", "-q", "-t", "-A", "-v", "ON_ERROR_STOP=1", "-d",
-                            url(database) + "&connect_timeout=3", "-c", statement},
-                           std::chrono::seconds(60));
-  if (run.exit_code != 0) return std::nullopt;
-  return run.output;
-}
-
-bool TestPatroni::createDatabase(const std::string& name, std::string* why) {
-  if (sql("CREATE DATABASE \"" + name + "\"")) return true;
-  if (why) *why = "cannot create database " + name;
-  return false;
+  return runPsql(bin_, url(database) + "&connect_timeout=3", statement);
 }
 
 std::optional<int> TestPatroni::primary() {

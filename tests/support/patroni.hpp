@@ -39,8 +39,6 @@ class TestPatroni : public TestDatabase {
   // The node that is primary now (Patroni's REST API), nullopt when none is.
   std::optional<int> primary();
   int nodes() const { return static_cast<int>(nodes_.size()); }
-  // Creates an empty database on the primary; false with the output in `why`.
-  bool createDatabase(const std::string& name, std::string* why = nullptr);
 
  private:
   struct Node {

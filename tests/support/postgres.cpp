@@ -145,16 +145,21 @@ std::string TestPostgres::urlWithPassword(const std::string& password,
          database;
 }
 
-std::optional<std::string> TestPostgres::sql(const std::string& statement,
-                                             const std::string& database) {
-  const auto run = runTool({bin_ + "/psql", "-X", "-q", "-t", "-A", "-v", "ON_ERROR_STOP=1", "-d",
-                            url(database), "-c", statement},
-                           std::chrono::seconds(60));
+std::optional<std::string> runPsql(const std::string& bin, const std::string& url,
+                                   const std::string& statement) {
+  const auto run = runTool(
+      {bin + "/psql", "-X", "-q", "-t", "-A", "-v", "ON_ERROR_STOP=1", "-d", url, "-c", statement},
+      std::chrono::seconds(60));
   if (run.exit_code != 0) return std::nullopt;
   return run.output;
 }
 
-bool TestPostgres::createDatabase(const std::string& name, std::string* why) {
+std::optional<std::string> TestPostgres::sql(const std::string& statement,
+                                             const std::string& database) {
+  return runPsql(bin_, url(database), statement);
+}
+
+bool TestDatabase::createDatabase(const std::string& name, std::string* why) {
   if (sql("CREATE DATABASE \"" + name + "\"")) return true;
   if (why) *why = "cannot create database " + name;
   return false;

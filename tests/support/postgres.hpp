@@ -42,6 +42,8 @@ class TestDatabase {
   // Whole again after crash(): PostgreSQL started again on the same directory and port, or,
   // under Patroni, every node back and streaming. False (with `why`) when it does not come up.
   virtual bool restart(std::string* why = nullptr) = 0;
+  // Creates an empty database; false with the output in `why`.
+  bool createDatabase(const std::string& name, std::string* why = nullptr);
 };
 
 class TestPostgres : public TestDatabase {
@@ -59,8 +61,6 @@ class TestPostgres : public TestDatabase {
                               const std::string& database = "postgres") const;
   int port() const { return port_; }
   const std::string& dir() const { return dir_; }
-  // Creates an empty database (psql); false with the output in `why`.
-  bool createDatabase(const std::string& name, std::string* why = nullptr);
   std::optional<std::string> sql(const std::string& statement,
                                  const std::string& database = "postgres") override;
 
@@ -94,6 +94,10 @@ std::string postgresBinDir();
 std::string randomPassword();
 std::string logTail(const std::string& path);
 std::vector<std::string> asUnprivileged(std::vector<std::string> argv);
+// One SQL statement run by psql (from `bin`) on `url`: its output (tuples only, unaligned),
+// nullopt on error.
+std::optional<std::string> runPsql(const std::string& bin, const std::string& url,
+                                   const std::string& statement);
 // Makes `dir` the unprivileged user's when the test runs as root; false when it cannot.
 bool handToUnprivileged(const std::string& dir);
 
