@@ -313,7 +313,6 @@ bool writeHistory(cluster::ClusterJournal& journal, const std::string& session,
     writers.emplace_back([&] {
       for (size_t i; (i = next++) < records && !failed;) {
         auto record = flight[i % flight.size()];
-        const auto pass = i / flight.size();
         auto restamp = [&](auto& message) {
           message.session_id = session;
           message.vehicle_id = "h";
@@ -322,7 +321,6 @@ bool writeHistory(cluster::ClusterJournal& journal, const std::string& session,
           message.unacked_from = 0;
           message.stamp_ns =
               start_ns + static_cast<int64_t>(i * 100'000'000 * poses_per_pass / flight.size());
-          (void)pass;
           return journal.append(message);
         };
         auto appended = std::visit(
