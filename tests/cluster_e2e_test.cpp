@@ -11,6 +11,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <cmath>
 #include <map>
 #include <regex>
@@ -32,7 +33,7 @@ using Clock = std::chrono::steady_clock;
 
 constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105, kTilesDomain = 106,
               kRestartedDomain = 107, kHungDomain = 108, kPrimaryKilledDomain = 109,
-              kPrimaryHungDomain = 110;
+              kPrimaryHungDomain = 110, kSilentDomain = 111, kManagedDomain = 112;
 
 class ClusterTest : public ::testing::Test {
  protected:
@@ -322,6 +323,178 @@ TEST_F(ClusterTest, AHungDatabaseIsSeenWithinThreeSecondsAndEverythingResumes) {
 
 // The database failing over: three PostgreSQL nodes under Patroni, synchronous replication
 // (a sample is acknowledged only once a standby has it), the servers on one multi-host URL.
+// The state the database gives session `id` ("" when it has none).
+std::string stateOf(ClusterHarness& cluster, const std::string& id) {
+  auto state = cluster.query("SELECT state FROM sm_sessions WHERE id = '" + id + "'");
+  while (!state.empty() && std::isspace(static_cast<unsigned char>(state.back()))) state.pop_back();
+  return state;
+}
+
+bool waitForState(ClusterHarness& cluster, const std::string& id, const std::string& state,
+                  std::chrono::seconds timeout) {
+  const auto deadline = Clock::now() + scaledTimeout(timeout);
+  while (Clock::now() < deadline) {
+    if (stateOf(cluster, id) == state) return true;
+    std::this_thread::sleep_for(200ms);
+  }
+  return false;
+}
+
+// A vehicle cut off (paused) past --vehicle-timeout: its session ends, leaves the server's
+// memory (snapshotted, 'ended' in the database, listed with its counts), and is served again
+// when the vehicle comes back holding samples nobody acknowledged; nothing is lost.
+TEST_F(ClusterTest, ASilentVehiclesSessionLeavesMemoryAndIsServedAgainWhenItReturns) {
+  auto& server = cluster_->startServer(kSilentDomain, "a", 2, "", {"--vehicle-timeout", "2"});
+  startVehicle(kSilentDomain, 0, 350);
+  const auto deadline = Clock::now() + scaledTimeout(30s);
+  while (owners()["flight0"] != "a" && Clock::now() < deadline) std::this_thread::sleep_for(100ms);
+  ASSERT_EQ(owners()["flight0"], "a");
+  std::this_thread::sleep_for(4s);
+  signalWithChildren(cluster_->vehicle(0).pid(), SIGSTOP);
+  // Silent for 2 s: ended; quiet for 10 s more: out of memory.
+  const bool ended = waitForState(*cluster_, "flight0", "ended", 30s);
+  const auto listing = server.get("/api/sessions");
+  const auto metrics = server.get("/metrics").body;
+  signalWithChildren(cluster_->vehicle(0).pid(), SIGCONT);
+  ASSERT_TRUE(ended) << "state " << stateOf(*cluster_, "flight0") << "\n" << server.log();
+  EXPECT_EQ(seriesValue(metrics, "stereomap_cluster_sessions_served"), 0.0);
+  ASSERT_EQ(listing.status, 200);
+  const auto sessions = nlohmann::json::parse(listing.body);
+  ASSERT_EQ(sessions.size(), 1u) << listing.body;
+  EXPECT_EQ(sessions[0]["state"], "ended");
+  EXPECT_GT(sessions[0]["poses"].get<int>(), 10) << "its counts, as it left memory";
+  EXPECT_GE(std::stoi(query("SELECT count(*) FROM sm_snapshots WHERE session = 'flight0'")), 1)
+      << "snapshotted as it left";
+
+  // Back: it announces its session until a server reads it, and sends what waited.
+  waitForVehicles();
+  EXPECT_EQ(stateOf(*cluster_, "flight0"), "live");
+  expectWholeSessions(1);
+  const auto log = server.log();
+  EXPECT_NE(log.find("out of this server's memory"), std::string::npos);
+}
+
+// Operators' work in a cluster, through the proxy and with stereomap-store --cluster: a flight
+// that ended is closed, opened read-only (its tiles served wherever it was opened), merged
+// with another, replayed as the MCAP of the tool, checked and deleted.
+TEST_F(ClusterTest, OperatorsCloseOpenMergeExportAndDeleteSessionsInTheCluster) {
+  startServer(kManagedDomain, "a");
+  startServer(kManagedDomain, "b");
+  std::string why;
+  ASSERT_TRUE(cluster_->startNginx(&why)) << why;
+  const int proxy = cluster_->nginx().port();
+  startVehicle(kManagedDomain, 0, 120);
+  startVehicle(kManagedDomain, 1, 120);
+  waitForVehicles();
+  // Ended by their vehicles, then out of memory.
+  ASSERT_TRUE(waitForState(*cluster_, "flight0", "ended", 40s)) << stateOf(*cluster_, "flight0");
+  ASSERT_TRUE(waitForState(*cluster_, "flight1", "ended", 40s));
+  const auto journaled = [&](const std::string& id) {
+    return std::stoi(
+        query("SELECT count(*) FROM sm_journal WHERE session = '" + id + "' AND kind = 1"));
+  };
+  const int clouds0 = journaled("flight0"), clouds1 = journaled("flight1");
+
+  // Every server routes to where a session was opened from its next control round on, and the
+  // proxy keeps a route a second: a viewer that came too early connects again.
+  const auto seesTiles = [&](const std::string& id) {
+    const auto deadline = Clock::now() + 20s;
+    while (Clock::now() < deadline) {
+      if (viewerSeesTiles(proxy, id, 5s)) return true;
+      std::this_thread::sleep_for(500ms);
+    }
+    return false;
+  };
+  auto post = [&](const std::string& path, const std::string& body = "") {
+    return httpRequest(proxy, "POST", path, body);
+  };
+  auto closed = post("/api/sessions/flight0/close");
+  EXPECT_EQ(closed.status, 200) << closed.body;
+  EXPECT_EQ(stateOf(*cluster_, "flight0"), "closed");
+  EXPECT_EQ(post("/api/sessions/flight0/close").status, 409) << "closed once";
+  auto opened = post("/api/sessions/flight0/open");
+  ASSERT_EQ(opened.status, 200) << opened.body;
+  EXPECT_EQ(nlohmann::json::parse(opened.body)["state"], "opened") << opened.body;
+  EXPECT_EQ(stateOf(*cluster_, "flight0"), "opened");
+  EXPECT_TRUE(seesTiles("flight0")) << "routed to where it was opened";
+
+  auto merged =
+      post("/api/sessions/merge", R"({"first": "flight0", "second": "flight1", "into": "both"})");
+  ASSERT_EQ(merged.status, 200) << merged.body;
+  EXPECT_EQ(journaled("both"), clouds0 + clouds1);
+  // The other servers route to it from their next control round on.
+  const auto routed = [&](const std::string& path) {
+    const auto deadline = Clock::now() + 3s;
+    auto reply = httpGet(proxy, path);
+    while (reply.status == 404 && Clock::now() < deadline) {
+      std::this_thread::sleep_for(100ms);
+      reply = httpGet(proxy, path);
+    }
+    return reply;
+  };
+  const auto both = routed("/api/sessions/both");
+  ASSERT_EQ(both.status, 200) << both.body;
+  EXPECT_EQ(nlohmann::json::parse(both.body).value("frames", -1), clouds0 + clouds1) << both.body;
+  EXPECT_TRUE(seesTiles("both"));
+
+  auto removed = httpRequest(proxy, "DELETE", "/api/sessions/flight1");
+  EXPECT_EQ(removed.status, 200) << removed.body;
+  EXPECT_EQ(stateOf(*cluster_, "flight1"), "");
+  EXPECT_EQ(journaled("flight1"), 0) << "its journal went with it";
+
+  // The tool, beside the running servers.
+  const auto tool = [&](std::vector<std::string> args) {
+    args.insert(args.begin(), {std::string(STEREOMAP_BIN_DIR) + "/stereomap-store", "--cluster",
+                               cluster_->db().url()});
+    return runTool(args);
+  };
+  const auto listed = tool({"list"});
+  EXPECT_EQ(listed.exit_code, 0) << listed.output;
+  EXPECT_NE(listed.output.find("both"), std::string::npos) << listed.output;
+  EXPECT_NE(listed.output.find("opened"), std::string::npos) << listed.output;
+  const auto checked = tool({"check"});
+  EXPECT_EQ(checked.exit_code, 0) << checked.output;
+  const auto shown = tool({"show", "flight0"});
+  ASSERT_EQ(shown.exit_code, 0) << shown.output;
+  EXPECT_EQ(nlohmann::json::parse(shown.output).value("frames", -1), clouds0) << shown.output;
+  const std::string mcap = cluster_->dir() + "/both.mcap";
+  const auto exported = tool({"export", "both", "--mcap", mcap});
+  ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  EXPECT_EQ(readText(mcap).substr(0, 8), std::string("\x89MCAP0\r\n", 8));
+  const std::string ply = cluster_->dir() + "/flight0.ply";
+  EXPECT_EQ(tool({"export", "flight0", "--format", "ply", "--out", ply}).exit_code, 0);
+  EXPECT_NE(readText(ply).find("end_header"), std::string::npos);
+  const auto merged_again = tool({"merge", "flight0", "both", "--into", "all"});
+  EXPECT_EQ(merged_again.exit_code, 0) << merged_again.output;
+  EXPECT_EQ(tool({"close", "both"}).exit_code, 0);
+  EXPECT_EQ(stateOf(*cluster_, "both"), "closed");
+  const auto refused = tool({"delete", "nothing", "--yes"});
+  EXPECT_NE(refused.exit_code, 0);
+  EXPECT_NE(refused.output.find("no session 'nothing'"), std::string::npos) << refused.output;
+  EXPECT_EQ(tool({"delete", "both", "--yes"}).exit_code, 0);
+  EXPECT_EQ(stateOf(*cluster_, "both"), "");
+  // The server that had it opened lets it go.
+  const auto gone = Clock::now() + 5s;
+  while (httpGet(proxy, "/api/sessions/both").status != 404 && Clock::now() < gone) {
+    std::this_thread::sleep_for(100ms);
+  }
+  EXPECT_EQ(httpGet(proxy, "/api/sessions/both").status, 404);
+  for (const auto& [id, server] : cluster_->servers()) {
+    const auto direct = server->get("/api/sessions/both");
+    EXPECT_EQ(direct.status, 404) << id << ": " << direct.body;
+    if (direct.status != 404) {  // where its control thread is, for the log
+      const auto stacks = runTool({"gdb", "-p", std::to_string(server->process().pid()), "-batch",
+                                   "-ex", "thread apply all bt"});
+      std::printf("--- %s's threads\n%s\n", id.c_str(), stacks.output.c_str());
+    }
+  }
+  if (HasFailure()) {
+    for (const auto& [id, server] : cluster_->servers()) {
+      std::printf("--- server %s\n%s\n", id.c_str(), server->log().c_str());
+    }
+  }
+}
+
 class PatroniClusterTest : public ClusterTest {
  protected:
   int patroniNodes() const override { return 3; }

@@ -86,7 +86,11 @@ common::Status VehiclePublisher::send(Message& message) {
   return write(message);
 }
 
-common::Status VehiclePublisher::publish(proto::SessionEventMsg& event) { return send(event); }
+common::Status VehiclePublisher::publish(proto::SessionEventMsg& event) {
+  auto sent = send(event);
+  if (event.kind == proto::SessionEventKind::kStarted) announcement_ = event;  // numbered now
+  return sent;
+}
 common::Status VehiclePublisher::publish(proto::PoseMsg& pose) { return send(pose); }
 common::Status VehiclePublisher::publish(proto::CloudFrameMsg& frame) { return send(frame); }
 common::Status VehiclePublisher::publish(proto::PoseCorrectionMsg& correction) {
@@ -102,11 +106,24 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
   ack_batch_.clear();
   acks_->take(ack_batch_, wait);
   for (const auto& ack : ack_batch_) outbox_->acknowledge(ack);
-  outbox_->resend(steadyNs(), serverPresent());
+  const bool present = serverPresent();
+  announceWhileUnserved(present);
+  outbox_->resend(steadyNs(), present);
   outbox_->spool().sync();
 }
 
 bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() > 0; }
+
+void VehiclePublisher::announceWhileUnserved(bool server_present) {
+  // In a cluster, a session nobody serves (it ended and left memory while this vehicle was cut
+  // off, or its server stopped) is served again when it is announced: its start event, sent
+  // again as it was (the same stream and seq, so a server that has it counts a duplicate).
+  if (server_present || !announcement_ || outbox_->caughtUp()) return;
+  const auto now = Clock::now();
+  if (now - last_announced_ < kAnnounceEvery) return;
+  last_announced_ = now;
+  (void)events_->write(*announcement_);
+}
 
 bool VehiclePublisher::waitForServer(std::chrono::milliseconds timeout) const {
   return clouds_->waitForReaders(1, timeout);

@@ -154,6 +154,10 @@ class VehiclePublisher {
   common::Status write(const link::SpoolRecord& record);
   template <typename Message>
   common::Status send(Message& message);
+  // Says the session started again, every kAnnounceEvery, while samples wait and no server
+  // reads them.
+  void announceWhileUnserved(bool server_present);
+  static constexpr std::chrono::seconds kAnnounceEvery{2};
 
   std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events_;
   std::unique_ptr<proto::Writer<proto::PoseMsg>> poses_;
@@ -163,6 +167,8 @@ class VehiclePublisher {
   std::unique_ptr<proto::Reader<proto::AckMsg>> acks_;
   std::optional<link::Outbox> outbox_;
   std::vector<proto::AckMsg> ack_batch_;
+  std::optional<proto::SessionEventMsg> announcement_;  // the start event as first sent
+  std::chrono::steady_clock::time_point last_announced_{};
 };
 
 // Messages for one frame (exposed for tests).

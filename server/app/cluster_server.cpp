@@ -7,6 +7,7 @@
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_node.hpp"
+#include "server/cluster/cluster_store.hpp"
 #include "server/cluster/pg.hpp"
 
 namespace stereomap::app {
@@ -57,7 +58,9 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
        .lease = std::chrono::milliseconds(static_cast<int64_t>(flags.lease_s * 1000)),
        .capacity = flags.options.max_sessions});
   if (!db) return fail(db.error());
-  admin.attach(**db, advertise);
+  auto store = cluster::ClusterStore::open(flags.cluster_url, **journal);
+  if (!store) return fail(store.error());
+  admin.attach(**db, advertise, **store);
   (*http_server)->start();
   auto node =
       cluster::ClusterNode::start({.default_resolution = flags.options.resolution,
@@ -65,6 +68,7 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
                                    .on_superseded = [&shutdown] { shutdown.requestStop(); }},
                                   **db, **journal, server, participant);
   if (!node) return fail(node.error());
+  admin.serveWith(node->get());
   spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
                (*db)->serverId(), cluster::redactPassword(flags.cluster_url), flags.dds.domain_id,
                flags.options.resolution);
@@ -75,6 +79,7 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
 
   if ((*node)->superseded()) {
     // Restarted elsewhere under the same id: that process serves this id's sessions now.
+    admin.serveWith(nullptr);
     (*node)->stop();
     (*http_server)->stop();
     spdlog::error("stopped: superseded by a newer process with server id '{}'", (*db)->serverId());
@@ -82,6 +87,7 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   }
   spdlog::info("stopping (signal {}): handing this server's sessions back to the cluster",
                shutdown.signal());
+  admin.serveWith(nullptr);
   (*node)->stop();
   (*http_server)->stop();
   spdlog::info("stopped");

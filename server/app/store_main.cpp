@@ -18,8 +18,7 @@
 #include "common/cli.hpp"
 #include "common/transform_args.hpp"
 #include "proto/journal/journal.hpp"
-#include "server/cluster/cluster_db.hpp"
-#include "server/cluster/pg.hpp"
+#include "server/app/store_tool.hpp"
 #include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/session_json.hpp"
@@ -34,6 +33,8 @@ namespace {
 
 using namespace stereomap;
 namespace fs = std::filesystem;
+using stereomap::app::Args;
+using stereomap::app::fail;
 
 struct Store {
   std::unique_ptr<store::SessionJournals> journals;
@@ -57,17 +58,6 @@ common::Result<Store> openStore(const fs::path& root, double resolution, bool wr
   if (!admin) return admin.error();
   store.admin = std::move(admin).value();
   return store;
-}
-
-std::string megabytes(uint64_t bytes) {
-  char text[32];
-  std::snprintf(text, sizeof(text), "%.1f", static_cast<double>(bytes) / 1e6);
-  return text;
-}
-
-int fail(const std::string& message) {
-  spdlog::error("{}", message);
-  return 1;
 }
 
 // The catalog's rows; without a catalog (a store no server has run on since it was added),
@@ -104,7 +94,7 @@ int list(Store& store, bool as_json) {
     std::printf("%-28s %-7s %-16s %7llu %6.3f %9llu %10s\n", r.id.c_str(), r.state.c_str(),
                 r.vehicles.c_str(), static_cast<unsigned long long>(r.frames), r.resolution,
                 static_cast<unsigned long long>(r.occupied_voxels),
-                megabytes(r.journal_bytes).c_str());
+                stereomap::app::megabytes(r.journal_bytes).c_str());
   }
   if (rows->empty()) std::printf("(no sessions in %s)\n", store.admin->root().string().c_str());
   return 0;
@@ -138,7 +128,8 @@ int check(Store& store) {
     bool bad = !replay->problem.empty();
     std::printf("%-24s %-9s %zu records, %zu frames, %s MB (format %d), %zu snapshot(s)\n",
                 id.c_str(), bad ? "DAMAGED" : "ok", replay->records.size(), frames,
-                megabytes(replay->file_bytes).c_str(), replay->version, snapshots.size());
+                stereomap::app::megabytes(replay->file_bytes).c_str(), replay->version,
+                snapshots.size());
     if (replay->header_damaged) std::printf("  journal: file header damaged (records kept)\n");
     for (const auto& damage : replay->damage) {
       std::printf("  journal: %s\n", damage.describe().c_str());
@@ -197,22 +188,6 @@ int repair(Store& store, const std::vector<std::string>& ids) {
 }
 
 // Every flag and argument of every subcommand.
-struct Args {
-  std::string root = "stereomap-store";
-  double resolution = 0.1;
-  bool as_json = false;
-  std::vector<std::string> repair_ids;
-  std::string id;
-  core::ExportRequest request{.format = ""};
-  std::string out;
-  std::string mcap_out;
-  bool yes = false;
-  std::string map_file;
-  std::string first, second, into;
-  std::vector<double> transform;
-  std::string cluster_url;
-};
-
 // A subcommand: whether it writes (it needs the store to itself) and what it does.
 struct Command {
   CLI::App* app;
@@ -265,85 +240,15 @@ int showSession(Store& store, Args& a) {
   return 0;
 }
 
-// The session as MCAP (server/interop/session_mcap.hpp), written as the journal is read,
-// into a temporary file renamed at the end; progress on stderr.
-int exportMcap(Store& store, Args& a) {
-  const auto start = std::chrono::steady_clock::now();
-  auto session = replayed(store, a.id);
-  if (!session) return fail(session.error().message);
-  const fs::path out = a.mcap_out;
-  const fs::path partial = out.string() + ".partial";
-  std::ofstream file(partial, std::ios::binary | std::ios::trunc);
-  if (!file) return fail("cannot write " + partial.string());
-  interop::McapExportOptions options;
-  const bool tty = ::isatty(STDERR_FILENO) != 0;
-  auto last = std::chrono::steady_clock::now();
-  options.progress = [&](uint64_t records) {
-    const auto now = std::chrono::steady_clock::now();
-    if (now - last < std::chrono::seconds(1)) return;
-    last = now;
-    std::fprintf(stderr, tty ? "\r%llu journal records written" : "%llu journal records written\n",
-                 static_cast<unsigned long long>(records));
-  };
-  auto written = interop::writeSessionMcap(
-      **session, interop::journalFile(store.admin->root() / a.id / store::kJournalName),
-      [&](std::string_view bytes) {
-        file.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-        return file.good();
-      },
-      options);
-  if (tty) std::fprintf(stderr, "\n");
-  if (written && !file.flush()) written = common::makeError(common::ErrorCode::kIo, "flush");
-  file.close();
-  std::error_code ignored;
-  if (!written) {
-    fs::remove(partial, ignored);
-    return fail("cannot write " + out.string() + ": " + written.error().message);
-  }
-  fs::rename(partial, out, ignored);
-  if (ignored) return fail("cannot rename " + partial.string() + ": " + ignored.message());
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  std::printf(
-      "%s: %llu messages (%llu poses, %llu clouds, %zu map cubes at level %u), %llu bytes, "
-      "%.1f s\n",
-      out.c_str(), static_cast<unsigned long long>(written->messages),
-      static_cast<unsigned long long>(written->poses),
-      static_cast<unsigned long long>(written->clouds), written->map_cubes, written->map_level,
-      static_cast<unsigned long long>(written->bytes), seconds);
-  if (written->unreadable_clouds > 0) {
-    spdlog::warn("{} clouds did not decode and were left out", written->unreadable_clouds);
-  }
-  return 0;
-}
-
 int exportFile(Store& store, Args& a) {
-  if (!a.mcap_out.empty()) return exportMcap(store, a);
-  if (a.request.format.empty()) return fail("export needs --format FORMAT or --mcap FILE");
+  if (a.mcap_out.empty() && a.request.format.empty()) {
+    return fail("export needs --format FORMAT or --mcap FILE");
+  }
   auto session = replayed(store, a.id);
   if (!session) return fail(session.error().message);
-  // grid: the band as map_server's two files, PREFIX.pgm and PREFIX.yaml naming it.
-  const bool grid = a.request.format == "grid";
-  const std::string prefix = a.out.empty() ? a.id : a.out;
-  std::vector<std::pair<std::string, std::string>> files;  // (format, path)
-  if (grid) {
-    files = {{"pgm", prefix + ".pgm"}, {"yaml", prefix + ".yaml"}};
-    a.request.grid_image = fs::path(prefix + ".pgm").filename().string();
-  } else {
-    files = {{a.request.format, a.out.empty() ? a.id + "." + a.request.format : a.out}};
-  }
-  for (const auto& [format, out] : files) {
-    core::ExportRequest request = a.request;
-    request.format = format;
-    const auto exported = core::exportSession(**session, a.id, request);
-    if (!exported) return fail(exported.error().message);
-    const std::string& content = exported->content;
-    std::ofstream file(out, std::ios::binary | std::ios::trunc);
-    file.write(content.data(), static_cast<std::streamsize>(content.size()));
-    if (!file.flush()) return fail("cannot write " + out);
-    std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
-  }
-  return 0;
+  if (a.mcap_out.empty()) return stereomap::app::exportSessionFile(**session, a);
+  return stereomap::app::exportSessionMcap(
+      **session, interop::journalFile(store.admin->root() / a.id / store::kJournalName), a);
 }
 
 int closeSession(Store& store, Args& a) {
@@ -361,14 +266,9 @@ int deleteSession(Store& store, Args& a) {
 }
 
 int mergeSessions(Store& store, Args& a) {
-  core::MergeRequest request{a.first, a.second, a.into, common::Rigid3::identity()};
-  if (!a.transform.empty()) {
-    const auto T = common::rigidFromTxyzQxyzw(a.transform);
-    if (!T)
-      return fail("--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
-    request.T_first_second = *T;
-  }
-  if (auto merged = store.admin->merge(request); !merged) return fail(merged.error().message);
+  auto request = stereomap::app::mergeRequestOf(a);
+  if (!request) return fail(request.error().message);
+  if (auto merged = store.admin->merge(*request); !merged) return fail(merged.error().message);
   const auto status = store.server->find(a.into)->status();
   if (auto closed = store.admin->close(a.into); !closed) return fail(closed.error().message);
   std::printf(
@@ -383,7 +283,7 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
   app.add_option("--store", a.root, "The store directory")->capture_default_str();
   app.add_option("--cluster", a.cluster_url,
                  "A cluster's PostgreSQL database (libpq URL, as stereomap-server --cluster) "
-                 "instead of a store directory: import only, for now");
+                 "instead of a store directory: every command but repair");
   app.add_option("--resolution", a.resolution,
                  "Voxel edge (m) for sessions whose directory does not record one")
       ->check(CLI::Range(0.01, 2.0))
@@ -467,30 +367,6 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
   return commands;
 }
 
-// With --cluster: the cluster's database instead of a store folder. Only import for now.
-int runInCluster(const Command& command, const Args& a) {
-  if (command.app->get_name() != "import") {
-    return fail("with --cluster only import is offered yet (" + command.app->get_name() +
-                " works on a single server's store)");
-  }
-  std::printf("reading and checking %s...\n", a.map_file.c_str());
-  std::fflush(stdout);
-  auto map = store::readImportableMap(a.map_file);
-  if (!map) return fail(map.error().message);
-  // A whole map goes up in one statement: tens of MB on a slow link.
-  auto db = cluster::PgConnection::connect(a.cluster_url, {.deadline = std::chrono::minutes(2)});
-  if (!db) return fail(db.error().message);
-  if (auto imported = cluster::importSession(**db, a.id, map->resolution, map->ot); !imported) {
-    return fail(imported.error().message);
-  }
-  std::printf(
-      "imported %s as session '%s' of the cluster at %s: %g m, %.1f MB; a live server serves it "
-      "within a second\n",
-      a.map_file.c_str(), a.id.c_str(), (*db)->redactedUrl().c_str(), map->resolution,
-      static_cast<double>(map->ot.size()) / 1e6);
-  return 0;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -509,7 +385,7 @@ int main(int argc, char** argv) {
   if (command.app->get_name() == "delete" && !args.yes) {
     return fail("delete is permanent: add --yes to delete '" + args.id + "'");
   }
-  if (!args.cluster_url.empty()) return runInCluster(command, args);
+  if (!args.cluster_url.empty()) return stereomap::app::runInCluster(command.app->get_name(), args);
   auto store = openStore(args.root, args.resolution, command.writes);
   if (!store) return fail(store.error().message);
   return command.run(*store, args);

@@ -1,35 +1,86 @@
 #include "server/cluster/cluster_admin.hpp"
 
+#include <spdlog/spdlog.h>
+
+#include "server/cluster/cluster_node.hpp"
+
 namespace stereomap::cluster {
 
-namespace {
-
-common::Error notInCluster(const char* what) {
-  return common::makeError(common::ErrorCode::kUnavailable,
-                           std::string(what) +
-                               " is not offered in a cluster yet: the session stays live on its "
-                               "server (a single server's store offers it)");
-}
-
-}  // namespace
-
-common::Status ClusterAdmin::open(const std::string&) { return notInCluster("opening a session"); }
-common::Status ClusterAdmin::close(const std::string&) { return notInCluster("closing a session"); }
-common::Status ClusterAdmin::remove(const std::string&) {
-  return notInCluster("deleting a session");
-}
-common::Status ClusterAdmin::merge(const core::MergeRequest&) {
-  return notInCluster("merging sessions");
-}
-common::Result<std::shared_ptr<core::Session>> ClusterAdmin::replay(const std::string&,
-                                                                    int64_t) const {
-  return notInCluster("replaying a session");
-}
-
-void ClusterAdmin::attach(ClusterDb& db, std::string self) {
+void ClusterAdmin::attach(ClusterDb& db, std::string self, ClusterStore& store) {
   std::lock_guard lock(mutex_);
   db_ = &db;
   self_ = std::move(self);
+  store_ = &store;
+}
+
+void ClusterAdmin::serveWith(ClusterNode* node) {
+  std::lock_guard lock(mutex_);
+  node_ = node;
+}
+
+common::Result<ClusterAdmin::Parts> ClusterAdmin::parts() const {
+  std::lock_guard lock(mutex_);
+  if (db_ == nullptr || store_ == nullptr || node_ == nullptr) {
+    return common::makeError(common::ErrorCode::kUnavailable,
+                             "this server has not joined the cluster yet");
+  }
+  return Parts{db_, store_, node_};
+}
+
+common::Status ClusterAdmin::open(const std::string& id) {
+  auto p = parts();
+  if (!p) return p.error();
+  auto opened = [&]() -> common::Result<Ownership> {
+    std::lock_guard lock(store_mutex_);
+    return p->store->open(id, p->db->serverId());
+  }();
+  if (!opened) return opened.error();
+  auto served = p->node->serveNow(*opened);
+  refresh();
+  return served;
+}
+
+common::Status ClusterAdmin::close(const std::string& id) {
+  auto p = parts();
+  if (!p) return p.error();
+  // Served here: its readers stop and its map is snapshotted before it is let go.
+  auto retired = p->node->retire(id, ClusterDb::Leaving::kClosed);
+  if (!retired) {
+    std::lock_guard lock(store_mutex_);
+    retired = p->store->close(id);
+  }
+  refresh();
+  return retired;
+}
+
+common::Status ClusterAdmin::remove(const std::string& id) {
+  auto p = parts();
+  if (!p) return p.error();
+  {
+    std::lock_guard lock(store_mutex_);
+    if (auto removed = p->store->remove(id); !removed) return removed;
+  }
+  p->node->drop(id, "deleted by an operator");
+  refresh();
+  return common::Ok{};
+}
+
+common::Status ClusterAdmin::merge(const core::MergeRequest& request) {
+  auto p = parts();
+  if (!p) return p.error();
+  {
+    std::lock_guard lock(store_mutex_);
+    if (auto merged = p->store->merge(request); !merged) return merged;
+  }
+  return open(request.into);  // as a single server's merge leaves it: opened read-only
+}
+
+common::Result<std::shared_ptr<core::Session>> ClusterAdmin::replay(const std::string& id,
+                                                                    int64_t until_ns) const {
+  auto p = parts();
+  if (!p) return p.error();
+  std::lock_guard lock(store_mutex_);
+  return p->store->replay(id, until_ns);
 }
 
 std::optional<std::string> ClusterAdmin::selfAddress() const {
@@ -46,14 +97,27 @@ void ClusterAdmin::refresh() {
   }
   if (db == nullptr) return;
   auto read = db->directory();
-  if (!read) return;
+  auto left = db->outOfMemory();
+  if (!read || !left) {
+    spdlog::warn("cluster: cannot read the directory (listings and routes stay as they were): {}",
+                 !read ? read.error().message : left.error().message);
+  }
   std::lock_guard lock(mutex_);
-  placements_ = std::move(*read);
+  if (read) placements_ = std::move(*read);
+  if (left) {
+    out_of_memory_.clear();
+    for (const auto& row : *left) out_of_memory_.push_back(row.status());
+  }
 }
 
 std::vector<ClusterDb::Placement> ClusterAdmin::placements() const {
   std::lock_guard lock(mutex_);
   return placements_;
+}
+
+std::vector<core::SessionStatus> ClusterAdmin::closedSessions() const {
+  std::lock_guard lock(mutex_);
+  return out_of_memory_;
 }
 
 std::vector<core::SessionStatus> ClusterAdmin::remoteSessions() const {
@@ -64,6 +128,7 @@ std::vector<core::SessionStatus> ClusterAdmin::remoteSessions() const {
     core::SessionStatus status;
     status.id = placement.ownership.session;
     status.resolution = placement.ownership.resolution;
+    status.read_only = placement.ownership.read_only;
     status.server = placement.http;
     out.push_back(std::move(status));
   }

@@ -4,10 +4,12 @@
 #include <unistd.h>
 
 #include <iterator>
+#include <nlohmann/json.hpp>
 #include <random>
 #include <span>
 
 #include "server/cluster/snapshot_codec.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 
 namespace stereomap::cluster {
@@ -106,11 +108,32 @@ constexpr const char* kVersion3[] = {
     R"(ALTER TABLE sm_servers ADD COLUMN IF NOT EXISTS capacity integer NOT NULL DEFAULT 256)",
 };
 
+// Version 4: sessions that end. A session whose vehicles ended it (or fell silent) leaves its
+// server's memory as 'ended' (revived, at a raised epoch, when a vehicle announces it again);
+// an operator's close makes it 'closed' (its samples refused); 'opened' is a stored session
+// loaded read-only on one server (owned, so that the proxy routes its tiles there). A session
+// that left memory keeps its last status (the SessionStatus JSON) for listings. Owned states
+// ('live', 'opened') get indexes of their own.
+constexpr const char* kVersion4[] = {
+    R"(ALTER TABLE sm_sessions DROP CONSTRAINT IF EXISTS sm_sessions_state_check)",
+    R"(ALTER TABLE sm_sessions ADD CONSTRAINT sm_sessions_state_check
+         CHECK (state IN ('live', 'ended', 'opened', 'closed')))",
+    R"(ALTER TABLE sm_sessions ADD COLUMN IF NOT EXISTS summary text)",
+    R"(ALTER TABLE sm_sessions ADD COLUMN IF NOT EXISTS left_at timestamptz)",
+    R"(DROP INDEX IF EXISTS sm_sessions_owner)",
+    R"(DROP INDEX IF EXISTS sm_sessions_unowned)",
+    R"(CREATE INDEX IF NOT EXISTS sm_sessions_held_owner ON sm_sessions (owner)
+         WHERE state IN ('live', 'opened'))",
+    R"(CREATE INDEX IF NOT EXISTS sm_sessions_held_unowned ON sm_sessions (id)
+         WHERE owner IS NULL AND state IN ('live', 'opened'))",
+};
+
 struct SchemaVersion {
   int version;
   std::span<const char* const> statements;
 };
-constexpr SchemaVersion kSchemaVersions[] = {{1, kVersion1}, {2, kVersion2}, {3, kVersion3}};
+constexpr SchemaVersion kSchemaVersions[] = {
+    {1, kVersion1}, {2, kVersion2}, {3, kVersion3}, {4, kVersion4}};
 
 // The advisory lock key that serialises schema creation between servers ("smschema").
 constexpr int64_t kSchemaLock = 0x736d736368656d61;
@@ -140,11 +163,34 @@ std::string interval(std::chrono::milliseconds span) {
   return std::to_string(span.count()) + " milliseconds";
 }
 
+// Columns id, owner, epoch, resolution, state.
 Ownership ownershipAt(const PgResult& rows, int row) {
-  return {rows.text(row, 0), rows.text(row, 1), rows.integer(row, 2), rows.real(row, 3)};
+  return {rows.text(row, 0), rows.text(row, 1), rows.integer(row, 2), rows.real(row, 3),
+          rows.text(row, 4) == "opened"};
 }
 
 }  // namespace
+
+const char* const kSessionRowSelect =
+    "SELECT s.id, s.state, coalesce(s.owner, ''), coalesce(v.http, ''), s.epoch, s.resolution, "
+    "coalesce(s.summary, '') FROM sm_sessions s "
+    "LEFT JOIN sm_servers v ON v.id = s.owner AND v.lease_until > now() ";
+
+SessionRow sessionRowAt(const PgResult& rows, int i) {
+  return {rows.text(i, 0),    rows.text(i, 1), rows.text(i, 2), rows.text(i, 3),
+          rows.integer(i, 4), rows.real(i, 5), rows.text(i, 6)};
+}
+
+core::SessionStatus SessionRow::status() const {
+  auto doc = nlohmann::json::parse(summary, nullptr, /*allow_exceptions=*/false);
+  core::SessionStatus out = core::sessionFromJson(id, doc.is_object() ? doc : nlohmann::json{});
+  out.resolution = resolution;
+  out.ended = state != "live";
+  out.closed = state == "closed";
+  out.read_only = state == "opened";
+  out.server = http;
+  return out;
+}
 
 int latestSchemaVersion() { return std::end(kSchemaVersions)[-1].version; }
 
@@ -346,9 +392,9 @@ common::Result<Ownership> ClusterDb::adopt(const Ownership& session) {
   auto adopted = exec(
       "UPDATE sm_sessions s SET epoch = s.epoch + 1, owned_since = clock_timestamp() "
       "FROM sm_servers v "
-      "WHERE s.id = $1 AND s.owner = $2 AND s.state = 'live' "
+      "WHERE s.id = $1 AND s.owner = $2 AND s.state IN ('live', 'opened') "
       "AND v.id = $2 AND v.incarnation = $3 AND v.lease_until > now() "
-      "RETURNING s.id, s.owner, s.epoch, s.resolution",
+      "RETURNING s.id, s.owner, s.epoch, s.resolution, s.state",
       {session.session, options_.server_id, incarnation_});
   if (!adopted) return adopted.error();
   if (adopted->rows() == 0) {
@@ -370,10 +416,13 @@ common::Result<Ownership> ClusterDb::placeSession(const std::string& id, double 
       "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
       "SELECT $1, (SELECT v.id FROM sm_servers v "
       "  CROSS JOIN LATERAL (SELECT count(*) AS n FROM sm_sessions s "
-      "    WHERE s.owner = v.id AND s.state = 'live') load "
+      "    WHERE s.owner = v.id AND s.state IN ('live', 'opened')) load "
       "  WHERE v.lease_until > now() AND load.n < v.capacity ORDER BY load.n, v.id LIMIT 1), "
       "1, $2, 'live' "
-      "ON CONFLICT (id) DO NOTHING RETURNING id, coalesce(owner, ''), epoch, resolution",
+      "ON CONFLICT (id) DO UPDATE SET state = 'live', owner = EXCLUDED.owner, "
+      "  epoch = sm_sessions.epoch + 1, owned_since = clock_timestamp() "
+      "  WHERE sm_sessions.state = 'ended' "
+      "RETURNING id, coalesce(owner, ''), epoch, resolution, state",
       {id, resolution});
   if (!placed) return placed.error();
   if (placed->rows() == 1) {
@@ -394,7 +443,8 @@ common::Result<Ownership> ClusterDb::placeSession(const std::string& id, double 
 
 common::Result<std::vector<Ownership>> ClusterDb::owned() {
   auto rows = exec(
-      "SELECT id, owner, epoch, resolution FROM sm_sessions WHERE owner = $1 AND state = 'live' "
+      "SELECT id, owner, epoch, resolution, state FROM sm_sessions "
+      "WHERE owner = $1 AND state IN ('live', 'opened') "
       "ORDER BY id",
       {options_.server_id});
   if (!rows) return rows.error();
@@ -410,8 +460,9 @@ common::Result<ClusterDb::Round> ClusterDb::poll() {
   auto polled = exec(
       "SELECT (SELECT version FROM sm_version), "
       "EXISTS (SELECT 1 FROM sm_servers v WHERE v.lease_until <= now() AND EXISTS ("
-      "  SELECT 1 FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live')) "
-      "OR EXISTS (SELECT 1 FROM sm_sessions WHERE owner IS NULL AND state = 'live')",
+      "  SELECT 1 FROM sm_sessions s WHERE s.owner = v.id AND s.state IN ('live', 'opened'))) "
+      "OR EXISTS (SELECT 1 FROM sm_sessions WHERE owner IS NULL "
+      "  AND state IN ('live', 'opened'))",
       {});
   if (!polled) return polled.error();
   return Round{polled->integer(0, 0), polled->text(0, 1) == "t"};
@@ -429,19 +480,20 @@ common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
   auto taken = exec(
       "WITH orphans AS ("
       "  SELECT s.id FROM sm_sessions s LEFT JOIN sm_servers v ON v.id = s.owner "
-      "  WHERE s.state = 'live' AND (v.id IS NULL OR v.lease_until <= now())), "
+      "  WHERE s.state IN ('live', 'opened') AND (v.id IS NULL OR v.lease_until <= now())), "
       "share AS ("
       "  SELECT greatest(0, least("
       "    greatest(1, ceil((SELECT count(*) FROM orphans)::numeric / "
       "      greatest(1, (SELECT count(*) FROM sm_servers WHERE lease_until > now()))))::int, "
       "    (SELECT capacity FROM sm_servers WHERE id = $1) - "
-      "      (SELECT count(*) FROM sm_sessions WHERE owner = $1 AND state = 'live'))) AS n) "
+      "      (SELECT count(*) FROM sm_sessions WHERE owner = $1 "
+      "       AND state IN ('live', 'opened')))) AS n) "
       "UPDATE sm_sessions SET owner = $1, epoch = epoch + 1, owned_since = clock_timestamp() "
       "WHERE id IN (SELECT s.id FROM sm_sessions s WHERE s.id IN (SELECT id FROM orphans) "
       "  ORDER BY s.id LIMIT (SELECT n FROM share) FOR UPDATE SKIP LOCKED) "
       "AND EXISTS (SELECT 1 FROM sm_servers WHERE id = $1 AND incarnation = $2 "
       "  AND lease_until > now()) "
-      "RETURNING id, owner, epoch, resolution",
+      "RETURNING id, owner, epoch, resolution, state",
       {options_.server_id, incarnation_});
   if (!taken) return taken.error();
   std::vector<Ownership> out;
@@ -451,7 +503,8 @@ common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
 
 common::Result<std::optional<Ownership>> ClusterDb::ownerOf(const std::string& id) {
   auto rows = exec(
-      "SELECT id, owner, epoch, resolution FROM sm_sessions WHERE id = $1 AND state = 'live' "
+      "SELECT id, owner, epoch, resolution, state FROM sm_sessions "
+      "WHERE id = $1 AND state IN ('live', 'opened') "
       "AND owner IS NOT NULL",
       {id});
   if (!rows) return rows.error();
@@ -462,7 +515,7 @@ common::Result<std::optional<Ownership>> ClusterDb::ownerOf(const std::string& i
 common::Result<std::vector<ServerInfo>> ClusterDb::servers() {
   auto rows = exec(
       "SELECT v.id, v.http, v.lease_until > now(), "
-      "(SELECT count(*) FROM sm_sessions s WHERE s.owner = v.id AND s.state = 'live') "
+      "(SELECT count(*) FROM sm_sessions s WHERE s.owner = v.id AND s.state IN ('live', 'opened')) "
       "FROM sm_servers v ORDER BY v.id",
       {});
   if (!rows) return rows.error();
@@ -476,21 +529,43 @@ common::Result<std::vector<ServerInfo>> ClusterDb::servers() {
 
 common::Result<std::vector<ClusterDb::Placement>> ClusterDb::directory() {
   auto rows = exec(
-      "SELECT s.id, s.owner, s.epoch, s.resolution, v.http FROM sm_sessions s "
-      "JOIN sm_servers v ON v.id = s.owner WHERE s.state = 'live' AND v.lease_until > now() "
+      "SELECT s.id, s.owner, s.epoch, s.resolution, s.state, v.http FROM sm_sessions s "
+      "JOIN sm_servers v ON v.id = s.owner "
+      "WHERE s.state IN ('live', 'opened') AND v.lease_until > now() "
       "ORDER BY s.id",
       {});
   if (!rows) return rows.error();
   std::vector<Placement> out;
-  for (int i = 0; i < rows->rows(); ++i) out.push_back({ownershipAt(*rows, i), rows->text(i, 4)});
+  for (int i = 0; i < rows->rows(); ++i) out.push_back({ownershipAt(*rows, i), rows->text(i, 5)});
   return out;
 }
 
-common::Status ClusterDb::release(const Ownership& session, bool closed) {
-  auto done = exec(
-      "UPDATE sm_sessions SET owner = NULL, state = CASE WHEN $4 THEN 'closed' ELSE state END "
-      "WHERE id = $1 AND owner = $2 AND epoch = $3",
-      {session.session, options_.server_id, session.epoch, closed ? "true" : "false"});
+common::Result<std::vector<SessionRow>> ClusterDb::outOfMemory() {
+  auto rows = exec(
+      std::string(kSessionRowSelect) + "WHERE s.state IN ('ended', 'closed') ORDER BY s.id", {});
+  if (!rows) return rows.error();
+  std::vector<SessionRow> out;
+  for (int i = 0; i < rows->rows(); ++i) out.push_back(sessionRowAt(*rows, i));
+  return out;
+}
+
+common::Status ClusterDb::release(const Ownership& session, Leaving how,
+                                  const std::string& summary) {
+  // Handed back: still live (or opened), for another server to take. Ended or closed: out of
+  // every server's memory, with its last status kept for listings.
+  const char* state = how == Leaving::kEnded    ? "ended"
+                      : how == Leaving::kClosed ? "closed"
+                                                : nullptr;
+  auto done = state == nullptr ? exec(
+                                     "UPDATE sm_sessions SET owner = NULL "
+                                     "WHERE id = $1 AND owner = $2 AND epoch = $3",
+                                     {session.session, options_.server_id, session.epoch})
+                               : exec(
+                                     "UPDATE sm_sessions SET owner = NULL, state = $4, "
+                                     "summary = coalesce($5, summary), left_at = now() "
+                                     "WHERE id = $1 AND owner = $2 AND epoch = $3",
+                                     {session.session, options_.server_id, session.epoch, state,
+                                      summary.empty() ? PgParam::null() : PgParam(summary)});
   if (!done) return done.error();
   if (done->affected() == 0) {
     return makeError(ErrorCode::kConflict, "session '" + session.session +

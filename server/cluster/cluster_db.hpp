@@ -27,6 +27,7 @@
 
 #include "common/result.hpp"
 #include "server/cluster/pg.hpp"
+#include "server/core/session.hpp"
 
 namespace stereomap::cluster {
 
@@ -44,8 +45,26 @@ struct Ownership {
   std::string owner;
   int64_t epoch = 0;
   double resolution = 0.1;
+  // State 'opened': a stored session loaded read-only (no samples taken, no acknowledgements).
+  bool read_only = false;
   bool operator==(const Ownership&) const = default;
 };
+
+// A session as the database holds it, whatever its state.
+struct SessionRow {
+  std::string id;
+  std::string state;  // live, ended, opened, closed
+  std::string owner;  // "" when none
+  std::string http;   // where its owner is reached, when it has a live one
+  int64_t epoch = 0;
+  double resolution = 0.1;
+  std::string summary;  // its status (JSON) when it last left a server's memory; "" if never
+  // For listings: the summary's counts, this row's state, resolution and server.
+  core::SessionStatus status() const;
+};
+// The SELECT list (and FROM) that sessionRowAt reads; a WHERE or ORDER BY may follow.
+extern const char* const kSessionRowSelect;
+SessionRow sessionRowAt(const PgResult& rows, int row);
 
 struct ServerInfo {
   std::string id;
@@ -109,9 +128,14 @@ class ClusterDb {
     std::string http;
   };
   common::Result<std::vector<Placement>> directory();
-  // Gives up a session this server owns (closed, or its server stopping): no owner until
-  // another takes it; refused (kConflict) when the epoch is stale.
-  common::Status release(const Ownership& session, bool closed);
+  // The sessions in no server's memory (ended or closed), for listings.
+  common::Result<std::vector<SessionRow>> outOfMemory();
+  // Gives up a session this server owns: handed back (its server stopping, or unable to hold
+  // it: live, for another to take), ended (its vehicles ended it or fell silent: out of
+  // memory until a vehicle announces it again) or closed (by an operator); `summary` (its
+  // status as JSON) is kept for listings. Refused (kConflict) when the epoch is stale.
+  enum class Leaving { kHandBack, kEnded, kClosed };
+  common::Status release(const Ownership& session, Leaving how, const std::string& summary = "");
   // Leaves the cluster: the lease ends now, so that others take the sessions at once (unless
   // another process has taken this server id over).
   common::Status leave();

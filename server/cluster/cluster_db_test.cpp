@@ -256,8 +256,8 @@ TEST_F(ClusterDbTest, ReleasingNeedsTheCurrentEpoch) {
   ASSERT_TRUE(placed);
   Ownership stale = *placed;
   stale.epoch = 0;
-  EXPECT_FALSE(a->release(stale, /*closed=*/true));
-  EXPECT_TRUE(a->release(*placed, /*closed=*/true));
+  EXPECT_FALSE(a->release(stale, ClusterDb::Leaving::kClosed));
+  EXPECT_TRUE(a->release(*placed, ClusterDb::Leaving::kClosed));
   auto owner = a->ownerOf("s");
   ASSERT_TRUE(owner);
   EXPECT_FALSE(owner->has_value()) << "a closed session has no owner";

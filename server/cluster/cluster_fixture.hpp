@@ -9,6 +9,7 @@
 #include <memory>
 #include <string>
 
+#include "proto/messages.hpp"
 #include "tests/support/postgres.hpp"
 
 namespace stereomap::cluster {
@@ -44,5 +45,18 @@ class PostgresTest : public ::testing::Test {
   static inline std::string why_;
   static inline int count_ = 0;
 };
+
+// A vehicle's pose number `seq` (stream 7), stamped `seq` seconds in, at x = seq metres.
+inline proto::PoseMsg poseOf(const std::string& session, const std::string& vehicle, uint64_t seq) {
+  proto::PoseMsg pose;
+  pose.session_id = session;
+  pose.vehicle_id = vehicle;
+  pose.stream = 7;
+  pose.seq = seq;
+  pose.stamp_ns = static_cast<int64_t>(seq) * 1000000000;
+  pose.position = {1.0 * static_cast<double>(seq), 0, 0};
+  pose.orientation = {0, 0, 0, 1};
+  return pose;
+}
 
 }  // namespace stereomap::cluster

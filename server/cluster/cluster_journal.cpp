@@ -38,6 +38,60 @@ std::vector<uint8_t> withoutPayload(const proto::CloudFrameMsg& frame) {
 
 }  // namespace
 
+void JournalRows::add(const std::string& session, uint64_t number, int64_t epoch, int kind,
+                      const std::vector<uint8_t>& record,
+                      const std::optional<std::vector<uint8_t>>& meta) {
+  const auto bytes = [](const std::vector<uint8_t>& data) {
+    return PgParam::bytes(
+        std::string_view(reinterpret_cast<const char*>(data.data()), data.size()));
+  };
+  params_.emplace_back(session);
+  params_.emplace_back(number);
+  params_.emplace_back(epoch);
+  params_.emplace_back(kind);
+  params_.push_back(bytes(record));
+  params_.push_back(meta ? bytes(*meta) : PgParam::null());
+  bytes_ += record.size();
+  ++rows_;
+}
+
+void JournalRows::add(const std::string& session, uint64_t number, int64_t epoch,
+                      const journal::JournalRecord& record) {
+  const int kind = std::visit(
+      [](const auto& m) -> int {
+        using Message = std::decay_t<decltype(m)>;
+        if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) return kCloud;
+        if constexpr (std::is_same_v<Message, proto::PoseMsg>) return kPose;
+        if constexpr (std::is_same_v<Message, proto::SessionEventMsg>) return kEvent;
+        return kCorrection;
+      },
+      record);
+  const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+  add(session, number, epoch, kind, journal::encodeRecord(record),
+      frame != nullptr ? std::optional(withoutPayload(*frame)) : std::nullopt);
+}
+
+bool JournalRows::full() const { return rows_ >= kMaxGroupRows || bytes_ >= kMaxGroupBytes; }
+
+std::string JournalRows::statement() const {
+  std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record, meta) VALUES ";
+  for (size_t i = 0; i < rows_; ++i) {
+    const size_t p = i * kParamsPerRow;
+    if (i > 0) sql += ',';
+    for (size_t k = 1; k <= kParamsPerRow; ++k) {
+      sql += k == 1 ? "($" : ",$";
+      sql += std::to_string(p + k);
+    }
+    sql += ')';
+  }
+  return sql;
+}
+
+void JournalRows::clear() {
+  params_.clear();
+  rows_ = bytes_ = 0;
+}
+
 PgOptions ClusterJournal::readerOptions() {
   // Pages of records (8 MB) and compressed snapshots (tens of MB) take longer than a group.
   return {.connect_timeout = std::chrono::seconds(2), .deadline = std::chrono::seconds(30)};
@@ -194,28 +248,12 @@ common::Status ClusterJournal::insertRows(std::vector<Pending*>& rows, std::stri
       }
     }
   }
-  std::string sql = "INSERT INTO sm_journal (session, number, epoch, kind, record, meta) VALUES ";
-  std::vector<PgParam> params;
-  params.reserve(rows.size() * kParamsPerRow);
-  const auto bytes = [](const std::vector<uint8_t>& data) {
-    return PgParam::bytes(
-        std::string_view(reinterpret_cast<const char*>(data.data()), data.size()));
-  };
-  for (size_t i = 0; i < rows.size(); ++i) {
-    const size_t p = i * kParamsPerRow;
-    if (i > 0) sql += ',';
-    for (size_t k = 1; k <= kParamsPerRow; ++k) {
-      sql += k == 1 ? "($" : ",$";
-      sql += std::to_string(p + k);
-    }
-    sql += ')';
-    params.emplace_back(rows[i]->session);
-    params.emplace_back(rows[i]->number);
-    params.emplace_back(rows[i]->epoch);
-    params.emplace_back(rows[i]->kind);
-    params.push_back(bytes(rows[i]->record));
-    params.push_back(rows[i]->meta ? bytes(*rows[i]->meta) : PgParam::null());
+  JournalRows batch;
+  for (const Pending* row : rows) {
+    batch.add(row->session, row->number, row->epoch, row->kind, row->record, row->meta);
   }
+  const std::string sql = batch.statement();
+  const std::vector<PgParam>& params = batch.params();
   if (doubts.empty()) {
     auto inserted = writer_->exec(sql, params);
     if (!inserted) {

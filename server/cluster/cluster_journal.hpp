@@ -44,6 +44,26 @@ struct StoredSession {
   uint64_t unreadable = 0;  // rows that did not decode (never expected; counted, skipped)
 };
 
+// Journal rows for one INSERT: the commit thread's groups, and a merge's batches. Bounded as
+// a group is (PostgreSQL takes at most 65535 parameters): full() says when to write.
+class JournalRows {
+ public:
+  void add(const std::string& session, uint64_t number, int64_t epoch, int kind,
+           const std::vector<uint8_t>& record, const std::optional<std::vector<uint8_t>>& meta);
+  // A record as its row holds it: its kind, its encoding and (clouds) the meta recovery reads.
+  void add(const std::string& session, uint64_t number, int64_t epoch,
+           const proto::journal::JournalRecord& record);
+  bool empty() const { return rows_ == 0; }
+  bool full() const;
+  std::string statement() const;
+  const std::vector<PgParam>& params() const { return params_; }
+  void clear();
+
+ private:
+  std::vector<PgParam> params_;
+  size_t rows_ = 0, bytes_ = 0;
+};
+
 class ClusterJournal : public core::IngestLog,
                        public core::SnapshotSink,
                        public core::FrameArchive {

@@ -18,18 +18,6 @@ class ClusterJournalTest : public PostgresTest {
 };
 using namespace std::chrono_literals;
 
-proto::PoseMsg poseOf(const std::string& session, const std::string& vehicle, uint64_t seq) {
-  proto::PoseMsg pose;
-  pose.session_id = session;
-  pose.vehicle_id = vehicle;
-  pose.stream = 7;
-  pose.seq = seq;
-  pose.stamp_ns = static_cast<int64_t>(seq) * 1000000;
-  pose.position = {1.0 * seq, 2, 3};
-  pose.orientation = {0, 0, 0, 1};
-  return pose;
-}
-
 proto::CloudFrameMsg frameOf(const std::string& session, uint64_t seq, size_t payload_bytes) {
   proto::CloudFrameMsg frame;
   frame.session_id = session;

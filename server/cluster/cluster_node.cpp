@@ -9,6 +9,7 @@
 
 #include "common/time.hpp"
 #include "server/cluster/cluster_recovery.hpp"
+#include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 
 namespace stereomap::cluster {
@@ -62,7 +63,9 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
         [raw](const proto::AckMsg& ack) -> common::Status {
           std::lock_guard lock(raw->mutex_);
           const auto served = raw->served_.find(ack.session_id);
-          if (served == raw->served_.end()) return common::Ok{};  // lost meanwhile
+          if (served == raw->served_.end() || !served->second.acks) {
+            return common::Ok{};  // lost meanwhile, or opened read-only
+          }
           return served->second.acks->write(ack);
         },
         [raw](std::chrono::milliseconds period) { return !raw->sleepFor(period); });
@@ -114,7 +117,8 @@ void ClusterNode::stop() {
       epoch = served_[id].epoch;
     }
     unserve(id, "this server is stopping");
-    if (auto released = db_.release({id, db_.serverId(), epoch, 0}, /*closed=*/false); !released) {
+    if (auto released = db_.release({id, db_.serverId(), epoch, 0}, ClusterDb::Leaving::kHandBack);
+        !released) {
       spdlog::warn("session '{}': cannot hand it back to the cluster: {}", id,
                    released.error().message);
     }
@@ -149,18 +153,131 @@ void ClusterNode::controlLoop() {
 
 void ClusterNode::recoveryLoop() {
   for (;;) {
-    Ownership next;
+    std::optional<Ownership> next;
+    std::string retiring;
     {
       std::unique_lock lock(mutex_);
-      recover_wake_.wait(lock, [&] { return stopping_ || !to_recover_.empty(); });
+      recover_wake_.wait(lock,
+                         [&] { return stopping_ || !to_recover_.empty() || !to_retire_.empty(); });
       if (stopping_) return;
-      next = std::move(to_recover_.front());
-      to_recover_.pop_front();
+      if (!to_retire_.empty()) {
+        retiring = std::move(to_retire_.front());
+        to_retire_.pop_front();
+      } else {
+        next = std::move(to_recover_.front());
+        to_recover_.pop_front();
+      }
     }
-    serve(next);
+    if (next) {
+      serve(*next);
+    } else if (auto retired = retire(retiring, ClusterDb::Leaving::kEnded); !retired) {
+      spdlog::warn("session '{}': cannot retire it: {}", retiring, retired.error().message);
+    }
     std::lock_guard lock(mutex_);
-    recovering_.erase(next.session);
+    recovering_.erase(next ? next->session : retiring);
   }
+}
+
+void ClusterNode::queueRetirements() {
+  const int64_t now = common::nowNs();
+  const int64_t quiet_ns = static_cast<int64_t>(options_.retire_after.count()) * 1'000'000;
+  std::vector<std::string> candidates;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, served] : served_) {
+      if (!served.read_only && !recovering_.contains(id)) candidates.push_back(id);
+    }
+  }
+  for (const auto& id : candidates) {
+    const auto session = server_.find(id);
+    if (!session || !session->status().ended || now - session->lastLiveNs() < quiet_ns) continue;
+    std::lock_guard lock(mutex_);
+    if (stopping_ || !served_.contains(id) || !recovering_.insert(id).second) continue;
+    to_retire_.push_back(id);
+    recover_wake_.notify_one();
+  }
+}
+
+common::Status ClusterNode::serveNow(const Ownership& session) {
+  const auto deadline = Clock::now() + std::chrono::minutes(2);
+  for (;;) {
+    {
+      std::lock_guard lock(mutex_);
+      if (served_.contains(session.session)) return common::Ok{};
+      if (stopping_ || superseded_) {
+        return common::makeError(common::ErrorCode::kUnavailable, "this server is stopping");
+      }
+      // Not queued or under way on a recovery thread: this thread serves it.
+      if (recovering_.insert(session.session).second) break;
+    }
+    if (Clock::now() > deadline) {
+      return common::makeError(common::ErrorCode::kUnavailable,
+                               "session '" + session.session + "' is still being loaded");
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  serve(session);
+  std::lock_guard lock(mutex_);
+  recovering_.erase(session.session);
+  if (served_.contains(session.session)) return common::Ok{};
+  return common::makeError(
+      common::ErrorCode::kUnavailable,
+      "session '" + session.session + "' could not be loaded here (the server's log says why)");
+}
+
+common::Status ClusterNode::retire(const std::string& id, ClusterDb::Leaving how) {
+  Served served;
+  {
+    std::lock_guard lock(mutex_);
+    const auto it = served_.find(id);
+    if (it == served_.end()) {
+      return common::makeError(common::ErrorCode::kNotFound,
+                               "session '" + id + "' is not served here");
+    }
+    served = std::move(it->second);
+    served_.erase(it);
+  }
+  // No sample is taken from here on: what vehicles send meanwhile stays in their spools, and a
+  // vehicle that holds some announces the session again.
+  if (served.ingest) {
+    served.ingest->stop();
+    served.ingest->join();
+  }
+  std::string summary;
+  if (const auto session = server_.find(id)) {
+    session->waitUntilIdle();
+    // Served again later from this snapshot, not from its whole journal.
+    if (!served.read_only) {
+      auto snapshot = session->snapshotNow();
+      auto saved = snapshot ? journal_.saveSnapshot(id, snapshot->first, snapshot->second)
+                            : common::Status(snapshot.error());
+      if (!saved) {
+        spdlog::warn("session '{}': no snapshot on leaving memory ({}); its journal has it all", id,
+                     saved.error().message);
+      }
+    }
+    auto status = session->status();
+    status.read_only = false;
+    status.closed = how == ClusterDb::Leaving::kClosed;
+    status.ended = true;
+    summary = core::sessionJson(status);
+  }
+  auto released = db_.release(
+      {id, db_.serverId(), served.epoch, served.resolution, served.read_only}, how, summary);
+  journal_.drop(id);
+  server_.unload(id);
+  server_.forget(id);
+  if (!released) {
+    // Fenced meanwhile (another owner), or the database is away: the next round reads who owns
+    // it and serves it again if it is still this server's.
+    reread_ = true;
+    return released.error();
+  }
+  if (options_.admin != nullptr) options_.admin->refresh();  // listed as it is now
+  spdlog::info("session '{}' (epoch {}) {}: out of this server's memory", id, served.epoch,
+               how == ClusterDb::Leaving::kClosed ? "closed"
+                                                  : "ended (served again when a vehicle returns)");
+  return common::Ok{};
 }
 
 void ClusterNode::leaseLoop() {
@@ -287,13 +404,17 @@ void ClusterNode::reconcile() {
     take_orphans = Clock::now() >= take_orphans_after_;
   }
 
-  // 3. Sessions vehicles announced: placed (on whichever server is least loaded).
+  // 3. Sessions whose vehicles ended them and fell quiet leave memory; sessions vehicles
+  // announced are placed (on whichever server is least loaded).
+  queueRetirements();
   for (const auto& [id, resolution] : to_place) {
     {
       std::lock_guard lock(mutex_);
       if (served_.contains(id)) continue;
     }
     if (auto placed = db_.placeSession(id, resolution); !placed) {
+      // Closed by an operator (or opened read-only): its vehicle's samples are refused.
+      if (placed.error().code == common::ErrorCode::kConflict) continue;
       spdlog::warn("cluster: cannot place session '{}': {}", id, placed.error().message);
       std::lock_guard lock(mutex_);
       announced_.emplace(id, resolution);  // again next round
@@ -304,7 +425,10 @@ void ClusterNode::reconcile() {
   // any session waits for an owner; the scans below run only then, and once a minute in any
   // case (a server row an operator deleted changes no version).
   auto round = db_.poll();
-  if (!round) return;
+  if (!round) {
+    noteRoundFailed(round.error().message);
+    return;
+  }
   const bool full_round = Clock::now() >= next_full_round_;
   if (full_round) next_full_round_ = Clock::now() + std::chrono::seconds(60);
   if (take_orphans && (round->orphans || full_round)) {
@@ -324,7 +448,11 @@ void ClusterNode::reconcile() {
   // 5. What this server owns now: serve the new ones, drop the ones gone or re-epoched.
   if (options_.admin != nullptr) options_.admin->refresh();
   auto owned = db_.owned();
-  if (!owned) return;
+  if (!owned) {
+    noteRoundFailed(owned.error().message);
+    return;
+  }
+  round_failures_ = 0;
   // Read after the version: a change meanwhile raised it again, and the next round reads.
   seen_version_ = round->version;
   std::map<std::string, Ownership> wanted;
@@ -350,6 +478,14 @@ void ClusterNode::reconcile() {
     recovering_.insert(id);
     to_recover_.push_back(session);
     recover_wake_.notify_one();
+  }
+}
+
+void ClusterNode::noteRoundFailed(const std::string& why) {
+  // The lease thread says when the database is away; a round that fails while the lease is
+  // renewed is worth saying (once, then every 40 rounds: about every 10 s).
+  if (round_failures_++ % 40 == 0) {
+    spdlog::warn("cluster: a control round failed ({} in a row): {}", round_failures_, why);
   }
 }
 
@@ -397,10 +533,11 @@ void ClusterNode::serve(const Ownership& placed) {
   if (server_.find(owned.session)) server_.unload(owned.session);  // a stale copy
   server_.forget(owned.session);
   // Written at this epoch from here on: the snapshots that fusing the recovered frames makes
-  // due are kept (no sample comes before the readers below exist).
-  journal_.adopt(owned.session, owned.epoch, last_number);
+  // due are kept (no sample comes before the readers below exist). An opened session is
+  // read-only: nothing of it is written.
+  if (!owned.read_only) journal_.adopt(owned.session, owned.epoch, last_number);
   if (auto recovered = recoverSession(server_, journal_, owned, *stored, frames, poses,
-                                      /*wait_until_fused=*/false);
+                                      /*wait_until_fused=*/owned.read_only);
       !recovered) {
     spdlog::error("session '{}': cannot recover it here ({}); handing it back to the cluster",
                   owned.session, recovered.error().message);
@@ -408,11 +545,23 @@ void ClusterNode::serve(const Ownership& placed) {
     server_.unload(owned.session);
     // Another server (or this one, later) takes it: a server that cannot hold it must not keep
     // it ownerless in name only.
-    if (auto released = db_.release(owned, /*closed=*/false); !released) {
+    if (auto released = db_.release(owned, ClusterDb::Leaving::kHandBack); !released) {
       spdlog::warn("session '{}': cannot hand it back: {}", owned.session,
                    released.error().message);
     }
     reread_ = true;
+    return;
+  }
+  if (owned.read_only) {
+    std::lock_guard lock(mutex_);
+    if (stopping_ || superseded_) {
+      server_.unload(owned.session);
+      server_.forget(owned.session);
+      return;
+    }
+    served_[owned.session] = {owned.epoch, owned.resolution, true, nullptr, nullptr};
+    spdlog::info("session '{}' opened read-only here (epoch {}): {} frames and {} poses",
+                 owned.session, owned.epoch, frames, poses);
     return;
   }
   auto ingest =
@@ -431,7 +580,8 @@ void ClusterNode::serve(const Ownership& placed) {
   {
     std::lock_guard lock(mutex_);
     if (!stopping_ && !superseded_) {
-      served_[owned.session] = {owned.epoch, std::move(*ingest), std::move(*acks)};
+      served_[owned.session] = {owned.epoch, owned.resolution, false, std::move(*ingest),
+                                std::move(*acks)};
     }
   }
   if (*ingest) {  // stopped or superseded meanwhile: not this process's to serve after all

@@ -6,11 +6,15 @@
 // vehicle what is committed. A session it loses (fenced by the database, or found owned by
 // another) is unloaded: its readers, acknowledgements and map go.
 //
+// Sessions end: one whose vehicles ended it and fell quiet is retired (snapshotted, 'ended'
+// in the database, out of memory) and served again, by whichever server has room, when a
+// vehicle announces it again. An operator's open serves a stored session read-only ('opened').
+//
 // Threads: the lease (renewed several times per lease on a connection of its own, never
 // behind recovery or a slow query; it also says whether the database answers, for /healthz),
 // the control loop (every `poll`), the recoveries (a few, side by side: a session is adopted,
-// read and replayed there), the session events of every session (one wildcard reader: they
-// announce new sessions), the acknowledgements, and each owned session's readers
+// read and replayed there, or retired), the session events of every session (one wildcard reader:
+// they announce new sessions), the acknowledgements, and each owned session's readers
 // (ingest::DdsIngest).
 //
 // A process that finds its server id taken over by a newer process (started again while this
@@ -45,7 +49,11 @@ struct ClusterNodeOptions {
   // Sessions recovered side by side (each on a database connection of its own while it is),
   // off the control loop: a server taking many sessions takes them in parallel.
   int recovery_threads = 4;
-  double default_resolution = 0.1;      // for sessions announced without a hint
+  double default_resolution = 0.1;  // for sessions announced without a hint
+  // A session its vehicles ended (their end event, or silence past --vehicle-timeout) leaves
+  // memory once no sample came for this long: its last acknowledgements have gone out by
+  // then. It is 'ended' in the database, and served again when a vehicle announces it.
+  std::chrono::milliseconds retire_after{10000};
   ClusterAdmin* admin = nullptr;        // refreshed every round (the API's directory)
   std::function<void()> on_superseded;  // from the lease thread, once
 };
@@ -68,9 +76,22 @@ class ClusterNode {
   // True once another process took this server id over.
   bool superseded() const;
 
+  // Serves a session the database says this server owns now (an operator's open), on the
+  // caller's thread; Ok once it is loaded (at once when it is already).
+  common::Status serveNow(const Ownership& session);
+  // Takes a session served here out of memory and out of this server's hands: its readers
+  // stop, its map is snapshotted (live sessions) and its last status kept for listings; `how`
+  // is ended or closed. kNotFound when it is not served here.
+  common::Status retire(const std::string& session, ClusterDb::Leaving how);
+  // Stops serving a session that is no longer this server's (deleted), at once rather than at
+  // the next round.
+  void drop(const std::string& session, const std::string& why) { unserve(session, why); }
+
  private:
   struct Served {
     int64_t epoch = 0;
+    double resolution = 0.1;
+    bool read_only = false;  // opened: no readers, no acknowledgements
     std::unique_ptr<ingest::DdsIngest> ingest;
     std::unique_ptr<proto::Writer<proto::AckMsg>> acks;
   };
@@ -84,6 +105,7 @@ class ClusterNode {
   void eventLoop();
   // One round: the lease, placements, takeovers, and what this server owns now.
   void reconcile();
+  void noteRoundFailed(const std::string& why);
   // The commit latencies and counts, and the sessions served, into the server's /metrics.
   void publishMetrics();
   void serve(const Ownership& session);
@@ -112,11 +134,16 @@ class ClusterNode {
   // The control thread's: the cluster's version when owned() was last read, and when the next
   // round reads everything whatever the version says.
   int64_t seen_version_ = -1;
+  uint64_t round_failures_ = 0;      // in a row
   std::atomic<bool> reread_{false};  // a recovery failed: the next round reads owners again
   std::chrono::steady_clock::time_point next_full_round_{};
 
-  std::deque<Ownership> to_recover_;  // under mutex_: owned, to be served
-  std::set<std::string> recovering_;  // under mutex_: queued or being recovered
+  // The sessions whose vehicles ended them and fell quiet: retired on a recovery thread.
+  void queueRetirements();
+
+  std::deque<Ownership> to_recover_;   // under mutex_: owned, to be served
+  std::deque<std::string> to_retire_;  // under mutex_: ended, to leave memory
+  std::set<std::string> recovering_;   // under mutex_: queued or being recovered or retired
   std::condition_variable recover_wake_;
 
   std::thread control_, lease_thread_, events_thread_, acks_thread_;

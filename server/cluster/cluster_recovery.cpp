@@ -12,7 +12,8 @@ namespace stereomap::cluster {
 common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
                               const Ownership& owned, StoredSession& stored, size_t& frames,
                               size_t& poses, bool wait_until_fused) {
-  auto created = server.createSession(owned.session, owned.resolution, /*read_only=*/false);
+  auto created = server.createSession(owned.session, owned.resolution, owned.read_only,
+                                      /*snapshots=*/!owned.read_only);
   if (!created) return created.error();
   const auto& session = *created;
   proto::journal::JournalReplay kept;

@@ -380,6 +380,11 @@ void Session::noteLive(int64_t now_ns, size_t bytes) {
   if (ended_by_ == "silence") ended_ = false, ended_by_.clear();
 }
 
+int64_t Session::lastLiveNs() const {
+  std::lock_guard lock(state_mutex_);
+  return last_live_ns_;
+}
+
 bool Session::endIfSilent(int64_t now_ns, int64_t timeout_ns) {
   std::lock_guard lock(state_mutex_);
   if (ended_ || options_.read_only || now_ns - last_live_ns_ < timeout_ns) return false;

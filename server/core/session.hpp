@@ -179,6 +179,8 @@ class Session {
   void noteLive(int64_t now_ns, size_t bytes);
   // Ends a live session whose vehicles sent nothing for `timeout_ns`; true when it did now.
   bool endIfSilent(int64_t now_ns, int64_t timeout_ns);
+  // When a live sample last arrived (its creation when none has).
+  int64_t lastLiveNs() const;
 
   SessionStatus status() const;
   // SessionStatus::trajectory_version alone (viewers poll it).

@@ -1,7 +1,11 @@
 #include "server/store/replay.hpp"
 
+#include <algorithm>
 #include <map>
+#include <set>
 #include <string>
+
+#include "proto/pose_fields.hpp"
 
 namespace stereomap::store {
 
@@ -36,6 +40,84 @@ void replayFrameOrEvent(core::MapServer& server, const proto::journal::JournalRe
   } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
     server.ingest(*event, core::Origin::kReplay);
   }
+}
+
+common::Result<std::shared_ptr<core::Session>> replayUntil(const std::string& id, double resolution,
+                                                           int64_t until_ns,
+                                                           const RecordSource& records) {
+  // Poses and corrections first (frames without their payloads), then the frames streamed.
+  proto::journal::JournalReplay kept;
+  auto first = records(false, [&](proto::journal::JournalRecord&& record, uint64_t number) {
+    if (std::holds_alternative<proto::CloudFrameMsg>(record)) return;
+    kept.records.push_back(std::move(record));
+    kept.numbers.push_back(number);
+  });
+  if (!first) return first.error();
+  // A scratch server does the fusing, through the same ingest path as recovery; the session
+  // outlives it.
+  core::MapServer scratch({.resolution = resolution, .max_sessions = 1});
+  auto created = scratch.createSession(id, resolution, /*read_only=*/true);
+  if (!created) return created.error();
+  size_t poses = 0;
+  replayPosesAndCorrections(scratch, kept, until_ns, poses);
+  kept = {};
+  auto frames = records(true, [&](proto::journal::JournalRecord&& record, uint64_t number) {
+    const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
+    if (frame != nullptr && frame->stamp_ns <= until_ns) {
+      scratch.ingest(*frame, core::Origin::kReplay, number);
+    }
+  });
+  if (!frames) return frames.error();
+  (*created)->waitUntilIdle();
+  return scratch.unload(id);
+}
+
+namespace {
+
+// `T` applied to a pose stored as position + x y z w quaternion.
+void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
+                   std::array<double, 4>& orientation) {
+  proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
+}
+
+}  // namespace
+
+MergedRecords::MergedRecords(const core::MergeRequest& request,
+                             const std::vector<std::string>& first_vehicles)
+    : request_(request), first_vehicles_(first_vehicles) {}
+
+void MergedRecords::apply(proto::journal::JournalRecord& record, int source) const {
+  std::visit(
+      [&](auto& m) {
+        m.session_id = request_.into;
+        if (source == 0) return;
+        if (std::find(first_vehicles_.begin(), first_vehicles_.end(), m.vehicle_id) !=
+            first_vehicles_.end()) {
+          m.vehicle_id = (m.vehicle_id + "-" + request_.second).substr(0, proto::kMaxIdLength);
+        }
+        const auto& T = request_.T_first_second;
+        using Message = std::decay_t<decltype(m)>;
+        if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
+          transformPose(T, m.sensor_position, m.sensor_orientation);
+        } else if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
+          for (auto& k : m.keyframes) transformPose(T, k.position, k.orientation);
+        } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
+          transformPose(T, m.position, m.orientation);
+          // The velocity is in the map frame too.
+          const common::Vec3 v =
+              T.rotation * common::Vec3(m.velocity[0], m.velocity[1], m.velocity[2]);
+          m.velocity = {v.x(), v.y(), v.z()};
+        }
+      },
+      record);
+}
+
+std::vector<std::string> vehiclesOf(const std::vector<proto::journal::JournalRecord>& records) {
+  std::set<std::string> seen;
+  for (const auto& record : records) {
+    std::visit([&](const auto& m) { seen.insert(m.vehicle_id); }, record);
+  }
+  return {seen.begin(), seen.end()};
 }
 
 }  // namespace stereomap::store

@@ -67,18 +67,6 @@ common::Status removeTree(const fs::path& root, const fs::path& dir) {
   return common::Ok{};
 }
 
-template <typename Message>
-void moveMessage(Message& m, const std::string& into, const std::string& vehicle) {
-  m.session_id = into;
-  m.vehicle_id = vehicle;
-}
-
-// `T` applied to a pose stored as position + x y z w quaternion.
-void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
-                   std::array<double, 4>& orientation) {
-  proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
-}
-
 }  // namespace
 
 common::Result<std::unique_ptr<StoreAdmin>> StoreAdmin::create(const fs::path& root,
@@ -392,34 +380,13 @@ common::Result<std::shared_ptr<core::Session>> StoreAdmin::replay(const std::str
   if (!core::isValidId(id) || !fs::exists(dir / kJournalName, ec)) {
     return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store");
   }
-  // Poses and corrections first (frames kept without their payloads), then the frames
-  // streamed: one cloud in memory at a time, not the whole flight's.
-  JournalReplay kept;
-  auto replayed = visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
-    if (std::holds_alternative<proto::CloudFrameMsg>(record)) return;
-    kept.records.push_back(std::move(record));
-    kept.numbers.push_back(number);
-  });
-  if (!replayed) return replayed.error();
-  // A scratch server does the fusing, through the same ingest path as recovery; the session
-  // outlives it.
-  const double resolution = resolutionOf(dir, options_.default_resolution);
-  core::MapServer scratch({.resolution = resolution, .max_sessions = 1});
-  auto created = scratch.createSession(id, resolution, /*read_only=*/true);
-  if (!created) return created.error();
-  size_t poses = 0;
-  replayPosesAndCorrections(scratch, kept, until_ns, poses);
-  kept = {};
-  const auto frames =
-      visitJournal(dir / kJournalName, 0, [&](JournalRecord&& record, uint64_t number) {
-        const auto* frame = std::get_if<proto::CloudFrameMsg>(&record);
-        if (frame != nullptr && frame->stamp_ns <= until_ns) {
-          scratch.ingest(*frame, core::Origin::kReplay, number);
-        }
-      });
-  if (!frames) return frames.error();
-  (*created)->waitUntilIdle();
-  return scratch.unload(id);
+  return replayUntil(id, resolutionOf(dir, options_.default_resolution), until_ns,
+                     [&](bool, const RecordVisitor& visit) -> common::Status {
+                       if (auto read = visitJournal(dir / kJournalName, 0, visit); !read) {
+                         return read.error();
+                       }
+                       return common::Ok{};
+                     });
 }
 
 core::SessionStatus StoreAdmin::savedStatus(const std::string& id) const {
@@ -581,17 +548,7 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
     if (!replay->problem.empty()) spdlog::warn("merging session '{}': {}", *id, replay->problem);
     sources.push_back(std::move(replay).value());
   }
-  // The second session's vehicles are renamed where the first has the same name: two
-  // flights of one vehicle are two trajectories in the merged session.
-  std::set<std::string> first_vehicles;
-  for (const auto& record : sources[0].records) {
-    std::visit([&](const auto& m) { first_vehicles.insert(m.vehicle_id); }, record);
-  }
-  auto renamed = [&](const std::string& vehicle) {
-    if (first_vehicles.count(vehicle) == 0) return vehicle;
-    return (vehicle + "-" + request.second).substr(0, proto::kMaxIdLength);
-  };
-
+  const MergedRecords merged(request, vehiclesOf(sources[0].records));
   const fs::path staging =
       root_ / (".merge-" + request.into + "-" + std::to_string(common::nowNs()));
   fs::create_directories(staging, ec);
@@ -605,26 +562,7 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
     if (!journal) written = journal.error();
     for (size_t source = 0; source < 2 && written; ++source) {
       for (auto record : sources[source].records) {
-        std::visit(
-            [&](auto& m) {
-              moveMessage(m, request.into, source == 0 ? m.vehicle_id : renamed(m.vehicle_id));
-              if (source == 0) return;
-              using Message = std::decay_t<decltype(m)>;
-              if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
-                transformPose(request.T_first_second, m.sensor_position, m.sensor_orientation);
-              } else if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
-                for (auto& k : m.keyframes) {
-                  transformPose(request.T_first_second, k.position, k.orientation);
-                }
-              } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
-                transformPose(request.T_first_second, m.position, m.orientation);
-                // The velocity is in the map frame too.
-                const common::Vec3 v = request.T_first_second.rotation *
-                                       common::Vec3(m.velocity[0], m.velocity[1], m.velocity[2]);
-                m.velocity = {v.x(), v.y(), v.z()};
-              }
-            },
-            record);
+        merged.apply(record, static_cast<int>(source));
         if (auto appended = (*journal)->append(record); !appended) {
           written = appended.error();
           break;

@@ -30,13 +30,14 @@ ClusterHarness::~ClusterHarness() {
 }
 
 ServerProcess& ClusterHarness::startServer(int domain, const std::string& id, double lease_s,
-                                           const std::string& name) {
+                                           const std::string& name,
+                                           const std::vector<std::string>& extra_args) {
   std::ostringstream lease;
   lease << lease_s;
   auto& server = servers_[name.empty() ? id : name];
-  server = std::make_unique<ServerProcess>(
-      domain,
-      std::vector<std::string>{"--cluster", db_->url(), "--server-id", id, "--lease", lease.str()});
+  std::vector<std::string> args{"--cluster", db_->url(), "--server-id", id, "--lease", lease.str()};
+  args.insert(args.end(), extra_args.begin(), extra_args.end());
+  server = std::make_unique<ServerProcess>(domain, args);
   return *server;
 }
 

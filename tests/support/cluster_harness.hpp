@@ -27,7 +27,8 @@ class ClusterHarness {
   // A server with --server-id `id` on `domain`, with a lease of `lease_s` seconds, known here
   // as `name` (default: its id; another name for a second process under one id).
   ServerProcess& startServer(int domain, const std::string& id, double lease_s = 2,
-                             const std::string& name = "");
+                             const std::string& name = "",
+                             const std::vector<std::string>& extra_args = {});
   ServerProcess& server(const std::string& id) { return *servers_.at(id); }
   // The server known as `name`, no longer the harness's (a process replaced by a new one under
   // its name, kept by the caller until it ends).

@@ -78,6 +78,7 @@ bool TestPatroni::startNode(Node& node, std::string* why) {
       {"@SCOPE@", scope_},
       {"@NAME@", node.name},
       {"@REST@", "127.0.0.1:" + std::to_string(node.rest_port)},
+      {"@REST_LISTEN@", "127.0.0.1:" + std::to_string(node.rest_port)},
       {"@ETCD@", "127.0.0.1:" + std::to_string(etcd_port_)},
       {"@NETWORK@", "127.0.0.1/32"},
       {"@LISTEN@", "127.0.0.1:" + std::to_string(node.pg_port)},

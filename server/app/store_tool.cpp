@@ -1,0 +1,116 @@
+#include "server/app/store_tool.hpp"
+
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "common/transform_args.hpp"
+
+namespace stereomap::app {
+
+namespace fs = std::filesystem;
+
+int fail(const std::string& message) {
+  spdlog::error("{}", message);
+  return 1;
+}
+
+std::string megabytes(uint64_t bytes) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.1f", static_cast<double>(bytes) / 1e6);
+  return text;
+}
+
+int exportSessionMcap(const core::Session& session, const interop::JournalSource& journal,
+                      const Args& a) {
+  const auto start = std::chrono::steady_clock::now();
+  const fs::path out = a.mcap_out;
+  const fs::path partial = out.string() + ".partial";
+  std::ofstream file(partial, std::ios::binary | std::ios::trunc);
+  if (!file) return fail("cannot write " + partial.string());
+  interop::McapExportOptions options;
+  const bool tty = ::isatty(STDERR_FILENO) != 0;
+  auto last = std::chrono::steady_clock::now();
+  options.progress = [&](uint64_t records) {
+    const auto now = std::chrono::steady_clock::now();
+    if (now - last < std::chrono::seconds(1)) return;
+    last = now;
+    std::fprintf(stderr, tty ? "\r%llu journal records written" : "%llu journal records written\n",
+                 static_cast<unsigned long long>(records));
+  };
+  auto written = interop::writeSessionMcap(
+      session, journal,
+      [&](std::string_view bytes) {
+        file.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+        return file.good();
+      },
+      options);
+  if (tty) std::fprintf(stderr, "\n");
+  if (written && !file.flush()) written = common::makeError(common::ErrorCode::kIo, "flush");
+  file.close();
+  std::error_code ignored;
+  if (!written) {
+    fs::remove(partial, ignored);
+    return fail("cannot write " + out.string() + ": " + written.error().message);
+  }
+  fs::rename(partial, out, ignored);
+  if (ignored) return fail("cannot rename " + partial.string() + ": " + ignored.message());
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf(
+      "%s: %llu messages (%llu poses, %llu clouds, %zu map cubes at level %u), %llu bytes, "
+      "%.1f s\n",
+      out.c_str(), static_cast<unsigned long long>(written->messages),
+      static_cast<unsigned long long>(written->poses),
+      static_cast<unsigned long long>(written->clouds), written->map_cubes, written->map_level,
+      static_cast<unsigned long long>(written->bytes), seconds);
+  if (written->unreadable_clouds > 0) {
+    spdlog::warn("{} clouds did not decode and were left out", written->unreadable_clouds);
+  }
+  return 0;
+}
+
+int exportSessionFile(const core::Session& session, Args& a) {
+  // grid: the band as map_server's two files, PREFIX.pgm and PREFIX.yaml naming it.
+  const bool grid = a.request.format == "grid";
+  const std::string prefix = a.out.empty() ? a.id : a.out;
+  std::vector<std::pair<std::string, std::string>> files;  // (format, path)
+  if (grid) {
+    files = {{"pgm", prefix + ".pgm"}, {"yaml", prefix + ".yaml"}};
+    a.request.grid_image = fs::path(prefix + ".pgm").filename().string();
+  } else {
+    files = {{a.request.format, a.out.empty() ? a.id + "." + a.request.format : a.out}};
+  }
+  for (const auto& [format, out] : files) {
+    core::ExportRequest request = a.request;
+    request.format = format;
+    const auto exported = core::exportSession(session, a.id, request);
+    if (!exported) return fail(exported.error().message);
+    const std::string& content = exported->content;
+    std::ofstream file(out, std::ios::binary | std::ios::trunc);
+    file.write(content.data(), static_cast<std::streamsize>(content.size()));
+    if (!file.flush()) return fail("cannot write " + out);
+    std::printf("%s: %s bytes written\n", out.c_str(), std::to_string(content.size()).c_str());
+  }
+  return 0;
+}
+
+common::Result<core::MergeRequest> mergeRequestOf(const Args& a) {
+  core::MergeRequest request{a.first, a.second, a.into, common::Rigid3::identity()};
+  if (!a.transform.empty()) {
+    const auto T = common::rigidFromTxyzQxyzw(a.transform);
+    if (!T) {
+      return common::makeError(
+          common::ErrorCode::kInvalidArgument,
+          "--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
+    }
+    request.T_first_second = *T;
+  }
+  return request;
+}
+
+}  // namespace stereomap::app

@@ -1,0 +1,50 @@
+// stereomap-store's pieces shared by its two back ends: a single server's store folder
+// (store_main.cpp) and a cluster's database (store_cluster.cpp).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "common/result.hpp"
+#include "server/core/exports.hpp"
+#include "server/core/session.hpp"
+#include "server/core/session_admin.hpp"
+#include "server/interop/session_mcap.hpp"
+
+namespace stereomap::app {
+
+// The command line, every subcommand's options.
+struct Args {
+  std::string root = "stereomap-store";
+  double resolution = 0.1;
+  bool as_json = false;
+  std::vector<std::string> repair_ids;
+  std::string id;
+  core::ExportRequest request{.format = ""};
+  std::string out;
+  std::string mcap_out;
+  bool yes = false;
+  std::string map_file;
+  std::string first, second, into;
+  std::vector<double> transform;
+  std::string cluster_url;
+};
+
+// Logs the message as an error; exit code 1.
+int fail(const std::string& message);
+std::string megabytes(uint64_t bytes);
+
+// `export --format`: the session as a file (or grid: map_server's two files).
+int exportSessionFile(const core::Session& session, Args& a);
+// `export --mcap`: the session as MCAP (server/interop/session_mcap.hpp), written as the
+// journal is read, into a temporary file renamed at the end; progress on stderr.
+int exportSessionMcap(const core::Session& session, const interop::JournalSource& journal,
+                      const Args& a);
+// merge's sessions and --transform.
+common::Result<core::MergeRequest> mergeRequestOf(const Args& a);
+
+// Subcommand `command` against the cluster's database at a.cluster_url.
+int runInCluster(const std::string& command, Args& a);
+
+}  // namespace stereomap::app

@@ -1,0 +1,256 @@
+#include "server/cluster/cluster_store.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <limits>
+#include <set>
+
+#include "server/cluster/cluster_recovery.hpp"
+#include "server/cluster/snapshot_codec.hpp"
+#include "server/core/validate.hpp"
+#include "server/store/replay.hpp"
+
+namespace stereomap::cluster {
+
+using common::ErrorCode;
+using common::makeError;
+
+namespace {
+
+common::Error invalidId(const std::string& id) {
+  return makeError(ErrorCode::kInvalidArgument,
+                   "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
+}
+
+common::Error noSession(const std::string& id) {
+  return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the cluster");
+}
+
+}  // namespace
+
+common::Result<std::unique_ptr<ClusterStore>> ClusterStore::open(const std::string& url,
+                                                                 ClusterJournal& journal) {
+  // Deletes and merges of long sessions move gigabytes: minutes, not seconds.
+  auto db = PgConnection::connect(
+      url, {.connect_timeout = std::chrono::seconds(5), .deadline = std::chrono::minutes(10)});
+  if (!db) return db.error();
+  if (auto migrated = migrateSchema(**db); !migrated) return migrated.error();
+  return std::unique_ptr<ClusterStore>(new ClusterStore(std::move(*db), journal));
+}
+
+common::Result<PgResult> ClusterStore::exec(std::string_view sql,
+                                            const std::vector<PgParam>& params) {
+  if (!db_->connected()) {
+    if (auto reconnected = db_->reconnect(); !reconnected) return reconnected.error();
+  }
+  return db_->exec(sql, params);
+}
+
+common::Result<std::vector<SessionRow>> ClusterStore::sessions() {
+  auto rows = exec(std::string(kSessionRowSelect) + "ORDER BY s.id");
+  if (!rows) return rows.error();
+  std::vector<SessionRow> out;
+  for (int i = 0; i < rows->rows(); ++i) out.push_back(sessionRowAt(*rows, i));
+  return out;
+}
+
+common::Result<SessionRow> ClusterStore::session(const std::string& id) {
+  if (!core::isValidId(id)) return invalidId(id);
+  auto rows = exec(std::string(kSessionRowSelect) + "WHERE s.id = $1", {id});
+  if (!rows) return rows.error();
+  if (rows->rows() == 0) return noSession(id);
+  return sessionRowAt(*rows, 0);
+}
+
+common::Status ClusterStore::close(const std::string& id) {
+  if (!core::isValidId(id)) return invalidId(id);
+  // The epoch rises: an owner still writing it is fenced, and unloads it at its next round.
+  auto closed = exec(
+      "UPDATE sm_sessions SET state = 'closed', owner = NULL, epoch = epoch + 1, "
+      "left_at = now() WHERE id = $1 AND state <> 'closed'",
+      {id});
+  if (!closed) return closed.error();
+  if (closed->affected() == 1) return common::Ok{};
+  auto existing = session(id);
+  if (!existing) return existing.error();
+  return makeError(ErrorCode::kConflict, "session '" + id + "' is closed already");
+}
+
+common::Result<Ownership> ClusterStore::open(const std::string& id, const std::string& server_id) {
+  if (!core::isValidId(id)) return invalidId(id);
+  auto opened = exec(
+      "UPDATE sm_sessions SET state = 'opened', owner = $2, epoch = epoch + 1, "
+      "owned_since = clock_timestamp() WHERE id = $1 AND state IN ('closed', 'ended') "
+      "RETURNING id, owner, epoch, resolution",
+      {id, server_id});
+  if (!opened) return opened.error();
+  if (opened->rows() == 1) {
+    return Ownership{opened->text(0, 0), opened->text(0, 1), opened->integer(0, 2),
+                     opened->real(0, 3), /*read_only=*/true};
+  }
+  auto existing = session(id);
+  if (!existing) return existing.error();
+  return makeError(ErrorCode::kConflict,
+                   "session '" + id + "' is " + existing->state +
+                       (existing->http.empty() ? "" : " on " + existing->http) +
+                       ", not closed or ended");
+}
+
+common::Status ClusterStore::remove(const std::string& id) {
+  if (!core::isValidId(id)) return invalidId(id);
+  // The journal and snapshots go with it (ON DELETE CASCADE).
+  auto removed = exec("DELETE FROM sm_sessions WHERE id = $1 AND state <> 'live'", {id});
+  if (!removed) return removed.error();
+  if (removed->affected() == 1) return common::Ok{};
+  auto existing = session(id);
+  if (!existing) return existing.error();
+  return makeError(ErrorCode::kConflict,
+                   "session '" + id + "' is live: close it first (its vehicles are flying it)");
+}
+
+common::Status ClusterStore::merge(const core::MergeRequest& request) {
+  for (const auto* id : {&request.first, &request.second, &request.into}) {
+    if (!core::isValidId(*id)) return invalidId(*id);
+  }
+  if (request.first == request.second) {
+    return makeError(ErrorCode::kInvalidArgument, "merge needs two different sessions");
+  }
+  for (const auto* id : {&request.first, &request.second}) {
+    auto existing = session(*id);
+    if (!existing) return existing.error();
+    // Merging re-fuses journaled frames; an imported map has none.
+    auto imported = exec("SELECT 1 FROM sm_snapshots WHERE session = $1 AND number = 0", {*id});
+    if (!imported) return imported.error();
+    if (imported->rows() > 0) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "session '" + *id + "' is an imported map: it has no frames to merge");
+    }
+  }
+  if (auto begun = exec("BEGIN"); !begun) return begun.error();
+  auto written = writeMerged(request);
+  if (written) {
+    if (auto committed = exec("COMMIT"); !committed) return committed.error();
+    return common::Ok{};
+  }
+  if (db_->connected()) (void)db_->exec("ROLLBACK");
+  return written;
+}
+
+common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
+  auto first = session(request.first);
+  if (!first) return first.error();
+  // Born closed at epoch 1, in this transaction: the fencing trigger finds it.
+  auto created = exec(
+      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
+      "VALUES ($1, NULL, 1, $2, 'closed') ON CONFLICT (id) DO NOTHING",
+      {request.into, first->resolution});
+  if (!created) return created.error();
+  if (created->affected() == 0) {
+    return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");
+  }
+  // The first session's vehicles, so that the second's of the same name are renamed.
+  std::set<std::string> vehicles;
+  auto named = journal_.forEachRecord(
+      request.first,
+      [&](proto::journal::JournalRecord&& record, uint64_t) {
+        std::visit([&](const auto& m) { vehicles.insert(m.vehicle_id); }, record);
+      },
+      static_cast<uint64_t>(std::numeric_limits<int64_t>::max()));
+  if (!named) return named.error();
+  const store::MergedRecords merged(request, {vehicles.begin(), vehicles.end()});
+  JournalRows rows;
+  uint64_t number = 0;
+  common::Status written = common::Ok{};
+  const auto flush = [&]() -> common::Status {
+    if (rows.empty()) return common::Ok{};
+    auto inserted = exec(rows.statement(), rows.params());
+    rows.clear();
+    if (!inserted) return inserted.error();
+    return common::Ok{};
+  };
+  for (int source = 0; source < 2 && written; ++source) {
+    auto read = journal_.forEachRecord(source == 0 ? request.first : request.second,
+                                       [&](proto::journal::JournalRecord&& record, uint64_t) {
+                                         if (!written) return;
+                                         merged.apply(record, source);
+                                         rows.add(request.into, ++number, 1, record);
+                                         if (rows.full()) written = flush();
+                                       });
+    if (!read) return read.error();
+  }
+  if (written) written = flush();
+  if (!written) return written;
+  spdlog::info("sessions '{}' and '{}' merged into '{}': {} records", request.first, request.second,
+               request.into, number);
+  return common::Ok{};
+}
+
+common::Result<std::shared_ptr<core::Session>> ClusterStore::replay(const std::string& id,
+                                                                    int64_t until_ns) {
+  auto row = session(id);
+  if (!row) return row.error();
+  return store::replayUntil(
+      id, row->resolution, until_ns,
+      [&](bool payloads, const store::RecordVisitor& visit) -> common::Status {
+        auto read = journal_.forEachRecord(
+            id, visit, payloads ? 0 : static_cast<uint64_t>(std::numeric_limits<int64_t>::max()));
+        if (!read) return read.error();
+        return common::Ok{};
+      });
+}
+
+common::Result<std::shared_ptr<core::Session>> ClusterStore::load(const std::string& id,
+                                                                  core::MapServer& server) {
+  auto row = session(id);
+  if (!row) return row.error();
+  auto stored = journal_.read(id);
+  if (!stored) return stored.error();
+  size_t frames = 0, poses = 0;
+  if (auto recovered = recoverSession(server, journal_,
+                                      {id, "", row->epoch, row->resolution, /*read_only=*/true},
+                                      *stored, frames, poses, /*wait_until_fused=*/true);
+      !recovered) {
+    return recovered.error();
+  }
+  return server.find(id);
+}
+
+common::Result<ClusterStore::Check> ClusterStore::check() {
+  auto rows = sessions();
+  if (!rows) return rows.error();
+  Check out;
+  for (const auto& row : *rows) {
+    ++out.sessions;
+    uint64_t records = 0;
+    auto scan = journal_.forEachRecord(
+        row.id, [&](proto::journal::JournalRecord&&, uint64_t) { ++records; });
+    if (!scan) return scan.error();
+    out.records += records;
+    out.unreadable += scan->unreadable;
+    auto snapshots =
+        exec("SELECT number, map FROM sm_snapshots WHERE session = $1 ORDER BY number", {row.id});
+    if (!snapshots) return snapshots.error();
+    std::vector<std::string> bad;
+    for (int i = 0; i < snapshots->rows(); ++i) {
+      ++out.snapshots;
+      if (auto ot = unpackSnapshot(snapshots->bytes(i, 1)); !ot) {
+        ++out.bad_snapshots;
+        bad.push_back(std::to_string(snapshots->integer(i, 0)) + " (" + ot.error().message + ")");
+      }
+    }
+    if (scan->unreadable > 0 || !bad.empty()) {
+      std::string line = "session '" + row.id + "': ";
+      if (scan->unreadable > 0) {
+        line += std::to_string(scan->unreadable) + " of " +
+                std::to_string(records + scan->unreadable) + " journal records unreadable";
+      }
+      for (const auto& snapshot : bad) {
+        line += (line.back() == ' ' ? "" : "; ") + std::string("snapshot ") + snapshot;
+      }
+      out.problems.push_back(std::move(line));
+    }
+  }
+  return out;
+}
+
+}  // namespace stereomap::cluster

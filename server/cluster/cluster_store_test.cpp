@@ -1,0 +1,180 @@
+#include "server/cluster/cluster_store.hpp"
+
+#include <gtest/gtest.h>
+
+#include <limits>
+
+#include "server/cluster/cluster_fixture.hpp"
+#include "server/core/session_json.hpp"
+
+namespace stereomap::cluster {
+namespace {
+
+using namespace std::chrono_literals;
+using ClusterStoreTest = PostgresTest;
+
+struct Cluster {
+  std::unique_ptr<ClusterDb> db;
+  std::unique_ptr<ClusterJournal> journal;
+  std::unique_ptr<ClusterStore> store;
+};
+
+Cluster openCluster(const std::string& url) {
+  Cluster c;
+  auto db = ClusterDb::open({.url = url, .server_id = "a", .http = "127.0.0.1:1", .lease = 4000ms});
+  EXPECT_TRUE(db) << (db ? "" : db.error().message);
+  if (db) c.db = std::move(*db);
+  auto journal = ClusterJournal::open(url);
+  EXPECT_TRUE(journal) << (journal ? "" : journal.error().message);
+  if (!journal) return c;
+  c.journal = std::move(*journal);
+  auto store = ClusterStore::open(url, *c.journal);
+  EXPECT_TRUE(store) << (store ? "" : store.error().message);
+  if (store) c.store = std::move(*store);
+  return c;
+}
+
+// A session flown by `vehicle`: `poses` poses (x = 1, 2, ... m, one a second), then ended and
+// out of memory with a summary.
+Ownership fly(Cluster& c, const std::string& session, const std::string& vehicle, int poses) {
+  auto placed = c.db->placeSession(session, 0.1);
+  EXPECT_TRUE(placed) << (placed ? "" : placed.error().message);
+  auto adopted = c.db->adopt(*placed);
+  EXPECT_TRUE(adopted);
+  c.journal->adopt(session, adopted->epoch, 0);
+  for (int i = 1; i <= poses; ++i) {
+    EXPECT_TRUE(c.journal->append(poseOf(session, vehicle, static_cast<uint64_t>(i))));
+  }
+  c.journal->drop(session);
+  core::SessionStatus status;
+  status.id = session;
+  status.poses = static_cast<size_t>(poses);
+  EXPECT_TRUE(c.db->release(*adopted, ClusterDb::Leaving::kEnded, core::sessionJson(status)));
+  return *adopted;
+}
+
+std::vector<proto::PoseMsg> posesOf(Cluster& c, const std::string& session) {
+  std::vector<proto::PoseMsg> out;
+  EXPECT_TRUE(
+      c.journal->forEachRecord(session, [&](proto::journal::JournalRecord&& record, uint64_t) {
+        if (auto* pose = std::get_if<proto::PoseMsg>(&record)) out.push_back(*pose);
+      }));
+  return out;
+}
+
+TEST_F(ClusterStoreTest, AnEndedSessionIsListedOutOfMemoryAndServedAgainAtAHigherEpoch) {
+  auto c = openCluster(url());
+  const auto flown = fly(c, "s", "v", 3);
+  auto owner = c.db->ownerOf("s");
+  ASSERT_TRUE(owner);
+  EXPECT_FALSE(owner->has_value()) << "an ended session has no owner";
+  EXPECT_FALSE(c.db->poll()->orphans) << "an ended session waits for no server";
+  auto left = c.db->outOfMemory();
+  ASSERT_TRUE(left);
+  ASSERT_EQ(left->size(), 1u);
+  const auto status = (*left)[0].status();
+  EXPECT_EQ(status.poses, 3u) << "its summary is kept for listings";
+  EXPECT_TRUE(status.ended);
+  EXPECT_FALSE(status.closed);
+
+  // Its vehicle announces it again: served again, every earlier write fenced.
+  auto revived = c.db->placeSession("s", 0.1);
+  ASSERT_TRUE(revived) << revived.error().message;
+  EXPECT_EQ(revived->owner, "a");
+  EXPECT_GT(revived->epoch, flown.epoch);
+  EXPECT_TRUE(c.db->outOfMemory()->empty());
+  auto row = c.store->session("s");
+  ASSERT_TRUE(row);
+  EXPECT_EQ(row->state, "live");
+
+  // Closed by an operator: never revived by a vehicle, and closed once.
+  ASSERT_TRUE(c.store->close("s"));
+  auto refused = c.db->placeSession("s", 0.1);
+  ASSERT_FALSE(refused);
+  EXPECT_EQ(refused.error().code, common::ErrorCode::kConflict);
+  auto again = c.store->close("s");
+  ASSERT_FALSE(again);
+  EXPECT_EQ(again.error().code, common::ErrorCode::kConflict);
+  EXPECT_EQ(c.store->close("nothing").error().code, common::ErrorCode::kNotFound);
+  EXPECT_EQ(c.store->close("../x").error().code, common::ErrorCode::kInvalidArgument);
+}
+
+TEST_F(ClusterStoreTest, AClosedOwnersWritesAreFenced) {
+  auto c = openCluster(url());
+  auto placed = c.db->placeSession("s", 0.1);
+  ASSERT_TRUE(placed);
+  auto adopted = c.db->adopt(*placed);
+  ASSERT_TRUE(adopted);
+  c.journal->adopt("s", adopted->epoch, 0);
+  ASSERT_TRUE(c.journal->append(poseOf("s", "v", 1)));
+  ASSERT_TRUE(c.store->close("s"));  // from another server, or the tool
+  auto late = c.journal->append(poseOf("s", "v", 2));
+  ASSERT_FALSE(late) << "the owner's writes after the close are refused";
+  EXPECT_EQ(posesOf(c, "s").size(), 1u);
+  EXPECT_TRUE(c.db->owned()->empty());
+}
+
+TEST_F(ClusterStoreTest, OperatorsOpenMergeReplayAndDeleteStoredSessions) {
+  auto c = openCluster(url());
+  fly(c, "first", "v", 4);
+  fly(c, "second", "v", 3);
+
+  core::MergeRequest request{"first", "second", "both", common::Rigid3::identity()};
+  request.T_first_second.translation = common::Vec3(0, 10, 0);
+  auto done = c.store->merge(request);
+  ASSERT_TRUE(done) << done.error().message;
+  const auto merged = posesOf(c, "both");
+  ASSERT_EQ(merged.size(), 7u);
+  for (size_t i = 0; i < merged.size(); ++i) {
+    EXPECT_EQ(merged[i].session_id, "both");
+    EXPECT_EQ(merged[i].vehicle_id, i < 4 ? "v" : "v-second") << "a clashing vehicle renamed";
+    EXPECT_DOUBLE_EQ(merged[i].position[1], i < 4 ? 0.0 : 10.0) << "the second moved";
+  }
+  auto row = c.store->session("both");
+  ASSERT_TRUE(row);
+  EXPECT_EQ(row->state, "closed");
+  auto clash = c.store->merge(request);
+  ASSERT_FALSE(clash);
+  EXPECT_EQ(clash.error().code, common::ErrorCode::kConflict);
+  EXPECT_EQ(posesOf(c, "both").size(), 7u) << "a refused merge leaves nothing";
+  EXPECT_EQ(c.store->merge({"first", "missing", "x", common::Rigid3::identity()}).error().code,
+            common::ErrorCode::kNotFound);
+  EXPECT_FALSE(c.store->session("x")) << "a failed merge leaves no session";
+
+  // The time slider: the merged session as it was 2.5 s into the first flight's stamps.
+  auto replayed = c.store->replay("both", 2'500'000'000);
+  ASSERT_TRUE(replayed) << replayed.error().message;
+  EXPECT_EQ((*replayed)->poseCount(), 4u) << "poses 1 and 2 of each flight";
+  auto whole = c.store->replay("both", std::numeric_limits<int64_t>::max());
+  ASSERT_TRUE(whole);
+  EXPECT_EQ((*whole)->poseCount(), 7u);
+
+  // Opened read-only by a server: owned (routed there), never revived or deleted as live.
+  auto opened = c.store->open("both", "a");
+  ASSERT_TRUE(opened) << opened.error().message;
+  EXPECT_TRUE(opened->read_only);
+  auto owned = c.db->owned();
+  ASSERT_TRUE(owned);
+  ASSERT_EQ(owned->size(), 1u);
+  EXPECT_TRUE((*owned)[0].read_only);
+  EXPECT_EQ(c.store->open("both", "a").error().code, common::ErrorCode::kConflict);
+
+  // Deleting: never a live session; anything else with its journal.
+  ASSERT_TRUE(c.db->placeSession("first", 0.1));  // flown again: live
+  auto live = c.store->remove("first");
+  ASSERT_FALSE(live);
+  EXPECT_EQ(live.error().code, common::ErrorCode::kConflict);
+  ASSERT_TRUE(c.store->remove("both"));
+  EXPECT_EQ(c.store->session("both").error().code, common::ErrorCode::kNotFound);
+  EXPECT_TRUE(posesOf(c, "both").empty());
+  EXPECT_EQ(c.store->remove("both").error().code, common::ErrorCode::kNotFound);
+
+  auto checked = c.store->check();
+  ASSERT_TRUE(checked);
+  EXPECT_EQ(checked->sessions, 2u);
+  EXPECT_EQ(checked->records, 7u);
+  EXPECT_TRUE(checked->problems.empty());
+}
+
+}  // namespace
+}  // namespace stereomap::cluster
