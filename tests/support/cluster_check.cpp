@@ -101,26 +101,45 @@ FlightCheck checkFlight(ClusterHarness& cluster, int i, bool with_map,
       trajectoryAgainst(cluster.trajectoryOut(i), stored->records);
   if (!with_map) return check;
 
-  const auto owner = cluster.owners()[check.session];
-  if (!cluster.servers().contains(owner)) {
-    check.problem = "its owner '" + owner + "' is not a server of this cluster";
-    return check;
+  // The live map, once its owner has fused everything it took ("" and a problem when it
+  // cannot be had).
+  const auto fromOwner = [&]() -> std::string {
+    const auto owner = cluster.owners()[check.session];
+    if (!cluster.servers().contains(owner)) {
+      check.problem = "its owner '" + owner + "' is not a server of this cluster";
+      return "";
+    }
+    auto& server = cluster.server(owner);
+    const std::string path = "/api/sessions/" + check.session;
+    if (!waitUntil(fuse_timeout, [&] {
+          const auto reply = server.get(path);
+          return reply.status == 200 &&
+                 reply.body.find("\"fusion_backlog\":0") != std::string::npos;
+        })) {
+      check.problem = "its owner did not finish fusing it: " + server.get(path).body.substr(0, 300);
+      return "";
+    }
+    const auto live = server.get(path + "/map.ot");
+    if (live.status != 200) check.problem = "no live map: " + live.body.substr(0, 300);
+    return live.status == 200 ? live.body : "";
+  };
+  std::string live_map = fromOwner();
+  if (live_map.empty() &&
+      cluster.query("SELECT state FROM sm_sessions WHERE id = '" + check.session + "'")
+          .starts_with("ended")) {
+    // Out of memory since its vehicle ended it (before or during this check): the map it
+    // left with is its last snapshot, read again now; fused offline from every frame of the
+    // journal, not from that snapshot.
+    stored = (*journal)->read(check.session);
+    if (!stored || stored->snapshot.empty()) {
+      check.problem = "it left memory without a readable snapshot";
+      return check;
+    }
+    check.problem.clear();
+    live_map = std::move(stored->snapshot);
+    stored->snapshot.clear();
   }
-  auto& server = cluster.server(owner);
-  // The live map, once its owner has fused everything it took.
-  const std::string path = "/api/sessions/" + check.session;
-  if (!waitUntil(fuse_timeout, [&] {
-        const auto reply = server.get(path);
-        return reply.status == 200 && reply.body.find("\"fusion_backlog\":0") != std::string::npos;
-      })) {
-    check.problem = "its owner did not finish fusing it: " + server.get(path).body.substr(0, 300);
-    return check;
-  }
-  const auto live = server.get(path + "/map.ot");
-  if (live.status != 200) {
-    check.problem = "no live map: " + live.body.substr(0, 300);
-    return check;
-  }
+  if (live_map.empty()) return check;
   // Offline: the same records fused from scratch.
   core::MapServer scratch({.resolution = 0.1, .max_sessions = 1});
   size_t frames = 0, poses = 0;
@@ -136,7 +155,7 @@ FlightCheck checkFlight(ClusterHarness& cluster, int i, bool with_map,
     check.problem = "no offline map: " + offline.error().message;
     return check;
   }
-  const auto live_leaves = leaves(live.body);
+  const auto live_leaves = leaves(live_map);
   check.live_leaves = live_leaves.size();
   check.map_is_journals = live_leaves.size() > 1000 && live_leaves == leaves(*offline);
   return check;

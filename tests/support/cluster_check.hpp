@@ -37,8 +37,8 @@ struct FlightCheck {
 };
 
 // Vehicle `i` of `cluster` (session flight<i>), ended. `with_map`: also the live map of the
-// session's owner (waiting up to `fuse_timeout` for it to have fused everything) against the
-// journal fused offline.
+// session's owner (waiting up to `fuse_timeout` for it to have fused everything; once the
+// session has left memory, the snapshot it left with) against the journal fused offline.
 FlightCheck checkFlight(ClusterHarness& cluster, int i, bool with_map,
                         std::chrono::seconds fuse_timeout = std::chrono::seconds(60));
 
