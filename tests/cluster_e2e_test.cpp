@@ -366,7 +366,12 @@ TEST_F(ClusterTest, ASilentVehiclesSessionLeavesMemoryAndIsServedAgainWhenItRetu
   EXPECT_GE(std::stoi(query("SELECT count(*) FROM sm_snapshots WHERE session = 'flight0'")), 1)
       << "snapshotted as it left";
 
-  // Back: it announces its session until a server reads it, and sends what waited.
+  // Back, still flying: its start event reaches the servers again (DDS delivers it to a
+  // vehicle rediscovered after its pause; a vehicle that stayed discovered sends it again every
+  // 2 s: pipeline_test), the session is served again within seconds, not at the vehicle's end
+  // event, and the vehicle sends what waited.
+  EXPECT_TRUE(waitForState(*cluster_, "flight0", "live", 10s));
+  EXPECT_FALSE(cluster_->vehicle(0).waitExit(0s).has_value()) << "served again while it flies";
   waitForVehicles();
   EXPECT_EQ(stateOf(*cluster_, "flight0"), "live");
   expectWholeSessions(1);

@@ -6,6 +6,7 @@
 
 #include "onboard/eval/metrics.hpp"
 #include "onboard/sim/sim_source.hpp"
+#include "proto/dds.hpp"
 #include "proto/pose_fields.hpp"
 
 namespace stereomap::pipeline {
@@ -99,6 +100,45 @@ TEST(Pipeline, APoseGraphCorrectsThePoses) {
   std::printf("520 frames: %d closures; ATE %.4f m (odometry) -> %.4f m\n", summary.graph.loops,
               odometry, corrected);
   EXPECT_LT(corrected, odometry);
+}
+
+// A vehicle holding samples that no server reads (in a cluster: its session left memory while
+// the vehicle went on) says its session started again every 2 s, as its start event was first
+// sent, so that a server takes the session up; once nothing waits, it stops.
+TEST(Pipeline, AVehicleHoldingSamplesAnnouncesItsSessionWhileNoServerReadsIt) {
+  auto participant =
+      proto::Participant::create({.domain_id = 93, .config_file = STEREOMAP_DDS_CONFIG});
+  ASSERT_TRUE(participant) << participant.error().message;
+  auto events =
+      proto::Reader<proto::SessionEventMsg>::create(*participant, {proto::kEverySessionPartition});
+  ASSERT_TRUE(events);
+  auto spool = link::Spool::open({});
+  ASSERT_TRUE(spool);
+  auto publisher =
+      VehiclePublisher::create(*participant, "s1", std::move(*spool), {.vehicle_id = "uav"});
+  ASSERT_TRUE(publisher) << publisher.error().message;
+  proto::SessionEventMsg started;
+  started.session_id = "s1";
+  started.vehicle_id = "uav";
+  started.kind = proto::SessionEventKind::kStarted;
+  ASSERT_TRUE((*publisher)->publish(started));
+  proto::PoseMsg pose;
+  pose.session_id = "s1";
+  pose.vehicle_id = "uav";
+  pose.orientation = {0, 0, 0, 1};
+  ASSERT_TRUE((*publisher)->publish(pose));  // held: nobody acknowledges it
+  std::vector<proto::SessionEventMsg> seen;
+  const auto deadline = std::chrono::steady_clock::now() + 4500ms;
+  while (std::chrono::steady_clock::now() < deadline) {
+    (*publisher)->service(50ms);
+    events->get()->take(seen, 0ms);
+  }
+  ASSERT_GE(seen.size(), 3u) << "the start, then again every 2 s";
+  for (const auto& event : seen) {
+    EXPECT_EQ(event.kind, proto::SessionEventKind::kStarted);
+    EXPECT_EQ(event.seq, seen.front().seq) << "the same sample: a server that has it skips it";
+    EXPECT_EQ(event.stream, seen.front().stream);
+  }
 }
 
 }  // namespace
