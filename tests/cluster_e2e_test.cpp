@@ -471,6 +471,19 @@ TEST_F(ClusterTest, OperatorsCloseOpenMergeExportAndDeleteSessionsInTheCluster) 
   EXPECT_NE(readText(ply).find("end_header"), std::string::npos);
   const auto merged_again = tool({"merge", "flight0", "both", "--into", "all"});
   EXPECT_EQ(merged_again.exit_code, 0) << merged_again.output;
+  // Compacted once closed: its map and poses kept, its clouds' points gone.
+  EXPECT_EQ(tool({"close", "flight0"}).exit_code, 0);
+  const auto compacted = tool({"compact", "flight0"});
+  EXPECT_EQ(compacted.exit_code, 0) << compacted.output;
+  EXPECT_NE(compacted.output.find(std::to_string(clouds0) + " clouds compacted"), std::string::npos)
+      << compacted.output;
+  const auto shown_again = tool({"show", "flight0"});
+  ASSERT_EQ(shown_again.exit_code, 0) << shown_again.output;
+  const auto again = nlohmann::json::parse(shown_again.output);
+  EXPECT_EQ(again.value("occupied_voxels", -1),
+            nlohmann::json::parse(shown.output).value("occupied_voxels", -2))
+      << "the same map, from its snapshot";
+  EXPECT_EQ(again.value("poses", -1), nlohmann::json::parse(shown.output).value("poses", -2));
   EXPECT_EQ(tool({"close", "both"}).exit_code, 0);
   EXPECT_EQ(stateOf(*cluster_, "both"), "closed");
   const auto refused = tool({"delete", "nothing", "--yes"});

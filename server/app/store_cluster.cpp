@@ -128,6 +128,38 @@ int merge(cluster::ClusterStore& store, const Args& a) {
   return 0;
 }
 
+int compact(cluster::ClusterStore& store, const Args& a) {
+  std::vector<std::string> ids = a.compact_ids;
+  if (a.compact_all) {
+    auto rows = store.sessions();
+    if (!rows) return fail(rows.error().message);
+    for (const auto& row : *rows) {
+      if (row.state == "closed") ids.push_back(row.id);
+    }
+  } else if (ids.empty()) {
+    return fail("compact needs session ids, or --all-closed");
+  }
+  int failed = 0;
+  for (const auto& id : ids) {
+    auto done = store.compact(id);
+    if (!done && a.compact_all && done.error().code == common::ErrorCode::kInvalidArgument) {
+      std::printf("session '%s': skipped (%s)\n", id.c_str(), done.error().message.c_str());
+      continue;
+    }
+    if (!done) {
+      failed += fail(done.error().message);
+      continue;
+    }
+    std::printf(
+        "session '%s': %llu clouds compacted up to record %llu; its journal %s MB -> %s MB "
+        "(the trajectory and the map kept; the space is reused after PostgreSQL's vacuum)\n",
+        id.c_str(), static_cast<unsigned long long>(done->clouds),
+        static_cast<unsigned long long>(done->up_to), megabytes(done->bytes_before).c_str(),
+        megabytes(done->bytes_after).c_str());
+  }
+  return failed > 0 ? 1 : 0;
+}
+
 }  // namespace
 
 int runInCluster(const std::string& command, Args& a) {
@@ -145,6 +177,7 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "check") return check(**store);
   if (command == "show" || command == "export") return readSession(command, **store, **journal, a);
   if (command == "merge") return merge(**store, a);
+  if (command == "compact") return compact(**store, a);
   const auto done = command == "close" ? (*store)->close(a.id) : (*store)->remove(a.id);
   if (!done) return fail(done.error().message);
   // Its server (if any) lets it go at its next round (a second): fenced by the raised epoch.

@@ -352,6 +352,23 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
   import_cmd->add_option("--session", a.id, "The new session's id")->required();
   commands.push_back({import_cmd, true, importMap});
 
+  auto* compact_cmd = app.add_subcommand(
+      "compact",
+      "With --cluster: drop the points of a closed session's clouds below its newest snapshot "
+      "(poses, the trajectory and the map kept; no replay before the snapshot, no merge)");
+  auto* compact_ids =
+      compact_cmd->add_option("session", a.compact_ids, "Closed sessions to compact");
+  compact_cmd
+      ->add_flag("--all-closed", a.compact_all,
+                 "Every closed session whose clouds below its snapshot still have their points "
+                 "(for a periodic job)")
+      ->excludes(compact_ids);
+  commands.push_back({compact_cmd, true, [](Store&, Args&) {
+                        return fail(
+                            "compact works on a cluster's database (--cluster URL); a store "
+                            "folder's journals are kept whole");
+                      }});
+
   auto* merge_cmd = app.add_subcommand(
       "merge", "Merge two sessions into a new, closed one (the second moved by --transform)");
   merge_cmd->add_option("first", a.first, "First session (its map frame is the result's)")

@@ -20,6 +20,8 @@ struct Args {
   double resolution = 0.1;
   bool as_json = false;
   std::vector<std::string> repair_ids;
+  std::vector<std::string> compact_ids;
+  bool compact_all = false;
   std::string id;
   core::ExportRequest request{.format = ""};
   std::string out;

@@ -128,12 +128,19 @@ constexpr const char* kVersion4[] = {
          WHERE owner IS NULL AND state IN ('live', 'opened'))",
 };
 
+// Version 5: a closed session's journal compacted below its newest snapshot (clouds keep
+// only their meta, the trajectory whole: ClusterStore::compact); the record number it was
+// compacted up to (0: never), which replays and merges must respect.
+constexpr const char* kVersion5[] = {
+    R"(ALTER TABLE sm_sessions ADD COLUMN IF NOT EXISTS compacted_up_to bigint NOT NULL DEFAULT 0)",
+};
+
 struct SchemaVersion {
   int version;
   std::span<const char* const> statements;
 };
 constexpr SchemaVersion kSchemaVersions[] = {
-    {1, kVersion1}, {2, kVersion2}, {3, kVersion3}, {4, kVersion4}};
+    {1, kVersion1}, {2, kVersion2}, {3, kVersion3}, {4, kVersion4}, {5, kVersion5}};
 
 // The advisory lock key that serialises schema creation between servers ("smschema").
 constexpr int64_t kSchemaLock = 0x736d736368656d61;
@@ -173,12 +180,14 @@ Ownership ownershipAt(const PgResult& rows, int row) {
 
 const char* const kSessionRowSelect =
     "SELECT s.id, s.state, coalesce(s.owner, ''), coalesce(v.http, ''), s.epoch, s.resolution, "
-    "coalesce(s.summary, '') FROM sm_sessions s "
+    "coalesce(s.summary, ''), s.compacted_up_to FROM sm_sessions s "
     "LEFT JOIN sm_servers v ON v.id = s.owner AND v.lease_until > now() ";
 
 SessionRow sessionRowAt(const PgResult& rows, int i) {
-  return {rows.text(i, 0),    rows.text(i, 1), rows.text(i, 2), rows.text(i, 3),
-          rows.integer(i, 4), rows.real(i, 5), rows.text(i, 6)};
+  return {rows.text(i, 0),    rows.text(i, 1),
+          rows.text(i, 2),    rows.text(i, 3),
+          rows.integer(i, 4), rows.real(i, 5),
+          rows.text(i, 6),    static_cast<uint64_t>(rows.integer(i, 7))};
 }
 
 core::SessionStatus SessionRow::status() const {

@@ -59,6 +59,8 @@ struct SessionRow {
   int64_t epoch = 0;
   double resolution = 0.1;
   std::string summary;  // its status (JSON) when it last left a server's memory; "" if never
+  // Its clouds up to this record number keep only their meta (ClusterStore::compact); 0: none.
+  uint64_t compacted_up_to = 0;
   // For listings: the summary's counts, this row's state, resolution and server.
   core::SessionStatus status() const;
 };

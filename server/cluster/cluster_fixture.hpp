@@ -59,4 +59,18 @@ inline proto::PoseMsg poseOf(const std::string& session, const std::string& vehi
   return pose;
 }
 
+// Vehicle "v"'s cloud number `seq`, stamped `seq` seconds in, with `payload_bytes` of payload
+// (not a cloud that decodes: the database only keeps it).
+inline proto::CloudFrameMsg frameOf(const std::string& session, uint64_t seq,
+                                    size_t payload_bytes) {
+  proto::CloudFrameMsg frame;
+  frame.session_id = session;
+  frame.vehicle_id = "v";
+  frame.seq = seq;
+  frame.stamp_ns = static_cast<int64_t>(seq) * 1000000000;
+  frame.point_count = 1;
+  frame.payload.assign(payload_bytes, static_cast<uint8_t>(seq));
+  return frame;
+}
+
 }  // namespace stereomap::cluster

@@ -18,16 +18,6 @@ class ClusterJournalTest : public PostgresTest {
 };
 using namespace std::chrono_literals;
 
-proto::CloudFrameMsg frameOf(const std::string& session, uint64_t seq, size_t payload_bytes) {
-  proto::CloudFrameMsg frame;
-  frame.session_id = session;
-  frame.vehicle_id = "v";
-  frame.seq = seq;
-  frame.point_count = 1;
-  frame.payload.assign(payload_bytes, static_cast<uint8_t>(seq));
-  return frame;
-}
-
 struct Server {
   std::unique_ptr<ClusterDb> db;
   std::unique_ptr<ClusterJournal> journal;

@@ -118,6 +118,12 @@ common::Status ClusterStore::merge(const core::MergeRequest& request) {
   for (const auto* id : {&request.first, &request.second}) {
     auto existing = session(*id);
     if (!existing) return existing.error();
+    if (existing->compacted_up_to > 0) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "session '" + *id +
+                           "' was compacted: its clouds before its snapshot are gone, and a "
+                           "merge fuses every frame again");
+    }
     // Merging re-fuses journaled frames; an imported map has none.
     auto imported = exec("SELECT 1 FROM sm_snapshots WHERE session = $1 AND number = 0", {*id});
     if (!imported) return imported.error();
@@ -189,6 +195,7 @@ common::Result<std::shared_ptr<core::Session>> ClusterStore::replay(const std::s
                                                                     int64_t until_ns) {
   auto row = session(id);
   if (!row) return row.error();
+  if (row->compacted_up_to > 0) return replayCompacted(*row, until_ns);
   return store::replayUntil(
       id, row->resolution, until_ns,
       [&](bool payloads, const store::RecordVisitor& visit) -> common::Status {
@@ -213,6 +220,112 @@ common::Result<std::shared_ptr<core::Session>> ClusterStore::load(const std::str
     return recovered.error();
   }
   return server.find(id);
+}
+
+common::Result<std::shared_ptr<core::Session>> ClusterStore::replayCompacted(const SessionRow& row,
+                                                                             int64_t until_ns) {
+  auto stored = journal_.read(row.id);
+  if (!stored) return stored.error();
+  // Its map up to the snapshot is the snapshot's: the time slider starts where it was taken.
+  int64_t compacted_until = std::numeric_limits<int64_t>::min();
+  for (size_t i = 0; i < stored->records.size(); ++i) {
+    const auto* frame = std::get_if<proto::CloudFrameMsg>(&stored->records[i]);
+    if (frame != nullptr && stored->numbers[i] <= stored->snapshot_number) {
+      compacted_until = std::max(compacted_until, frame->stamp_ns);
+    }
+  }
+  if (stored->snapshot_number < row.compacted_up_to || until_ns < compacted_until) {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + row.id + "' was compacted: its clouds before " +
+                         std::to_string(compacted_until / 1'000'000'000) +
+                         " s (since the epoch) are gone; replay it from then on");
+  }
+  // What came later than `until_ns` is left out.
+  proto::journal::JournalReplay kept;
+  for (size_t i = 0; i < stored->records.size(); ++i) {
+    const int64_t stamp = std::visit([](const auto& m) { return m.stamp_ns; }, stored->records[i]);
+    if (stamp > until_ns) continue;
+    kept.records.push_back(std::move(stored->records[i]));
+    kept.numbers.push_back(stored->numbers[i]);
+  }
+  stored->records = std::move(kept.records);
+  stored->numbers = std::move(kept.numbers);
+  core::MapServer scratch({.resolution = row.resolution, .max_sessions = 1});
+  size_t frames = 0, poses = 0;
+  if (auto recovered =
+          recoverSession(scratch, journal_, {row.id, "", 0, row.resolution, /*read_only=*/true},
+                         *stored, frames, poses, /*wait_until_fused=*/true);
+      !recovered) {
+    return recovered.error();
+  }
+  return scratch.unload(row.id);
+}
+
+common::Result<ClusterStore::Compaction> ClusterStore::compact(const std::string& id) {
+  if (!core::isValidId(id)) return invalidId(id);
+  if (auto begun = exec("BEGIN"); !begun) return begun.error();
+  auto compacted = compactInTransaction(id);
+  if (compacted) {
+    if (auto committed = exec("COMMIT"); !committed) return committed.error();
+    return compacted;
+  }
+  if (db_->connected()) (void)db_->exec("ROLLBACK");
+  return compacted;
+}
+
+common::Result<ClusterStore::Compaction> ClusterStore::compactInTransaction(const std::string& id) {
+  // Locked: nobody opens, revives or deletes it meanwhile.
+  auto state = exec("SELECT state FROM sm_sessions WHERE id = $1 FOR UPDATE", {id});
+  if (!state) return state.error();
+  if (state->rows() == 0) return noSession(id);
+  if (state->text(0, 0) != "closed") {
+    return makeError(ErrorCode::kConflict,
+                     "session '" + id + "' is " + state->text(0, 0) +
+                         ": only a closed session is compacted (close it first)");
+  }
+  // The newest snapshot that can be read, and no correction after it (a correction fuses
+  // every frame again).
+  auto snapshots = exec(
+      "SELECT number, map FROM sm_snapshots WHERE session = $1 AND number > 0 "
+      "ORDER BY number DESC",
+      {id});
+  if (!snapshots) return snapshots.error();
+  Compaction out;
+  for (int i = 0; i < snapshots->rows() && out.up_to == 0; ++i) {
+    if (unpackSnapshot(snapshots->bytes(i, 1))) {
+      out.up_to = static_cast<uint64_t>(snapshots->integer(i, 0));
+    }
+  }
+  auto correction =
+      exec("SELECT coalesce(max(number), 0) FROM sm_journal WHERE session = $1 AND kind = 4", {id});
+  if (!correction) return correction.error();
+  if (out.up_to == 0 || static_cast<uint64_t>(correction->integer(0, 0)) > out.up_to) {
+    return makeError(ErrorCode::kInvalidArgument,
+                     "session '" + id +
+                         "' has no readable snapshot that holds all of it (open it and close "
+                         "it again: closing snapshots it)");
+  }
+  const char* kBytes =
+      "SELECT coalesce(sum(octet_length(record)), 0) FROM sm_journal WHERE session = $1";
+  auto before = exec(kBytes, {id});
+  if (!before) return before.error();
+  out.bytes_before = static_cast<uint64_t>(before->integer(0, 0));
+  auto clouds = exec(
+      "UPDATE sm_journal SET record = meta WHERE session = $1 AND kind = 1 AND number <= $2 "
+      "AND meta IS NOT NULL AND record <> meta",
+      {id, out.up_to});
+  if (!clouds) return clouds.error();
+  out.clouds = static_cast<uint64_t>(clouds->affected());
+  for (const char* sql :
+       {"UPDATE sm_sessions SET compacted_up_to = greatest(compacted_up_to, $2) WHERE id = $1",
+        // The older snapshots needed the clouds just compacted.
+        "DELETE FROM sm_snapshots WHERE session = $1 AND number < $2"}) {
+    if (auto done = exec(sql, {id, out.up_to}); !done) return done.error();
+  }
+  auto after = exec(kBytes, {id});
+  if (!after) return after.error();
+  out.bytes_after = static_cast<uint64_t>(after->integer(0, 0));
+  return out;
 }
 
 common::Result<ClusterStore::Check> ClusterStore::check() {

@@ -51,6 +51,20 @@ class ClusterStore {
   common::Result<std::shared_ptr<core::Session>> load(const std::string& id,
                                                       core::MapServer& server);
 
+  // Compacts a closed session's journal below its newest snapshot: each cloud there keeps only
+  // its meta (pose, stamp, counts; not its points), every pose, event and correction stays (the
+  // trajectory is whole), and older snapshots go. PostgreSQL reuses the space after its next
+  // (auto)vacuum. Opening the session still works (from the snapshot); a replay cannot go back
+  // before the snapshot, a merge refuses it, and its MCAP has no points for those clouds.
+  // kConflict unless it is closed (a live or ended session may yet be corrected, which fuses
+  // every frame again); kInvalidArgument without a snapshot that covers its corrections.
+  struct Compaction {
+    uint64_t up_to = 0;                          // the snapshot's record number
+    uint64_t clouds = 0;                         // clouds compacted now
+    uint64_t bytes_before = 0, bytes_after = 0;  // the journal's records
+  };
+  common::Result<Compaction> compact(const std::string& id);
+
   // Every record and snapshot of every session read and decoded.
   struct Check {
     size_t sessions = 0;
@@ -67,6 +81,10 @@ class ClusterStore {
   common::Result<PgResult> exec(std::string_view sql, const std::vector<PgParam>& params = {});
   // Writes the records of `first` then `second`, moved into `into`, inside the open transaction.
   common::Status writeMerged(const core::MergeRequest& request);
+  common::Result<Compaction> compactInTransaction(const std::string& id);
+  // The session as it was at `until_ns`, from its snapshot on (a compacted session).
+  common::Result<std::shared_ptr<core::Session>> replayCompacted(const SessionRow& row,
+                                                                 int64_t until_ns);
 
   std::unique_ptr<PgConnection> db_;
   ClusterJournal& journal_;

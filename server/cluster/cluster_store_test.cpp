@@ -34,14 +34,20 @@ Cluster openCluster(const std::string& url) {
   return c;
 }
 
-// A session flown by `vehicle`: `poses` poses (x = 1, 2, ... m, one a second), then ended and
-// out of memory with a summary.
-Ownership fly(Cluster& c, const std::string& session, const std::string& vehicle, int poses) {
+// Session `session` placed on this server, adopted and written by its journal.
+Ownership serving(Cluster& c, const std::string& session) {
   auto placed = c.db->placeSession(session, 0.1);
   EXPECT_TRUE(placed) << (placed ? "" : placed.error().message);
   auto adopted = c.db->adopt(*placed);
   EXPECT_TRUE(adopted);
   c.journal->adopt(session, adopted->epoch, 0);
+  return *adopted;
+}
+
+// A session flown by `vehicle`: `poses` poses (x = 1, 2, ... m, one a second), then ended and
+// out of memory with a summary.
+Ownership fly(Cluster& c, const std::string& session, const std::string& vehicle, int poses) {
+  const auto adopted = serving(c, session);
   for (int i = 1; i <= poses; ++i) {
     EXPECT_TRUE(c.journal->append(poseOf(session, vehicle, static_cast<uint64_t>(i))));
   }
@@ -49,8 +55,8 @@ Ownership fly(Cluster& c, const std::string& session, const std::string& vehicle
   core::SessionStatus status;
   status.id = session;
   status.poses = static_cast<size_t>(poses);
-  EXPECT_TRUE(c.db->release(*adopted, ClusterDb::Leaving::kEnded, core::sessionJson(status)));
-  return *adopted;
+  EXPECT_TRUE(c.db->release(adopted, ClusterDb::Leaving::kEnded, core::sessionJson(status)));
+  return adopted;
 }
 
 std::vector<proto::PoseMsg> posesOf(Cluster& c, const std::string& session) {
@@ -101,11 +107,7 @@ TEST_F(ClusterStoreTest, AnEndedSessionIsListedOutOfMemoryAndServedAgainAtAHighe
 
 TEST_F(ClusterStoreTest, AClosedOwnersWritesAreFenced) {
   auto c = openCluster(url());
-  auto placed = c.db->placeSession("s", 0.1);
-  ASSERT_TRUE(placed);
-  auto adopted = c.db->adopt(*placed);
-  ASSERT_TRUE(adopted);
-  c.journal->adopt("s", adopted->epoch, 0);
+  serving(c, "s");
   ASSERT_TRUE(c.journal->append(poseOf("s", "v", 1)));
   ASSERT_TRUE(c.store->close("s"));  // from another server, or the tool
   auto late = c.journal->append(poseOf("s", "v", 2));
@@ -174,6 +176,57 @@ TEST_F(ClusterStoreTest, OperatorsOpenMergeReplayAndDeleteStoredSessions) {
   EXPECT_EQ(checked->sessions, 2u);
   EXPECT_EQ(checked->records, 7u);
   EXPECT_TRUE(checked->problems.empty());
+}
+
+TEST_F(ClusterStoreTest, AClosedSessionIsCompactedBelowItsSnapshotWithItsTrajectoryKept) {
+  auto c = openCluster(url());
+  serving(c, "s");
+  uint64_t snapshot_at = 0;
+  for (uint64_t i = 1; i <= 10; ++i) {
+    ASSERT_TRUE(c.journal->append(poseOf("s", "v", i)));
+    auto n = c.journal->append(frameOf("s", i, 20000));
+    ASSERT_TRUE(n);
+    if (i == 6) snapshot_at = *n;
+  }
+  ASSERT_TRUE(c.journal->saveSnapshot("s", snapshot_at / 2, "an older map"));
+  ASSERT_TRUE(c.journal->saveSnapshot("s", snapshot_at, "the map up to cloud 6"));
+
+  auto live = c.store->compact("s");
+  ASSERT_FALSE(live);
+  EXPECT_EQ(live.error().code, common::ErrorCode::kConflict) << "a live session is not";
+  c.journal->drop("s");
+  ASSERT_TRUE(c.store->close("s"));
+  auto done = c.store->compact("s");
+  ASSERT_TRUE(done) << done.error().message;
+  EXPECT_EQ(done->up_to, snapshot_at);
+  EXPECT_EQ(done->clouds, 6u);
+  EXPECT_LT(done->bytes_after, done->bytes_before - 6 * 20000 + 1000);
+  EXPECT_EQ(c.store->compact("s")->clouds, 0u) << "once";
+
+  // Every pose kept; the clouds the snapshot holds without their points, the later ones whole.
+  EXPECT_EQ(posesOf(c, "s").size(), 10u);
+  size_t whole = 0, bare = 0;
+  ASSERT_TRUE(
+      c.journal->forEachRecord("s", [&](proto::journal::JournalRecord&& record, uint64_t number) {
+        if (const auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+          (frame->payload.empty() ? bare : whole) += 1;
+          EXPECT_EQ(frame->payload.empty(), number <= snapshot_at) << number;
+        }
+      }));
+  EXPECT_EQ(bare, 6u);
+  EXPECT_EQ(whole, 4u);
+  EXPECT_EQ(postgres().sql("SELECT count(*) FROM sm_snapshots", database_).value_or(""), "1\n")
+      << "only the snapshot that holds the compacted clouds is kept";
+
+  // What needs the points says so.
+  auto before = c.store->replay("s", 3'000'000'000);
+  ASSERT_FALSE(before);
+  EXPECT_EQ(before.error().code, common::ErrorCode::kConflict) << before.error().message;
+  fly(c, "other", "w", 2);
+  auto merged = c.store->merge({"other", "s", "both", common::Rigid3::identity()});
+  ASSERT_FALSE(merged);
+  EXPECT_EQ(merged.error().code, common::ErrorCode::kInvalidArgument);
+  EXPECT_NE(merged.error().message.find("compacted"), std::string::npos);
 }
 
 }  // namespace

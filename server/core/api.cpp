@@ -240,8 +240,9 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
       if (parts.size() == 3) {
         return HttpAnswer{200, "application/json", sessionObject(closed).dump() + "\n", ""};
       }
-      return error(409, "session '" + parts[2] + "' is closed: open it first (POST /api/sessions/" +
-                            parts[2] + "/open)");
+      return error(409, "session '" + parts[2] + "' is " +
+                            (closed.closed ? "closed" : "ended and out of memory") +
+                            ": open it first (POST /api/sessions/" + parts[2] + "/open)");
     }
   }
   if (!session) return error(404, "no session '" + parts[2] + "'");
