@@ -1,6 +1,8 @@
 #include "onboard/posegraph/g2o.hpp"
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
@@ -51,6 +53,7 @@ class LineReader {
   LineReader(const std::string& name, int line, const std::vector<std::string_view>& fields)
       : name_(name), line_(line), fields_(fields) {}
 
+  std::string where() const { return name_ + " line " + std::to_string(line_); }
   common::Error fault(const std::string& what) const {
     return common::makeError(ErrorCode::kInvalidArgument,
                              name_ + " line " + std::to_string(line_) + ": " + what);
@@ -118,27 +121,73 @@ bool readSe2(const LineReader& reader, size_t first, common::Rigid3* out, std::s
   return true;
 }
 
-// The upper triangle, row by row, of an n x n information matrix placed at `places`.
-bool readInformation(const LineReader& reader, size_t first, int n, const int* places, Mat6* out,
+bool positiveDefinite(const Eigen::MatrixXd& m) {
+  return Eigen::LLT<Eigen::MatrixXd>(m).info() == Eigen::Success;
+}
+
+// The nearest symmetric positive definite matrix in the Frobenius norm (Higham 1988): the
+// eigenvalues below a floor raised to it. The floor, 1e-9 of the largest, keeps the matrix
+// invertible without inventing certainty the file did not give.
+Eigen::MatrixXd nearestPositiveDefinite(const Eigen::MatrixXd& m, double* relative_change) {
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(m);
+  const Eigen::VectorXd values = eigen.eigenvalues();
+  const double floor = std::max(values.maxCoeff(), 0.0) * 1e-9 + 1e-300;
+  const Eigen::MatrixXd nearest =
+      eigen.eigenvectors() * values.cwiseMax(floor).asDiagonal() * eigen.eigenvectors().transpose();
+  *relative_change = (nearest - m).norm() / m.norm();
+  return 0.5 * (nearest + nearest.transpose());
+}
+
+// The upper triangle, row by row, of an n x n information matrix placed at `places` (the
+// first n - rotation entries are translation, the rest rotation), checked as `use` asks.
+bool readInformation(const LineReader& reader, size_t first, int n, const int* places,
+                     InformationUse use, G2oEdge* edge, std::vector<std::string>* warnings,
                      std::string* why) {
-  out->setZero();
+  Mat6& out = edge->information;
+  out.setZero();
   size_t field = first;
   for (int r = 0; r < n; ++r) {
     for (int c = r; c < n; ++c) {
       double value = 0;
       if (!reader.number(field++, &value, why)) return false;
-      (*out)(places[r], places[c]) = value;
-      (*out)(places[c], places[r]) = value;
+      out(places[r], places[c]) = value;
+      out(places[c], places[r]) = value;
     }
   }
   Eigen::MatrixXd block(n, n);
   for (int r = 0; r < n; ++r) {
-    for (int c = 0; c < n; ++c) block(r, c) = (*out)(places[r], places[c]);
+    for (int c = 0; c < n; ++c) block(r, c) = out(places[r], places[c]);
   }
-  if (Eigen::LLT<Eigen::MatrixXd>(block).info() != Eigen::Success) {
-    *why = "the information matrix is not positive definite";
+  const int translation = n == 6 ? 3 : 2, rotation = n - translation;
+  const bool translation_usable = positiveDefinite(block.topLeftCorner(translation, translation));
+  const bool rotation_usable = positiveDefinite(block.bottomRightCorner(rotation, rotation));
+  if (!translation_usable || !rotation_usable) {
+    *why = std::string("the information matrix's ") +
+           (translation_usable ? "rotation" : "translation") +
+           " block is not positive definite (no weighting can use it)";
     return false;
   }
+  edge->indefinite = !positiveDefinite(block);
+  if (!edge->indefinite || use == InformationUse::kBlocks) return true;
+  if (use == InformationUse::kWhole) {
+    *why =
+        "the information matrix is not positive definite (only through its coupling of "
+        "translation and rotation: its blocks are; --weights isotropic reads it, and "
+        "--indefinite nearest uses the nearest positive definite matrix)";
+    return false;
+  }
+  double change = 0;
+  const Eigen::MatrixXd nearest = nearestPositiveDefinite(block, &change);
+  for (int r = 0; r < n; ++r) {
+    for (int c = 0; c < n; ++c) out(places[r], places[c]) = nearest(r, c);
+  }
+  edge->indefinite = false;
+  char away[32];
+  std::snprintf(away, sizeof(away), "%.3g", 100.0 * change);
+  warnings->push_back(reader.where() +
+                      ": the information matrix is not positive definite; its nearest positive "
+                      "definite matrix is used (" +
+                      away + " % away in the Frobenius norm)");
   return true;
 }
 
@@ -146,7 +195,8 @@ constexpr int kSpatial[6] = {0, 1, 2, 3, 4, 5};
 
 }  // namespace
 
-common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& name) {
+common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& name,
+                                  const G2oReadOptions& options) {
   G2oGraph graph;
   int dimension = 0, dimension_line = 0;
   std::unordered_map<int64_t, int> vertex_line;  // id -> the line that defined it
@@ -211,7 +261,8 @@ common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& na
         !(se3_edge ? readSe3(reader, 3, &edge.T_from_to, &why)
                    : readSe2(reader, 3, &edge.T_from_to, &why)) ||
         !readInformation(reader, se3_edge ? 10 : 6, se3_edge ? 6 : 3,
-                         se3_edge ? kSpatial : kSe2Places, &edge.information, &why)) {
+                         se3_edge ? kSpatial : kSe2Places, options.information, &edge,
+                         &graph.warnings, &why)) {
       return reader.fault(why);
     }
     if (edge.from == edge.to) {
@@ -252,7 +303,7 @@ common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& na
   return graph;
 }
 
-common::Result<G2oGraph> readG2o(const std::string& path) {
+common::Result<G2oGraph> readG2o(const std::string& path, const G2oReadOptions& options) {
   // Read whole: a device or a pipe (/dev/zero) would never end, a huge file would fill memory.
   std::error_code error;
   const auto status = std::filesystem::status(path, error);
@@ -268,7 +319,7 @@ common::Result<G2oGraph> readG2o(const std::string& path) {
   }
   auto bytes = common::readWholeFile(path);
   if (!bytes) return bytes.error();
-  return parseG2o(std::string(bytes->begin(), bytes->end()), path);
+  return parseG2o(std::string(bytes->begin(), bytes->end()), path, options);
 }
 
 namespace {

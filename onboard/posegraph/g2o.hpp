@@ -35,8 +35,10 @@ inline constexpr int kSe2Places[3] = {0, 1, 5};
 struct G2oEdge {
   int64_t from = 0, to = 0;  // vertex ids
   common::Rigid3 T_from_to;  // the measured pose of `to` in `from`'s frame
-  Mat6 information;          // g2o's order: translation, then rotation; symmetric positive definite
+  Mat6 information;          // g2o's order: translation, then rotation; symmetric, its blocks
+                             // positive definite, the whole too unless `indefinite`
   int line = 0;              // where it was read (0: made in memory)
+  bool indefinite = false;   // the whole matrix is not positive definite (InformationUse::kBlocks)
 };
 
 struct G2oGraph {
@@ -44,7 +46,23 @@ struct G2oGraph {
   bool has_estimates = false;  // the file gave vertex lines
   std::vector<G2oVertex> vertices;
   std::vector<G2oEdge> edges;
-  std::vector<int64_t> fixed;  // ids named by FIX lines
+  std::vector<int64_t> fixed;         // ids named by FIX lines
+  std::vector<std::string> warnings;  // what was read other than as written, each naming its line
+};
+
+// What a reader asks of each edge's information matrix. Its translation and rotation blocks
+// must be positive definite in every case. Real graphs carry edges whose whole matrix is
+// indefinite only through the coupling of translation and rotation (SE-Sync's cubicle.g2o,
+// line 5,753: translation z with roll 84,022 against diagonals of 10).
+enum class InformationUse {
+  kWhole,    // the whole matrix weighs the error (--weights file): an indefinite one is refused
+  kBlocks,   // only the blocks are used (SE-Sync's isotropic kappa and tau): the coupling is kept
+             // as written, and such an edge is marked `indefinite`
+  kNearest,  // like kWhole, but an indefinite matrix is replaced by its nearest positive definite
+             // matrix (eigenvalues raised to 1e-9 of the largest), with a warning naming the line
+};
+struct G2oReadOptions {
+  InformationUse information = InformationUse::kWhole;
 };
 
 // The largest file readG2o reads (a graph of millions of edges is a few hundred MB).
@@ -54,11 +72,12 @@ inline constexpr uint64_t kMaxG2oBytes = uint64_t{1} << 30;
 // or kTooLarge): an error (kInvalidArgument, or kIo/kNotFound for the file)
 // names the line and what is wrong with it: an unknown tag, a missing or extra field, a number
 // that is not finite, a quaternion far from unit length (within 1 % it is normalised), an
-// information matrix that is not positive definite, a duplicate vertex id, an edge from a vertex
-// to itself or to a vertex the file does not define, SE(2) and SE(3) lines in one file.
-common::Result<G2oGraph> readG2o(const std::string& path);
+// information matrix not positive definite as `options` asks, a duplicate vertex id, an edge from a
+// vertex to itself or to a vertex the file does not define, SE(2) and SE(3) lines in one file.
+common::Result<G2oGraph> readG2o(const std::string& path, const G2oReadOptions& options = {});
 // The same from text in memory (`name` is what errors call it).
-common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& name = "g2o");
+common::Result<G2oGraph> parseG2o(const std::string& text, const std::string& name = "g2o",
+                                  const G2oReadOptions& options = {});
 
 // Vertex lines (with the vertices' poses), edge lines and FIX lines, in the graph's dimension,
 // every number in the shortest form that reads back exactly. kIo when it cannot be written.

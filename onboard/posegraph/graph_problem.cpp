@@ -3,6 +3,7 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <optional>
 #include <unordered_map>
@@ -68,7 +69,10 @@ GraphProblem::GraphProblem(const G2oGraph& graph, Weights weights)
     edge.information = read.information;
     edge.whitening.setZero();
     if (dimension_ == 3) {
-      edge.whitening = Eigen::LLT<Mat6>(read.information).matrixL().transpose();
+      // An indefinite matrix (read as InformationUse::kBlocks) has no whitening: the file's
+      // objective is not defined on it, and ceresHalfSum says so.
+      if (!read.indefinite)
+        edge.whitening = Eigen::LLT<Mat6>(read.information).matrixL().transpose();
       edge.tau = 3.0 / read.information.topLeftCorner<3, 3>().inverse().trace();
       edge.kappa = 3.0 / (2.0 * read.information.bottomRightCorner<3, 3>().inverse().trace());
     } else {
@@ -76,11 +80,14 @@ GraphProblem::GraphProblem(const G2oGraph& graph, Weights weights)
       for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 3; ++c) omega(r, c) = read.information(kSe2Places[r], kSe2Places[c]);
       }
-      edge.whitening.topLeftCorner<3, 3>() =
-          Eigen::LLT<Eigen::Matrix3d>(omega).matrixL().transpose();
+      if (!read.indefinite) {
+        edge.whitening.topLeftCorner<3, 3>() =
+            Eigen::LLT<Eigen::Matrix3d>(omega).matrixL().transpose();
+      }
       edge.kappa = omega(2, 2);
       edge.tau = 2.0 / omega.topLeftCorner<2, 2>().inverse().trace();
     }
+    indefinite_edges_ += read.indefinite ? 1 : 0;
     parent[findRoot(parent, edge.i)] = findRoot(parent, edge.j);
     edges_.push_back(edge);
   }
@@ -284,7 +291,9 @@ double GraphProblem::g2oChi2() const {
   return chi2;
 }
 
-double GraphProblem::ceresHalfSum() const { return costAs(Weights::kFile); }
+double GraphProblem::ceresHalfSum() const {
+  return indefinite_edges_ > 0 ? std::numeric_limits<double>::quiet_NaN() : costAs(Weights::kFile);
+}
 
 G2oGraph GraphProblem::solved(const G2oGraph& read) const {
   G2oGraph out = read;

@@ -53,6 +53,7 @@ class GraphProblem {
 
   // Vertices in the graph's order; every connected piece has one fixed vertex: a vertex a FIX
   // line names, else the piece's first (the gauge). The poses start at the file's estimates.
+  // Weights::kFile needs every edge's whole information positive definite (none `indefinite`).
   GraphProblem(const G2oGraph& graph, Weights weights);
 
   int dimension() const { return dimension_; }
@@ -87,7 +88,10 @@ class GraphProblem {
   // objective is being minimised.
   double seSyncF() const;
   double g2oChi2() const;
+  // NaN when an edge's information is indefinite (read as InformationUse::kBlocks): the file's
+  // objective is not defined there.
   double ceresHalfSum() const;
+  int indefiniteEdges() const { return indefinite_edges_; }
 
   // The graph with its vertices at the current poses (for writing).
   G2oGraph solved(const G2oGraph& read) const;
@@ -101,6 +105,7 @@ class GraphProblem {
   int dimension_ = 3;
   Weights weights_;
   int pieces_ = 0;
+  int indefinite_edges_ = 0;
   std::vector<ProblemPose> poses_;
   std::vector<bool> fixed_;
   std::vector<int> piece_;

@@ -3,9 +3,12 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <random>
 
+#include "onboard/posegraph/certificate.hpp"
 #include "onboard/posegraph/chordal.hpp"
 
 namespace stereomap::posegraph {
@@ -145,26 +148,83 @@ TEST(SparseLM, ACostThatOverflowsIsReportedNotIterated) {
   EXPECT_NE(summary.termination.find("not finite"), std::string::npos) << summary.termination;
 }
 
-// SE-Sync's certified optima (../shared/data/posegraph/README.md), within the rounding of the
-// printed figure, from the chordal start.
+// SE-Sync's certified optima (../shared/data/posegraph/README.md; cubicle's 7.171e2 from its
+// paper's table 2), within the rounding of the printed figure, from the chordal start; and on
+// every graph of SE-Sync's data/ folder, the solution certified as the global optimum by
+// SE-Sync's own test (certificate.hpp), the graphs without a figure we hold here too. The
+// graphs are read from ../shared/data/posegraph and, when STEREOMAP_SESYNC_DATA names it,
+// SE-Sync's data/ folder; a graph in neither is skipped.
 TEST(SparseLM, ReachesSeSyncsCertifiedOptimaOnTheFieldsGraphs) {
-  const std::filesystem::path dir = std::filesystem::path(STEREOMAP_DATA_DIR) / "posegraph";
-  if (!std::filesystem::exists(dir)) GTEST_SKIP() << dir << " is absent";
+  std::vector<std::filesystem::path> dirs = {std::filesystem::path(STEREOMAP_DATA_DIR) /
+                                             "posegraph"};
+  if (const char* sesync = std::getenv("STEREOMAP_SESYNC_DATA")) dirs.emplace_back(sesync);
   struct Reference {
     const char* file;
-    double f, rounding;
+    double f, rounding;  // f 0: no published figure, the certificate alone
   };
-  for (const Reference& reference :
-       {Reference{"smallGrid3D.g2o", 1025.398, 0.0005}, Reference{"intel.g2o", 52.35, 0.005},
-        Reference{"parking-garage.g2o", 1.263, 0.0005}, Reference{"sphere2500.g2o", 1687, 0.5}}) {
-    auto graph = readG2o((dir / reference.file).string());
+  const Reference references[] = {{"smallGrid3D.g2o", 1025.398, 0.0005},
+                                  {"intel.g2o", 52.35, 0.005},
+                                  {"parking-garage.g2o", 1.263, 0.0005},
+                                  {"sphere2500.g2o", 1687, 0.5},
+                                  {"cubicle.g2o", 717.1, 0.05},
+                                  {"torus3D.g2o", 0, 0},
+                                  {"grid3D.g2o", 0, 0},
+                                  {"rim.g2o", 0, 0},
+                                  {"ais2klinik.g2o", 0, 0},
+                                  {"city10000.g2o", 0, 0},
+                                  {"CSAIL.g2o", 0, 0},
+                                  {"manhattan.g2o", 0, 0},
+                                  {"MIT.g2o", 0, 0},
+                                  {"kitti_00.g2o", 0, 0},
+                                  {"kitti_02.g2o", 0, 0},
+                                  {"kitti_05.g2o", 0, 0},
+                                  {"sphere_bignoise_vertex3.g2o", 0, 0},
+                                  {"tinyGrid3D.g2o", 0, 0}};
+  int solved = 0;
+  for (const Reference& reference : references) {
+    std::filesystem::path path;
+    for (const auto& dir : dirs) {
+      if (std::filesystem::exists(dir / reference.file)) path = dir / reference.file;
+    }
+    if (path.empty()) continue;
+    auto graph = readG2o(path.string(), {InformationUse::kBlocks});
     ASSERT_TRUE(graph) << graph.error().message;
     GraphProblem problem(*graph, Weights::kIsotropic);
     ASSERT_TRUE(chordalInitialise(problem));
     const auto summary = solveSparseLM(problem);
     EXPECT_TRUE(summary.converged) << reference.file << ": " << summary.termination;
-    EXPECT_NEAR(problem.seSyncF(), reference.f, reference.rounding) << reference.file;
+    if (reference.f > 0) {
+      EXPECT_NEAR(problem.seSyncF(), reference.f, reference.rounding) << reference.file;
+    }
+    const Certificate certificate = certifyOptimum(problem);
+    EXPECT_TRUE(certificate.global) << reference.file << ": " << certificate.why_not;
+    ++solved;
   }
+  if (solved == 0) GTEST_SKIP() << "no graph found in " << dirs.front();
+  std::printf("%d of SE-Sync's graphs solved and certified\n", solved);
+}
+
+// The certificate can fail: a start that is not the optimum (the chordal start, f 1561 against
+// 1025 on smallGrid3D; a cylinder's poses moved off their optimum) is not certified, and the
+// same poses solved are.
+TEST(SparseLM, TheCertificateRefusesPosesThatAreNotTheGlobalOptimum) {
+  for (const int dimension : {3, 2}) {
+    GraphProblem problem(cylinderGraph(60, dimension, 0.05, 3), Weights::kIsotropic);
+    ASSERT_TRUE(chordalInitialise(problem));
+    ASSERT_TRUE(solveSparseLM(problem).converged);
+    EXPECT_TRUE(certifyOptimum(problem).global) << dimension;
+    problem.poses()[30].t.x() += 0.5;
+    problem.poses()[31].R =
+        problem.poses()[31].R * Eigen::AngleAxisd(0.3, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    const Certificate moved = certifyOptimum(problem);
+    EXPECT_FALSE(moved.global) << dimension;
+    EXPECT_NE(moved.why_not.find("not positive definite"), std::string::npos) << moved.why_not;
+  }
+  const auto grid = std::filesystem::path(STEREOMAP_DATA_DIR) / "posegraph/smallGrid3D.g2o";
+  if (!std::filesystem::exists(grid)) GTEST_SKIP() << grid << " is absent";
+  GraphProblem problem(*readG2o(grid.string()), Weights::kIsotropic);
+  ASSERT_TRUE(chordalInitialise(problem));
+  EXPECT_FALSE(certifyOptimum(problem).global);
 }
 
 }  // namespace

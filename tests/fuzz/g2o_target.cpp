@@ -1,11 +1,13 @@
 // Fuzz target: g2o pose graphs as stereomap-posegraph reads them (onboard/posegraph/g2o), then,
 // for small graphs, the solver on what was read.
 // A graph that is read holds finite unit quaternions and symmetric positive definite
-// information; written and read again it is the same graph to the bit; the chordal start and
-// a few Levenberg-Marquardt steps run on it with either weighting without a crash, and a start
-// that succeeds is finite.
+// information (read for SE-Sync's weights: its blocks; read as the nearest: all of it); written and
+// read again it is the same graph to the bit; the chordal start and a few Levenberg-Marquardt steps
+// run on it with either weighting without a crash, and a start that succeeds is finite.
+#include <Eigen/Cholesky>
 #include <cmath>
 
+#include "onboard/posegraph/certificate.hpp"
 #include "onboard/posegraph/chordal.hpp"
 #include "onboard/posegraph/g2o.hpp"
 #include "onboard/posegraph/sparse_lm.hpp"
@@ -43,7 +45,33 @@ void checkGraph(const G2oGraph& graph) {
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   stereomap::fuzz::FuzzInput in(data, size);
-  const auto read = parseG2o(std::string(in.restText()), "fuzz");
+  const std::string text(in.restText());
+  // Read as SE-Sync's weights read it (the blocks alone) and as the nearest positive definite
+  // matrix: every edge's blocks are positive definite, and the nearest matrix is too.
+  if (const auto blocks = parseG2o(text, "fuzz", {InformationUse::kBlocks})) {
+    checkGraph(*blocks);
+    for (const auto& edge : blocks->edges) {
+      const int t = blocks->dimension == 3 ? 3 : 2;
+      if (Eigen::LLT<Eigen::MatrixXd>(edge.information.topLeftCorner(t, t)).info() !=
+          Eigen::Success) {
+        __builtin_trap();
+      }
+    }
+    if (blocks->vertices.size() <= 64 && blocks->edges.size() <= 256) {
+      GraphProblem problem(*blocks, Weights::kIsotropic);
+      if (chordalInitialise(problem)) certifyOptimum(problem);
+    }
+  }
+  if (const auto nearest = parseG2o(text, "fuzz", {InformationUse::kNearest})) {
+    checkGraph(*nearest);
+    for (const auto& edge : nearest->edges) {
+      if (edge.indefinite) __builtin_trap();
+      if (nearest->dimension == 3 && Eigen::LLT<Mat6>(edge.information).info() != Eigen::Success) {
+        __builtin_trap();
+      }
+    }
+  }
+  const auto read = parseG2o(text, "fuzz");
   if (!read) return 0;
   checkGraph(*read);
   const auto again = parseG2o(formatG2o(*read), "again");
