@@ -120,17 +120,18 @@ int main(int argc, char** argv) {
   const auto scores = eval::runLanding(source, run_options);
 
   if (csv != nullptr) {
-    std::fprintf(csv,
-                 "t_s,distance_m,state,detected,corner_px,default_position_pct,default_attitude_"
-                 "deg,patent_position_pct,patent_attitude_deg,heave_rate_error\n");
+    std::fprintf(
+        csv,
+        "t_s,distance_m,state,detected,corner_px,default_position_pct,default_attitude_"
+        "deg,patent_position_pct,patent_attitude_deg,heave_rate_error,track_ms,default_pose_ms\n");
     for (const auto& s : scores) {
-      std::fprintf(csv, "%.2f,%.3f,%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", s.t_s, s.distance_m,
-                   landing::toString(s.state), s.detected ? 1 : 0, s.corner_error_px,
+      std::fprintf(csv, "%.2f,%.3f,%s,%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.2f,%.2f\n", s.t_s,
+                   s.distance_m, landing::toString(s.state), s.detected ? 1 : 0, s.corner_error_px,
                    s.modes[0].published ? s.modes[0].position_pct : NAN,
                    s.modes[0].published ? s.modes[0].attitude_deg : NAN,
                    s.modes[1].published ? s.modes[1].position_pct : NAN,
                    s.modes[1].published ? s.modes[1].attitude_deg : NAN,
-                   s.deck_valid ? s.heave_rate_error : NAN);
+                   s.deck_valid ? s.heave_rate_error : NAN, s.track_ms, s.pose_ms[0]);
     }
     if (std::fclose(csv) != 0) {
       std::fprintf(stderr, "cannot write %s: %s\n", csv_path.c_str(), std::strerror(errno));

@@ -50,6 +50,7 @@ struct Flags {
   pipeline::PipelineOptions pipeline;
   proto::DdsOptions dds;
   uint32_t seed = 1;
+  double start_s = 0;
   std::string stereo_preset = "fast", noise_handling = "auto", codec = "auto";
   std::string camera_preset;
   double noise_sigma = 0, blur_sigma = 0;
@@ -81,6 +82,11 @@ void addFlags(CLI::App& app, Flags& f) {
                  "the source's own")
       ->check(CLI::ExistingFile);
   app.add_option("--frames", f.frames, "Stop after N frames (0: run until Ctrl-C)")
+      ->capture_default_str();
+  app.add_option("--start", f.start_s,
+                 "sim:deck: seconds into the 60 s descent to begin (50: the last 6.5 m, the "
+                 "final approach)")
+      ->check(CLI::Range(0.0, 60.0))
       ->capture_default_str();
   app.add_option("--rate", f.rate_hz, "Frames per second (0: as fast as possible)")
       ->check(CLI::Range(0.0, 1000.0))
@@ -297,6 +303,7 @@ sources::SourceOptions sourceOptions(const CLI::App& app, const Flags& f) {
   sources::SourceOptions options{.max_frames = f.frames,
                                  .rate_hz = f.rate_hz,
                                  .seed = f.seed,
+                                 .start_s = f.start_s,
                                  .camera_preset = f.camera_preset};
   if (!f.calibration_file.empty()) options.calibration_file = f.calibration_file;
   if (app.count("--image-noise") > 0) options.noise_sigma = f.noise_sigma;
@@ -502,13 +509,13 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
   if (!summary.depth_range.empty()) spdlog::info("depth range: {}", summary.depth_range);
   spdlog::info(
       "done: {} frames{}, {} points ({:.0f} per frame), depth {:.1f} ms, encode {:.1f} ms, frame "
-      "{:.1f} ms (medians), {} late, {} publish errors; images {} (noise sigma {:.1f} grey "
-      "levels)",
+      "{:.1f} ms (medians), slowest {:.1f} ms, at most {:.0f} ms behind, {} late, {} publish "
+      "errors; images {} (noise sigma {:.1f} grey levels)",
       summary.frames, summary.stopped ? " (stopped)" : "", summary.points,
       summary.frames ? static_cast<double>(summary.points) / summary.frames : 0.0,
       summary.median_depth_ms, summary.median_encode_ms, summary.median_frame_ms,
-      summary.late_frames, summary.publish_errors, summary.noisy_images ? "noisy" : "clean",
-      summary.image_noise_sigma);
+      summary.slowest_frame_ms, summary.most_behind_ms, summary.late_frames, summary.publish_errors,
+      summary.noisy_images ? "noisy" : "clean", summary.image_noise_sigma);
   const auto& sent = summary.link;
   spdlog::info(
       "link: sent {:.0f} kbit/s (clouds and poses), {} of {} clouds ({} skipped with nothing new, "

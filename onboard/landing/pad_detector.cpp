@@ -6,8 +6,6 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "common/statistics.hpp"
-
 namespace stereomap::landing {
 
 using common::Vec3;
@@ -72,6 +70,16 @@ cv::Vec4f trimmedLine(std::vector<cv::Point2f> points,
   return line;
 }
 
+// At most kMaxEdgePoints of `points`, evenly spread over them (they run along one edge): a fit's
+// cost stays bounded however long the edge is in the image.
+std::vector<cv::Point2f> evenlyThinned(std::vector<cv::Point2f> points) {
+  if (points.size() <= static_cast<size_t>(kMaxEdgePoints)) return points;
+  std::vector<cv::Point2f> kept(kMaxEdgePoints);
+  const double step = static_cast<double>(points.size() - 1) / (kMaxEdgePoints - 1);
+  for (int i = 0; i < kMaxEdgePoints; ++i) kept[i] = points[static_cast<size_t>(i * step + 0.5)];
+  return kept;
+}
+
 // The polygon's vertices again, as the crossings of lines fitted to the contour's points
 // along each side (approxPolyDP puts a vertex on a contour point, which a rounded or noisy
 // corner pulls off): each point goes to its nearest side, away from the side's ends.
@@ -79,8 +87,11 @@ std::vector<cv::Point2d> fitSides(const std::vector<cv::Point>& contour,
                                   const std::vector<cv::Point2d>& polygon) {
   const size_t n = polygon.size();
   std::vector<std::vector<cv::Point2f>> sides(n);
-  for (const cv::Point& point : contour) {
-    const cv::Point2d p(point.x, point.y);
+  // Every contour point, or an even share of a long contour: a side keeps at most
+  // kMaxEdgePoints (evenlyThinned) however many it was offered.
+  const size_t stride = std::max<size_t>(1, contour.size() / (4 * n * kMaxEdgePoints));
+  for (size_t index = 0; index < contour.size(); index += stride) {
+    const cv::Point2d p(contour[index].x, contour[index].y);
     size_t best = 0;
     double best_distance = 1e18, best_s = 0, best_length = 0;
     for (size_t k = 0; k < n; ++k) {
@@ -103,7 +114,7 @@ std::vector<cv::Point2d> fitSides(const std::vector<cv::Point>& contour,
   std::vector<cv::Vec4f> lines(n);
   for (size_t k = 0; k < n; ++k) {
     if (sides[k].size() < 2) return polygon;
-    lines[k] = trimmedLine(sides[k]);
+    lines[k] = trimmedLine(evenlyThinned(std::move(sides[k])));
   }
   std::vector<cv::Point2d> fitted(n);
   for (size_t k = 0; k < n; ++k) {
@@ -174,15 +185,26 @@ std::vector<cv::Point> localContour(const cv::Mat& grey, const std::vector<cv::P
   cv::dilate(inside, ring,
              cv::getStructuringElement(cv::MORPH_RECT, {2 * grow / 2 + 1, 2 * grow / 2 + 1}));
   cv::subtract(ring, inside, ring);
+  // A histogram's median (the lower of the middle two): one pass, no copy of the pixels.
   auto medianUnder = [&](const cv::Mat& mask) {
-    std::vector<uint8_t> values;
+    std::array<int, 256> histogram{};
+    int count = 0;
     for (int y = 0; y < patch.rows; ++y) {
+      const uint8_t* grey_row = patch.ptr<uint8_t>(y);
+      const uint8_t* mask_row = mask.ptr<uint8_t>(y);
       for (int x = 0; x < patch.cols; ++x) {
-        if (mask.at<uint8_t>(y, x) != 0) values.push_back(patch.at<uint8_t>(y, x));
+        if (mask_row[x] != 0) {
+          ++histogram[grey_row[x]];
+          ++count;
+        }
       }
     }
-    const auto middle = common::median(std::move(values));
-    return middle ? static_cast<int>(*middle) : -1;
+    if (count == 0) return -1;
+    for (int value = 0, seen = 0; value < 256; ++value) {
+      seen += histogram[value];
+      if (2 * seen >= count) return value;
+    }
+    return 255;
   };
   const int dark = medianUnder(core), light = medianUnder(ring);
   if (dark < 0 || light < 0 || light <= dark) return {};
@@ -330,7 +352,9 @@ std::array<cv::Point2d, 8> refineOnce(const cv::Mat& smooth,
     constexpr int kReach = 3;  // pixels either side of the polygon's edge
     // Away from the corners, where a profile across this edge would cross the next one.
     const double margin = std::min(kReach + 1.5, 0.25 * length);
-    for (double s = margin; s <= length - margin; s += 1.0) {
+    // Every pixel along the edge, or kMaxEdgePoints spread over a longer one.
+    const double step = std::max(1.0, (length - 2 * margin) / (kMaxEdgePoints - 1));
+    for (double s = margin; s <= length - margin; s += step) {
       const cv::Point2d p = a + along * s;
       std::array<double, 2 * kReach * 4 + 1> profile{};
       bool inside = true;
@@ -422,15 +446,28 @@ PadDetection detectPad(const cv::Mat& grey, const DetectorOptions& options) {
   }
   std::vector<Candidate> candidates;
   WhyNot why_not;
+  // The search on `seen` (the image, or the image reduced by 2: a pixel x there is 2x here).
+  const bool reduced = options.reduce == 2;
+  cv::Mat seen = grey;
+  DetectorOptions search = options;
+  if (reduced) {
+    cv::pyrDown(grey, seen);
+    search.min_area_px /= 4;
+  }
   cv::Mat dark;
-  cv::threshold(grey, dark, 0, 255, cv::THRESH_BINARY_INV | cv::THRESH_OTSU);
-  collect(grey, dark, options, candidates, result, why_not);
+  cv::threshold(seen, dark, 0, 255, cv::THRESH_BINARY_INV | cv::THRESH_OTSU);
+  collect(seen, dark, search, candidates, result, why_not);
   if (candidates.empty()) {
     // Uneven light (a shadow across the pad): a threshold from each pixel's neighbourhood.
-    const int block = (std::min(grey.cols, grey.rows) / 6) | 1;
-    cv::adaptiveThreshold(grey, dark, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, block,
+    const int block = (std::min(seen.cols, seen.rows) / 6) | 1;
+    cv::adaptiveThreshold(seen, dark, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, block,
                           15);
-    collect(grey, dark, options, candidates, result, why_not);
+    collect(seen, dark, search, candidates, result, why_not);
+  }
+  if (reduced) {
+    for (auto& candidate : candidates) {
+      for (auto& corner : candidate.corners) corner *= 2.0;
+    }
   }
   if (candidates.empty()) {
     result.reason = result.candidates == 0 ? "no dark region with 8 corners in view"

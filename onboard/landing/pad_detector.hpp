@@ -29,7 +29,10 @@ namespace stereomap::landing {
 const std::array<common::Vec3, 8>& padModel();
 
 // Sub-pixel points along each of the pad's 8 edges in an image: edge k runs from corner k to
-// corner k + 1 (a-b, b-c, ..., h-a).
+// corner k + 1 (a-b, b-c, ..., h-a). At most kMaxEdgePoints on an edge, spread evenly along
+// it: at close range an edge spans hundreds of pixels, and the line fits, the corners'
+// refinement and the pose (one residual per point) would grow with it past the frame's time.
+inline constexpr int kMaxEdgePoints = 128;
 using PadEdgePoints = std::array<std::vector<cv::Point2f>, 8>;
 
 struct DetectorOptions {
@@ -43,6 +46,10 @@ struct DetectorOptions {
   // Mean grey inside the T at least this much darker than a ring around it.
   double min_contrast = 25;
   bool refine = true;  // sub-pixel corners from the edges (false: the polygon's vertices)
+  // Find the T on the image reduced by 2 (1: as it is); the corners are then refined on the
+  // whole image. At close range the pad fills the view, and thresholds, contours and their
+  // fits grow with it: PadTracker asks for 2 when the pad was last seen large.
+  int reduce = 1;
 };
 
 struct PadDetection {

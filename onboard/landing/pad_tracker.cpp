@@ -1,5 +1,6 @@
 #include "onboard/landing/pad_tracker.hpp"
 
+#include <cmath>
 #include <opencv2/video/tracking.hpp>
 
 namespace stereomap::landing {
@@ -16,9 +17,25 @@ const char* toString(TrackState state) {
   return "?";
 }
 
+namespace {
+
+// The square root of the area the corners enclose, in pixels.
+double sizeOf(const std::array<cv::Point2d, 8>& corners) {
+  double twice_area = 0;
+  for (int k = 0; k < 8; ++k) {
+    const cv::Point2d& a = corners[k];
+    const cv::Point2d& b = corners[(k + 1) % 8];
+    twice_area += a.x * b.y - a.y * b.x;
+  }
+  return std::sqrt(std::abs(twice_area) / 2);
+}
+
+}  // namespace
+
 void PadTracker::reset() {
   track_ = {};
   previous_pyramid_.clear();
+  last_size_px_ = 0;
 }
 
 bool PadTracker::follow(const cv::Mat& grey, std::string& why_not) {
@@ -72,9 +89,12 @@ bool PadTracker::follow(const cv::Mat& grey, std::string& why_not) {
 
 void PadTracker::detect(const cv::Mat& grey, const std::string& why_tracking_stopped) {
   const TrackState before = track_.state;
-  const PadDetection found = detectPad(grey, options_.detector);
+  DetectorOptions detector = options_.detector;
+  if (last_size_px_ >= options_.reduce_above_px) detector.reduce = 2;
+  const PadDetection found = detectPad(grey, detector);
   track_.detected = true;
   if (found) {
+    last_size_px_ = sizeOf(found.corners);
     track_.state = TrackState::kTracking;
     track_.reason =
         why_tracking_stopped.empty() ? "found" : "found again (" + why_tracking_stopped + ")";
@@ -100,6 +120,7 @@ const PadTrack& PadTracker::update(const cv::Mat& grey) {
         options_.redetect_every > 0 && track_.frames_tracked + 1 >= options_.redetect_every;
     std::string why_not;
     if (!due && follow(grey, why_not)) {
+      last_size_px_ = sizeOf(track_.corners);
       ++track_.frames_tracked;
       track_.reason = "followed";
       return track_;

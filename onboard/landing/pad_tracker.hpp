@@ -30,6 +30,10 @@ struct TrackerOptions {
   // A tracked corner further than this from where the T's edges cross is a track gone astray.
   double max_edge_shift_px = 1.5;
   int redetect_every = 0;  // full detection every n frames even while tracking (0: never)
+  // Full detection on the image reduced by 2 (DetectorOptions::reduce) while the pad was last
+  // seen at least this large (the square root of its area in pixels: 60 at 20 m, 150 at 8 m,
+  // 240 at 5 m with f = 492 px). Its corners are still refined on the whole image.
+  double reduce_above_px = 150;
 };
 
 struct PadTrack {
@@ -54,6 +58,7 @@ class PadTracker {
 
   TrackerOptions options_;
   PadTrack track_;
+  double last_size_px_ = 0;  // the pad's size when last tracked (reduce_above_px)
   std::vector<cv::Mat> previous_pyramid_;
 };
 

@@ -405,6 +405,9 @@ class PipelineRun {
     summary_.noisy_images = depth_step_.noisy();
     summary_.median_encode_ms = common::median(encode_ms_).value_or(0.0);
     summary_.median_frame_ms = common::median(frame_ms_).value_or(0.0);
+    if (!frame_ms_.empty()) {
+      summary_.slowest_frame_ms = *std::max_element(frame_ms_.begin(), frame_ms_.end());
+    }
     summary_.median_odometry_ms = common::median(odometry_ms_).value_or(0.0);
     if (graph_) {
       const auto poses = graph_->finish();
@@ -605,6 +608,11 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
     if (shutdown.waitFor(slot - Clock::now())) {
       run.summary().stopped = true;
       break;
+    }
+    if (period > Clock::duration::zero()) {
+      run.summary().most_behind_ms =
+          std::max(run.summary().most_behind_ms,
+                   std::chrono::duration<double, std::milli>(Clock::now() - slot).count());
     }
     if (Clock::now() - slot > period && period > Clock::duration::zero()) {
       if (source.live() && options.skip_late) {

@@ -104,8 +104,11 @@ struct PipelineSummary {
   bool noisy_images = false;     // whether it treated the images as noisy
   double median_encode_ms = 0;
   double median_frame_ms = 0;  // whole frame, source included
-  bool stopped = false;        // ended by a stop request rather than the end of the source
-  uint64_t lost_frames = 0;    // odometry lost: the pose was a guess, no cloud was sent
+  // The slowest frame (a frame slower than the period puts the next behind its slot), and the
+  // furthest behind its slot a frame began (a period or more: late).
+  double slowest_frame_ms = 0, most_behind_ms = 0;
+  bool stopped = false;      // ended by a stop request rather than the end of the source
+  uint64_t lost_frames = 0;  // odometry lost: the pose was a guess, no cloud was sent
   uint64_t degraded_frames = 0;
   double median_odometry_ms = 0;
   // The odometry's last estimate of the right image's offset against its calibration (px).

@@ -41,8 +41,10 @@ Result<OpenedSource> openSim(const std::string&, const SourceOptions& options) {
 }
 
 Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) {
-  sim::DeckSourceOptions deck{
-      .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
+  sim::DeckSourceOptions deck{.seed = options.seed,
+                              .rate_hz = simRate(options),
+                              .max_frames = options.max_frames,
+                              .start_s = options.start_s};
   applyCameraModel(options, deck.render.camera);
   return OpenedSource{prefetched(std::make_unique<sim::DeckSource>(deck)),
                       "sim:deck: mapped in the deck's frame, poses from the sim's navigation "

@@ -26,6 +26,7 @@ struct SourceOptions {
   // The simulator's: the room or deck's seed, and its camera model (a preset name, "" for the
   // source's default, then the read noise and defocus blur when given).
   uint32_t seed = 1;
+  double start_s = 0;  // sim:deck: seconds into the 60 s descent to begin (its final approach)
   std::string camera_preset;
   std::optional<double> noise_sigma, blur_sigma;
 };

@@ -2,14 +2,16 @@
 //   - KITTI excerpt and EuRoC clip: a real stereomap-server and stereomap-onboard --source …
 //     with no other flag; the session's occupied voxels, the onboard summary's points per
 //     cloud sent and link rate.
-//   - the deck descent (sim:deck) likewise, and how long the deck sim takes to render a frame
+//   - the deck descent (sim:deck) likewise, with the landing watch and every frame taken
+//     (--skip-late off): its frames late, and how long the deck sim takes to render a frame
 //     on one core.
 //   - Middlebury: the map of each pair's disparity, from the default depth step, against the
 //     map of its ground-truth disparity, same virtual rig: precision and recall of the
 //     occupied voxels.
 // Ends with exactly:
 //   real rigs: kitti <K> voxels, <KP> points/cloud, <KB> kbit/s; deck <D> voxels; deck sim <R>
-//   ms/frame; middlebury map precision <P> recall <Q>
+//   ms/frame; middlebury map precision <P> recall <Q>; landing descent <LF> late of <LN>
+// (the deck descent flown at 10 Hz with every frame taken: LF of its LN frames late)
 //
 //   stereomap-bench-realrigs [--data ../shared/data] [--only middlebury,kitti,euroc,deck,decksim]
 #include <CLI/CLI.hpp>
@@ -202,6 +204,10 @@ struct Flight {
   size_t voxels = 0;
   double points_per_cloud = 0, kbit_s = 0;
   uint64_t clouds_sent = 0, clouds_offered = 0, clouds_empty = 0;
+  // The vehicle's frames: how many, how many late (begun a period or more after their slot),
+  // the slowest, and the furthest behind its slot one began.
+  uint64_t frames = 0, late = 0;
+  double slowest_ms = 0, behind_ms = 0;
   std::string depth_range, map_bt, log;
 };
 
@@ -248,6 +254,15 @@ Flight fly(const std::string& source, int domain, const std::vector<std::string>
   if (std::regex_search(flight.log, m,
                         std::regex(R"(([\d.]+) points and [\d.]+ KiB per cloud sent)"))) {
     flight.points_per_cloud = std::stod(m[1]);
+  }
+  if (std::regex_search(
+          flight.log, m,
+          std::regex(R"(done: (\d+) frames.*slowest ([\d.]+) ms, at most ([\d.]+) ms )"
+                     R"(behind, (\d+) late,)"))) {
+    flight.frames = std::stoull(m[1]);
+    flight.slowest_ms = std::stod(m[2]);
+    flight.behind_ms = std::stod(m[3]);
+    flight.late = std::stoull(m[4]);
   }
   if (std::regex_search(flight.log, m, std::regex(R"(depth range: ([^\n]*))"))) {
     flight.depth_range = m[1];
@@ -427,8 +442,19 @@ int main(int argc, char** argv) {
     reportFlight("EuRoC clip (40 frames)", euroc);
   }
   if (wanted("deck")) {
-    deck = fly("sim:deck", 103, {"--landing", "default"});
+    // Every frame taken (--skip-late off), so that a frame the watch made late shows.
+    deck = fly("sim:deck", 103, {"--landing", "default", "--skip-late", "off"});
     reportFlight("deck descent (600 frames, landing watch on)", deck);
+    std::printf("
+                landing descent at 10 Hz,
+                every frame taken
+                : % llu of % llu frames late,
+                  the slowest
+                  "
+                  "%.1f ms, at most %.0f ms behind its slot
+                  ",
+                  static_cast<unsigned long long>(deck.late),
+                  static_cast<unsigned long long>(deck.frames), deck.slowest_ms, deck.behind_ms);
     if (physics) {
       const Flight from30 = fly("sim:deck", 104, {"--landing", "default", "--max-range", "30"});
       reportFlight("deck descent, --max-range 30 (beyond the rig's precision)", from30);
@@ -449,8 +475,10 @@ int main(int argc, char** argv) {
   if (only.size() < 5) return 0;
   std::printf(
       "\nreal rigs: kitti %zu voxels, %.0f points/cloud, %.0f kbit/s; deck %zu voxels; deck "
-      "sim %.1f ms/frame; middlebury map precision %.3f recall %.3f\n",
+      "sim %.1f ms/frame; middlebury map precision %.3f recall %.3f; landing descent %llu late "
+      "of %llu\n",
       kitti.voxels, kitti.points_per_cloud, kitti.kbit_s, deck.voxels, sim_ms,
-      middlebury->precision(), middlebury->recall());
+      middlebury->precision(), middlebury->recall(), static_cast<unsigned long long>(deck.late),
+      static_cast<unsigned long long>(deck.frames));
   return kitti.ok && euroc.ok && deck.ok ? 0 : 1;
 }
