@@ -445,16 +445,11 @@ int main(int argc, char** argv) {
     // Every frame taken (--skip-late off), so that a frame the watch made late shows.
     deck = fly("sim:deck", 103, {"--landing", "default", "--skip-late", "off"});
     reportFlight("deck descent (600 frames, landing watch on)", deck);
-    std::printf("
-                landing descent at 10 Hz,
-                every frame taken
-                : % llu of % llu frames late,
-                  the slowest
-                  "
-                  "%.1f ms, at most %.0f ms behind its slot
-                  ",
-                  static_cast<unsigned long long>(deck.late),
-                  static_cast<unsigned long long>(deck.frames), deck.slowest_ms, deck.behind_ms);
+    std::printf(
+        "\nlanding descent at 10 Hz, every frame taken: %llu of %llu frames late, the slowest "
+        "%.1f ms, at most %.0f ms behind its slot\n",
+        static_cast<unsigned long long>(deck.late), static_cast<unsigned long long>(deck.frames),
+        deck.slowest_ms, deck.behind_ms);
     if (physics) {
       const Flight from30 = fly("sim:deck", 104, {"--landing", "default", "--max-range", "30"});
       reportFlight("deck descent, --max-range 30 (beyond the rig's precision)", from30);
