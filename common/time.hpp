@@ -13,6 +13,13 @@ inline int64_t nowNs() {
       .count();
 }
 
+// The monotonic clock as int64 nanoseconds (for ages and intervals, not stamps).
+inline int64_t steadyNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(
+             std::chrono::steady_clock::now().time_since_epoch())
+      .count();
+}
+
 inline double nsToSeconds(int64_t ns) { return static_cast<double>(ns) * 1e-9; }
 
 // Milliseconds elapsed on the monotonic clock since `start` (for timing work, not stamps).

@@ -75,6 +75,18 @@ Status copyId(const std::string& value, char (&out)[kMaxIdLength + 1], const cha
   return common::Ok{};
 }
 
+// A bounded IDL string (string<N>: char[N + 1]) from a std::string; kTooLarge beyond N.
+template <size_t N>
+Status copyText(const std::string& value, char (&out)[N], const char* field) {
+  if (value.size() > N - 1) {
+    return makeError(ErrorCode::kTooLarge,
+                     std::string(field) + " longer than " + std::to_string(N - 1) + " bytes");
+  }
+  std::memcpy(out, value.data(), value.size());
+  out[value.size()] = '\0';
+  return common::Ok{};
+}
+
 std::string readId(const char (&in)[kMaxIdLength + 1]) {
   return std::string(in, strnlen(in, kMaxIdLength));
 }
@@ -258,16 +270,11 @@ struct Topic<LandingTargetMsg> {
   static Status toC(const LandingTargetMsg& m, C& c) {
     if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
     if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
-    if (m.reason.size() > kMaxLandingReason) {
-      return makeError(ErrorCode::kTooLarge, "landing reason longer than " +
-                                                 std::to_string(kMaxLandingReason) + " bytes");
-    }
+    if (auto s = copyText(m.reason, c.reason, "landing reason"); !s) return s;
     c.seq = m.seq;
     c.stamp_ns = m.stamp_ns;
     c.state = static_cast<uint32_t>(m.state);
     c.mode = static_cast<uint32_t>(m.mode);
-    std::memcpy(c.reason, m.reason.data(), m.reason.size());
-    c.reason[m.reason.size()] = '\0';
     c.has_pose = m.has_pose;
     std::copy(m.camera_position.begin(), m.camera_position.end(), c.camera_position);
     std::copy(m.camera_orientation.begin(), m.camera_orientation.end(), c.camera_orientation);
@@ -382,10 +389,16 @@ struct Topic<AckMsg> {
     c.clouds = m.clouds;
     c.events = m.events;
     c.corrections = m.corrections;
+    c.status = static_cast<uint32_t>(m.status);
+    if (auto s = copyText(m.reason, c.reason, "ack reason"); !s) return s;
     return common::Ok{};
   }
   static Result<AckMsg> fromC(const C& c) {
+    auto status = checkedEnum<AckStatus>(c.status, 2, "status");
+    if (!status) return status.error();
     AckMsg m;
+    m.status = *status;
+    m.reason.assign(c.reason, strnlen(c.reason, kMaxAckReason));
     m.vehicle_id = readId(c.vehicle_id);
     m.session_id = readId(c.session_id);
     m.stream = c.stream;
@@ -394,6 +407,45 @@ struct Topic<AckMsg> {
     m.clouds = c.clouds;
     m.events = c.events;
     m.corrections = c.corrections;
+    return m;
+  }
+};
+
+template <>
+struct Topic<VehicleStatusMsg> {
+  using C = stereomap_msg_VehicleStatus;
+  static const dds_topic_descriptor_t* descriptor() { return &stereomap_msg_VehicleStatus_desc; }
+  static constexpr const char* kName = "stereomap_VehicleStatus";
+  static dds_qos_t* qos() { return vehicleStatusQos(); }
+  static dds_qos_t* readerQos() { return vehicleStatusQos(); }
+
+  static Status toC(const VehicleStatusMsg& m, C& c) {
+    if (auto s = copyId(m.vehicle_id, c.vehicle_id, "vehicle_id"); !s) return s;
+    if (auto s = copyId(m.session_id, c.session_id, "session_id"); !s) return s;
+    c.stamp_ns = m.stamp_ns;
+    c.frames = m.frames;
+    c.skipped_frames = m.skipped_frames;
+    c.late_frames = m.late_frames;
+    c.spool_samples = m.spool_samples;
+    c.spool_bytes = m.spool_bytes;
+    c.given_up = m.given_up;
+    c.held_back = m.held_back;
+    c.session_closed = m.session_closed;
+    return common::Ok{};
+  }
+  static Result<VehicleStatusMsg> fromC(const C& c) {
+    VehicleStatusMsg m;
+    m.vehicle_id = readId(c.vehicle_id);
+    m.session_id = readId(c.session_id);
+    m.stamp_ns = c.stamp_ns;
+    m.frames = c.frames;
+    m.skipped_frames = c.skipped_frames;
+    m.late_frames = c.late_frames;
+    m.spool_samples = c.spool_samples;
+    m.spool_bytes = c.spool_bytes;
+    m.given_up = c.given_up;
+    m.held_back = c.held_back;
+    m.session_closed = c.session_closed;
     return m;
   }
 };
@@ -625,12 +677,14 @@ template class Writer<SessionEventMsg>;
 template class Writer<PoseCorrectionMsg>;
 template class Writer<LandingTargetMsg>;
 template class Writer<AckMsg>;
+template class Writer<VehicleStatusMsg>;
 template class Reader<PoseMsg>;
 template class Reader<CloudFrameMsg>;
 template class Reader<SessionEventMsg>;
 template class Reader<PoseCorrectionMsg>;
 template class Reader<LandingTargetMsg>;
 template class Reader<AckMsg>;
+template class Reader<VehicleStatusMsg>;
 
 std::string sessionPartition(const std::string& session_id) { return "sm." + session_id; }
 

@@ -227,6 +227,60 @@ TEST(Dds, LandingTargetRoundTripsEveryField) {
 
 // Enumerations travel as integers (stereomap.idl): a sample with an unknown value reaches the
 // reader, which refuses it and says who sent it and what was wrong (the server counts it).
+// An acknowledgement's answer that the session is closed, with its reason, and a vehicle's
+// counters, every field across.
+TEST(Dds, AClosedAnswerAndAVehiclesStatusRoundTrip) {
+  auto participant = makeParticipant();
+  auto acks_link = connect<AckMsg>(participant);
+  auto status_link = connect<VehicleStatusMsg>(participant);
+  ASSERT_TRUE(acks_link.ok() && status_link.ok());
+  auto& ack_writer = acks_link.writer;
+  auto& ack_reader = acks_link.reader;
+  auto& status_writer = status_link.writer;
+  auto& status_reader = status_link.reader;
+  AckMsg ack;
+  ack.vehicle_id = "uav-1";
+  ack.session_id = "s";
+  ack.stream = 77;
+  ack.status = AckStatus::kSessionClosed;
+  ack.reason = "session 's' was closed into the store";
+  ASSERT_TRUE(ack_writer->write(ack).ok());
+  VehicleStatusMsg status;
+  status.vehicle_id = "uav-1";
+  status.session_id = "s";
+  status.stamp_ns = 5;
+  status.frames = 1;
+  status.skipped_frames = 2;
+  status.late_frames = 3;
+  status.spool_samples = 4;
+  status.spool_bytes = 5;
+  status.given_up = 6;
+  status.held_back = 7;
+  status.session_closed = true;
+  ASSERT_TRUE(status_writer->write(status).ok());
+  std::vector<AckMsg> acks;
+  std::vector<VehicleStatusMsg> statuses;
+  for (int i = 0; i < 50 && (acks.empty() || statuses.empty()); ++i) {
+    ack_reader->take(acks, 100ms);
+    status_reader->take(statuses, 100ms);
+  }
+  ASSERT_EQ(acks.size(), 1u);
+  EXPECT_EQ(acks[0].status, AckStatus::kSessionClosed);
+  EXPECT_EQ(acks[0].reason, ack.reason);
+  EXPECT_EQ(acks[0].stream, 77u);
+  ASSERT_EQ(statuses.size(), 1u);
+  const auto& got = statuses[0];
+  EXPECT_EQ(
+      std::vector<uint64_t>({got.frames, got.skipped_frames, got.late_frames, got.spool_samples,
+                             got.spool_bytes, got.given_up, got.held_back}),
+      std::vector<uint64_t>({1, 2, 3, 4, 5, 6, 7}));
+  EXPECT_TRUE(got.session_closed);
+  EXPECT_EQ(got.stamp_ns, 5);
+  // A reason over the IDL's bound is refused by the writer.
+  ack.reason.assign(kMaxAckReason + 1, 'x');
+  EXPECT_FALSE(ack_writer->write(ack).ok());
+}
+
 TEST(Dds, AnUnknownEnumerationIsRefusedWithItsSenderAndField) {
   auto participant = makeParticipant();
   auto link = connect<PoseMsg>(participant);

@@ -124,6 +124,12 @@ struct SessionEventMsg {
 // with seq below the count (the highest contiguous seq journaled, plus one; a sample the
 // server refused for good counts too). Corrections count the newest journaled (each replaces
 // the ones before). Sent by the server a few times a second at most, while it changes.
+//
+// status kSessionClosed: the server journals nothing more for this session (an operator closed
+// it, or opened it read-only from the store); the counts are 0 and `reason` says what
+// happened. A vehicle stops sending to it (--on-closed keeps or drops what it holds).
+enum class AckStatus : uint8_t { kJournaled, kSessionClosed };
+inline constexpr size_t kMaxAckReason = 200;  // the IDL bound
 struct AckMsg {
   std::string vehicle_id;
   std::string session_id;
@@ -133,6 +139,24 @@ struct AckMsg {
   uint64_t clouds = 0;
   uint64_t events = 0;
   uint64_t corrections = 0;
+  AckStatus status = AckStatus::kJournaled;
+  std::string reason;
+};
+
+// A vehicle's own counters, once a second while it runs, for the operator (never journaled:
+// the newest per vehicle is kept with its session while the session is loaded).
+struct VehicleStatusMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  int64_t stamp_ns = 0;
+  uint64_t frames = 0;          // taken from the source
+  uint64_t skipped_frames = 0;  // a live source's frames skipped to stay live
+  uint64_t late_frames = 0;     // taken a period or more after their slot (--skip-late off)
+  uint64_t spool_samples = 0;   // held, not acknowledged yet
+  uint64_t spool_bytes = 0;
+  uint64_t given_up = 0;        // samples the spool gave up (full, or its session closed)
+  uint64_t held_back = 0;       // samples not sent because the server closed the session
+  bool session_closed = false;  // the server said so (AckStatus::kSessionClosed)
 };
 
 }  // namespace stereomap::proto

@@ -72,7 +72,15 @@ inline size_t wireBytes(const LandingTargetMsg& m) {
 inline size_t wireBytes(const AckMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);
-  n = align(n, 8) + 6 * 8;  // stream, stamp, four counts
+  n = align(n, 8) + 6 * 8 + 4;  // stream, stamp, four counts, status
+  n = string(n, m.reason);
+  return withHeaders(n);
+}
+
+inline size_t wireBytes(const VehicleStatusMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 8 * 8 + 1;  // stamp, seven counts, session_closed
   return withHeaders(n);
 }
 

@@ -7,8 +7,10 @@
 
 #include <filesystem>
 #include <fstream>
+#include <regex>
 
 #include "tests/support/server_fixture.hpp"
+#include "tests/support/stream_count.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -130,6 +132,86 @@ TEST(SessionAdmin, RestAndOfflineToolManageStoredSessions) {
   EXPECT_EQ(status(restarted, "all")["frames"], 32);
   restarted.process().stop();
   fs::remove_all(root);
+}
+
+// Samples refused because their session is closed or read-only, every topic (/metrics).
+double refusedAsClosed(const ServerProcess& server) {
+  const std::string text = server.get("/metrics").body;
+  static const std::regex line(
+      R"re(stereomap_samples_rejected_total\{topic="\w+",reason="(?:session_closed|read_only)"\} ([0-9.e+]+))re");
+  double sum = 0;
+  for (auto it = std::sregex_iterator(text.begin(), text.end(), line); it != std::sregex_iterator();
+       ++it) {
+    sum += std::stod((*it)[1]);
+  }
+  return sum;
+}
+
+size_t occurrences(const std::string& text, const std::string& what) {
+  size_t count = 0;
+  for (size_t at = text.find(what); at != std::string::npos; at = text.find(what, at + 1)) ++count;
+  return count;
+}
+
+// Issue 54: a vehicle's counters reach the operator (the session's vehicle_status), and a
+// vehicle still flying into a session the operator closed is answered: it says so once, sends
+// nothing more (the server's count of refused samples stops growing), keeps what it holds in
+// its spool (--on-closed keep, the default) and exits 3. A vehicle started on the closed
+// session is told at once and, with --on-closed drop, gives up what it made.
+TEST(SessionAdmin, AVehicleFlyingIntoAClosedSessionIsToldOnceAndStopsSending) {
+  ServerProcess server(kDomain + 1);
+  const std::string spool = server.store() + ".spool";
+  const std::string log = server.store() + ".closed.log";
+  ChildProcess onboard(onboardArgs(kDomain + 1, "closing", 200, {"--rate", "10", "--spool", spool}),
+                       log);
+  json seen;
+  ASSERT_TRUE(waitUntil(30s, [&] {
+    seen = status(server, "closing");
+    return seen.is_object() && !seen["vehicle_status"].empty() &&
+           seen["vehicle_status"][0]["frames"].get<int>() >= 20;
+  })) << seen.dump();
+  const json& counters = seen["vehicle_status"][0];
+  EXPECT_EQ(counters["vehicle_id"], "sim-1");
+  for (const char* key : {"skipped_frames", "late_frames", "spool_samples", "spool_bytes",
+                          "given_up", "held_back", "age_s"}) {
+    EXPECT_TRUE(counters.contains(key)) << key;
+  }
+  EXPECT_EQ(counters["given_up"], 0);
+  EXPECT_FALSE(counters["session_closed"].get<bool>());
+  EXPECT_LT(counters["age_s"].get<double>(), 3.0);
+
+  ASSERT_EQ(server.request("POST", "/api/sessions/closing/close").status, 200);
+  ASSERT_TRUE(waitUntil(10s, [&] {
+    return readText(log).find("was closed by the server") != std::string::npos;
+  })) << readText(log);
+  // Told within a second or two: what it sent meanwhile was refused, and then nothing more.
+  std::this_thread::sleep_for(2s);
+  const double refused = refusedAsClosed(server);
+  EXPECT_GT(refused, 0) << "the answer follows a refused sample";
+  std::this_thread::sleep_for(4s);
+  EXPECT_EQ(refusedAsClosed(server), refused) << "the vehicle still sends";
+  const auto code = onboard.waitExit(60s);
+  const std::string text = readText(log);
+  EXPECT_EQ(code.value_or(-1), 3) << text;
+  EXPECT_EQ(occurrences(text, "stops sending to it"), 1u) << text;
+  EXPECT_NE(text.find("(--on-closed keep)"), std::string::npos) << text;
+  const double kept = numberIn(text, R"(given up, (\d+) kept in the spool)");
+  EXPECT_GT(kept, 50) << text;  // what it held and the frames it made after
+  EXPECT_EQ(numberIn(text, R"((\d+) given up, \d+ kept)"), 0) << text;
+
+  // Started on the closed session, with --on-closed drop.
+  const std::string late_log = server.store() + ".late.log";
+  ChildProcess late(onboardArgs(kDomain + 1, "closing", 30,
+                                {"--rate", "10", "--spool", spool + "-late", "--vehicle", "uav-9",
+                                 "--on-closed", "drop"}),
+                    late_log);
+  EXPECT_EQ(late.waitExit(60s).value_or(-1), 3) << readText(late_log);
+  const std::string late_text = readText(late_log);
+  EXPECT_EQ(occurrences(late_text, "stops sending to it"), 1u) << late_text;
+  EXPECT_NE(late_text.find("(--on-closed drop)"), std::string::npos) << late_text;
+  EXPECT_EQ(numberIn(late_text, R"(given up, (\d+) kept in the spool)"), 0) << late_text;
+  EXPECT_EQ(status(server, "closing")["state"], "closed");
+  EXPECT_EQ(server.process().stop(), 0);
 }
 
 }  // namespace

@@ -70,7 +70,8 @@ struct Flags {
   double resend_after_s = 3.0;
   double flush_timeout_s = 5.0;
   bool skip_late = true;
-  double link_bits_per_s = 0;  // --link-budget, parsed
+  bool keep_when_closed = true;  // --on-closed
+  double link_bits_per_s = 0;    // --link-budget, parsed
 };
 
 void addFlags(CLI::App& app, Flags& f) {
@@ -222,6 +223,14 @@ void addFlags(CLI::App& app, Flags& f) {
       ->transform(
           CLI::CheckedTransformer(std::map<std::string, bool>{{"on", true}, {"off", false}}))
       ->default_str("on");
+  app.add_option("--on-closed", f.keep_when_closed,
+                 "When the server says the session was closed (an operator closed it, or "
+                 "opened it read-only): the vehicle says so once and sends nothing more to it; "
+                 "keep: what the spool holds, and what the vehicle makes after, stay in the "
+                 "spool; drop: they are given up (counted)")
+      ->transform(
+          CLI::CheckedTransformer(std::map<std::string, bool>{{"keep", true}, {"drop", false}}))
+      ->default_str("keep");
   app.add_option("--flush-timeout", f.flush_timeout_s,
                  "Seconds to wait at the end for the server to acknowledge everything sent (what "
                  "is left stays in the spool for the next run on it)")
@@ -461,7 +470,8 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
   const link::OutboxOptions outbox{
       .vehicle_id = f.pipeline.vehicle_id,
       .link_bits_per_s = f.link_bits_per_s,
-      .resend_after = std::chrono::milliseconds(static_cast<int64_t>(f.resend_after_s * 1000))};
+      .resend_after = std::chrono::milliseconds(static_cast<int64_t>(f.resend_after_s * 1000)),
+      .keep_when_closed = f.keep_when_closed};
   auto made = pipeline::VehiclePublisher::create(participant, f.pipeline.session_id,
                                                  std::move(spool), outbox);
   if (!made) {
@@ -541,6 +551,15 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
         out.resent, out.resent_bytes / 1024.0, spool.held, spool.held_bytes / 1024.0,
         spool.dropped_clouds, spool.dropped_other, spool.disk_bytes / 1024,
         spool.disk_ok ? std::string() : "; disk problem: " + spool.disk_problem);
+  }
+  if (!summary.closed_by_server.empty()) {
+    const uint64_t held_back = summary.outbox ? summary.outbox->held_back : 0;
+    const uint64_t dropped = summary.spool ? summary.spool->dropped_closed : 0;
+    spdlog::warn(
+        "session closed by the server: {}; {} samples not sent after it, {} given up, {} kept in "
+        "the spool",
+        summary.closed_by_server, held_back, dropped, summary.spool ? summary.spool->held : 0);
+    return 3;
   }
   return summary.publish_errors == 0 ? 0 : 1;
 }

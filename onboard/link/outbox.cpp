@@ -35,6 +35,11 @@ common::Status Outbox::sendLive(Message& message, SpoolTopic topic, int64_t now_
   message.stream = options_.stream;
   message.seq = next++;
   message.unacked_from = spool_->lowestHeld(options_.stream, topic).value_or(message.seq);
+  if (closed_) {
+    ++stats_.held_back;
+    if (options_.keep_when_closed) spool_->add(message, now_ns);
+    return common::Ok{};
+  }
   auto status = send_(message);
   if (status) {
     ++stats_.sent;
@@ -77,6 +82,7 @@ void Outbox::acknowledge(const proto::AckMsg& ack) {
     ++stats_.foreign_acks;
     return;
   }
+  if (ack.status != proto::AckStatus::kJournaled) return;  // counts nothing (closeSession)
   if (spool_->acknowledge(ack)) ++stats_.acks;
 }
 
@@ -111,7 +117,13 @@ void Outbox::watchServer(int64_t now_ns, bool server_present) {
   returned_ns_.reset();
 }
 
+size_t Outbox::closeSession(const std::string& session) {
+  closed_ = true;
+  return options_.keep_when_closed ? 0 : spool_->giveUp(session);
+}
+
 void Outbox::resend(int64_t now_ns, bool server_present) {
+  if (closed_) return;
   watchServer(now_ns, server_present);
   if (!server_present || spool_->empty()) return;
   const bool budgeted = options_.link_bits_per_s > 0;

@@ -39,6 +39,9 @@ struct OutboxOptions {
   // come a few times a second; DDS retransmits on its own within an outage of a few seconds).
   std::chrono::milliseconds resend_after{3000};
   uint64_t stream = 0;  // 0: a random one
+  // When the server says the session is closed (closeSession): keep what is held, and what
+  // the vehicle makes after, in the spool (true, --on-closed keep), or give it up.
+  bool keep_when_closed = true;
 };
 
 struct OutboxStats {
@@ -50,6 +53,7 @@ struct OutboxStats {
   uint64_t send_errors = 0;    // DDS refused a write (the sample stays in the spool)
   uint64_t outages = 0;        // times the server went away and came back
   double last_catch_up_s = 0;  // from its return to everything held then acknowledged
+  uint64_t held_back = 0;      // live samples not sent: the server closed the session
 };
 
 class Outbox {
@@ -69,10 +73,17 @@ class Outbox {
 
   // Takes an acknowledgement: its vehicle must be ours (the spool checks stream and counts).
   void acknowledge(const proto::AckMsg& ack);
-  // Sends again what is due, within the budget; nothing without a server to send to.
+  // Sends again what is due, within the budget; nothing without a server to send to, nor once
+  // the session is closed.
   void resend(int64_t now_ns, bool server_present);
+  // The server closed `session` (AckStatus::kSessionClosed): nothing more is sent, live or
+  // again; live samples are still numbered and, with keep_when_closed, kept in the spool with
+  // what it holds, else given up with it (Spool::giveUp). The number given up.
+  size_t closeSession(const std::string& session);
+  bool closed() const { return closed_; }
 
   uint64_t stream() const { return options_.stream; }
+  const OutboxOptions& options() const { return options_; }
   bool caughtUp() const { return spool_->empty(); }
   const Spool& spool() const { return *spool_; }
   Spool& spool() { return *spool_; }
@@ -94,6 +105,7 @@ class Outbox {
   double tokens_ = 0;
   std::optional<int64_t> refilled_ns_;
   bool server_was_present_ = false;
+  bool closed_ = false;
   std::optional<int64_t> server_left_ns_;
   // After a return: when, and the highest seq held then per (stream, topic): caught up once
   // none of those is held.

@@ -115,6 +115,45 @@ TEST_F(OutboxTest, AcknowledgementsOfOtherVehiclesAreIgnored) {
   EXPECT_FALSE(outbox.caughtUp());
 }
 
+// The server closed the session: nothing more is sent, live or again; with keep_when_closed
+// every sample stays in the spool (those made after too), without it they are given up. An
+// answer about closing counts nothing as acknowledged.
+TEST_F(OutboxTest, AClosedSessionGetsNothingMoreAndItsSamplesAreKeptOrGivenUp) {
+  for (const bool keep : {true, false}) {
+    auto spool = Spool::open({});
+    ASSERT_TRUE(spool.ok());
+    sent_.clear();
+    Outbox outbox(std::move(spool).value(),
+                  {.vehicle_id = "uav", .stream = 9, .keep_when_closed = keep},
+                  [this](const SpoolRecord& r) {
+                    sent_.push_back({spoolTopicOf(r), 0, 0});
+                    return common::Status(common::Ok{});
+                  });
+    for (int i = 0; i < 3; ++i) {
+      auto p = pose();
+      ASSERT_TRUE(outbox.send(p, 0).ok());
+    }
+    auto closing = ack(0, 0);
+    closing.status = proto::AckStatus::kSessionClosed;
+    closing.reason = "closed by an operator";
+    outbox.acknowledge(closing);  // counts nothing
+    EXPECT_EQ(outbox.spool().stats().held, 3u);
+    EXPECT_EQ(outbox.closeSession("s"), keep ? 0u : 3u) << keep;
+    EXPECT_TRUE(outbox.closed());
+    const size_t sent_before = sent_.size();
+    auto p = pose();
+    ASSERT_TRUE(outbox.send(p, 0).ok());
+    EXPECT_EQ(p.seq, 3u);  // still numbered in the stream
+    auto c = cloud();
+    ASSERT_TRUE(outbox.send(c, 0).ok());
+    outbox.resend(100 * kSecond, true);
+    EXPECT_EQ(sent_.size(), sent_before) << "nothing sent after closing";
+    EXPECT_EQ(outbox.stats().held_back, 2u);
+    EXPECT_EQ(outbox.spool().stats().held, keep ? 5u : 0u) << keep;
+    EXPECT_EQ(outbox.spool().stats().dropped_closed, keep ? 0u : 3u) << keep;
+  }
+}
+
 // Under a budget, samples sent again take what the live ones leave of the link's rate.
 TEST_F(OutboxTest, SendingAgainStaysWithinTheLinksBudget) {
   const double link = 1e6;  // bits per second

@@ -352,6 +352,29 @@ std::optional<size_t> Spool::acknowledge(const proto::AckMsg& ack) {
   return dropped;
 }
 
+size_t Spool::giveUp(const std::string& session) {
+  size_t given_up = 0;
+  for (const auto& [stream, named] : std::map<uint64_t, std::string>(stream_sessions_)) {
+    if (named != session) continue;
+    proto::AckMsg all;  // everything ever spooled in the stream
+    all.session_id = session;
+    all.stream = stream;
+    auto count = [&](SpoolTopic topic) {
+      const auto spooled = spooled_.find({stream, topic});
+      return spooled == spooled_.end() ? uint64_t{0} : spooled->second;
+    };
+    all.events = count(SpoolTopic::kEvent);
+    all.poses = count(SpoolTopic::kPose);
+    all.corrections = count(SpoolTopic::kCorrection);
+    all.clouds = count(SpoolTopic::kCloud);
+    const size_t dropped = acknowledge(all).value_or(0);
+    stats_.acknowledged -= dropped;
+    given_up += dropped;
+  }
+  stats_.dropped_closed += given_up;
+  return given_up;
+}
+
 std::shared_ptr<SpoolRecord> Spool::load(const Entry& entry, uint64_t number) {
   if (entry.record) return entry.record;
   if (entry.segment != cached_segment_ || cached_.count(number) == 0) {

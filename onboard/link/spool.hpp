@@ -62,6 +62,7 @@ struct SpoolStats {
   uint64_t added = 0, acknowledged = 0;
   uint64_t dropped_clouds = 0;  // given up when the spool was full
   uint64_t dropped_other = 0;   // poses, events and corrections given up (it was full of them)
+  uint64_t dropped_closed = 0;  // given up because the server closed their session (giveUp)
   uint64_t superseded = 0;      // corrections replaced by a newer one before acknowledged
   uint64_t recovered = 0;       // left by an earlier process, held again
   uint64_t lost_records = 0;    // records an earlier process left damaged
@@ -95,6 +96,10 @@ class Spool {
   // it sent the sample, which then counts as sent now_ns.
   void forEachDue(int64_t now_ns, std::chrono::nanoseconds resend_after,
                   const std::function<bool(const SpoolRecord&)>& send);
+  // Gives up every sample held for `session` (the server closed it, and the vehicle was told
+  // to drop what it holds): as if acknowledged, so that a later process does not send them
+  // again either, and counted in dropped_closed. The number given up.
+  size_t giveUp(const std::string& session);
   // The lowest (highest) seq of `topic` held for `stream`, or nullopt when none is.
   std::optional<uint64_t> lowestHeld(uint64_t stream, SpoolTopic topic) const;
   std::optional<uint64_t> highestHeld(uint64_t stream, SpoolTopic topic) const;

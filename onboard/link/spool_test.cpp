@@ -143,6 +143,29 @@ TEST_F(SpoolTest, ANewProcessHoldsWhatTheLastLeft) {
   EXPECT_EQ(again->streams(), std::vector<uint64_t>{kStream});
 }
 
+// Given up because the server closed the session: only that session's streams, counted, and
+// a later process does not hold them again.
+TEST_F(SpoolTest, SamplesOfAClosedSessionGivenUpStayGiven) {
+  {
+    auto spool = open();
+    for (uint64_t i = 0; i < 5; ++i) spool->add(pose(i), 0);
+    spool->add(cloud(0), 0);
+    auto other = pose(0);
+    other.session_id = "t";
+    other.stream = kStream + 1;
+    spool->add(other, 0);
+    EXPECT_EQ(spool->giveUp("s"), 6u);
+    EXPECT_EQ(spool->stats().dropped_closed, 6u);
+    EXPECT_EQ(spool->stats().acknowledged, 0u);
+    EXPECT_EQ(spool->stats().held, 1u);  // session t's
+  }
+  auto again = open();
+  EXPECT_EQ(again->stats().recovered, 1u);
+  EXPECT_FALSE(again->lowestHeld(kStream, SpoolTopic::kPose));
+  EXPECT_FALSE(again->lowestHeld(kStream, SpoolTopic::kCloud));
+  EXPECT_EQ(again->lowestHeld(kStream + 1, SpoolTopic::kPose), 0u);
+}
+
 // Acknowledged segments go from the disk; the one being written stays.
 TEST_F(SpoolTest, AcknowledgedSegmentsAreDeleted) {
   auto spool = open({.segment_bytes = 4000});

@@ -41,6 +41,10 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   if (!corrections) return corrections.error();
   auto landing = makeWriter<proto::LandingTargetMsg>(participant, session_id);
   if (!landing) return landing.error();
+  auto status = makeWriter<proto::VehicleStatusMsg>(participant, session_id);
+  if (!status) return status.error();
+  publisher->status_ = std::move(status).value();
+  publisher->session_id_ = session_id;
   publisher->events_ = std::move(events).value();
   publisher->poses_ = std::move(poses).value();
   publisher->clouds_ = std::move(clouds).value();
@@ -73,12 +77,7 @@ common::Status VehiclePublisher::write(const link::SpoolRecord& record) {
       record);
 }
 
-namespace {
-int64_t steadyNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
-      .count();
-}
-}  // namespace
+using common::steadyNs;
 
 template <typename Message>
 common::Status VehiclePublisher::send(Message& message) {
@@ -105,7 +104,28 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
   if (!outbox_) return;
   ack_batch_.clear();
   acks_->take(ack_batch_, wait);
-  for (const auto& ack : ack_batch_) outbox_->acknowledge(ack);
+  for (const auto& ack : ack_batch_) {
+    if (ack.status == proto::AckStatus::kSessionClosed && ack.session_id == session_id_ &&
+        ack.vehicle_id == outbox_->options().vehicle_id) {
+      if (!outbox_->closed()) {
+        closed_because_ = ack.reason.empty() ? "the server closed it" : ack.reason;
+        const size_t held = outbox_->spool().stats().held;
+        const size_t given_up = outbox_->closeSession(session_id_);
+        spdlog::warn(
+            "session '{}' was closed by the server ({}): this vehicle stops sending to it; {}",
+            session_id_, closed_because_,
+            outbox_->options().keep_when_closed
+                ? fmt::format("the {} samples held and those made from now on stay in the "
+                              "spool (--on-closed keep)",
+                              held)
+                : fmt::format("the {} samples held were given up, and those made from now on "
+                              "are not kept (--on-closed drop)",
+                              given_up));
+      }
+      continue;
+    }
+    outbox_->acknowledge(ack);
+  }
   const bool present = serverPresent();
   announceWhileUnserved(present);
   outbox_->resend(steadyNs(), present);
@@ -114,11 +134,29 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
 
 bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() > 0; }
 
+void VehiclePublisher::publishStatus(proto::VehicleStatusMsg status) {
+  const auto now = Clock::now();
+  if (now - last_status_ < kStatusEvery) return;
+  last_status_ = now;
+  status.session_id = session_id_;
+  status.stamp_ns = common::nowNs();
+  if (outbox_) {
+    const auto& spool = outbox_->spool().stats();
+    status.spool_samples = spool.held;
+    status.spool_bytes = spool.held_bytes;
+    status.given_up = spool.dropped_clouds + spool.dropped_other + spool.dropped_closed;
+    status.held_back = outbox_->stats().held_back;
+    status.session_closed = outbox_->closed();
+    outbox_->charge(proto::wireBytes(status), steadyNs());
+  }
+  (void)status_->write(status);  // the next one carries as much
+}
+
 void VehiclePublisher::announceWhileUnserved(bool server_present) {
   // In a cluster, a session nobody serves (it ended and left memory while this vehicle was cut
   // off, or its server stopped) is served again when it is announced: its start event, sent
   // again as it was (the same stream and seq, so a server that has it counts a duplicate).
-  if (server_present || !announcement_ || outbox_->caughtUp()) return;
+  if (server_present || !announcement_ || outbox_->caughtUp() || outbox_->closed()) return;
   const auto now = Clock::now();
   if (now - last_announced_ < kAnnounceEvery) return;
   last_announced_ = now;
@@ -137,7 +175,7 @@ bool VehiclePublisher::flush(std::chrono::milliseconds timeout) {
                         deadline - std::chrono::steady_clock::now()));
   };
   if (outbox_) {
-    while (!outbox_->caughtUp() && left().count() > 0) {
+    while (!outbox_->caughtUp() && !outbox_->closed() && left().count() > 0) {
       service(std::min(left(), std::chrono::milliseconds(100)));
     }
     outbox_->spool().sync(/*force=*/true);
@@ -369,8 +407,17 @@ class PipelineRun {
       }
     }
     ++summary_.frames;
-    // Acknowledgements, and what an outage left unacknowledged, after the live samples.
-    if (publisher_ != nullptr) publisher_->service();
+    // Acknowledgements, and what an outage left unacknowledged, after the live samples; the
+    // vehicle's counters for the operator.
+    if (publisher_ != nullptr) {
+      publisher_->service();
+      proto::VehicleStatusMsg status;
+      status.vehicle_id = options_.vehicle_id;
+      status.frames = summary_.frames;
+      status.skipped_frames = summary_.skipped_frames;
+      status.late_frames = summary_.late_frames;
+      publisher_->publishStatus(std::move(status));
+    }
     report.frame_ms = msSince(frame_start);
     frame_ms_.push_back(report.frame_ms);
     if (options_.on_frame) options_.on_frame(report);
@@ -387,7 +434,11 @@ class PipelineRun {
               "SessionEvent");
       // Leaving at once would drop what the server has not acknowledged yet (the end event).
       summary_.flushed = publisher_->flush(options_.flush_timeout);
-      if (!summary_.flushed) {
+      summary_.closed_by_server = publisher_->closedBecause();
+      if (!summary_.flushed && !summary_.closed_by_server.empty()) {
+        spdlog::warn("session '{}' was closed by the server ({}): its last samples were not sent",
+                     options_.session_id, summary_.closed_by_server);
+      } else if (!summary_.flushed) {
         spdlog::warn("the server did not acknowledge the last samples within {} ms{}",
                      options_.flush_timeout.count(),
                      publisher_->outbox() ? "; the spool keeps them for the next run on it"

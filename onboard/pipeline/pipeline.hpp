@@ -98,6 +98,7 @@ struct PipelineSummary {
   std::optional<link::OutboxStats> outbox;
   std::optional<link::SpoolStats> spool;
   bool flushed = true;           // everything acknowledged at the end
+  std::string closed_by_server;  // why the server said the session takes no more ("": it did)
   double median_depth_ms = 0;    // disparity + cloud
   std::string depth_range;       // what the depth step searched and why (RigRange::explain)
   double image_noise_sigma = 0;  // the depth step's last image noise estimate, grey levels
@@ -142,7 +143,10 @@ class VehiclePublisher {
   common::Status publish(proto::PoseCorrectionMsg& correction);
   common::Status publish(const proto::LandingTargetMsg& target);
   // Takes the acknowledgements that arrived (waiting up to `wait` for one) and sends again
-  // what is due. Once a frame.
+  // what is due. Once a frame. An answer that the session is closed (AckStatus::
+  // kSessionClosed, for this vehicle) is said once in the log, and from then on nothing is
+  // sent to it (link::Outbox::closeSession: kept in the spool or given up, as the outbox's
+  // keep_when_closed says).
   void service(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
   bool waitForServer(std::chrono::milliseconds timeout) const;
   // Waits until the server acknowledged everything published (the final SessionEvent
@@ -152,6 +156,12 @@ class VehiclePublisher {
   // Whether a server's readers are matched.
   bool serverPresent() const;
   const link::Outbox* outbox() const { return outbox_ ? &*outbox_ : nullptr; }
+  // The vehicle's own counters for the operator (VehicleStatus), at most once a
+  // kStatusEvery; the spool's are added here.
+  void publishStatus(proto::VehicleStatusMsg status);
+  static constexpr std::chrono::seconds kStatusEvery{1};
+  // Why the server said the session takes no more samples; "" while it takes them.
+  const std::string& closedBecause() const { return closed_because_; }
 
  private:
   common::Status write(const link::SpoolRecord& record);
@@ -167,7 +177,11 @@ class VehiclePublisher {
   std::unique_ptr<proto::Writer<proto::CloudFrameMsg>> clouds_;
   std::unique_ptr<proto::Writer<proto::PoseCorrectionMsg>> corrections_;
   std::unique_ptr<proto::Writer<proto::LandingTargetMsg>> landing_;
+  std::unique_ptr<proto::Writer<proto::VehicleStatusMsg>> status_;
   std::unique_ptr<proto::Reader<proto::AckMsg>> acks_;
+  std::string session_id_;
+  std::string closed_because_;
+  std::chrono::steady_clock::time_point last_status_{};
   std::optional<link::Outbox> outbox_;
   std::vector<proto::AckMsg> ack_batch_;
   std::optional<proto::SessionEventMsg> announcement_;  // the start event as first sent

@@ -35,6 +35,7 @@ dds_qos_t* sessionEventQos() { return reliableWithHistory(4); }
 dds_qos_t* poseCorrectionQos() { return reliableWithHistory(1); }
 dds_qos_t* landingTargetQos() { return newestOnly(); }
 dds_qos_t* ackQos() { return newestOnly(); }
+dds_qos_t* vehicleStatusQos() { return newestOnly(); }
 dds_qos_t* poseQos() { return reliableWithHistory(kPoseHistory); }
 dds_qos_t* poseReaderQos() { return keepingAll(poseQos()); }
 dds_qos_t* cloudQos() { return reliableWithHistory(kCloudHistory); }

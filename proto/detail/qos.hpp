@@ -17,6 +17,7 @@ dds_qos_t* landingTargetQos();
 // Reliable, volatile, keep-last 1 per vehicle stream: an acknowledgement counts everything
 // before it, so only the newest matters.
 dds_qos_t* ackQos();
+dds_qos_t* vehicleStatusQos();
 // Reliable, transient-local, keep-last kPoseHistory: a server restarted within a few seconds
 // gets the poses it missed, as it does the clouds.
 dds_qos_t* poseQos();

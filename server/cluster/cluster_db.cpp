@@ -510,6 +510,12 @@ common::Result<std::vector<Ownership>> ClusterDb::takeOrphans() {
   return out;
 }
 
+common::Result<std::string> ClusterDb::sessionState(const std::string& id) {
+  auto rows = exec("SELECT state FROM sm_sessions WHERE id = $1", {id});
+  if (!rows) return rows.error();
+  return rows->rows() == 0 ? std::string() : rows->text(0, 0);
+}
+
 common::Result<std::optional<Ownership>> ClusterDb::ownerOf(const std::string& id) {
   auto rows = exec(
       "SELECT id, owner, epoch, resolution, state FROM sm_sessions "

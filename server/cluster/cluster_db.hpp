@@ -131,6 +131,8 @@ class ClusterDb {
   };
   common::Result<std::vector<Placement>> directory();
   // The sessions in no server's memory (ended or closed), for listings.
+  // A session's state (live, ended, opened, closed), or "" when there is no such session.
+  common::Result<std::string> sessionState(const std::string& id);
   common::Result<std::vector<SessionRow>> outOfMemory();
   // Gives up a session this server owns: handed back (its server stopping, or unable to hold
   // it: live, for another to take), ended (its vehicles ended it or fell silent: out of

@@ -35,6 +35,9 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
       proto::Reader<proto::SessionEventMsg>::create(participant, {proto::kEverySessionPartition});
   if (!events) return events.error();
   node->events_ = std::move(events).value();
+  auto closed_acks = proto::Writer<proto::AckMsg>::create(participant, proto::everyPartition());
+  if (!closed_acks) return closed_acks.error();
+  node->closed_acks_ = std::move(closed_acks).value();
   journal.onFenced([raw = node.get()](const std::string& session, const std::string& why) {
     std::lock_guard lock(raw->mutex_);
     raw->fenced_[session] = why;
@@ -61,6 +64,8 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     ingest::sendAcksUntil(
         raw->server_,
         [raw](const proto::AckMsg& ack) -> common::Status {
+          // A closed session's answer: no server reads its partition, this writer writes all.
+          if (ack.status == proto::AckStatus::kSessionClosed) return raw->closed_acks_->write(ack);
           std::lock_guard lock(raw->mutex_);
           const auto served = raw->served_.find(ack.session_id);
           if (served == raw->served_.end() || !served->second.acks) {
@@ -370,11 +375,14 @@ void ClusterNode::eventLoop() {
           announced_.emplace(event.session_id, event.resolution_hint > 0
                                                    ? event.resolution_hint
                                                    : options_.default_resolution);
+          auto& who = announcers_[event.session_id];
+          if (who.size() < kMaxAnnouncers) who.emplace(event.vehicle_id, event.stream);
           wake_.notify_all();
         }
       }
       // A session this server does not own is another's to journal; its owner's vehicle
-      // sends the event again until it is acknowledged, so nothing waits on it here.
+      // sends the event again until it is acknowledged, so nothing waits on it here. One it
+      // holds read-only refuses it, and its vehicle is told (MapServer::answerClosed).
       if (mine) server_.ingest(event);
     }
     for (const auto& sample : refused) server_.refuse(sample);
@@ -385,10 +393,12 @@ void ClusterNode::reconcile() {
   // 1. Sessions the database fenced since the last round.
   std::map<std::string, std::string> fenced;
   std::map<std::string, double> to_place;
+  std::map<std::string, std::set<std::pair<std::string, uint64_t>>> announcers;
   {
     std::lock_guard lock(mutex_);
     fenced.swap(fenced_);
     to_place.swap(announced_);
+    announcers.swap(announcers_);
   }
   for (const auto& [id, why] : fenced) unserve(id, "fenced: another server owns it now");
 
@@ -412,9 +422,20 @@ void ClusterNode::reconcile() {
       std::lock_guard lock(mutex_);
       if (served_.contains(id)) continue;
     }
-    if (auto placed = db_.placeSession(id, resolution); !placed) {
-      // Closed by an operator (or opened read-only): its vehicle's samples are refused.
-      if (placed.error().code == common::ErrorCode::kConflict) continue;
+    auto placed = db_.placeSession(id, resolution);
+    if (placed && placed->read_only) {
+      answerClosed(id, announcers[id], "session '" + id + "' was opened read-only from the store");
+    }
+    if (!placed) {
+      // Closed by an operator: its vehicles are told; or an orphan, which a server takes.
+      if (placed.error().code == common::ErrorCode::kConflict) {
+        if (auto state = db_.sessionState(id); state && *state == "closed") {
+          answerClosed(id, announcers[id],
+                       "session '" + id +
+                           "' was closed by an operator; a new flight needs a new session id");
+        }
+        continue;
+      }
       spdlog::warn("cluster: cannot place session '{}': {}", id, placed.error().message);
       std::lock_guard lock(mutex_);
       announced_.emplace(id, resolution);  // again next round
@@ -598,6 +619,14 @@ void ClusterNode::serve(const Ownership& placed) {
       has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
       common::msSince(started) / 1000,
       unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
+}
+
+void ClusterNode::answerClosed(const std::string& session,
+                               const std::set<std::pair<std::string, uint64_t>>& announcers,
+                               const std::string& reason) {
+  for (const auto& [vehicle, stream] : announcers) {
+    server_.answerClosed(session, vehicle, stream, reason);
+  }
 }
 
 void ClusterNode::unserve(const std::string& session, const std::string& why) {

@@ -109,6 +109,11 @@ class ClusterNode {
   // The commit latencies and counts, and the sessions served, into the server's /metrics.
   void publishMetrics();
   void serve(const Ownership& session);
+  // Tells the vehicles that announced `session` (announcers_ taken for it) that it takes no
+  // samples: MapServer::answerClosed, sent with the acknowledgements.
+  void answerClosed(const std::string& session,
+                    const std::set<std::pair<std::string, uint64_t>>& announcers,
+                    const std::string& reason);
   void unserve(const std::string& session, const std::string& why);
   bool sleepFor(std::chrono::milliseconds period);  // false when stopping
 
@@ -122,8 +127,15 @@ class ClusterNode {
   mutable std::mutex mutex_;
   std::condition_variable wake_;
   bool stopping_ = false;
-  std::map<std::string, Served> served_;       // under mutex_
-  std::map<std::string, double> announced_;    // sessions heard of, to place: resolution
+  std::map<std::string, Served> served_;     // under mutex_
+  std::map<std::string, double> announced_;  // sessions heard of, to place: resolution
+  // Who announced them (vehicle, stream), to answer when a session is closed or read-only:
+  // at most kMaxAnnouncers per session.
+  std::map<std::string, std::set<std::pair<std::string, uint64_t>>> announcers_;
+  static constexpr size_t kMaxAnnouncers = 64;
+  // Acknowledgements for sessions no server reads (AckStatus::kSessionClosed), in every
+  // session's partition.
+  std::unique_ptr<proto::Writer<proto::AckMsg>> closed_acks_;
   std::map<std::string, std::string> fenced_;  // sessions the database fenced: why
   bool database_down_ = false;                 // under mutex_: the lease could not be renewed
   bool superseded_ = false;                    // under mutex_

@@ -156,6 +156,7 @@ common::Result<std::shared_ptr<Session>> MapServer::createSession(const std::str
                              std::to_string(options_.max_sessions) + " sessions is the limit");
   }
   closed_.erase(id);
+  std::erase_if(closed_answers_, [&](const auto& entry) { return std::get<0>(entry.first) == id; });
   auto session =
       std::make_shared<Session>(id, sessionOptions(id, resolution, read_only, snapshots));
   sessions_.emplace(id, session);
@@ -257,6 +258,12 @@ std::shared_ptr<Session> MapServer::admit(const char* topic, const Message& mess
   }
   if (rejection) {
     reject(topic, *rejection, vehicle_id + "/" + session_id);
+    if constexpr (requires { message.unacked_from; }) {
+      if (origin == Origin::kLive &&
+          (rejection->reason == "session_closed" || rejection->reason == "read_only")) {
+        answerClosed(session_id, vehicle_id, message.stream, rejection->detail);
+      }
+    }
     return nullptr;
   }
   metrics_.add(kAccepted, {{"topic", topic}});
@@ -446,6 +453,24 @@ bool MapServer::ingest(const proto::LandingTargetMsg& target) {
   return true;
 }
 
+bool MapServer::ingest(const proto::VehicleStatusMsg& status) {
+  auto rejection = validateVehicleStatus(status);
+  if (!rejection && !find(status.session_id)) {
+    rejection = Rejection{"unknown_session", "no session '" + status.session_id +
+                                                 "': a vehicle's status belongs to a loaded one"};
+  }
+  auto session = admit("VehicleStatus", status, rejection, Origin::kLive);
+  if (!session) return false;
+  if (!session->setVehicleStatus(status)) {
+    reject("VehicleStatus",
+           Rejection{"vehicle_limit", std::to_string(Session::kMaxVehicleStatuses) +
+                                          " vehicles' counters are kept per session"},
+           status.vehicle_id + "/" + status.session_id);
+    return false;
+  }
+  return true;
+}
+
 bool MapServer::ingest(const proto::PoseCorrectionMsg& correction, Origin origin) {
   std::vector<ValidPose> keyframes;
   auto rejection = validatePoseCorrection(correction, keyframes);
@@ -507,7 +532,42 @@ std::vector<proto::AckMsg> MapServer::takeAcks() {
     acks.insert(acks.end(), std::make_move_iterator(due.begin()),
                 std::make_move_iterator(due.end()));
   }
+  const int64_t now_ns = common::steadyNs();
+  const int64_t every_ns = std::chrono::nanoseconds(kClosedAnswerEvery).count();
+  std::lock_guard lock(mutex_);
+  for (auto it = closed_answers_.begin(); it != closed_answers_.end();) {
+    auto& [key, answer] = *it;
+    if (!answer.asked) {
+      // Quiet for a minute: the vehicle heard, or is gone.
+      it = now_ns - answer.told_ns > 60 * every_ns ? closed_answers_.erase(it) : std::next(it);
+      continue;
+    }
+    if (answer.told_ns == 0 || now_ns - answer.told_ns >= every_ns) {
+      proto::AckMsg ack;
+      std::tie(ack.session_id, ack.vehicle_id, ack.stream) = key;
+      ack.stamp_ns = common::nowNs();
+      ack.status = proto::AckStatus::kSessionClosed;
+      ack.reason = answer.reason.substr(0, proto::kMaxAckReason);
+      acks.push_back(std::move(ack));
+      answer.told_ns = now_ns;
+      answer.asked = false;
+    }
+    ++it;
+  }
   return acks;
+}
+
+void MapServer::answerClosed(const std::string& session_id, const std::string& vehicle_id,
+                             uint64_t stream, const std::string& reason) {
+  std::lock_guard lock(mutex_);
+  const auto key = std::make_tuple(session_id, vehicle_id, stream);
+  auto found = closed_answers_.find(key);
+  if (found == closed_answers_.end()) {
+    if (closed_answers_.size() >= kMaxClosedAnswers) return;
+    found = closed_answers_.emplace(key, ClosedAnswer{reason}).first;
+  }
+  found->second.reason = reason;
+  found->second.asked = true;
 }
 
 std::vector<std::shared_ptr<Session>> MapServer::sessions() const {

@@ -13,6 +13,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "common/result.hpp"
@@ -112,6 +113,9 @@ class MapServer {
   // journaled. Refused (reason "unknown_session") when the session does not exist: a
   // landing target alone does not make one.
   bool ingest(const proto::LandingTargetMsg& target);
+  // A vehicle's own counters: kept as the newest per vehicle in its session, never journaled,
+  // shown in its status. Refused (reason "unknown_session") when the session is not loaded.
+  bool ingest(const proto::VehicleStatusMsg& status);
   // A sample DDS delivered that its type's checks refused (proto::Reader::take: an
   // enumeration out of range): counted as received and rejected (reason "bad_enum") under its
   // type, and logged like every rejection.
@@ -141,7 +145,18 @@ class MapServer {
 
   // What the live sessions have journaled of their vehicles' streams, where it changed (or a
   // vehicle sent a sample again) since the last call: for the Ack topic, a few times a second.
+  // And the answers to vehicles still sending to a closed or read-only session
+  // (AckStatus::kSessionClosed, answerClosed).
   std::vector<proto::AckMsg> takeAcks();
+  // Tells a vehicle's stream that its session takes no more samples (`reason`, for its log):
+  // an AckStatus::kSessionClosed acknowledgement in the next takeAcks, then again at most every
+  // kClosedAnswerEvery while the stream still sends (each call is such a sample). Called for
+  // every live sample refused as session_closed or read_only, and by a cluster server for a
+  // closed session's announcements. At most kMaxClosedAnswers streams are answered at once.
+  void answerClosed(const std::string& session_id, const std::string& vehicle_id, uint64_t stream,
+                    const std::string& reason);
+  static constexpr std::chrono::seconds kClosedAnswerEvery{1};
+  static constexpr size_t kMaxClosedAnswers = 4096;
 
   std::vector<std::shared_ptr<Session>> sessions() const;  // in creation order
   std::shared_ptr<Session> find(const std::string& id) const;
@@ -185,6 +200,14 @@ class MapServer {
   std::vector<std::string> order_;
   std::set<std::string> closed_;
   std::map<std::string, uint64_t> rejections_by_reason_;  // for rate-limited logging
+  // Streams to tell their session is closed: (session, vehicle, stream) -> the reason, when
+  // last told (steady ns; 0: never), and whether a sample came since. Under mutex_.
+  struct ClosedAnswer {
+    std::string reason;
+    int64_t told_ns = 0;
+    bool asked = true;
+  };
+  std::map<std::tuple<std::string, std::string, uint64_t>, ClosedAnswer> closed_answers_;
   // What each vehicle's link delivers (session, vehicle): its poses' ages on arrival, the
   // last ones. Any vehicle id is valid, so the number of vehicles with series of their own is
   // bounded (per session and in all); later ones share one bytes series and have no latency.

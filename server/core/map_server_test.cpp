@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
+#include <thread>
 
 #include "common/time.hpp"
 #include "proto/wire_size.hpp"
@@ -111,6 +112,75 @@ TEST(MapServer, CountsEachVehiclesBytes) {
   ASSERT_TRUE(server.unload("a"));
   EXPECT_EQ(bytes("v1", "CloudFrame"), 0.0);
   EXPECT_EQ(server.metricsText().find("session=\"a\""), std::string::npos);
+}
+
+// A vehicle still sending to a session the operator closed (or opened read-only) is answered:
+// an AckStatus::kSessionClosed acknowledgement with the reason, once per stream however many
+// samples came, again only after kClosedAnswerEvery; a session that is loaded again answers
+// as before. A vehicle's counters are kept with its loaded session, newest first.
+TEST(MapServer, AClosedSessionsVehicleIsAnsweredAndAVehiclesCountersAreKept) {
+  MapServer server({.resolution = 0.1});
+  auto frame = testing::wallFrame("a", 2.05);
+  frame.stream = 5;
+  ASSERT_TRUE(server.ingest(frame));
+  proto::VehicleStatusMsg counters;
+  counters.vehicle_id = "v1";
+  counters.session_id = "a";
+  counters.stamp_ns = 10;
+  counters.spool_samples = 12;
+  counters.skipped_frames = 3;
+  ASSERT_TRUE(server.ingest(counters));
+  auto older = counters;
+  older.stamp_ns = 9;
+  older.spool_samples = 99;
+  EXPECT_TRUE(server.ingest(older));  // taken, not kept: an older one arrived late
+  auto status = server.find("a")->status();
+  ASSERT_EQ(status.vehicle_status.size(), 1u);
+  EXPECT_EQ(status.vehicle_status[0].status.spool_samples, 12u);
+  EXPECT_EQ(status.vehicle_status[0].status.skipped_frames, 3u);
+  auto stranger = counters;
+  stranger.session_id = "nowhere";
+  EXPECT_FALSE(server.ingest(stranger));  // makes no session
+  EXPECT_EQ(server.find("nowhere"), nullptr);
+
+  server.takeAcks();  // the journaled frame's
+  ASSERT_TRUE(server.unload("a"));
+  for (uint64_t seq = 1; seq < 4; ++seq) {
+    auto late = testing::wallFrame("a", 2.05, seq);
+    late.stream = 5;
+    EXPECT_FALSE(server.ingest(late));
+  }
+  auto pose = testing::poseAt("a", 0.5, 2'000'000'000);
+  pose.vehicle_id = "v2";
+  pose.stream = 6;
+  EXPECT_FALSE(server.ingest(pose));
+  auto answers = server.takeAcks();
+  ASSERT_EQ(answers.size(), 2u);  // one per stream
+  for (const auto& answer : answers) {
+    EXPECT_EQ(answer.status, proto::AckStatus::kSessionClosed);
+    EXPECT_EQ(answer.session_id, "a");
+    EXPECT_EQ(answer.poses + answer.clouds + answer.events + answer.corrections, 0u);
+    EXPECT_NE(answer.reason.find("closed"), std::string::npos) << answer.reason;
+  }
+  EXPECT_EQ(answers[0].vehicle_id, "v1");
+  EXPECT_EQ(answers[0].stream, 5u);
+  EXPECT_EQ(answers[1].vehicle_id, "v2");
+  auto again = testing::wallFrame("a", 2.05, 4);
+  again.stream = 5;
+  EXPECT_FALSE(server.ingest(again));
+  EXPECT_TRUE(server.takeAcks().empty()) << "told less than a second ago";
+  std::this_thread::sleep_for(MapServer::kClosedAnswerEvery);
+  EXPECT_EQ(server.takeAcks().size(), 1u) << "it still sends: told again";
+  EXPECT_TRUE(server.takeAcks().empty()) << "nothing came since";
+
+  // Opened read-only: its vehicles are told the same.
+  ASSERT_TRUE(server.createSession("a", 0.1, /*read_only=*/true));
+  auto read_only = testing::wallFrame("a", 2.05, 5);
+  read_only.stream = 5;
+  EXPECT_FALSE(server.ingest(read_only));
+  answers = server.takeAcks();
+  ASSERT_EQ(answers.size(), 1u);
+  EXPECT_NE(answers[0].reason.find("read-only"), std::string::npos) << answers[0].reason;
 }
 
 // A session's own counts of what its vehicles sent, which the viewer turns into poses/s,

@@ -612,6 +612,10 @@ SessionStatus Session::status() const {
   }
   std::lock_guard state(state_mutex_);
   status.vehicles = vehicles_;
+  const int64_t now_ns = common::steadyNs();
+  for (const auto& [vehicle, kept] : vehicle_status_) {
+    status.vehicle_status.push_back({kept.first, static_cast<double>(now_ns - kept.second) * 1e-9});
+  }
   status.frames_received = frames_received_;
   status.frames_fused = frames_fused_;
   status.frames_dropped = frames_dropped_;
@@ -649,6 +653,19 @@ void Session::setLandingTarget(const proto::LandingTargetMsg& target) {
   std::lock_guard state(state_mutex_);
   auto& kept = landing_[target.vehicle_id];
   if (target.stamp_ns >= kept.stamp_ns) kept = target;
+}
+
+bool Session::setVehicleStatus(const proto::VehicleStatusMsg& status) {
+  std::lock_guard state(state_mutex_);
+  auto found = vehicle_status_.find(status.vehicle_id);
+  if (found == vehicle_status_.end()) {
+    if (vehicle_status_.size() >= kMaxVehicleStatuses) return false;
+    found = vehicle_status_.emplace(status.vehicle_id, std::make_pair(status, int64_t{0})).first;
+  } else if (status.stamp_ns < found->second.first.stamp_ns) {
+    return true;  // an older one, delivered late
+  }
+  found->second = {status, common::steadyNs()};
+  return true;
 }
 
 std::vector<proto::LandingTargetMsg> Session::landingTargets() const {

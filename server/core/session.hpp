@@ -101,6 +101,12 @@ struct SessionStatus {
   std::string refusion_error;       // why the last re-fusion failed ("" when it did not)
   uint64_t trajectory_version = 0;  // bumps when poses already shown change (a correction)
   std::string server;  // in a cluster: the address of the server that serves it ("": this one)
+  // Each vehicle's newest own counters (VehicleStatus), with how long ago they arrived.
+  struct VehicleCounters {
+    proto::VehicleStatusMsg status;
+    double age_s = 0;
+  };
+  std::vector<VehicleCounters> vehicle_status;
 };
 
 // "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
@@ -188,6 +194,10 @@ class Session {
   // The newest landing target per vehicle (kept in memory, not journaled: a sighting of the
   // pad is only worth its moment). An older stamp than the one kept is ignored.
   void setLandingTarget(const proto::LandingTargetMsg& target);
+  // A vehicle's newest counters (VehicleStatus), kept in memory for status(); at most
+  // kMaxVehicleStatuses vehicles (later ones are not kept: false).
+  static constexpr size_t kMaxVehicleStatuses = 256;
+  bool setVehicleStatus(const proto::VehicleStatusMsg& status);
   std::vector<proto::LandingTargetMsg> landingTargets() const;
   // Each vehicle's newest live cloud as it came, numbered in order of arrival (kept in memory:
   // what the Foxglove server streams). liveClouds(after): those numbered after `after`.
@@ -305,6 +315,8 @@ class Session {
   std::string refusion_error_;  // the last re-fusion failed: why ("" once one succeeds)
   uint64_t trajectory_version_ = 0;
   std::map<std::string, proto::LandingTargetMsg> landing_;  // by vehicle
+  // By vehicle: the newest counters and when they arrived (steady ns).
+  std::map<std::string, std::pair<proto::VehicleStatusMsg, int64_t>> vehicle_status_;
 
   // Re-fusion. Under queue_mutex_: the map handed over for the swap and the frames the worker
   // fused since the re-fusion began (poses as sent; the oldest dropped beyond kMaxTail until

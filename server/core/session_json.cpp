@@ -45,6 +45,20 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                       {{"p50", 1000 * s.publish_lag.quantile(0.5)},
                        {"p95", 1000 * s.publish_lag.quantile(0.95)}}}});
   if (!s.server.empty()) object["server"] = s.server;
+  json counters = json::array();
+  for (const auto& [v, age_s] : s.vehicle_status) {
+    counters.push_back({{"vehicle_id", v.vehicle_id},
+                        {"frames", v.frames},
+                        {"skipped_frames", v.skipped_frames},
+                        {"late_frames", v.late_frames},
+                        {"spool_samples", v.spool_samples},
+                        {"spool_bytes", v.spool_bytes},
+                        {"given_up", v.given_up},
+                        {"held_back", v.held_back},
+                        {"session_closed", v.session_closed},
+                        {"age_s", age_s}});
+  }
+  object["vehicle_status"] = std::move(counters);
   return object;
 }
 

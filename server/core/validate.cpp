@@ -126,6 +126,12 @@ std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& 
   return std::nullopt;
 }
 
+std::optional<Rejection> validateVehicleStatus(const proto::VehicleStatusMsg& status) {
+  if (auto bad = checkIds(status.vehicle_id, status.session_id)) return bad;
+  if (status.stamp_ns < 0) return Rejection{"bad_stamp", "stamp_ns is negative"};
+  return std::nullopt;
+}
+
 std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& target) {
   if (auto bad = checkIds(target.vehicle_id, target.session_id)) return bad;
   if (target.reason.size() > proto::kMaxLandingReason) {

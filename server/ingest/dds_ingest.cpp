@@ -25,10 +25,11 @@ common::Result<std::unique_ptr<DdsIngest>> DdsIngest::create(
     const std::shared_ptr<proto::Participant>& participant,
     const std::vector<std::string>& partitions, bool events) {
   auto ingest = std::unique_ptr<DdsIngest>(new DdsIngest);
-  auto& [clouds, poses, corrections, landing, session_events] = ingest->readers_;
+  auto& [clouds, poses, corrections, landing, vehicle_status, session_events] = ingest->readers_;
   for (auto status :
        {open(participant, partitions, clouds), open(participant, partitions, poses),
-        open(participant, partitions, corrections), open(participant, partitions, landing)}) {
+        open(participant, partitions, corrections), open(participant, partitions, landing),
+        open(participant, partitions, vehicle_status)}) {
     if (!status) return status.error();
   }
   if (events) {

@@ -22,8 +22,8 @@ namespace stereomap::ingest {
 
 class DdsIngest {
  public:
-  // Readers of clouds, poses, corrections and landing targets, and of session events when
-  // `events`, in `partitions`.
+  // Readers of clouds, poses, corrections, landing targets and vehicles' status, and of
+  // session events when `events`, in `partitions`.
   static common::Result<std::unique_ptr<DdsIngest>> create(
       const std::shared_ptr<proto::Participant>& participant,
       const std::vector<std::string>& partitions, bool events);
@@ -45,6 +45,7 @@ class DdsIngest {
              std::unique_ptr<proto::Reader<proto::PoseMsg>>,
              std::unique_ptr<proto::Reader<proto::PoseCorrectionMsg>>,
              std::unique_ptr<proto::Reader<proto::LandingTargetMsg>>,
+             std::unique_ptr<proto::Reader<proto::VehicleStatusMsg>>,
              std::unique_ptr<proto::Reader<proto::SessionEventMsg>>>
       readers_;
   std::atomic<bool> stopping_{false};
