@@ -417,6 +417,20 @@ TEST_F(ClusterTest, OperatorsCloseOpenMergeExportAndDeleteSessionsInTheCluster) 
   EXPECT_EQ(closed.status, 200) << closed.body;
   EXPECT_EQ(stateOf(*cluster_, "flight0"), "closed");
   EXPECT_EQ(post("/api/sessions/flight0/close").status, 409) << "closed once";
+  {
+    // A vehicle flying into the closed session: no server reads it, each answers its
+    // announcement; the vehicle says so once and gives up (exit 3).
+    const std::string log = cluster_->dir() + "/late-vehicle.log";
+    ChildProcess late(userVehicleArgs(kManagedDomain, "flight0", 60, "memory",
+                                      {"--vehicle", "late", "--flush-timeout", "5"}),
+                      log);
+    EXPECT_EQ(late.waitExit(60s).value_or(-1), 3) << readText(log);
+    EXPECT_NE(readText(log).find("session 'flight0' was closed by the server (session 'flight0' "
+                                 "was closed by an operator"),
+              std::string::npos)
+        << readText(log);
+    EXPECT_EQ(stateOf(*cluster_, "flight0"), "closed") << "not revived by its vehicle";
+  }
   auto opened = post("/api/sessions/flight0/open");
   ASSERT_EQ(opened.status, 200) << opened.body;
   EXPECT_EQ(nlohmann::json::parse(opened.body)["state"], "opened") << opened.body;
