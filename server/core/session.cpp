@@ -612,9 +612,8 @@ SessionStatus Session::status() const {
   }
   std::lock_guard state(state_mutex_);
   status.vehicles = vehicles_;
-  const int64_t now_ns = common::steadyNs();
   for (const auto& [vehicle, kept] : vehicle_status_) {
-    status.vehicle_status.push_back({kept.first, static_cast<double>(now_ns - kept.second) * 1e-9});
+    status.vehicle_status.push_back({kept.first, kept.second});
   }
   status.frames_received = frames_received_;
   status.frames_fused = frames_fused_;
@@ -664,7 +663,7 @@ bool Session::setVehicleStatus(const proto::VehicleStatusMsg& status) {
   } else if (status.stamp_ns < found->second.first.stamp_ns) {
     return true;  // an older one, delivered late
   }
-  found->second = {status, common::steadyNs()};
+  found->second = {status, common::nowNs()};
   return true;
 }
 

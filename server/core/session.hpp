@@ -101,10 +101,11 @@ struct SessionStatus {
   std::string refusion_error;       // why the last re-fusion failed ("" when it did not)
   uint64_t trajectory_version = 0;  // bumps when poses already shown change (a correction)
   std::string server;  // in a cluster: the address of the server that serves it ("": this one)
-  // Each vehicle's newest own counters (VehicleStatus), with how long ago they arrived.
+  // Each vehicle's newest own counters (VehicleStatus), and when they arrived (this server's
+  // wall clock: a time, not an age, so that a status unchanged reads the same).
   struct VehicleCounters {
     proto::VehicleStatusMsg status;
-    double age_s = 0;
+    int64_t received_ns = 0;
   };
   std::vector<VehicleCounters> vehicle_status;
 };
@@ -315,7 +316,7 @@ class Session {
   std::string refusion_error_;  // the last re-fusion failed: why ("" once one succeeds)
   uint64_t trajectory_version_ = 0;
   std::map<std::string, proto::LandingTargetMsg> landing_;  // by vehicle
-  // By vehicle: the newest counters and when they arrived (steady ns).
+  // By vehicle: the newest counters and when they arrived (wall clock, ns).
   std::map<std::string, std::pair<proto::VehicleStatusMsg, int64_t>> vehicle_status_;
 
   // Re-fusion. Under queue_mutex_: the map handed over for the swap and the frames the worker

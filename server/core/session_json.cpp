@@ -46,7 +46,7 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                        {"p95", 1000 * s.publish_lag.quantile(0.95)}}}});
   if (!s.server.empty()) object["server"] = s.server;
   json counters = json::array();
-  for (const auto& [v, age_s] : s.vehicle_status) {
+  for (const auto& [v, received_ns] : s.vehicle_status) {
     counters.push_back({{"vehicle_id", v.vehicle_id},
                         {"frames", v.frames},
                         {"skipped_frames", v.skipped_frames},
@@ -56,7 +56,7 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                         {"given_up", v.given_up},
                         {"held_back", v.held_back},
                         {"session_closed", v.session_closed},
-                        {"age_s", age_s}});
+                        {"received_s", static_cast<double>(received_ns) * 1e-9}});
   }
   object["vehicle_status"] = std::move(counters);
   return object;

@@ -256,6 +256,14 @@ async function run(options, resources, progress) {
       return { ok: poses > 0 && clouds > 0 && link > 0 && viewer > 0, seen: `"${text}"`, text, poses, clouds };
     }, onboardHealthy);
   console.log(`status line while flying: ${rates.text}`);
+  // The vehicle's own counters (VehicleStatus, once a second): its spool at least.
+  progress.step = 'reading the vehicle\'s counters';
+  const counters = await waitUntil('the vehicles line to show "<vehicle>: spool N samples"', 10_000, 250, async () => {
+    const text = (await page.textContent('#vehicles')) ?? '';
+    const hidden = await page.locator('#vehicles').isHidden();
+    return { ok: !hidden && /^[\w.-]+: spool [\d,]+ samples?/.test(text), seen: `"${text}" (hidden ${hidden})`, text };
+  }, onboardHealthy);
+  console.log(`vehicles line while flying: ${counters.text}`);
   const liveShot = options.screenshot.replace(/\.png$/, '') + '_live.png';
   await mkdir(path.dirname(liveShot), { recursive: true });
   await page.screenshot({ path: liveShot });

@@ -5,7 +5,7 @@
 // window.__stereomap for the end-to-end test.
 
 import { rampCssGradient } from './core/colour_ramp.js';
-import { ratesText, statusText } from './core/format.js';
+import { ratesText, statusText, vehicleLines } from './core/format.js';
 import { landingText, padOutline } from './core/landing.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
 import { ProtocolError, dropMessage, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
@@ -24,7 +24,7 @@ const kBudget = Number(params.get('budget')) || 1_000_000; // cells drawn at mos
 const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look before a finer level is due
 const kCacheBytes = (Number(params.get('cache')) || 256) * 2 ** 20; // the page's memory for tiles
 
-const elements = Object.fromEntries(['view', 'status', 'session-select', 'fit-button', 'colour-select', 'legend',
+const elements = Object.fromEntries(['view', 'status', 'vehicles', 'session-select', 'fit-button', 'colour-select', 'legend',
   'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result',
   'timeline', 'time-slider', 'time-label', 'live-button']
   .map((id) => [id, document.getElementById(id)]));
@@ -154,6 +154,9 @@ function updateStatus() {
   if (pad) text += ` · ${pad}`;
   elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
+  const vehicles = vehicleLines(session?.status?.vehicleStatus);
+  elements.vehicles.textContent = vehicles.join('\n');
+  elements.vehicles.hidden = vehicles.length === 0;
 }
 
 function updateLegend() {

@@ -71,3 +71,20 @@ export function statusText(link, session) {
   }
   return parts.join(' · ');
 }
+
+/**
+ * One line per vehicle of a session from its own counters (protocol.js: the status's
+ * vehicleStatus): what an operator needs to see of a vehicle they cannot reach. The spool
+ * always; the other counts only when not zero. "sim-1: spool 3 samples (8.3 kB) · 2 frames
+ * skipped · session closed by the server, 40 samples held back".
+ */
+export function vehicleLines(vehicleStatus) {
+  return (vehicleStatus ?? []).map((v) => {
+    const parts = [`spool ${plural(v.spoolSamples, 'sample')}${v.spoolBytes > 0 ? ` (${(v.spoolBytes / 1000).toFixed(1)} kB)` : ''}`];
+    if (v.skippedFrames > 0) parts.push(`${plural(v.skippedFrames, 'frame')} skipped`);
+    if (v.lateFrames > 0) parts.push(`${plural(v.lateFrames, 'frame')} late`);
+    if (v.givenUp > 0) parts.push(`${plural(v.givenUp, 'sample')} given up`);
+    if (v.sessionClosed) parts.push(`session closed by the server, ${plural(v.heldBack, 'sample')} held back`);
+    return `${v.vehicleId}: ${parts.join(' · ')}`;
+  });
+}

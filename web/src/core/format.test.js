@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { formatAge, formatCount, formatKilobytesPerSecond, ratesText, statusText } from './format.js';
+import { formatAge, formatCount, formatKilobytesPerSecond, ratesText, statusText, vehicleLines } from './format.js';
 
 describe('formatAge', () => {
   it.each([
@@ -48,5 +48,15 @@ describe('ratesText', () => {
   it('gives kB/s of 1000 bytes, a decimal below 10', () => {
     expect([0, 49, 9_949, 9_950, 28_499, 1_234_400, -5].map(formatKilobytesPerSecond))
       .toEqual(['0.0 kB/s', '0.0 kB/s', '9.9 kB/s', '10 kB/s', '28 kB/s', '1,234 kB/s', '0.0 kB/s']);
+  });
+});
+
+describe('vehicleLines', () => {
+  it('shows each vehicle spool and only the counts that are not zero', () => {
+    expect(vehicleLines(undefined)).toEqual([]);
+    expect(vehicleLines([{ vehicleId: 'sim-1', spoolSamples: 1, spoolBytes: 0, skippedFrames: 0, lateFrames: 0, givenUp: 0, heldBack: 0, sessionClosed: false }]))
+      .toEqual(['sim-1: spool 1 sample']);
+    expect(vehicleLines([{ vehicleId: 'uav-2', spoolSamples: 1234, spoolBytes: 8300, skippedFrames: 2, lateFrames: 1, givenUp: 5, heldBack: 40, sessionClosed: true }]))
+      .toEqual(['uav-2: spool 1,234 samples (8.3 kB) · 2 frames skipped · 1 frame late · 5 samples given up · session closed by the server, 40 samples held back']);
   });
 });

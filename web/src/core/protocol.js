@@ -63,6 +63,27 @@ function poseList(message) {
   return value;
 }
 
+// Each vehicle's own counters (the status's vehicle_status; none from an older server).
+function vehicleStatus(m) {
+  const list = field(m, 'vehicle_status', Array.isArray, 'an array', { optional: true, fallback: [] });
+  return list.map((v, i) => {
+    if (typeof v !== 'object' || v === null || Array.isArray(v)) {
+      throw new ProtocolError(`${m.type} message: "vehicle_status"[${i}] must be an object, got ${shown(v)}`);
+    }
+    const entry = { ...v, type: m.type };
+    return {
+      vehicleId: requireId(entry, 'vehicle_id'),
+      spoolSamples: optionalCount(entry, 'spool_samples'),
+      spoolBytes: optionalCount(entry, 'spool_bytes'),
+      skippedFrames: optionalCount(entry, 'skipped_frames'),
+      lateFrames: optionalCount(entry, 'late_frames'),
+      givenUp: optionalCount(entry, 'given_up'),
+      heldBack: optionalCount(entry, 'held_back'),
+      sessionClosed: field(entry, 'session_closed', (b) => typeof b === 'boolean', 'true or false', { optional: true, fallback: false }),
+    };
+  });
+}
+
 // A session's status (GET /api/sessions entries, "session" messages).
 function status(m) {
   return {
@@ -81,6 +102,7 @@ function status(m) {
     corrections: optionalCount(m, 'corrections'),
     refusing: field(m, 'refusing', (v) => typeof v === 'boolean', 'true or false', { optional: true, fallback: false }),
     bounds: bounds(m),
+    vehicleStatus: vehicleStatus(m),
   };
 }
 

@@ -21,6 +21,16 @@ describe('parseMessage', () => {
     expect(parseMessage('{"type":"map","session":"s1","version":9,"changed_ms":5,"voxels":41,"tiles":2,"bounds":null}').changedMs).toBe(5);
     expect(parseMessage('{"type":"poses","session":"s1","vehicle":"uav","poses":[[1,0,0,0,0,0,0,1]]}').poses).toHaveLength(1);
     expect(parseMessage('{"type":"view_done","id":3,"session":"s1"}').id).toBe(3);
+    // Each vehicle's own counters; none from a server that does not send them.
+    expect(list.sessions[0].vehicleStatus).toEqual([]);
+    const counters = parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [
+      { vehicle_id: 'uav-1', spool_samples: 12, spool_bytes: 900, skipped_frames: 2, late_frames: 0, given_up: 1, held_back: 0,
+        session_closed: true, received_s: 1.7e9 }] }));
+    expect(counters.vehicleStatus).toEqual([{ vehicleId: 'uav-1', spoolSamples: 12, spoolBytes: 900, skippedFrames: 2,
+      lateFrames: 0, givenUp: 1, heldBack: 0, sessionClosed: true }]);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [{ vehicle_id: '' }] }))).toThrow(/vehicle_id/);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [{ vehicle_id: 'a', spool_samples: -3 }] }))).toThrow(/spool_samples/);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [7] }))).toThrow(/vehicle_status/);
   });
 
   it('rejects what it cannot trust, naming the field', () => {
