@@ -134,9 +134,9 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
 
 bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() > 0; }
 
-void VehiclePublisher::publishStatus(proto::VehicleStatusMsg status) {
+size_t VehiclePublisher::publishStatus(proto::VehicleStatusMsg status) {
   const auto now = Clock::now();
-  if (now - last_status_ < kStatusEvery) return;
+  if (now - last_status_ < kStatusEvery) return 0;
   last_status_ = now;
   status.session_id = session_id_;
   status.stamp_ns = common::nowNs();
@@ -147,9 +147,11 @@ void VehiclePublisher::publishStatus(proto::VehicleStatusMsg status) {
     status.given_up = spool.dropped_clouds + spool.dropped_other + spool.dropped_closed;
     status.held_back = outbox_->stats().held_back;
     status.session_closed = outbox_->closed();
-    outbox_->charge(proto::wireBytes(status), steadyNs());
   }
-  (void)status_->write(status);  // the next one carries as much
+  const size_t bytes = proto::wireBytes(status);
+  if (outbox_) outbox_->charge(bytes, steadyNs());
+  // Not kept or sent again: the next one carries as much.
+  return status_->write(status) ? bytes : 0;
 }
 
 void VehiclePublisher::announceWhileUnserved(bool server_present) {
@@ -416,7 +418,7 @@ class PipelineRun {
       status.frames = summary_.frames;
       status.skipped_frames = summary_.skipped_frames;
       status.late_frames = summary_.late_frames;
-      publisher_->publishStatus(std::move(status));
+      summary_.wire_bytes += publisher_->publishStatus(std::move(status));
     }
     report.frame_ms = msSince(frame_start);
     frame_ms_.push_back(report.frame_ms);

@@ -157,8 +157,8 @@ class VehiclePublisher {
   bool serverPresent() const;
   const link::Outbox* outbox() const { return outbox_ ? &*outbox_ : nullptr; }
   // The vehicle's own counters for the operator (VehicleStatus), at most once a
-  // kStatusEvery; the spool's are added here.
-  void publishStatus(proto::VehicleStatusMsg status);
+  // kStatusEvery; the spool's are added here. The bytes it took on the link (0: not due).
+  size_t publishStatus(proto::VehicleStatusMsg status);
   static constexpr std::chrono::seconds kStatusEvery{1};
   // Why the server said the session takes no more samples; "" while it takes them.
   const std::string& closedBecause() const { return closed_because_; }
