@@ -20,12 +20,11 @@ TEST(LandingDeadline, EveryFrameOfTheFinalApproachFitsItsPeriod) {
   ServerProcess server(kDomain);
   // From 52 s into the 60 s descent: 5.3 m from the pad to touchdown, 81 frames.
   const std::string log = server.logPath() + ".onboard";
-  ChildProcess onboard(
-      {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard", "--source", "sim:deck", "--landing",
-       "default", "--skip-late", "off", "--start", "52", "--rate", "10", "--session", "approach",
-       "--spool", "memory", "--dds-config", STEREOMAP_DDS_CONFIG, "--domain",
-       std::to_string(kDomain)},
-      log);
+  ChildProcess onboard({std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard", "--source",
+                        "sim:deck", "--landing", "default", "--skip-late", "off", "--start", "52",
+                        "--rate", "10", "--session", "approach", "--spool", "memory",
+                        "--dds-config", STEREOMAP_DDS_CONFIG, "--domain", std::to_string(kDomain)},
+                       log);
   const auto code = onboard.waitExit(120s);
   const std::string text = readText(log);
   ASSERT_TRUE(code.has_value() && *code == 0) << text;
