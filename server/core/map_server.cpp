@@ -441,25 +441,25 @@ void MapServer::refuse(const proto::RefusedSample& sample) {
          sample.vehicle_id + "/" + sample.session_id);
 }
 
-bool MapServer::ingest(const proto::LandingTargetMsg& target) {
-  auto rejection = validateLandingTarget(target);
-  if (!rejection && !find(target.session_id)) {
-    rejection = Rejection{"unknown_session", "no session '" + target.session_id +
-                                                 "': a landing target belongs to a live one"};
+template <typename Message>
+std::shared_ptr<Session> MapServer::admitToLoaded(const char* topic, const Message& message,
+                                                  std::optional<Rejection> rejection) {
+  if (!rejection && !find(message.session_id)) {
+    rejection = Rejection{"unknown_session", "no session '" + message.session_id + "': a " + topic +
+                                                 " sample belongs to a loaded one"};
   }
-  auto session = admit("LandingTarget", target, rejection, Origin::kLive);
+  return admit(topic, message, rejection, Origin::kLive);
+}
+
+bool MapServer::ingest(const proto::LandingTargetMsg& target) {
+  auto session = admitToLoaded("LandingTarget", target, validateLandingTarget(target));
   if (!session) return false;
   session->setLandingTarget(target);
   return true;
 }
 
 bool MapServer::ingest(const proto::VehicleStatusMsg& status) {
-  auto rejection = validateVehicleStatus(status);
-  if (!rejection && !find(status.session_id)) {
-    rejection = Rejection{"unknown_session", "no session '" + status.session_id +
-                                                 "': a vehicle's status belongs to a loaded one"};
-  }
-  auto session = admit("VehicleStatus", status, rejection, Origin::kLive);
+  auto session = admitToLoaded("VehicleStatus", status, validateVehicleStatus(status));
   if (!session) return false;
   if (!session->setVehicleStatus(status)) {
     reject("VehicleStatus",

@@ -177,6 +177,11 @@ class MapServer {
   template <typename Message>
   std::shared_ptr<Session> admit(const char* topic, const Message& message,
                                  std::optional<Rejection> rejection, Origin origin);
+  // admit() for a sample that belongs to a loaded session and makes none (landing targets,
+  // vehicles' status): refused as unknown_session when its session is not loaded.
+  template <typename Message>
+  std::shared_ptr<Session> admitToLoaded(const char* topic, const Message& message,
+                                         std::optional<Rejection> rejection);
   // A live sample's bytes and, for a pose, its age on arrival.
   // Under mutex_: the vehicles of a session with links_ entries; forgetting them and their
   // metrics when the session goes.
