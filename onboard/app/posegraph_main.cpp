@@ -132,7 +132,9 @@ int main(int argc, char** argv) {
       summary.iterations, summary.termination.c_str(), solve_seconds, summary.factorise_seconds,
       summary.evaluate_seconds, summary.factor_nonzeros);
   printCosts("solved", problem);
-  if (weights == "isotropic" && certify == "auto") {
+  if (weights == "isotropic" && certify == "auto" && !summary.converged) {
+    std::printf("not certified: the solver did not converge (%s)\n", summary.termination.c_str());
+  } else if (weights == "isotropic" && certify == "auto") {
     const Certificate certificate = certifyOptimum(problem);
     if (certificate.global) {
       std::printf(

@@ -36,6 +36,7 @@ void PadTracker::reset() {
   track_ = {};
   previous_pyramid_.clear();
   last_size_px_ = 0;
+  reduced_failures_ = 0;
 }
 
 bool PadTracker::follow(const cv::Mat& grey, std::string& why_not) {
@@ -90,9 +91,13 @@ bool PadTracker::follow(const cv::Mat& grey, std::string& why_not) {
 void PadTracker::detect(const cv::Mat& grey, const std::string& why_tracking_stopped) {
   const TrackState before = track_.state;
   DetectorOptions detector = options_.detector;
-  if (last_size_px_ >= options_.reduce_above_px) detector.reduce = 2;
+  const bool whole_due =
+      options_.full_search_every > 0 &&
+      reduced_failures_ % options_.full_search_every == options_.full_search_every - 1;
+  if (last_size_px_ >= options_.reduce_above_px && !whole_due) detector.reduce = 2;
   const PadDetection found = detectPad(grey, detector);
   track_.detected = true;
+  reduced_failures_ = found ? 0 : reduced_failures_ + (last_size_px_ >= options_.reduce_above_px);
   if (found) {
     last_size_px_ = sizeOf(found.corners);
     track_.state = TrackState::kTracking;

@@ -34,6 +34,9 @@ struct TrackerOptions {
   // seen at least this large (the square root of its area in pixels: 60 at 20 m, 150 at 8 m,
   // 240 at 5 m with f = 492 px). Its corners are still refined on the whole image.
   double reduce_above_px = 150;
+  // While the reduced search keeps failing, every this many-th full detection is on the whole
+  // image (the pad may have become small again: a go-around), so it is found at any size.
+  int full_search_every = 10;
 };
 
 struct PadTrack {
@@ -58,7 +61,8 @@ class PadTracker {
 
   TrackerOptions options_;
   PadTrack track_;
-  double last_size_px_ = 0;  // the pad's size when last tracked (reduce_above_px)
+  double last_size_px_ = 0;   // the pad's size when last tracked (reduce_above_px)
+  int reduced_failures_ = 0;  // full detections on the reduced image that found nothing
   std::vector<cv::Mat> previous_pyramid_;
 };
 

@@ -119,7 +119,10 @@ void Outbox::watchServer(int64_t now_ns, bool server_present) {
 
 size_t Outbox::closeSession(const std::string& session) {
   closed_ = true;
-  return options_.keep_when_closed ? 0 : spool_->giveUp(session);
+  if (options_.keep_when_closed) return 0;
+  const size_t given_up = spool_->giveUp(session);
+  spool_->sync(/*force=*/true);  // given up for good, even if the process is killed next
+  return given_up;
 }
 
 void Outbox::resend(int64_t now_ns, bool server_present) {

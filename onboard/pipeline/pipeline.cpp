@@ -79,6 +79,16 @@ common::Status VehiclePublisher::write(const link::SpoolRecord& record) {
 
 using common::steadyNs;
 
+namespace {
+// A text from the network as it may go into a log: printable ASCII, anything else '?'.
+std::string printable(std::string text) {
+  for (char& c : text) {
+    if (c < 0x20 || c > 0x7e) c = '?';
+  }
+  return text;
+}
+}  // namespace
+
 template <typename Message>
 common::Status VehiclePublisher::send(Message& message) {
   if (outbox_) return outbox_->send(message, steadyNs());
@@ -96,6 +106,7 @@ common::Status VehiclePublisher::publish(proto::PoseCorrectionMsg& correction) {
   return send(correction);
 }
 common::Status VehiclePublisher::publish(const proto::LandingTargetMsg& target) {
+  if (outbox_ && outbox_->closed()) return common::Ok{};  // the server takes nothing more
   if (outbox_) outbox_->charge(proto::wireBytes(target), steadyNs());
   return landing_->write(target);
 }
@@ -107,8 +118,12 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
   for (const auto& ack : ack_batch_) {
     if (ack.status == proto::AckStatus::kSessionClosed && ack.session_id == session_id_ &&
         ack.vehicle_id == outbox_->options().vehicle_id) {
-      if (!outbox_->closed()) {
-        closed_because_ = ack.reason.empty() ? "the server closed it" : ack.reason;
+      // Only for a stream of ours (this process's, or one its spool holds samples of).
+      const auto streams = outbox_->spool().streams();
+      const bool ours = ack.stream == outbox_->stream() ||
+                        std::find(streams.begin(), streams.end(), ack.stream) != streams.end();
+      if (ours && !outbox_->closed()) {
+        closed_because_ = printable(ack.reason.empty() ? "the server closed it" : ack.reason);
         const size_t held = outbox_->spool().stats().held;
         const size_t given_up = outbox_->closeSession(session_id_);
         spdlog::warn(
@@ -137,6 +152,7 @@ bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() >
 size_t VehiclePublisher::publishStatus(proto::VehicleStatusMsg status) {
   const auto now = Clock::now();
   if (now - last_status_ < kStatusEvery) return 0;
+  if (outbox_ && outbox_->closed()) return 0;  // the server keeps no status of a closed session
   last_status_ = now;
   status.session_id = session_id_;
   status.stamp_ns = common::nowNs();

@@ -35,9 +35,6 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
       proto::Reader<proto::SessionEventMsg>::create(participant, {proto::kEverySessionPartition});
   if (!events) return events.error();
   node->events_ = std::move(events).value();
-  auto closed_acks = proto::Writer<proto::AckMsg>::create(participant, proto::everyPartition());
-  if (!closed_acks) return closed_acks.error();
-  node->closed_acks_ = std::move(closed_acks).value();
   journal.onFenced([raw = node.get()](const std::string& session, const std::string& why) {
     std::lock_guard lock(raw->mutex_);
     raw->fenced_[session] = why;
@@ -64,8 +61,12 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     ingest::sendAcksUntil(
         raw->server_,
         [raw](const proto::AckMsg& ack) -> common::Status {
-          // A closed session's answer: no server reads its partition, this writer writes all.
-          if (ack.status == proto::AckStatus::kSessionClosed) return raw->closed_acks_->write(ack);
+          // A closed session's answer: no server reads its partition (closedAckWriter).
+          if (ack.status == proto::AckStatus::kSessionClosed) {
+            auto writer = raw->closedAckWriter(ack.session_id);
+            if (!writer) return writer.error();
+            return (*writer)->write(ack);
+          }
           std::lock_guard lock(raw->mutex_);
           const auto served = raw->served_.find(ack.session_id);
           if (served == raw->served_.end() || !served->second.acks) {
@@ -619,6 +620,20 @@ void ClusterNode::serve(const Ownership& placed) {
       has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
       common::msSince(started) / 1000,
       unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
+}
+
+common::Result<proto::Writer<proto::AckMsg>*> ClusterNode::closedAckWriter(
+    const std::string& session) {
+  auto found = closed_ack_writers_.find(session);
+  if (found == closed_ack_writers_.end()) {
+    // A writer in the session's partition only: its vehicles hear it, no other vehicle does.
+    if (closed_ack_writers_.size() >= kMaxClosedAckWriters) closed_ack_writers_.clear();
+    auto writer =
+        proto::Writer<proto::AckMsg>::create(participant_, {proto::sessionPartition(session)});
+    if (!writer) return writer.error();
+    found = closed_ack_writers_.emplace(session, std::move(writer).value()).first;
+  }
+  return found->second.get();
 }
 
 void ClusterNode::answerClosed(const std::string& session,

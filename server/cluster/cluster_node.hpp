@@ -133,9 +133,12 @@ class ClusterNode {
   // at most kMaxAnnouncers per session.
   std::map<std::string, std::set<std::pair<std::string, uint64_t>>> announcers_;
   static constexpr size_t kMaxAnnouncers = 64;
-  // Acknowledgements for sessions no server reads (AckStatus::kSessionClosed), in every
-  // session's partition.
-  std::unique_ptr<proto::Writer<proto::AckMsg>> closed_acks_;
+  // Writers of acknowledgements for sessions no server reads (AckStatus::kSessionClosed), one
+  // in each such session's partition; the acknowledgements thread's alone. At most
+  // kMaxClosedAckWriters (then made again as needed).
+  common::Result<proto::Writer<proto::AckMsg>*> closedAckWriter(const std::string& session);
+  std::map<std::string, std::unique_ptr<proto::Writer<proto::AckMsg>>> closed_ack_writers_;
+  static constexpr size_t kMaxClosedAckWriters = 64;
   std::map<std::string, std::string> fenced_;  // sessions the database fenced: why
   bool database_down_ = false;                 // under mutex_: the lease could not be renewed
   bool superseded_ = false;                    // under mutex_

@@ -165,10 +165,14 @@ TEST(MapServer, AClosedSessionsVehicleIsAnsweredAndAVehiclesCountersAreKept) {
   EXPECT_EQ(answers[0].vehicle_id, "v1");
   EXPECT_EQ(answers[0].stream, 5u);
   EXPECT_EQ(answers[1].vehicle_id, "v2");
+  const auto told = std::chrono::steady_clock::now();
   auto again = testing::wallFrame("a", 2.05, 4);
   again.stream = 5;
   EXPECT_FALSE(server.ingest(again));
-  EXPECT_TRUE(server.takeAcks().empty()) << "told less than a second ago";
+  const auto soon = server.takeAcks();
+  if (std::chrono::steady_clock::now() - told < MapServer::kClosedAnswerEvery / 2) {
+    EXPECT_TRUE(soon.empty()) << "told less than a second ago";
+  }
   std::this_thread::sleep_for(MapServer::kClosedAnswerEvery);
   EXPECT_EQ(server.takeAcks().size(), 1u) << "it still sends: told again";
   EXPECT_TRUE(server.takeAcks().empty()) << "nothing came since";

@@ -129,6 +129,14 @@ std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& 
 std::optional<Rejection> validateVehicleStatus(const proto::VehicleStatusMsg& status) {
   if (auto bad = checkIds(status.vehicle_id, status.session_id)) return bad;
   if (status.stamp_ns < 0) return Rejection{"bad_stamp", "stamp_ns is negative"};
+  // Counts go to JSON and to the viewer, whose numbers are exact only below 2^53: a count
+  // beyond could not be real anyway.
+  constexpr uint64_t kMaxCount = (uint64_t{1} << 53) - 1;
+  for (const uint64_t count :
+       {status.frames, status.skipped_frames, status.late_frames, status.spool_samples,
+        status.spool_bytes, status.given_up, status.held_back}) {
+    if (count > kMaxCount) return Rejection{"oversize", "a count beyond 2^53"};
+  }
   return std::nullopt;
 }
 

@@ -57,7 +57,7 @@ std::optional<Rejection> validatePoseCorrection(const proto::PoseCorrectionMsg& 
 // A landing target: ids, a reason of printable ASCII, every number finite, unit
 // quaternions, covariances with a non-negative diagonal, a distance >= 0.
 std::optional<Rejection> validateLandingTarget(const proto::LandingTargetMsg& target);
-// Ids; a stamp that is not negative.
+// Ids; a stamp that is not negative; counts below 2^53 (exact in JSON and JavaScript).
 std::optional<Rejection> validateVehicleStatus(const proto::VehicleStatusMsg& status);
 
 }  // namespace stereomap::core

@@ -76,7 +76,7 @@ export function statusText(link, session) {
  * One line per vehicle of a session from its own counters (protocol.js: the status's
  * vehicleStatus): what an operator needs to see of a vehicle they cannot reach. The spool
  * always; the other counts only when not zero. "sim-1: spool 3 samples (8.3 kB) · 2 frames
- * skipped · session closed by the server, 40 samples held back".
+ * skipped". (A vehicle told its session is closed sends no more status: the server keeps none.)
  */
 export function vehicleLines(vehicleStatus) {
   return (vehicleStatus ?? []).map((v) => {
@@ -84,7 +84,6 @@ export function vehicleLines(vehicleStatus) {
     if (v.skippedFrames > 0) parts.push(`${plural(v.skippedFrames, 'frame')} skipped`);
     if (v.lateFrames > 0) parts.push(`${plural(v.lateFrames, 'frame')} late`);
     if (v.givenUp > 0) parts.push(`${plural(v.givenUp, 'sample')} given up`);
-    if (v.sessionClosed) parts.push(`session closed by the server, ${plural(v.heldBack, 'sample')} held back`);
     return `${v.vehicleId}: ${parts.join(' · ')}`;
   });
 }

@@ -57,6 +57,6 @@ describe('vehicleLines', () => {
     expect(vehicleLines([{ vehicleId: 'sim-1', spoolSamples: 1, spoolBytes: 0, skippedFrames: 0, lateFrames: 0, givenUp: 0, heldBack: 0, sessionClosed: false }]))
       .toEqual(['sim-1: spool 1 sample']);
     expect(vehicleLines([{ vehicleId: 'uav-2', spoolSamples: 1234, spoolBytes: 8300, skippedFrames: 2, lateFrames: 1, givenUp: 5, heldBack: 40, sessionClosed: true }]))
-      .toEqual(['uav-2: spool 1,234 samples (8.3 kB) · 2 frames skipped · 1 frame late · 5 samples given up · session closed by the server, 40 samples held back']);
+      .toEqual(['uav-2: spool 1,234 samples (8.3 kB) · 2 frames skipped · 1 frame late · 5 samples given up']);
   });
 });
