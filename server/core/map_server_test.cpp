@@ -138,6 +138,11 @@ TEST(MapServer, AClosedSessionsVehicleIsAnsweredAndAVehiclesCountersAreKept) {
   ASSERT_EQ(status.vehicle_status.size(), 1u);
   EXPECT_EQ(status.vehicle_status[0].status.spool_samples, 12u);
   EXPECT_EQ(status.vehicle_status[0].status.skipped_frames, 3u);
+  auto huge = counters;
+  huge.stamp_ns = 11;
+  huge.spool_bytes = UINT64_MAX;  // not exact in JSON or the viewer: refused
+  EXPECT_FALSE(server.ingest(huge));
+  EXPECT_EQ(server.find("a")->status().vehicle_status[0].status.spool_bytes, 0u);
   auto stranger = counters;
   stranger.session_id = "nowhere";
   EXPECT_FALSE(server.ingest(stranger));  // makes no session
