@@ -4,8 +4,10 @@
 
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <map>
 #include <mutex>
+#include <unordered_map>
 
 #include "proto/detail/qos.hpp"
 #include "stereomap.h"
@@ -472,6 +474,23 @@ Result<dds_entity_t> createTopic(dds_entity_t participant) {
   return topic;
 }
 
+// Who a writer in `partition` is: with DDS Security only the certificate whose common name is
+// V may write in "sm/<session>/v/V" (stereomap-certs' permissions).
+std::string writerIdentity(const std::string& partition) {
+  const auto at = partition.rfind("/v/");
+  if (partition.rfind("sm/", 0) != 0 || at == std::string::npos ||
+      partition.find(',') != std::string::npos) {
+    return "";
+  }
+  return ", certificate CN=" + partition.substr(at + 3) + " when secured";
+}
+
+// The IDL type's name ("Pose"): topic names are "stereomap_" and it.
+template <typename T>
+std::string topicType() {
+  return std::string(Topic<T>::kName).substr(std::strlen("stereomap_"));
+}
+
 // Waits on `waitset` until `done()` or the deadline; the waitset wakes on status changes.
 template <typename Done>
 bool waitUntil(dds_entity_t waitset, std::chrono::milliseconds timeout, Done done) {
@@ -485,7 +504,65 @@ bool waitUntil(dds_entity_t waitset, std::chrono::milliseconds timeout, Done don
   return true;
 }
 
+// Files of a security folder (stereomap-certs): Cyclone's property, the file, required.
+struct SecurityFile {
+  const char* property;
+  const char* file;
+  bool required;
+};
+constexpr SecurityFile kSecurityFiles[] = {
+    {"dds.sec.auth.identity_ca", "identity_ca.pem", true},
+    {"dds.sec.auth.identity_certificate", "identity.pem", true},
+    {"dds.sec.auth.private_key", "identity.key", true},
+    {"dds.sec.access.permissions_ca", "permissions_ca.pem", true},
+    {"dds.sec.access.governance", "governance.p7s", true},
+    {"dds.sec.access.permissions", "permissions.p7s", true},
+    // Cyclone's own name for it, not dds.sec.auth.crl (dds_security_api_defs.h).
+    {"org.eclipse.cyclonedds.sec.auth.crl", "crl.pem", false},
+};
+
+// A participant QoS carrying the DDS Security plugins and the identity in `dir` (checked).
+// Given as QoS, not XML, so one process can hold participants of several identities.
+dds_qos_t* securityQos(const std::string& dir) {
+  dds_qos_t* qos = dds_create_qos();
+  const std::pair<const char*, const char*> libraries[] = {
+      {"dds.sec.auth.library.path", "dds_security_auth"},
+      {"dds.sec.auth.library.init", "init_authentication"},
+      {"dds.sec.auth.library.finalize", "finalize_authentication"},
+      {"dds.sec.crypto.library.path", "dds_security_crypto"},
+      {"dds.sec.crypto.library.init", "init_crypto"},
+      {"dds.sec.crypto.library.finalize", "finalize_crypto"},
+      {"dds.sec.access.library.path", "dds_security_ac"},
+      {"dds.sec.access.library.init", "init_access_control"},
+      {"dds.sec.access.library.finalize", "finalize_access_control"},
+  };
+  for (const auto& [name, value] : libraries) dds_qset_prop(qos, name, value);
+  const auto absolute = std::filesystem::absolute(dir);
+  for (const auto& file : kSecurityFiles) {
+    const auto path = absolute / file.file;
+    if (!file.required && !std::filesystem::exists(path)) continue;
+    dds_qset_prop(qos, file.property, ("file:" + path.string()).c_str());
+  }
+  return qos;
+}
+
 }  // namespace
+
+Status checkSecurityDir(const std::string& dir) {
+  std::error_code error;
+  if (!std::filesystem::is_directory(dir, error)) {
+    return makeError(ErrorCode::kNotFound, "security folder '" + dir +
+                                               "' does not exist (make one with stereomap-certs)");
+  }
+  for (const auto& file : kSecurityFiles) {
+    const auto path = std::filesystem::path(dir) / file.file;
+    if (file.required && !std::filesystem::is_regular_file(path, error)) {
+      return makeError(ErrorCode::kNotFound, "security folder '" + dir + "' lacks " + file.file +
+                                                 " (stereomap-certs server|vehicle makes it)");
+    }
+  }
+  return common::Ok{};
+}
 
 // --- Participant ------------------------------------------------------------------------
 
@@ -506,11 +583,27 @@ Result<std::shared_ptr<Participant>> Participant::create(const DdsOptions& optio
   auto domain = acquireDomain(options);
   if (!domain) return domain.error();
   impl->domain = *domain;
-  impl->participant = dds_create_participant(options.domain_id, nullptr, nullptr);
+  QosPtr qos;
+  if (!options.security_dir.empty()) {
+    if (auto checked = checkSecurityDir(options.security_dir); !checked) return checked.error();
+    if (options.domain_id > kMaxSecureDomain) {
+      return makeError(ErrorCode::kInvalidArgument, "DDS Security's governance covers domains 0-" +
+                                                        std::to_string(kMaxSecureDomain) +
+                                                        " only (Cyclone's parser): not " +
+                                                        std::to_string(options.domain_id));
+    }
+    qos.reset(securityQos(options.security_dir));
+  }
+  impl->participant = dds_create_participant(options.domain_id, qos.get(), nullptr);
   if (impl->participant < 0) {
     const dds_return_t rc = impl->participant;
     impl->participant = 0;
-    return ddsError("cannot create DDS participant on domain " + std::to_string(options.domain_id),
+    return ddsError("cannot create DDS participant on domain " + std::to_string(options.domain_id) +
+                        (options.security_dir.empty()
+                             ? std::string()
+                             : " with the identity in " + options.security_dir +
+                                   " (expired, revoked, or not signed by the deployment's CAs? "
+                                   "Cyclone's log says which)"),
                     rc);
   }
   return std::shared_ptr<Participant>(new Participant(std::move(impl)));
@@ -589,12 +682,45 @@ struct Reader<T>::Impl {
   dds_entity_t reader = 0;
   dds_entity_t waitset = 0;
   dds_entity_t guard = 0;
+  bool bind_to_writer = false;
+  // The partition(s) each matched writer wrote in, by publication handle (bind_to_writer).
+  std::unordered_map<dds_instance_handle_t, std::string> writer_partitions;
+  const std::string& writerPartition(dds_instance_handle_t writer);
   ~Impl() {
     if (waitset > 0) dds_delete(waitset);
     if (guard > 0) dds_delete(guard);
     if (reader > 0) dds_delete(reader);
   }
 };
+
+// "" for a writer no longer matched (or in no partition), else its partitions joined by ','
+// (never a valid vehiclePartition when more than one).
+template <typename T>
+const std::string& Reader<T>::Impl::writerPartition(dds_instance_handle_t writer) {
+  if (auto found = writer_partitions.find(writer); found != writer_partitions.end()) {
+    return found->second;
+  }
+  // Bounded: writers come and go over a server's life; a miss costs one lookup.
+  if (writer_partitions.size() >= 4096) writer_partitions.clear();
+  std::string joined;
+  if (dds_builtintopic_endpoint_t* endpoint = dds_get_matched_publication_data(reader, writer)) {
+    uint32_t count = 0;
+    char** names = nullptr;
+    if (endpoint->qos != nullptr && dds_qget_partition(endpoint->qos, &count, &names)) {
+      for (uint32_t i = 0; i < count; ++i) {
+        if (i > 0) joined += ',';
+        joined += names[i];
+        dds_free(names[i]);
+      }
+      dds_free(names);
+    }
+    dds_builtintopic_free_endpoint(endpoint);
+  } else {
+    static const std::string kUnknown;
+    return kUnknown;  // not cached: it may match later
+  }
+  return writer_partitions.emplace(writer, std::move(joined)).first->second;
+}
 
 template <typename T>
 Reader<T>::Reader(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -603,9 +729,11 @@ Reader<T>::~Reader() = default;
 
 template <typename T>
 Result<std::unique_ptr<Reader<T>>> Reader<T>::create(
-    const std::shared_ptr<Participant>& participant, const std::vector<std::string>& partitions) {
+    const std::shared_ptr<Participant>& participant, const std::vector<std::string>& partitions,
+    bool bind_to_writer) {
   auto impl = std::make_unique<Impl>();
   impl->participant = participant;
+  impl->bind_to_writer = bind_to_writer;
   auto topic = createTopic<T>(participant->handle());
   if (!topic) return topic.error();
   QosPtr qos(Topic<T>::readerQos());
@@ -644,14 +772,29 @@ size_t Reader<T>::take(std::vector<T>& out, std::chrono::milliseconds timeout,
       // Cyclone has already checked the IDL bounds (strings, sequences); the enumerations are
       // plain integers on the wire (stereomap.idl), checked here.
       const auto& c = *static_cast<const typename Topic<T>::C*>(samples[i]);
+      if (impl_->bind_to_writer) {
+        const std::string& written_in = impl_->writerPartition(infos[i].publication_handle);
+        const std::string vehicle = readId(c.vehicle_id);
+        const std::string session = readId(c.session_id);
+        if (written_in != vehiclePartition(session, vehicle)) {
+          if (refused != nullptr) {
+            refused->push_back({topicType<T>(), vehicle, session,
+                                "written as vehicle '" + vehicle + "' of session '" + session +
+                                    "' by a writer in partition '" + written_in + "'" +
+                                    writerIdentity(written_in) +
+                                    " (a vehicle writes only in sm/<session>/v/<its id>)",
+                                "identity", written_in});
+          }
+          continue;
+        }
+      }
       auto message = Topic<T>::fromC(c);
       if (message) {
         out.push_back(std::move(message).value());
         ++appended;
       } else if (refused != nullptr) {
-        // Topic names are "stereomap_" and the IDL type's name.
-        refused->push_back({std::string(Topic<T>::kName).substr(std::strlen("stereomap_")),
-                            readId(c.vehicle_id), readId(c.session_id), message.error().message});
+        refused->push_back(
+            {topicType<T>(), readId(c.vehicle_id), readId(c.session_id), message.error().message});
       }
     }
     dds_return_loan(impl_->reader, samples, n);
@@ -686,9 +829,11 @@ template class Reader<LandingTargetMsg>;
 template class Reader<AckMsg>;
 template class Reader<VehicleStatusMsg>;
 
-std::string sessionPartition(const std::string& session_id) { return "sm." + session_id; }
+std::string vehiclePartition(const std::string& session_id, const std::string& vehicle_id) {
+  return "sm/" + session_id + "/v/" + vehicle_id;
+}
 
-std::vector<std::string> everyPartition() { return {"", kEverySessionPartition}; }
+std::string sessionPartitions(const std::string& session_id) { return "sm/" + session_id + "/v/*"; }
 
 const char* loopbackConfigXml() {
   return R"(<CycloneDDS><Domain Id="any"><General>

@@ -24,7 +24,17 @@ struct DdsOptions {
   // Cyclone XML configuration file. Empty: $CYCLONEDDS_URI if set, else the built-in
   // loopback-only configuration (unicast on 127.0.0.1), so nothing leaves the host by accident.
   std::string config_file;
+  // DDS Security: a folder made by stereomap-certs for this participant's identity
+  // (identity_ca.pem, identity.pem, identity.key, permissions_ca.pem, governance.p7s,
+  // permissions.p7s, and crl.pem when present). Empty: no security (the loopback config).
+  std::string security_dir;
 };
+
+// The files a security folder must hold (see DdsOptions::security_dir), checked before Cyclone
+// sees them so a missing file is named.
+common::Status checkSecurityDir(const std::string& dir);
+// Cyclone 0.10.2's governance and permissions parsers take domain ids up to 230.
+inline constexpr uint32_t kMaxSecureDomain = 230;
 
 class Participant {
  public:
@@ -41,15 +51,17 @@ class Participant {
   std::unique_ptr<Impl> impl_;
 };
 
-// DDS partitions route a session's samples: a vehicle writes (and reads its acknowledgements)
-// in its session's partition, "sm.<session>"; a single server reads every one ("sm.*", and
-// the default partition "" for writers that name none); in a cluster only a session's owner
-// reads its partition (docs/PROTOCOL.md, "Partitions"). Session ids cannot hold '*' or '?'
-// (core::isValidId), so no id is a wildcard.
-std::string sessionPartition(const std::string& session_id);
-inline constexpr const char* kEverySessionPartition = "sm.*";
-// What a single server reads and writes in: every session's partition and the default one.
-std::vector<std::string> everyPartition();
+// DDS partitions route a session's samples and carry who sent them: vehicle V writes (and
+// reads its acknowledgements) in "sm/<session>/v/V" only; a single server reads every one
+// ("sm/*"); in a cluster only a session's owner reads "sm/<session>/v/*" (docs/PROTOCOL.md,
+// "Partitions"). Ids cannot hold '/', '*' or '?' (core::isValidId), so the partition names
+// its session and vehicle unambiguously and is never a wildcard. With DDS Security a
+// vehicle's signed permissions allow it only its own partitions: a sample's partition is then
+// its writer's proven identity, and a reader made with `bind_to_writer` refuses a sample whose
+// vehicle_id is not the one its writer's partition names.
+std::string vehiclePartition(const std::string& session_id, const std::string& vehicle_id);
+std::string sessionPartitions(const std::string& session_id);  // every vehicle of a session
+inline constexpr const char* kEverySessionPartition = "sm/*";
 
 // One writer of topic T (a message of messages.hpp) with T's QoS preset, in `partitions`
 // (none: the default partition).
@@ -86,15 +98,21 @@ struct RefusedSample {
   std::string vehicle_id;
   std::string session_id;
   std::string detail;
+  // "bad_enum" (a value out of range) or "identity" (written by a writer whose partition names
+  // another vehicle or session, or none: see vehiclePartition).
+  std::string reason = "bad_enum";
+  std::string writer_partition;  // for "identity": the partition(s) its writer wrote in
 };
 
 template <typename T>
 class Reader {
  public:
-  // In `partitions` (none: the default partition); a name may be a wildcard ("sm.*").
+  // In `partitions` (none: the default partition); a name may be a wildcard ("sm/*").
+  // `bind_to_writer`: a sample is taken only when its writer wrote in exactly
+  // vehiclePartition(sample.session_id, sample.vehicle_id); the rest go to `refused`.
   static common::Result<std::unique_ptr<Reader>> create(
       const std::shared_ptr<Participant>& participant,
-      const std::vector<std::string>& partitions = {});
+      const std::vector<std::string>& partitions = {}, bool bind_to_writer = false);
   ~Reader();
   // Waits up to `timeout` for samples (or wake()), then appends every available valid sample
   // to `out`, and each one refused by its type's checks to `refused` when given. Returns the

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <thread>
 #include <typeinfo>
 
@@ -349,22 +350,24 @@ TEST(Dds, BadConfigFileIsAClearError) {
 namespace stereomap::proto {
 namespace {
 
-// Partitions route a session's samples (sessionPartition): a vehicle in "sm.a" reaches the
-// wildcard and the session's own readers, never another session's; a single server's
-// every-partition writer reaches readers of a session and of the default partition.
+// Partitions route a session's samples (vehiclePartition): vehicle v of session a writes in
+// "sm/a/v/v", which reaches the single server's wildcard, the cluster owner's session reader and
+// v's own, never another session's or another vehicle's; the server's acknowledgement in v's
+// partition reaches v alone.
 TEST(Dds, PartitionsRouteASessionsSamples) {
   auto participant = makeParticipant();
-  auto everything = Reader<PoseMsg>::create(participant, everyPartition());
   auto wildcard = Reader<PoseMsg>::create(participant, {kEverySessionPartition});
-  auto own = Reader<PoseMsg>::create(participant, {sessionPartition("a")});
-  auto other = Reader<PoseMsg>::create(participant, {sessionPartition("b")});
+  auto session = Reader<PoseMsg>::create(participant, {sessionPartitions("a")});
+  auto own = Reader<PoseMsg>::create(participant, {vehiclePartition("a", "v")});
+  auto other = Reader<PoseMsg>::create(participant, {sessionPartitions("b")});
+  auto other_vehicle = Reader<PoseMsg>::create(participant, {vehiclePartition("a", "w")});
   auto plain = Reader<PoseMsg>::create(participant);
-  ASSERT_TRUE(everything && wildcard && own && other && plain);
-  auto vehicle = Writer<PoseMsg>::create(participant, {sessionPartition("a")});
+  ASSERT_TRUE(wildcard && session && own && other && other_vehicle && plain);
+  auto vehicle = Writer<PoseMsg>::create(participant, {vehiclePartition("a", "v")});
   ASSERT_TRUE(vehicle);
   ASSERT_TRUE((*vehicle)->waitForReaders(3, 5s));
   std::this_thread::sleep_for(300ms);  // a wrong match would show by now
-  EXPECT_EQ((*vehicle)->matchedReaders(), 3) << "everything, wildcard and own; not b, not plain";
+  EXPECT_EQ((*vehicle)->matchedReaders(), 3) << "wildcard, session and own; not b, w, plain";
 
   PoseMsg pose;
   pose.vehicle_id = "v";
@@ -373,24 +376,67 @@ TEST(Dds, PartitionsRouteASessionsSamples) {
   ASSERT_TRUE((*vehicle)->write(pose));
   EXPECT_EQ(takeAtLeast(**own, 1).size(), 1u);
   EXPECT_EQ(takeAtLeast(**wildcard, 1).size(), 1u);
-  EXPECT_EQ(takeAtLeast(**everything, 1).size(), 1u);
+  EXPECT_EQ(takeAtLeast(**session, 1).size(), 1u);
   std::vector<PoseMsg> none;
   (*other)->take(none, 200ms);
+  (*other_vehicle)->take(none, 0ms);
   (*plain)->take(none, 0ms);
   EXPECT_TRUE(none.empty());
 
-  // A writer that names no partition (an older vehicle, a tool) reaches the single server.
-  auto unnamed = Writer<PoseMsg>::create(participant);
-  ASSERT_TRUE(unnamed);
-  ASSERT_TRUE((*unnamed)->waitForReaders(2, 5s));
-  std::this_thread::sleep_for(300ms);
-  EXPECT_EQ((*unnamed)->matchedReaders(), 2) << "everything and plain";
-
-  // The single server's acknowledgements reach a vehicle reading in its session's partition.
-  auto vehicle_acks = Reader<AckMsg>::create(participant, {sessionPartition("a")});
-  auto server_acks = Writer<AckMsg>::create(participant, everyPartition());
-  ASSERT_TRUE(vehicle_acks && server_acks);
+  auto v_acks = Reader<AckMsg>::create(participant, {vehiclePartition("a", "v")});
+  auto w_acks = Reader<AckMsg>::create(participant, {vehiclePartition("a", "w")});
+  auto server_acks = Writer<AckMsg>::create(participant, {vehiclePartition("a", "v")});
+  ASSERT_TRUE(v_acks && w_acks && server_acks);
   EXPECT_TRUE((*server_acks)->waitForReaders(1, 5s));
+  std::this_thread::sleep_for(300ms);
+  EXPECT_EQ((*server_acks)->matchedReaders(), 1) << "v's reader only";
+}
+
+// A reader bound to its writers (the server's) takes a sample only when its writer's partition
+// names the sample's own session and vehicle: vehicle v cannot write as w, nor into session b.
+TEST(Dds, ABoundReaderRefusesASampleItsWriterMayNotSend) {
+  auto participant = makeParticipant();
+  auto server = Reader<PoseMsg>::create(participant, {kEverySessionPartition}, true);
+  auto vehicle = Writer<PoseMsg>::create(participant, {vehiclePartition("a", "v")});
+  ASSERT_TRUE(server && vehicle);
+  ASSERT_TRUE((*vehicle)->waitForReaders(1, 5s));
+  PoseMsg pose;
+  pose.session_id = "a";
+  pose.orientation = {0, 0, 0, 1};
+  for (const char* as : {"v", "w", "v"}) {
+    pose.vehicle_id = as;
+    ASSERT_TRUE((*vehicle)->write(pose));
+  }
+  pose.vehicle_id = "v";
+  pose.session_id = "b";
+  ASSERT_TRUE((*vehicle)->write(pose));
+  std::vector<PoseMsg> taken;
+  std::vector<RefusedSample> refused;
+  for (int i = 0; i < 50 && taken.size() + refused.size() < 4; ++i) {
+    (*server)->take(taken, 100ms, &refused);
+  }
+  ASSERT_EQ(taken.size(), 2u);
+  EXPECT_EQ(taken[0].vehicle_id, "v");
+  ASSERT_EQ(refused.size(), 2u);
+  for (const auto& sample : refused) {
+    EXPECT_EQ(sample.reason, "identity");
+    EXPECT_EQ(sample.writer_partition, "sm/a/v/v");
+    EXPECT_NE(sample.detail.find("CN=v"), std::string::npos) << sample.detail;
+  }
+  EXPECT_EQ(refused[0].vehicle_id, "w");
+  EXPECT_EQ(refused[1].session_id, "b");
+}
+
+// A security folder lacking a file is named before Cyclone sees it.
+TEST(Dds, ASecurityFolderLackingAFileIsNamed) {
+  const auto dir = std::filesystem::temp_directory_path() / "stereomap-dds-security-test";
+  std::filesystem::create_directories(dir);
+  auto participant = Participant::create(
+      {.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG, .security_dir = dir.string()});
+  ASSERT_FALSE(participant.ok());
+  EXPECT_NE(participant.error().message.find("identity_ca.pem"), std::string::npos)
+      << participant.error().message;
+  std::filesystem::remove_all(dir);
 }
 
 }  // namespace

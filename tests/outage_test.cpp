@@ -135,9 +135,9 @@ TEST_F(OutageTest, ForgedAcknowledgementsCostNothing) {
   auto participant =
       proto::Participant::create({.domain_id = kForgedDomain, .config_file = STEREOMAP_DDS_CONFIG});
   ASSERT_TRUE(participant.ok()) << participant.error().message;
-  auto poses = proto::Reader<proto::PoseMsg>::create(*participant, proto::everyPartition());
+  auto poses = proto::Reader<proto::PoseMsg>::create(*participant, {proto::kEverySessionPartition});
   // In every partition, as a forger who knows the protocol would write.
-  auto forger = proto::Writer<proto::AckMsg>::create(*participant, proto::everyPartition());
+  auto forger = proto::Writer<proto::AckMsg>::create(*participant, {proto::kEverySessionPartition});
   ASSERT_TRUE(poses.ok() && forger.ok());
   ChildProcess onboard(vehicle(kForgedDomain, "forged", 300, spool_), log_);
   // The vehicle's stream, as anyone on the network sees it.

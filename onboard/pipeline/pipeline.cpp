@@ -21,8 +21,8 @@ using common::msSince;
 
 template <typename T>
 common::Result<std::unique_ptr<proto::Writer<T>>> makeWriter(
-    const std::shared_ptr<proto::Participant>& participant, const std::string& session_id) {
-  return proto::Writer<T>::create(participant, {proto::sessionPartition(session_id)});
+    const std::shared_ptr<proto::Participant>& participant, const std::string& partition) {
+  return proto::Writer<T>::create(participant, {partition});
 }
 
 }  // namespace
@@ -31,17 +31,19 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
     const std::shared_ptr<proto::Participant>& participant, const std::string& session_id,
     std::unique_ptr<link::Spool> spool, const link::OutboxOptions& outbox) {
   auto publisher = std::unique_ptr<VehiclePublisher>(new VehiclePublisher());
-  auto events = makeWriter<proto::SessionEventMsg>(participant, session_id);
+  // The vehicle's own partition: with DDS Security the only one its permissions allow.
+  const std::string partition = proto::vehiclePartition(session_id, outbox.vehicle_id);
+  auto events = makeWriter<proto::SessionEventMsg>(participant, partition);
   if (!events) return events.error();
-  auto poses = makeWriter<proto::PoseMsg>(participant, session_id);
+  auto poses = makeWriter<proto::PoseMsg>(participant, partition);
   if (!poses) return poses.error();
-  auto clouds = makeWriter<proto::CloudFrameMsg>(participant, session_id);
+  auto clouds = makeWriter<proto::CloudFrameMsg>(participant, partition);
   if (!clouds) return clouds.error();
-  auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant, session_id);
+  auto corrections = makeWriter<proto::PoseCorrectionMsg>(participant, partition);
   if (!corrections) return corrections.error();
-  auto landing = makeWriter<proto::LandingTargetMsg>(participant, session_id);
+  auto landing = makeWriter<proto::LandingTargetMsg>(participant, partition);
   if (!landing) return landing.error();
-  auto status = makeWriter<proto::VehicleStatusMsg>(participant, session_id);
+  auto status = makeWriter<proto::VehicleStatusMsg>(participant, partition);
   if (!status) return status.error();
   publisher->status_ = std::move(status).value();
   publisher->session_id_ = session_id;
@@ -51,8 +53,7 @@ common::Result<std::unique_ptr<VehiclePublisher>> VehiclePublisher::create(
   publisher->corrections_ = std::move(corrections).value();
   publisher->landing_ = std::move(landing).value();
   if (spool) {
-    auto acks =
-        proto::Reader<proto::AckMsg>::create(participant, {proto::sessionPartition(session_id)});
+    auto acks = proto::Reader<proto::AckMsg>::create(participant, {partition});
     if (!acks) return acks.error();
     publisher->acks_ = std::move(acks).value();
     publisher->outbox_.emplace(

@@ -130,9 +130,10 @@ struct PipelineSummary {
 // (onboard/link/outbox.hpp); landing targets, only worth their moment, are sent once.
 class VehiclePublisher {
  public:
-  // Everything is written, and acknowledgements read, in the session's DDS partition
-  // (proto::sessionPartition). spool: null for samples sent once (DDS's own history covers
-  // an outage of a few seconds).
+  // Everything is written, and acknowledgements read, in the vehicle's own DDS partition
+  // (proto::vehiclePartition of the session and outbox.vehicle_id, which must be the
+  // vehicle_id of every sample: the server refuses the rest). spool: null for samples sent
+  // once (DDS's own history covers an outage of a few seconds).
   static common::Result<std::unique_ptr<VehiclePublisher>> create(
       const std::shared_ptr<proto::Participant>& participant, const std::string& session_id,
       std::unique_ptr<link::Spool> spool = nullptr, const link::OutboxOptions& outbox = {});

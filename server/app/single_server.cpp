@@ -5,6 +5,7 @@
 #include <thread>
 
 #include "server/app/run.hpp"
+#include "server/ingest/ack_router.hpp"
 #include "server/ingest/dds_ingest.hpp"
 #include "server/interop/session_mcap.hpp"
 #include "server/store/session_journals.hpp"
@@ -99,10 +100,10 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   // recovery, they matched vehicles whose live poses then waited out the recovery in their
   // queues (a pose 200 ms old on arrival after a 5-minute outage; docs/BENCHMARKS.md); the
   // vehicles keep what is not acknowledged meanwhile.
-  auto ingest = ingest::DdsIngest::create(participant, proto::everyPartition(), /*events=*/true);
+  auto ingest =
+      ingest::DdsIngest::create(participant, {proto::kEverySessionPartition}, /*events=*/true);
   if (!ingest) return fail(ingest.error());
-  auto acks = proto::Writer<proto::AckMsg>::create(participant, proto::everyPartition());
-  if (!acks) return fail(acks.error());
+  ingest::AckRouter acks(participant);
 
   net::HttpServerOptions http_options = http;
   http_options.session_mcap = sessionMcap(server, [root = flags.store_dir](const std::string& id) {
@@ -115,7 +116,7 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   (*ingest)->start(server);
   std::thread ack_sender([&] {
     ingest::sendAcksUntil(
-        server, [&acks](const proto::AckMsg& ack) { return (*acks)->write(ack); },
+        server, [&acks](const proto::AckMsg& ack) { return acks.send(ack); },
         [&shutdown](std::chrono::milliseconds period) { return shutdown.waitFor(period); });
   });
   spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", flags.dds.domain_id,

@@ -61,18 +61,15 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     ingest::sendAcksUntil(
         raw->server_,
         [raw](const proto::AckMsg& ack) -> common::Status {
-          // A closed session's answer: no server reads its partition (closedAckWriter).
-          if (ack.status == proto::AckStatus::kSessionClosed) {
-            auto writer = raw->closedAckWriter(ack.session_id);
-            if (!writer) return writer.error();
-            return (*writer)->write(ack);
+          // A closed session's answer goes out though no server reads its partition.
+          if (ack.status != proto::AckStatus::kSessionClosed) {
+            std::lock_guard lock(raw->mutex_);
+            const auto served = raw->served_.find(ack.session_id);
+            if (served == raw->served_.end() || served->second.read_only) {
+              return common::Ok{};  // lost meanwhile, or opened read-only
+            }
           }
-          std::lock_guard lock(raw->mutex_);
-          const auto served = raw->served_.find(ack.session_id);
-          if (served == raw->served_.end() || !served->second.acks) {
-            return common::Ok{};  // lost meanwhile, or opened read-only
-          }
-          return served->second.acks->write(ack);
+          return raw->acks_.send(ack);
         },
         [raw](std::chrono::milliseconds period) { return !raw->sleepFor(period); });
   });
@@ -85,7 +82,8 @@ ClusterNode::ClusterNode(const ClusterNodeOptions& options, ClusterDb& db, Clust
       db_(db),
       journal_(journal),
       server_(server),
-      participant_(std::move(participant)) {}
+      participant_(participant),
+      acks_(std::move(participant)) {}
 
 ClusterNode::~ClusterNode() { stop(); }
 
@@ -581,18 +579,16 @@ void ClusterNode::serve(const Ownership& placed) {
       server_.forget(owned.session);
       return;
     }
-    served_[owned.session] = {owned.epoch, owned.resolution, true, nullptr, nullptr};
+    served_[owned.session] = {owned.epoch, owned.resolution, true, nullptr};
     spdlog::info("session '{}' opened read-only here (epoch {}): {} frames and {} poses",
                  owned.session, owned.epoch, frames, poses);
     return;
   }
   auto ingest =
-      ingest::DdsIngest::create(participant_, {proto::sessionPartition(owned.session)}, false);
-  auto acks =
-      proto::Writer<proto::AckMsg>::create(participant_, {proto::sessionPartition(owned.session)});
-  if (!ingest || !acks) {
+      ingest::DdsIngest::create(participant_, {proto::sessionPartitions(owned.session)}, false);
+  if (!ingest) {
     spdlog::error("session '{}': cannot read it from DDS: {}", owned.session,
-                  !ingest ? ingest.error().message : acks.error().message);
+                  ingest.error().message);
     journal_.drop(owned.session);
     server_.unload(owned.session);
     reread_ = true;
@@ -602,8 +598,7 @@ void ClusterNode::serve(const Ownership& placed) {
   {
     std::lock_guard lock(mutex_);
     if (!stopping_ && !superseded_) {
-      served_[owned.session] = {owned.epoch, owned.resolution, false, std::move(*ingest),
-                                std::move(*acks)};
+      served_[owned.session] = {owned.epoch, owned.resolution, false, std::move(*ingest)};
     }
   }
   if (*ingest) {  // stopped or superseded meanwhile: not this process's to serve after all
@@ -620,20 +615,6 @@ void ClusterNode::serve(const Ownership& placed) {
       has_snapshot ? fmt::format(" on its snapshot of record {}", snapshot_number) : "",
       common::msSince(started) / 1000,
       unreadable > 0 ? fmt::format("; {} unreadable records skipped", unreadable) : "");
-}
-
-common::Result<proto::Writer<proto::AckMsg>*> ClusterNode::closedAckWriter(
-    const std::string& session) {
-  auto found = closed_ack_writers_.find(session);
-  if (found == closed_ack_writers_.end()) {
-    // A writer in the session's partition only: its vehicles hear it, no other vehicle does.
-    if (closed_ack_writers_.size() >= kMaxClosedAckWriters) closed_ack_writers_.clear();
-    auto writer =
-        proto::Writer<proto::AckMsg>::create(participant_, {proto::sessionPartition(session)});
-    if (!writer) return writer.error();
-    found = closed_ack_writers_.emplace(session, std::move(writer).value()).first;
-  }
-  return found->second.get();
 }
 
 void ClusterNode::answerClosed(const std::string& session,

@@ -40,6 +40,7 @@
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/core/map_server.hpp"
+#include "server/ingest/ack_router.hpp"
 #include "server/ingest/dds_ingest.hpp"
 
 namespace stereomap::cluster {
@@ -93,7 +94,6 @@ class ClusterNode {
     double resolution = 0.1;
     bool read_only = false;  // opened: no readers, no acknowledgements
     std::unique_ptr<ingest::DdsIngest> ingest;
-    std::unique_ptr<proto::Writer<proto::AckMsg>> acks;
   };
   ClusterNode(const ClusterNodeOptions& options, ClusterDb& db, ClusterJournal& journal,
               core::MapServer& server, std::shared_ptr<proto::Participant> participant);
@@ -133,12 +133,9 @@ class ClusterNode {
   // at most kMaxAnnouncers per session.
   std::map<std::string, std::set<std::pair<std::string, uint64_t>>> announcers_;
   static constexpr size_t kMaxAnnouncers = 64;
-  // Writers of acknowledgements for sessions no server reads (AckStatus::kSessionClosed), one
-  // in each such session's partition; the acknowledgements thread's alone. At most
-  // kMaxClosedAckWriters (then made again as needed).
-  common::Result<proto::Writer<proto::AckMsg>*> closedAckWriter(const std::string& session);
-  std::map<std::string, std::unique_ptr<proto::Writer<proto::AckMsg>>> closed_ack_writers_;
-  static constexpr size_t kMaxClosedAckWriters = 64;
+  // The acknowledgements thread's alone: those of the sessions served here, and the answers
+  // of sessions no server reads (AckStatus::kSessionClosed).
+  ingest::AckRouter acks_;
   std::map<std::string, std::string> fenced_;  // sessions the database fenced: why
   bool database_down_ = false;                 // under mutex_: the lease could not be renewed
   bool superseded_ = false;                    // under mutex_

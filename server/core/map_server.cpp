@@ -437,7 +437,7 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
 
 void MapServer::refuse(const proto::RefusedSample& sample) {
   metrics_.add(kReceived, {{"topic", sample.type}});
-  reject(sample.type.c_str(), Rejection{"bad_enum", sample.detail},
+  reject(sample.type.c_str(), Rejection{sample.reason, sample.detail},
          sample.vehicle_id + "/" + sample.session_id);
 }
 

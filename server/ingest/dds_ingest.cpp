@@ -10,7 +10,7 @@ template <typename T>
 common::Status open(const std::shared_ptr<proto::Participant>& participant,
                     const std::vector<std::string>& partitions,
                     std::unique_ptr<proto::Reader<T>>& reader) {
-  auto created = proto::Reader<T>::create(participant, partitions);
+  auto created = proto::Reader<T>::create(participant, partitions, /*bind_to_writer=*/true);
   if (!created) {
     return common::makeError(created.error().code,
                              "cannot create DDS readers: " + created.error().message);

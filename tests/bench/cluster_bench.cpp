@@ -252,7 +252,7 @@ void load(testing::ClusterHarness& cluster,
     v.id = "load-v" + std::to_string(i);
     v.session = "load" + std::to_string(i);
     v.stream = random() | 1;
-    const std::vector<std::string> partition = {proto::sessionPartition(v.session)};
+    const std::vector<std::string> partition = {proto::vehiclePartition(v.session, v.id)};
     auto poses = proto::Writer<proto::PoseMsg>::create(*participant, partition);
     auto clouds = proto::Writer<proto::CloudFrameMsg>::create(*participant, partition);
     auto events = proto::Writer<proto::SessionEventMsg>::create(*participant, partition);
