@@ -69,4 +69,12 @@ bool sameSecret(std::string_view given, std::string_view expected) {
   return difference == 0;
 }
 
+std::string printable(std::string_view text) {
+  std::string out(text);
+  for (char& c : out) {
+    if (c < 0x20 || c > 0x7e) c = '?';
+  }
+  return out;
+}
+
 }  // namespace stereomap::common

@@ -24,4 +24,7 @@ bool listsToken(std::string_view list, std::string_view token);
 // guessed byte by byte from response times.
 bool sameSecret(std::string_view given, std::string_view expected);
 
+// A text from the network as it may go into a log: printable ASCII, anything else '?'.
+std::string printable(std::string_view text);
+
 }  // namespace stereomap::common

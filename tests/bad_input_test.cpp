@@ -14,6 +14,7 @@
 #include "proto/dds.hpp"
 #include "testing/synthetic.hpp"
 #include "tests/support/server_fixture.hpp"
+#include "tests/support/vehicle_writers.hpp"
 #include "tests/support/websocket_client.hpp"
 
 namespace stereomap::testing {
@@ -43,41 +44,38 @@ TEST(BadInput, ServerRejectsBadSamplesAndKeepsFusingGoodOnes) {
   auto participant =
       proto::Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
   ASSERT_TRUE(participant.ok()) << participant.error().message;
-  auto clouds = proto::Writer<proto::CloudFrameMsg>::create(*participant);
-  auto poses = proto::Writer<proto::PoseMsg>::create(*participant);
-  ASSERT_TRUE(clouds.ok() && poses.ok());
-  ASSERT_TRUE((*clouds)->waitForReaders(1, 20s)) << "the server never subscribed";
-  ASSERT_TRUE((*poses)->waitForReaders(1, 20s));
+  VehicleWriters<proto::CloudFrameMsg> clouds(*participant);
+  VehicleWriters<proto::PoseMsg> poses(*participant);
 
-  ASSERT_TRUE((*clouds)->write(wallFrame(0, 2.05)).ok());
-  ASSERT_TRUE((*poses)->write(goodPose(0)).ok());
+  ASSERT_TRUE(clouds.write(wallFrame(0, 2.05)).ok());
+  ASSERT_TRUE(poses.write(goodPose(0)).ok());
 
   auto truncated = wallFrame(1, 2.55);
   truncated.payload.resize(truncated.payload.size() / 3);
-  ASSERT_TRUE((*clouds)->write(truncated).ok());
+  ASSERT_TRUE(clouds.write(truncated).ok());
 
   auto nan_pose = goodPose(1);
   nan_pose.position[1] = std::nan("");
-  ASSERT_TRUE((*poses)->write(nan_pose).ok());
+  ASSERT_TRUE(poses.write(nan_pose).ok());
 
   auto oversize = wallFrame(2, 2.55);  // 5 MiB: over the server's 4 MiB default limit
   oversize.payload.resize(5u << 20, 0xAB);
-  ASSERT_TRUE((*clouds)->write(oversize).ok());
+  ASSERT_TRUE(clouds.write(oversize).ok());
 
   auto tilted = wallFrame(3, 2.55);
   tilted.sensor_orientation = {0.5, 0.5, 0.5, 0.9};
-  ASSERT_TRUE((*clouds)->write(tilted).ok());
+  ASSERT_TRUE(clouds.write(tilted).ok());
 
   // Enumerations are integers on the wire: unknown values reach the server, which counts them.
   auto unknown_encoding = wallFrame(5, 2.55);
   unknown_encoding.encoding = static_cast<proto::CloudEncoding>(7);
-  ASSERT_TRUE((*clouds)->write(unknown_encoding).ok());
+  ASSERT_TRUE(clouds.write(unknown_encoding).ok());
   auto unknown_state = goodPose(3);
   unknown_state.tracking_state = static_cast<proto::TrackingState>(9);
-  ASSERT_TRUE((*poses)->write(unknown_state).ok());
+  ASSERT_TRUE(poses.write(unknown_state).ok());
 
-  ASSERT_TRUE((*clouds)->write(wallFrame(4, 3.05)).ok());
-  ASSERT_TRUE((*poses)->write(goodPose(2)).ok());
+  ASSERT_TRUE(clouds.write(wallFrame(4, 3.05)).ok());
+  ASSERT_TRUE(poses.write(goodPose(2)).ok());
 
   std::string metrics;
   const bool counted = waitUntil(30s, [&] {
@@ -136,16 +134,12 @@ TEST(BadInput, HostileCorrectionsAreRefusedWithTheirReasons) {
   auto participant = proto::Participant::create(
       {.domain_id = kCorrectionDomain, .config_file = STEREOMAP_DDS_CONFIG});
   ASSERT_TRUE(participant.ok()) << participant.error().message;
-  auto clouds = proto::Writer<proto::CloudFrameMsg>::create(*participant);
-  auto poses = proto::Writer<proto::PoseMsg>::create(*participant);
-  auto corrections = proto::Writer<proto::PoseCorrectionMsg>::create(*participant);
-  ASSERT_TRUE(clouds.ok() && poses.ok() && corrections.ok());
-  ASSERT_TRUE((*corrections)->waitForReaders(1, 20s)) << "the server never subscribed";
-  ASSERT_TRUE((*poses)->waitForReaders(1, 20s));
-  ASSERT_TRUE((*clouds)->waitForReaders(1, 20s));
+  VehicleWriters<proto::CloudFrameMsg> clouds(*participant);
+  VehicleWriters<proto::PoseMsg> poses(*participant);
+  VehicleWriters<proto::PoseCorrectionMsg> corrections(*participant);
   for (uint64_t seq = 0; seq < 3; ++seq) {
-    ASSERT_TRUE((*clouds)->write(wallFrame(seq, 2.05 + 0.5 * static_cast<double>(seq))).ok());
-    ASSERT_TRUE((*poses)->write(goodPose(seq)).ok());
+    ASSERT_TRUE(clouds.write(wallFrame(seq, 2.05 + 0.5 * static_cast<double>(seq))).ok());
+    ASSERT_TRUE(poses.write(goodPose(seq)).ok());
   }
   ASSERT_TRUE(waitUntil(30s, [&] {
     return server.get("/api/sessions/" + kSession).body.find("\"poses\":3") != std::string::npos;
@@ -171,11 +165,11 @@ TEST(BadInput, HostileCorrectionsAreRefusedWithTheirReasons) {
   auto strangers = correction("stranger", kSession);  // a vehicle that sent no pose
   auto nowhere = correction("tester", "no-such-session");
   for (const auto* c : {&bad_id, &empty, &nan, &backwards, &strangers, &nowhere}) {
-    ASSERT_TRUE((*corrections)->write(*c).ok());
+    ASSERT_TRUE(corrections.write(*c).ok());
   }
   auto far = correction("tester", kSession);  // well formed, but a kilometre off
   far.keyframes[0].position = {1000.1, 0, 1};
-  ASSERT_TRUE((*corrections)->write(far).ok());
+  ASSERT_TRUE(corrections.write(far).ok());
 
   auto rejected = [](const std::string& metrics, const std::string& reason) {
     return seriesValue(

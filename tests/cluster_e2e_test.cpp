@@ -33,7 +33,8 @@ using Clock = std::chrono::steady_clock;
 
 constexpr int kFailoverDomain = 103, kFencedDomain = 104, kDatabaseDomain = 105, kTilesDomain = 106,
               kRestartedDomain = 107, kHungDomain = 108, kPrimaryKilledDomain = 109,
-              kPrimaryHungDomain = 110, kSilentDomain = 111, kManagedDomain = 112;
+              kPrimaryHungDomain = 110, kSilentDomain = 111, kManagedDomain = 112,
+              kTokensDomain = 131;
 
 class ClusterTest : public ::testing::Test {
  protected:
@@ -636,7 +637,7 @@ TEST_F(ClusterTest, AnUnreachableOrRefusedDatabaseIsAClearErrorAtStart) {
 
 // A campus-sized map imported into the cluster and served by one of its servers: fifty clients
 // fetch every tile (every level, at its versioned URL) through nginx, twice. The second pass
-// comes from nginx's cache: the servers are not asked again.
+// comes from nginx's cache: the servers are asked only where each tile lives (the token check).
 TEST_F(ClusterTest, FiftyClientsFetchACampusTwiceAndTheSecondPassIsNginxs) {
   const std::filesystem::path campus = kDataDir / "octomap_samples" / "fr_campus.bt";
   STEREOMAP_SKIP_WITHOUT(campus);
@@ -693,6 +694,54 @@ TEST_F(ClusterTest, FiftyClientsFetchACampusTwiceAndTheSecondPassIsNginxs) {
   EXPECT_EQ(passes[0].ok, total);
   EXPECT_EQ(passes[1].ok, total);
   EXPECT_GE(second_hits, 95.0);
+}
+
+// nginx's caches never answer a client that lacks the token they were filled with (issue 55):
+// a tile a viewer just fetched (kept by nginx at its versioned URL) and the session's route are
+// refused to a client without a token, or with a wrong one, while the viewer is served from the
+// cache.
+TEST_F(ClusterTest, ATokenlessClientNeverGetsWhatATokenHolderJustFetched) {
+  const std::string tokens = cluster_->dir() + "/tokens";
+  const auto made = runTool(
+      {std::string(STEREOMAP_BIN_DIR) + "/stereomap-certs", "token", tokens, "viewer", "wall"});
+  ASSERT_EQ(made.exit_code, 0) << made.output;
+  const std::string token = made.output.substr(0, made.output.find('\n'));
+  const std::string bearer = "Authorization: Bearer " + token + "\r\n";
+  cluster_->startServer(kTokensDomain, "a", 2, "", {"--tokens", tokens});
+  std::string why;
+  ASSERT_TRUE(cluster_->startNginx(&why)) << why;
+  const int proxy = cluster_->nginx().port();
+  startVehicle(kTokensDomain, 0, 40);
+  std::string url;
+  ASSERT_TRUE(waitUntil(60s, [&] {
+    const auto index = httpRequest(proxy, "GET", "/api/sessions/flight0/tiles", "", bearer);
+    if (index.status != 200) return false;
+    const auto listed = nlohmann::json::parse(index.body);
+    if (listed["tiles"].empty()) return false;
+    url = listed["tiles"][0]["url"];
+    return true;
+  })) << cluster_->nginx().accessLog();
+  waitForVehicles();  // the tile's version stays: nothing changes it after the flight
+  const auto index = nlohmann::json::parse(
+      httpRequest(proxy, "GET", "/api/sessions/flight0/tiles", "", bearer).body);
+  url = index["tiles"][0]["url"];
+  ASSERT_NE(url.find("v="), std::string::npos) << url;
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_EQ(httpRequest(proxy, "GET", url, "", bearer).status, 200);
+  }
+  const auto cached = httpRequest(proxy, "GET", url, "", bearer);
+  EXPECT_EQ(cached.status, 200);
+  EXPECT_EQ(cached.header("X-Cache-Status"), "HIT") << "the test needs nginx to keep the tile";
+  const std::string sep = url.find('?') == std::string::npos ? "?" : "&";
+  for (const auto& [path, headers] : {std::pair{url, std::string()},
+                                      {url + sep + "token=guess", ""},
+                                      {url, "Authorization: Bearer guess\r\n"},
+                                      {"/api/sessions/flight0", ""},
+                                      {"/api/sessions/flight0/tiles", ""}}) {
+    const auto reply = httpRequest(proxy, "GET", path, "", headers);
+    EXPECT_EQ(reply.status, 401) << path << " " << headers << ": " << reply.body.substr(0, 200);
+  }
+  EXPECT_EQ(httpGet(proxy, url + sep + "token=" + token).status, 200);
 }
 
 }  // namespace

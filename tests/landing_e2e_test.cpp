@@ -10,6 +10,7 @@
 #include "proto/dds.hpp"
 #include "testing/synthetic.hpp"
 #include "tests/support/server_fixture.hpp"
+#include "tests/support/vehicle_writers.hpp"
 
 namespace stereomap::testing {
 namespace {
@@ -70,13 +71,10 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
   auto participant = proto::Participant::create(
       {.domain_id = kHostileDomain, .config_file = STEREOMAP_DDS_CONFIG});
   ASSERT_TRUE(participant.ok()) << participant.error().message;
-  auto clouds = proto::Writer<proto::CloudFrameMsg>::create(*participant);
-  auto targets = proto::Writer<proto::LandingTargetMsg>::create(*participant);
-  ASSERT_TRUE(clouds.ok() && targets.ok());
-  ASSERT_TRUE((*targets)->waitForReaders(1, 20s)) << "the server never subscribed";
-  ASSERT_TRUE((*clouds)->waitForReaders(1, 20s));
+  VehicleWriters<proto::CloudFrameMsg> clouds(*participant);
+  VehicleWriters<proto::LandingTargetMsg> targets(*participant);
   const std::string session = "hostile-landing";
-  ASSERT_TRUE((*clouds)->write(planeFrame("tester", session, 0, planeCloud(2.0, 1.0, 0.02))).ok());
+  ASSERT_TRUE(clouds.write(planeFrame("tester", session, 0, planeCloud(2.0, 1.0, 0.02))).ok());
   ASSERT_TRUE(waitUntil(20s, [&] { return server.get("/api/sessions/" + session).status == 200; }));
 
   auto target = [&](const std::string& vehicle, const std::string& in_session) {
@@ -106,10 +104,10 @@ TEST(LandingEndToEnd, HostileLandingTargetsAreRefusedWithTheirReasons) {
   auto negative = target("e", session);
   negative.map_covariance[0] = -1;
   auto good = target("good", session);
-  // A volatile topic: a sample written before the server matched this writer would be lost;
-  // the readers were waited for above.
+  // A volatile topic: a sample written before the server matched its writer would be lost;
+  // VehicleWriters waits for the server's reader.
   for (const auto* t : {&nowhere, &bad_id, &nan, &quaternion, &control, &bytes, &negative, &good}) {
-    ASSERT_TRUE((*targets)->write(*t).ok());
+    ASSERT_TRUE(targets.write(*t).ok());
   }
   auto rejected = [](const std::string& metrics, const std::string& reason) {
     return seriesValue(

@@ -190,5 +190,56 @@ TEST(Security, TokenFlagsAreCheckedAtStartUp) {
   EXPECT_NE(run.output.find("STEREOMAP_TOKEN"), std::string::npos);
 }
 
+// Two roles (issue 55): tokens made by stereomap-certs, kept hashed; a viewer reads, an
+// operator changes, two viewers' tokens at once (a rotation), and every change is logged with
+// the token's name.
+TEST(Security, ViewersReadOperatorsChangeAndEveryChangeIsLogged) {
+  const std::string dir = makeTempDir("stereomap-tokens");
+  const std::string tokens = dir + "/tokens";
+  const auto make = [&](const std::string& role, const std::string& name) {
+    const auto run =
+        runTool({std::string(STEREOMAP_BIN_DIR) + "/stereomap-certs", "token", tokens, role, name});
+    EXPECT_EQ(run.exit_code, 0) << run.output;
+    return run.output.substr(0, run.output.find('\n'));
+  };
+  const std::string alice = make("operator", "alice");
+  const std::string wall = make("viewer", "wall");
+  const std::string wall_new = make("viewer", "wall-new");
+  ASSERT_EQ(wall.size(), 48u);
+  for (const auto& token : {alice, wall, wall_new}) {
+    EXPECT_EQ(readFile(tokens).find(token), std::string::npos) << "kept in clear";
+  }
+  ServerProcess server(130, {"--tokens", tokens});
+  ChildProcess vehicle(onboardArgs(130, "roles", 10), server.logPath() + ".vehicle");
+  ASSERT_EQ(vehicle.waitExit(scaledTimeout(60s)).value_or(-1), 0);
+  const auto as = [](const std::string& token) {
+    return "Authorization: Bearer " + token + "\r\n";
+  };
+  EXPECT_EQ(server.get("/api/sessions").status, 401);
+  EXPECT_EQ(server.request("GET", "/api/sessions", "", as("guess")).status, 401);
+  EXPECT_EQ(server.request("POST", "/api/sessions/roles/close").status, 401);
+  for (const auto& token : {wall, wall_new}) {
+    EXPECT_EQ(server.request("GET", "/api/sessions", "", as(token)).status, 200);
+    EXPECT_EQ(server.get("/api/sessions/roles/trajectory.tum?token=" + token).status, 200);
+    for (const auto& [method, path] : {std::pair{"POST", "/api/sessions/roles/close"},
+                                       {"DELETE", "/api/sessions/roles"},
+                                       {"POST", "/api/sessions/merge"}}) {
+      const auto reply = server.request(method, path, R"({"first": "roles", "second": "roles",
+          "into": "x"})",
+                                        as(token));
+      EXPECT_EQ(reply.status, 403) << method << " " << path << ": " << reply.body;
+    }
+  }
+  EXPECT_NE(server.log().find("the token 'wall' is a viewer's"), std::string::npos);
+  EXPECT_EQ(server.request("GET", "/api/sessions/roles", "", as(wall)).status, 200)
+      << "a viewer's refused write touched nothing";
+  const auto closed = server.request("POST", "/api/sessions/roles/close", "", as(alice));
+  EXPECT_EQ(closed.status, 200) << closed.body;
+  EXPECT_NE(server.log().find("POST /api/sessions/roles/close by 'alice' (operator)"),
+            std::string::npos)
+      << server.log();
+  fs::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace stereomap::testing

@@ -8,6 +8,7 @@
 
 #include "common/statistics.hpp"
 #include "common/time.hpp"
+#include "common/url.hpp"
 #include "proto/pose_fields.hpp"
 #include "proto/wire_size.hpp"
 
@@ -80,15 +81,7 @@ common::Status VehiclePublisher::write(const link::SpoolRecord& record) {
 
 using common::steadyNs;
 
-namespace {
-// A text from the network as it may go into a log: printable ASCII, anything else '?'.
-std::string printable(std::string text) {
-  for (char& c : text) {
-    if (c < 0x20 || c > 0x7e) c = '?';
-  }
-  return text;
-}
-}  // namespace
+using common::printable;
 
 template <typename Message>
 common::Status VehiclePublisher::send(Message& message) {

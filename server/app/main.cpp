@@ -78,13 +78,18 @@ void addFlags(CLI::App& app, Flags& f) {
       ->capture_default_str();
   proto::addDdsFlags(app, f.dds);
   app.add_option("--web-root", f.web_root, "The built viewer (default: ../web beside this binary)");
+  app.add_option("--tokens", f.tokens_file,
+                 "Access list: one token per line, 'viewer|operator sha256:HEX NAME' (made by "
+                 "stereomap-certs token). Viewers read maps, /ws, Foxglove and exports; "
+                 "operators also open, close, delete, merge and import. A token is required "
+                 "when --http is not a loopback address")
+      ->check(CLI::ExistingFile);
   app.add_option("--token-file", f.token_file,
-                 "File whose first line is the token clients must present (Authorization: "
-                 "Bearer T or ?token=T); required when --http is not a loopback address. Or set "
-                 "STEREOMAP_TOKEN in the environment");
+                 "File whose first line is one operator's token (Authorization: Bearer T or "
+                 "?token=T), named 'token'. Or set STEREOMAP_TOKEN in the environment");
   app.add_option("--token", f.token,
-                 "The token itself (visible to every local user in the process list: prefer "
-                 "--token-file or STEREOMAP_TOKEN)");
+                 "The operator token itself (visible to every local user in the process list: "
+                 "prefer --tokens, --token-file or STEREOMAP_TOKEN)");
   app.add_option("--max-cloud-bytes", f.options.limits.max_payload_bytes,
                  "Largest accepted cloud payload, bytes")
       ->check(CLI::Range(size_t{1024}, proto::kMaxPayloadBytes))
@@ -148,14 +153,22 @@ std::optional<net::HttpServerOptions> httpOptions(const Flags& f) {
   if (http.address == "localhost") http.address = "127.0.0.1";
   const auto token = resolveToken(f.token, f.token_file);
   if (!token) return std::nullopt;
-  if (!isLoopback(http.address) && token->empty()) {
+  if (!f.tokens_file.empty()) {
+    auto access = core::AccessList::load(f.tokens_file);
+    if (!access) {
+      spdlog::error("--tokens: {}", access.error().message);
+      return std::nullopt;
+    }
+    http.access = std::move(access).value();
+  }
+  if (!token->empty()) http.access.add(core::Role::kOperator, *token, "token");
+  if (!isLoopback(http.address) && http.access.empty()) {
     spdlog::error(
-        "--http {} is not a loopback address: give a token (--token-file FILE or "
-        "STEREOMAP_TOKEN) so that only your operators can see the maps",
+        "--http {} is not a loopback address: give tokens (--tokens FILE, --token-file FILE or "
+        "STEREOMAP_TOKEN) so that only your people can see and change the maps",
         f.http_spec);
     return std::nullopt;
   }
-  http.token = *token;
   http.web_root = f.web_root.empty()
                       ? std::filesystem::canonical("/proc/self/exe").parent_path() / ".." / "web"
                       : std::filesystem::path(f.web_root);

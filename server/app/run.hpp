@@ -23,6 +23,7 @@ struct Flags {
   proto::DdsOptions dds;
   std::string web_root;
   std::string token, token_file;
+  std::string tokens_file;  // the access list: tokens by role (core::AccessList)
   double vehicle_timeout_s = 60;
   double snapshot_interval_s = -1;  // -1: the mode's default
   // Cluster mode (empty url: the single server).

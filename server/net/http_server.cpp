@@ -215,10 +215,11 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
   void route(http::request<http::string_body> request) {
     const std::string_view target(request.target().data(), request.target().size());
     const std::string method(request.method_string());
-    // The viewer's files and /healthz are public; maps, poses and metrics need the token.
-    // A WebSocket may also bring its token in its hello message (browsers cannot set headers).
-    const bool token_given =
-        hub_.options.token.empty() || common::sameSecret(tokenFrom(request), hub_.options.token);
+    // The viewer's files and /healthz are public; maps, poses and metrics need a token of
+    // either role, changes an operator's. A WebSocket may also bring its token in its hello
+    // message (browsers cannot set headers).
+    const core::Grant grant = hub_.options.access.grant(tokenFrom(request));
+    const bool token_given = grant.role != core::Role::kNone;
     if (core::needsToken(target) && !token_given) {
       return sendError(http::status::unauthorized,
                        "a valid token is required (Authorization: Bearer T or ?token=T)",
@@ -227,6 +228,17 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     if (websocket::is_upgrade(request)) return upgrade(request, target, token_given);
     if (auto session = mcapSession(target)) return streamMcap(*session, request);
     if (core::isAdminRequest(method, target)) {
+      if (grant.role != core::Role::kOperator) {
+        spdlog::warn("refused {} {}: the token '{}' is a viewer's", method,
+                     common::printable(target.substr(0, 200)), grant.name);
+        return sendError(http::status::forbidden,
+                         "this token ('" + grant.name +
+                             "') is a viewer's: opening, closing, deleting, merging and "
+                             "importing sessions need an operator's",
+                         request.keep_alive());
+      }
+      spdlog::info("{} {} by '{}' ({})", method, common::printable(target.substr(0, 200)),
+                   grant.name, core::roleName(grant.role));
       const bool queued =
           hub_.admin_worker.post([self = shared_from_this(), method, target = std::string(target),
                                   body = std::move(request.body()), version = request.version(),
@@ -432,7 +444,7 @@ struct HttpServer::Impl {
             admin,
             options,
             viewers::ViewerHub(server, admin,
-                               {.token = options.token,
+                               {.access = options.access,
                                 .stuck_after = options.stuck_after,
                                 .max_queued_bytes = options.max_queued_bytes,
                                 .server_name = "stereomap 0.2.0"}),

@@ -17,6 +17,7 @@
 #include <string_view>
 
 #include "common/result.hpp"
+#include "server/core/access.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
 
@@ -26,9 +27,9 @@ struct HttpServerOptions {
   std::string address = "127.0.0.1";
   uint16_t port = 8080;            // 0: any free port (see port())
   std::filesystem::path web_root;  // the built viewer (index.html + assets)
-  // Required (as "Authorization: Bearer T" or "?token=T") when set; the app insists on one
-  // whenever the address is not loopback.
-  std::string token;
+  // Who may read and who may change (as "Authorization: Bearer T" or "?token=T"); empty: anyone
+  // may do anything (the app allows that on a loopback address only).
+  core::AccessList access;
   // How often viewers get what changed (tiles, poses, statuses): the floor of their latency.
   std::chrono::milliseconds push_interval{25};
   // A viewer whose write has not finished this long, or with this much JSON unsent, is

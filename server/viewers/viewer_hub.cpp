@@ -277,10 +277,10 @@ struct ViewerHub::Impl {
                          "this server speaks protocol 2 only: send "
                          "{\"type\": \"hello\", \"protocol\": 2}");
     }
-    if (!options.token.empty() && !viewer.authorised) {
+    if (!options.access.empty() && !viewer.authorised) {
       const auto token = message.find("token");
       if (token == message.end() || !token->is_string() ||
-          !common::sameSecret(token->get<std::string>(), options.token)) {
+          options.access.check(token->get<std::string>()).role == core::Role::kNone) {
         ++stats.closed_bad;
         return closeViewer(viewer, 1008, "a valid token is required (in hello or ?token=)");
       }
@@ -762,7 +762,7 @@ ViewerHub::~ViewerHub() = default;
 ViewerHub::Id ViewerHub::connect(bool authorised, int64_t now_ns) {
   const Id id = impl_->next_id++;
   Viewer& viewer = impl_->viewers[id];
-  viewer.authorised = authorised || impl_->options.token.empty();
+  viewer.authorised = authorised || impl_->options.access.empty();
   viewer.connected_ns = now_ns;
   return id;
 }

@@ -30,6 +30,7 @@
 #include <string_view>
 #include <vector>
 
+#include "server/core/access.hpp"
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
 #include "server/viewers/endpoint.hpp"
@@ -37,9 +38,9 @@
 namespace stereomap::viewers {
 
 struct HubOptions {
-  // Required in the hello message when set, unless the connection's upgrade request
-  // carried it already.
-  std::string token;
+  // A token of any role is required in the hello message when the list is not empty, unless
+  // the connection's upgrade request carried one already.
+  core::AccessList access;
   std::chrono::milliseconds stuck_after{10'000};  // a write unfinished this long: closed
   size_t max_queued_bytes = 4u << 20;             // unsent JSON per viewer: closed beyond
   std::chrono::milliseconds hello_within{10'000};

@@ -379,7 +379,9 @@ TEST_F(OneWall, DroppedTilesComeBackWithTheNextView) {
 
 TEST(ViewerHub, HandshakeAndTokens) {
   core::MapServer server({.resolution = 0.1});
-  ViewerHub hub(server, nullptr, {.token = "t0ken"});
+  core::AccessList access;
+  access.add(core::Role::kViewer, "t0ken", "wall");
+  ViewerHub hub(server, nullptr, {.access = access});
   auto before_hello = hub.connect(false, 0);
   hub.receive(before_hello, R"({"type": "list"})", 0);
   ASSERT_TRUE(hub.closing(before_hello));

@@ -14,7 +14,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace stereomap;
   static fuzz::IdCheckingAdmin admin;
   viewers::HubOptions options;
-  options.token = "secret";
+  options.access.add(core::Role::kViewer, "secret", "fuzz");
   viewers::ViewerHub hub(fuzz::fusedServer(), &admin, options);
   fuzz::FuzzInput in(data, size);
   const auto id = hub.connect(/*authorised=*/in.byte() & 1, /*now_ns=*/1'000'000'000);

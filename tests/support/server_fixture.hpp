@@ -7,8 +7,9 @@
 // graph end to end, 90/92 landing end to end, 94/95 shaped link, 96 the soak run (tests/soak),
 // 98-102 outages, 103-108 the cluster (tests, benchmark), 109 test-docker's cluster, 110
 // the fleet benchmark's recordings (stereomap-bench-scale), 111 the MCAP export read by
-// Foxglove's readers (tests/interop), 112 its benchmark (stereomap-bench-interop). A
-// new test takes a free one and adds it here.
+// Foxglove's readers (tests/interop), 112 its benchmark (stereomap-bench-interop), 113-114
+// Foxglove live (tests/interop), 122-129 DDS Security (tests/dds_security_test.cpp), 130 roles
+// (tests/security_test.cpp). A new test takes a free one and adds it here.
 #pragma once
 
 #include <chrono>
