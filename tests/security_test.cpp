@@ -184,6 +184,16 @@ TEST(Security, TokenFlagsAreCheckedAtStartUp) {
   run = runTool({server, "--token-file", "/nonexistent/token", "--domain", "79"}, 30s);
   EXPECT_EQ(run.exit_code, 2) << run.output;
   EXPECT_NE(run.output.find("/nonexistent/token"), std::string::npos) << run.output;
+  // Off loopback: https, or plain HTTP only when asked for (and never without a token).
+  run = runTool({server, "--http", "0.0.0.0:0", "--token", "a", "--domain", "79"}, 30s);
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  EXPECT_NE(run.output.find("--insecure-http"), std::string::npos) << run.output;
+  run = runTool({server, "--http", "127.0.0.1:0", "--tls-cert", "/etc/hostname", "--domain", "79"},
+                30s);
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  run = runTool({server, "--http", "0.0.0.0:0", "--insecure-http", "--domain", "79"}, 30s);
+  EXPECT_EQ(run.exit_code, 2) << run.output;
+  EXPECT_NE(run.output.find("give tokens"), std::string::npos) << run.output;
   run = runTool({server, "--help"}, 30s);
   EXPECT_EQ(run.exit_code, 0);
   EXPECT_NE(run.output.find("--token-file"), std::string::npos);

@@ -72,8 +72,8 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   spdlog::info("stereomap-server '{}' in the cluster at {}, DDS domain {}, resolution {} m",
                (*db)->serverId(), cluster::redactPassword(flags.cluster_url), flags.dds.domain_id,
                flags.options.resolution);
-  spdlog::info("viewer: http://{}:{}/ (this server; the cluster's proxy routes to every one)",
-               http.address, (*http_server)->port());
+  spdlog::info("viewer: {}://{}:{}/ (this server; the cluster's proxy routes to every one)",
+               (*http_server)->scheme(), http.address, (*http_server)->port());
 
   serveUntilStopped(flags, server, nullptr, **http_server, shutdown);
 

@@ -84,6 +84,15 @@ void addFlags(CLI::App& app, Flags& f) {
                  "operators also open, close, delete, merge and import. A token is required "
                  "when --http is not a loopback address")
       ->check(CLI::ExistingFile);
+  app.add_option("--tls-cert", f.tls_cert,
+                 "Serve https and wss with this PEM certificate (chain); needs --tls-key")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-key", f.tls_key, "The --tls-cert's private key (PEM, unencrypted)")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--insecure-http", f.insecure_http,
+               "Serve plain HTTP on an address that is not loopback (only behind a proxy that "
+               "terminates TLS, as the cluster's nginx does): tokens and maps cross the network "
+               "in clear otherwise");
   app.add_option("--token-file", f.token_file,
                  "File whose first line is one operator's token (Authorization: Bearer T or "
                  "?token=T), named 'token'. Or set STEREOMAP_TOKEN in the environment");
@@ -162,6 +171,25 @@ std::optional<net::HttpServerOptions> httpOptions(const Flags& f) {
     http.access = std::move(access).value();
   }
   if (!token->empty()) http.access.add(core::Role::kOperator, *token, "token");
+  if (f.tls_cert.empty() != f.tls_key.empty()) {
+    spdlog::error("--tls-cert and --tls-key go together");
+    return std::nullopt;
+  }
+  http.tls_cert = f.tls_cert;
+  http.tls_key = f.tls_key;
+  if (!isLoopback(http.address) && f.tls_cert.empty()) {
+    if (!f.insecure_http) {
+      spdlog::error(
+          "--http {} is not a loopback address: serve https (--tls-cert FILE --tls-key FILE), or "
+          "pass --insecure-http behind a proxy that terminates TLS",
+          f.http_spec);
+      return std::nullopt;
+    }
+    spdlog::warn(
+        "--insecure-http: plain HTTP on {}; tokens and maps cross the network in clear unless a "
+        "proxy in front terminates TLS",
+        f.http_spec);
+  }
   if (!isLoopback(http.address) && http.access.empty()) {
     spdlog::error(
         "--http {} is not a loopback address: give tokens (--tokens FILE, --token-file FILE or "

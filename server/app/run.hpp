@@ -24,6 +24,8 @@ struct Flags {
   std::string web_root;
   std::string token, token_file;
   std::string tokens_file;  // the access list: tokens by role (core::AccessList)
+  std::string tls_cert, tls_key;
+  bool insecure_http = false;  // plain HTTP off loopback (behind a proxy that terminates TLS)
   double vehicle_timeout_s = 60;
   double snapshot_interval_s = -1;  // -1: the mode's default
   // Cluster mode (empty url: the single server).

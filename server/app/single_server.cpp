@@ -121,8 +121,9 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
   });
   spdlog::info("stereomap-server on DDS domain {}, resolution {} m, store {}", flags.dds.domain_id,
                flags.options.resolution, flags.store_dir);
-  spdlog::info("viewer: http://{}:{}/ (Foxglove: ws://{}:{}/foxglove)", http.address,
-               (*http_server)->port(), http.address, (*http_server)->port());
+  spdlog::info("viewer: {}://{}:{}/ (Foxglove: {}://{}:{}/foxglove)", (*http_server)->scheme(),
+               http.address, (*http_server)->port(), (*http_server)->wsScheme(), http.address,
+               (*http_server)->port());
 
   serveUntilStopped(flags, server, admin->get(), **http_server, shutdown);
 

@@ -20,6 +20,7 @@
 #include "server/core/validate.hpp"
 #include "server/net/admin_worker.hpp"
 #include "server/net/streamed_downloads.hpp"
+#include "server/net/tls_front.hpp"
 #include "server/net/viewer_files.hpp"
 #include "server/viewers/foxglove_hub.hpp"
 #include "server/viewers/viewer_hub.hpp"
@@ -491,6 +492,7 @@ struct HttpServer::Impl {
   asio::steady_timer timer;
   std::thread thread;
   bool stopped = false;
+  std::unique_ptr<TlsFront> tls;  // started with the server when options.tls_cert is set
 };
 
 HttpServer::HttpServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -515,7 +517,9 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
     return common::makeError(common::ErrorCode::kInvalidArgument,
                              "'" + options.address + "' is not an IP address");
   }
-  const tcp::endpoint endpoint(address, options.port);
+  const bool tls = !options.tls_cert.empty();
+  const tcp::endpoint endpoint(tls ? asio::ip::make_address("127.0.0.1") : address,
+                               tls ? 0 : options.port);
   impl->acceptor.open(endpoint.protocol(), ec);
   if (!ec) impl->acceptor.set_option(asio::socket_base::reuse_address(true), ec);
   if (!ec) impl->acceptor.bind(endpoint, ec);
@@ -524,6 +528,15 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
     return common::makeError(common::ErrorCode::kUnavailable,
                              "cannot listen on " + options.address + ":" +
                                  std::to_string(options.port) + ": " + ec.message());
+  }
+  if (tls) {
+    auto front = TlsFront::start({.address = options.address,
+                                  .port = options.port,
+                                  .cert_file = options.tls_cert,
+                                  .key_file = options.tls_key,
+                                  .backend_port = impl->acceptor.local_endpoint().port()});
+    if (!front) return front.error();
+    impl->tls = std::move(front).value();
   }
   return std::unique_ptr<HttpServer>(new HttpServer(std::move(impl)));
 }
@@ -547,6 +560,7 @@ void HttpServer::start() {
 void HttpServer::stop() {
   if (impl_->stopped) return;
   impl_->stopped = true;
+  if (impl_->tls) impl_->tls->stop();
   impl_->hub.admin_worker.stop();
   impl_->hub.downloads.stop();
   asio::post(impl_->io, [this] {
@@ -560,7 +574,12 @@ void HttpServer::stop() {
   if (impl_->thread.joinable()) impl_->thread.join();
 }
 
-uint16_t HttpServer::port() const { return impl_->acceptor.local_endpoint().port(); }
+uint16_t HttpServer::port() const {
+  return impl_->tls ? impl_->tls->port() : impl_->acceptor.local_endpoint().port();
+}
+
+const char* HttpServer::scheme() const { return impl_->tls ? "https" : "http"; }
+const char* HttpServer::wsScheme() const { return impl_->tls ? "wss" : "ws"; }
 
 size_t HttpServer::viewers() const { return impl_->hub.viewer_count; }
 

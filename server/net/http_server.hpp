@@ -27,6 +27,9 @@ struct HttpServerOptions {
   std::string address = "127.0.0.1";
   uint16_t port = 8080;            // 0: any free port (see port())
   std::filesystem::path web_root;  // the built viewer (index.html + assets)
+  // https and wss (net::TlsFront) on address:port when both are set: the plain server then
+  // listens on 127.0.0.1 only, on a port of its own, behind it.
+  std::string tls_cert, tls_key;
   // Who may read and who may change (as "Authorization: Bearer T" or "?token=T"); empty: anyone
   // may do anything (the app allows that on a loopback address only).
   core::AccessList access;
@@ -51,11 +54,14 @@ class HttpServer {
   static common::Result<std::unique_ptr<HttpServer>> create(const HttpServerOptions& options,
                                                             const core::MapServer& server,
                                                             core::SessionAdmin* admin = nullptr);
-  ~HttpServer();  // stops
-  void start();   // serves on a background thread
-  void stop();    // closes the port and every connection; idempotent
-  uint16_t port() const;
+  ~HttpServer();          // stops
+  void start();           // serves on a background thread
+  void stop();            // closes the port and every connection; idempotent
+  uint16_t port() const;  // the public one (TLS's when set)
   size_t viewers() const;
+  // "https" or "http", and "wss" or "ws": how clients reach port().
+  const char* scheme() const;
+  const char* wsScheme() const;
 
  private:
   struct Impl;
