@@ -5,12 +5,10 @@
 // test shows the attack would work without security.
 #include <gtest/gtest.h>
 
-#include <nlohmann/json.hpp>
-
 #include <filesystem>
 #include <fstream>
-#include <regex>
 
+#include "tests/support/secure_deployment.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/stream_count.hpp"
 
@@ -19,7 +17,6 @@ namespace {
 
 using namespace std::chrono_literals;
 namespace fs = std::filesystem;
-using json = nlohmann::json;
 
 // 122-129: this file, a domain (and its open twin's) per test, as ctest runs them side by side
 // (server_fixture.hpp keeps the list).
@@ -34,87 +31,13 @@ constexpr int kOpenWireDomain = 129;
 
 const std::string kBin = STEREOMAP_BIN_DIR;
 
-// A deployment for the whole file: server s1, vehicles v1 and v2, "old" (expired in 2020) and
-// "lost" (revoked: the CRL in s1's folder names it).
-struct Deployment {
-  std::string dir;
-  std::string log;
-  bool ok = false;
-  std::string server() const { return dir + "/servers/s1"; }
-  std::string vehicle(const std::string& id) const { return dir + "/vehicles/" + id; }
-};
-
 const Deployment& deployment() {
-  static const Deployment made = [] {
-    Deployment d;
-    d.dir = makeTempDir("stereomap-deployment");
-    fs::remove(d.dir);  // init makes it
-    const std::vector<std::vector<std::string>> steps = {
-        {"init", d.dir},
-        {"server", d.dir, "s1"},
-        {"vehicle", d.dir, "v1"},
-        {"vehicle", d.dir, "v2"},
-        {"vehicle", d.dir, "old", "--not-before", "20200101000000Z", "--not-after",
-         "20200201000000Z"},
-        {"vehicle", d.dir, "lost"},
-        {"revoke", d.dir, "vehicle", "lost"},
-    };
-    d.ok = true;
-    for (auto step : steps) {
-      step.insert(step.begin(), kBin + "/stereomap-certs");
-      const auto run = runTool(step);
-      d.log += run.output;
-      d.ok = d.ok && run.exit_code == 0;
-    }
-    return d;
-  }();
+  static const Deployment made = makeDeployment({"v1", "v2"});
   return made;
-}
-
-// The probe's one line (its stdout and stderr together: Cyclone's own complaints precede it).
-std::string probe(const std::vector<std::string>& args, int domain,
-                  const std::string& identity = "") {
-  std::vector<std::string> argv = {kBin + "/stereomap-dds-probe", "--domain",
-                                   std::to_string(domain), "--dds-config", STEREOMAP_DDS_CONFIG};
-  if (!identity.empty()) argv.insert(argv.end(), {"--security", identity});
-  argv.insert(argv.end(), args.begin(), args.end());
-  return runTool(argv, 60s).output;
-}
-
-std::vector<std::string> sessionIds(const ServerProcess& server) {
-  std::vector<std::string> ids;
-  const auto reply = server.get("/api/sessions");
-  for (const auto& session : json::parse(reply.body)) ids.push_back(session["id"]);
-  return ids;
 }
 
 bool has(const std::vector<std::string>& ids, const std::string& id) {
   return std::find(ids.begin(), ids.end(), id) != ids.end();
-}
-
-// "N still unacknowledged" from a vehicle's summary, -1 when absent.
-int unacknowledged(const std::string& log) {
-  std::smatch match;
-  static const std::regex pattern(R"re((\d+) still unacknowledged)re");
-  return std::regex_search(log, match, pattern) ? std::stoi(match[1]) : -1;
-}
-
-struct Flight {
-  int exit_code = -1;
-  std::string log;
-};
-
-Flight fly(int domain, const std::string& session, const std::string& vehicle,
-           const std::string& identity, int frames = 20) {
-  std::vector<std::string> extra = {"--vehicle", vehicle};
-  if (!identity.empty()) extra.insert(extra.end(), {"--security", identity});
-  const std::string log = makeTempDir("stereomap-flight") + "/onboard.log";
-  ChildProcess onboard(onboardArgs(domain, session, frames, extra), log);
-  Flight flight;
-  flight.exit_code = onboard.waitExit(scaledTimeout(90s)).value_or(-1);
-  flight.log = readText(log);
-  fs::remove_all(fs::path(log).parent_path());
-  return flight;
 }
 
 class DdsSecurity : public ::testing::Test {

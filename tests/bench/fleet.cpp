@@ -253,4 +253,106 @@ FleetRun runFleet(const std::vector<FleetStream>& streams, int vehicles, double 
   return run;
 }
 
+DdsFleetRun replayOverDds(const std::vector<FleetStream>& streams, int vehicles, double seconds,
+                          const proto::DdsOptions& dds, const std::vector<std::string>& vehicle_ids,
+                          const std::vector<std::string>& identities, int only,
+                          std::optional<std::chrono::system_clock::time_point> start_at) {
+  DdsFleetRun run;
+  struct Vehicle {
+    std::shared_ptr<proto::Participant> participant;
+    std::unique_ptr<proto::Writer<proto::PoseMsg>> poses;
+    std::unique_ptr<proto::Writer<proto::CloudFrameMsg>> clouds;
+    std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events;
+  };
+  const auto joining = Clock::now();
+  std::vector<Vehicle> fleet(static_cast<size_t>(vehicles));
+  for (int v = 0; v < vehicles; ++v) {
+    if (only >= 0 && v != only) continue;
+    auto& vehicle = fleet[static_cast<size_t>(v)];
+    proto::DdsOptions options = dds;
+    if (!identities.empty()) options.security_dir = identities[static_cast<size_t>(v)];
+    auto participant = proto::Participant::create(options);
+    if (!participant) {
+      run.error = participant.error().message;
+      return run;
+    }
+    vehicle.participant = std::move(participant).value();
+    const std::vector<std::string> partition = {
+        proto::vehiclePartition("fleet-" + std::to_string(v), vehicle_ids[static_cast<size_t>(v)])};
+    auto poses = proto::Writer<proto::PoseMsg>::create(vehicle.participant, partition);
+    auto clouds = proto::Writer<proto::CloudFrameMsg>::create(vehicle.participant, partition);
+    auto events = proto::Writer<proto::SessionEventMsg>::create(vehicle.participant, partition);
+    if (!poses || !clouds || !events) {
+      run.error = "cannot create vehicle " + std::to_string(v) + "'s writers";
+      return run;
+    }
+    vehicle.poses = std::move(poses).value();
+    vehicle.clouds = std::move(clouds).value();
+    vehicle.events = std::move(events).value();
+  }
+  for (auto& vehicle : fleet) {
+    if (!vehicle.participant) continue;
+    if (!vehicle.poses->waitForReaders(1, 120s) || !vehicle.clouds->waitForReaders(1, 120s) ||
+        !vehicle.events->waitForReaders(1, 120s)) {
+      run.error = "a vehicle's writers never matched the server";
+      return run;
+    }
+  }
+  run.join_s = std::chrono::duration<double>(Clock::now() - joining).count();
+
+  std::vector<Due> clouds, others;
+  schedule(streams, vehicles, seconds, clouds, others);
+  if (only >= 0) {
+    auto mine = [only](const Due& d) { return d.vehicle != only; };
+    clouds.erase(std::remove_if(clouds.begin(), clouds.end(), mine), clouds.end());
+    others.erase(std::remove_if(others.begin(), others.end(), mine), others.end());
+  }
+  if (start_at) std::this_thread::sleep_until(*start_at);
+  const auto start = Clock::now();
+  auto at = [&](double s) {
+    return start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+  };
+  std::vector<uint64_t> cloud_seq(static_cast<size_t>(vehicles), 0);
+  std::vector<uint64_t> other_seq(static_cast<size_t>(vehicles), 0);
+  core::LatencyHistogram late[2];
+  auto feed = [&](const std::vector<Due>& due, std::vector<uint64_t>& seqs,
+                  core::LatencyHistogram& lateness) {
+    for (const Due& d : due) {
+      std::this_thread::sleep_until(at(d.due_s));
+      lateness.add(std::chrono::duration<double>(Clock::now() - at(d.due_s)).count());
+      auto& vehicle = fleet[static_cast<size_t>(d.vehicle)];
+      std::visit(
+          [&](auto message) {
+            message.vehicle_id = vehicle_ids[static_cast<size_t>(d.vehicle)];
+            message.session_id = "fleet-" + std::to_string(d.vehicle);
+            message.stream = static_cast<uint64_t>(d.vehicle) + 1;
+            message.seq = seqs[static_cast<size_t>(d.vehicle)]++;
+            message.unacked_from = message.seq;
+            message.stamp_ns = common::nowNs();
+            using Message = decltype(message);
+            if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
+              (void)vehicle.clouds->write(message);
+            } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
+              (void)vehicle.poses->write(message);
+            } else {
+              (void)vehicle.events->write(message);
+            }
+          },
+          d.sample->message);
+    }
+  };
+  std::thread cloud_writer([&] { feed(clouds, cloud_seq, late[0]); });
+  feed(others, other_seq, late[1]);
+  cloud_writer.join();
+  run.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  for (auto& vehicle : fleet) {
+    if (vehicle.clouds) vehicle.clouds->waitForAcks(10s);
+  }
+  late[0].merge(late[1]);
+  run.clouds = clouds.size();
+  run.poses = others.size();
+  run.late_p95_ms = 1000 * late[0].quantile(0.95);
+  return run;
+}
+
 }  // namespace stereomap::bench

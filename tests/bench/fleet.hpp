@@ -13,10 +13,12 @@
 #include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <variant>
 #include <vector>
 
+#include "proto/dds.hpp"
 #include "proto/messages.hpp"
 
 namespace stereomap::bench {
@@ -58,5 +60,23 @@ struct FleetRun {
 // from earlier runs counts too, so a run's figure is an upper bound.
 FleetRun runFleet(const std::vector<FleetStream>& streams, int vehicles, double seconds,
                   const std::filesystem::path& store_dir, double rss_before);
+
+// The same streams over DDS into a stereomap-server process (issue 55): a participant per
+// vehicle, as `identities[v]` when given (DDS Security: the certificate's name is
+// `vehicle_ids[v]`), writing in its own partition; every writer matched before the clock
+// starts. `only` >= 0: vehicle `only` of the fleet alone (one process per vehicle: Cyclone
+// 0.10.2 refuses a second identity's endpoints in one process), its clock starting at
+// `start_at` when given. The server's lag and CPU are read from it by the caller.
+struct DdsFleetRun {
+  double seconds = 0;
+  uint64_t clouds = 0, poses = 0;  // written
+  double late_p95_ms = 0;          // how late the feeders wrote samples
+  double join_s = 0;               // participants made and matched (handshakes included)
+  std::string error;               // empty when it ran
+};
+DdsFleetRun replayOverDds(const std::vector<FleetStream>& streams, int vehicles, double seconds,
+                          const proto::DdsOptions& dds, const std::vector<std::string>& vehicle_ids,
+                          const std::vector<std::string>& identities, int only = -1,
+                          std::optional<std::chrono::system_clock::time_point> start_at = {});
 
 }  // namespace stereomap::bench
