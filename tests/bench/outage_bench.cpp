@@ -14,6 +14,7 @@
 // The last line is the figure line.
 //
 //   stereomap-bench-outage [--down 60] [--flight 180] [--at 60] [--only outage,overload,...]
+//                          [--secured]
 #include <spdlog/fmt/fmt.h>
 #include <CLI/CLI.hpp>
 
@@ -28,6 +29,7 @@
 #include <thread>
 #include <vector>
 
+#include "tests/support/secure_deployment.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/stream_count.hpp"
 
@@ -56,6 +58,14 @@ std::optional<double> poseAgeP95(const testing::ServerProcess& server) {
   return std::nullopt;
 }
 
+// --secured: a deployment made by stereomap-certs, the server and vehicle sim-1 in it.
+std::optional<testing::Deployment> g_deployment;
+
+std::vector<std::string> serverArgs() {
+  if (!g_deployment) return {};
+  return {"--security", g_deployment->server()};
+}
+
 std::vector<std::string> vehicleArgs(int frames, double rate, const std::string& spool,
                                      const std::vector<std::string>& extra = {}) {
   std::vector<std::string> argv = {std::string(STEREOMAP_BIN_DIR) + "/stereomap-onboard",
@@ -77,6 +87,9 @@ std::vector<std::string> vehicleArgs(int frames, double rate, const std::string&
                                    std::to_string(kDomain),
                                    "--flush-timeout",
                                    "120"};
+  if (g_deployment) {
+    argv.insert(argv.end(), {"--vehicle", "sim-1", "--security", g_deployment->vehicle("sim-1")});
+  }
   argv.insert(argv.end(), extra.begin(), extra.end());
   return argv;
 }
@@ -96,8 +109,7 @@ OutageRun outage(double flight_s, double at_s, double down_s,
   const std::string store = testing::makeTempDir("stereomap-outage-store");
   const std::string spool = store + ".spool";
   const std::string vehicle_log = store + ".vehicle.log";
-  auto server =
-      std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  auto server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store);
   testing::ChildProcess vehicle(vehicleArgs(static_cast<int>(flight_s * 10), 10, spool, extra),
                                 vehicle_log);
   if (down_s > 0) {
@@ -105,8 +117,7 @@ OutageRun outage(double flight_s, double at_s, double down_s,
     server->process().kill9();
     server.reset();
     std::this_thread::sleep_for(std::chrono::duration<double>(down_s));
-    server = std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store,
-                                                      true, 120s);
+    server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store, true, 120s);
   }
   // Live poses' age while the vehicle catches up (it says when it has).
   while (vehicle.running() &&
@@ -172,7 +183,7 @@ double overloaded(double seconds) {
   const std::vector<std::string> odometry = {"--vo", "fast"};
   const double rate = 2 * sustainableRate(odometry);
   const std::string store = testing::makeTempDir("stereomap-overload-store");
-  testing::ServerProcess server(kDomain, {}, store);
+  testing::ServerProcess server(kDomain, serverArgs(), store);
   const std::string log_path = store + ".vehicle.log";
   testing::ChildProcess vehicle(
       vehicleArgs(static_cast<int>(seconds * rate), rate, "memory", odometry), log_path);
@@ -196,8 +207,7 @@ double overloaded(double seconds) {
 void restart() {
   const std::string store = testing::makeTempDir("stereomap-restart-store");
   const std::string spool = store + ".spool";
-  auto server =
-      std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  auto server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store);
   {
     testing::ChildProcess first(vehicleArgs(600, 10, spool), store + ".first.log");
     std::this_thread::sleep_for(20s);
@@ -208,7 +218,7 @@ void restart() {
   }
   // How far the first process went (its spool's files say).
   const auto reach = testing::spooledReach(spool);
-  server = std::make_unique<testing::ServerProcess>(kDomain, std::vector<std::string>{}, store);
+  server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store);
   testing::ChildProcess second(vehicleArgs(300, 10, spool), store + ".second.log");
   second.waitExit(300s);
   server->process().stop();
@@ -237,7 +247,19 @@ int main(int argc, char** argv) {
   app.add_option("--only", only, "Parts to run, comma-separated")
       ->delimiter(',')
       ->check(CLI::IsMember({"outage", "overload", "restart", "spool"}));
+  bool secured = false;
+  app.add_flag("--secured", secured,
+               "Server and vehicle with DDS Security (a deployment made by stereomap-certs)");
   CLI11_PARSE(app, argc, argv);
+  if (secured) {
+    g_deployment = testing::makeDeployment({"sim-1"});
+    if (!g_deployment->ok) {
+      std::fprintf(stderr, "stereomap-certs failed:\n%s\n", g_deployment->log.c_str());
+      return 1;
+    }
+    std::printf("Secured: DDS Security on the server and the vehicle (%s)\n\n",
+                g_deployment->dir.c_str());
+  }
   auto wanted = [&](const char* part) {
     return std::find(only.begin(), only.end(), part) != only.end();
   };
@@ -286,5 +308,6 @@ int main(int argc, char** argv) {
         main_run->down_s, main_run->poses, main_run->poses_sent, main_run->clouds,
         main_run->clouds_sent, main_run->catch_up_s, main_run->live_age_p95_ms, overload_p95);
   }
+  if (g_deployment) std::filesystem::remove_all(g_deployment->dir);
   return 0;
 }

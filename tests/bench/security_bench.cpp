@@ -511,7 +511,7 @@ int main(int argc, char** argv) {
     const auto& open = totals[whole][0];
     const auto& sec = totals[whole][1];
     std::printf(
-        "%s stream: link +%.1f%%, vehicle CPU +%.1f%%, server CPU +%.1f%% (%.2f against %.2f ms "
+        "%s stream: link %+.1f%%, vehicle CPU %+.1f%%, server CPU %+.1f%% (%.2f against %.2f ms "
         "per sample), samples %llu against %llu\n",
         whole ? "whole-cloud" : "thinned", percentMore(sec.link_bytes, open.link_bytes),
         percentMore(sec.vehicle_cpu_s, open.vehicle_cpu_s),
