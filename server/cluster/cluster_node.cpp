@@ -31,8 +31,9 @@ common::Result<std::unique_ptr<ClusterNode>> ClusterNode::start(
     core::MapServer& server, const std::shared_ptr<proto::Participant>& participant) {
   auto node =
       std::unique_ptr<ClusterNode>(new ClusterNode(options, db, journal, server, participant));
-  auto events =
-      proto::Reader<proto::SessionEventMsg>::create(participant, {proto::kEverySessionPartition});
+  // Bound to their writers, as the owners' readers are: a vehicle announces only as itself.
+  auto events = proto::Reader<proto::SessionEventMsg>::create(
+      participant, {proto::kEverySessionPartition}, /*bind_to_writer=*/true);
   if (!events) return events.error();
   node->events_ = std::move(events).value();
   journal.onFenced([raw = node.get()](const std::string& session, const std::string& why) {
