@@ -31,6 +31,7 @@ std::unique_ptr<TestNginx> TestNginx::start(const std::vector<std::string>& upst
   config = replaced(config, "@LISTEN@", "127.0.0.1:" + std::to_string(nginx->port_));
   config = replaced(config, "@UPSTREAMS@", lines);
   config = replaced(config, "@RESOLVER@", "");
+  config = replaced(config, "@TLS@", "");
   const std::string conf = nginx->prefix_ + "/nginx.conf";
   std::ofstream(conf) << config;
   if (!handToUnprivileged(nginx->prefix_)) {
