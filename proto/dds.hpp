@@ -33,6 +33,10 @@ struct DdsOptions {
 // The files a security folder must hold (see DdsOptions::security_dir), checked before Cyclone
 // sees them so a missing file is named.
 common::Status checkSecurityDir(const std::string& dir);
+// What in a security folder runs out within `ahead` or has run out: its certificate's end, its
+// CRL's next update (past it, every handshake fails). One sentence each, for the binary to log
+// at start (a warning ahead, an error once past); empty when nothing is due.
+std::vector<std::string> securityDatesDue(const std::string& dir, std::chrono::hours ahead);
 // Cyclone 0.10.2's governance and permissions parsers take domain ids up to 230.
 inline constexpr uint32_t kMaxSecureDomain = 230;
 

@@ -2,6 +2,7 @@
 // app/ folders only (it needs CLI11, which the proto library itself does not link).
 #pragma once
 
+#include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
 #include <filesystem>
@@ -28,6 +29,21 @@ inline void addDdsFlags(CLI::App& app, DdsOptions& options) {
   app.add_option("--domain", options.domain_id, "DDS domain id")
       ->check(CLI::Range(0, 232))
       ->capture_default_str();
+}
+
+// Says at start what in the --security folder runs out within two weeks (a warning) or has run
+// out (an error: Cyclone refuses an expired certificate, and past its CRL's next update every
+// handshake fails, without saying why).
+inline void logSecurityDates(const DdsOptions& options) {
+  if (options.security_dir.empty()) return;
+  constexpr std::chrono::hours kAhead{14 * 24};
+  for (const auto& line : securityDatesDue(options.security_dir, kAhead)) {
+    if (line.find("ran out") != std::string::npos) {
+      spdlog::error("{}", line);
+    } else {
+      spdlog::warn("{}", line);
+    }
+  }
 }
 
 }  // namespace stereomap::proto

@@ -153,6 +153,9 @@ TEST_F(DdsSecurity, ExpiredAndRevokedCertificatesAreRefused) {
   ServerProcess server(kRevokedDomain, {"--security", deployment().server()});
   const auto old = fly(kRevokedDomain, "sec-old", "old", deployment().vehicle("old"), 5);
   EXPECT_NE(old.exit_code, 0) << old.log;
+  EXPECT_NE(old.log.find("certificate (" + deployment().vehicle("old") + "/identity.pem) ran out"),
+            std::string::npos)
+      << old.log;
   const auto lost = fly(kRevokedDomain, "sec-lost", "lost", deployment().vehicle("lost"));
   EXPECT_GT(unacknowledged(lost.log), 0) << lost.log;
   const auto ids = sessionIds(server);

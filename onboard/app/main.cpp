@@ -459,6 +459,7 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
     spdlog::info("odometry ({}) on {}, nothing published", f.vo, source.describe());
     return true;
   }
+  proto::logSecurityDates(f.dds);
   auto created = proto::Participant::create(f.dds);
   if (!created) {
     spdlog::error("{}", created.error().message);

@@ -227,6 +227,7 @@ int main(int argc, char** argv) {
     spdlog::error("{}", error.message);
     return 1;
   };
+  proto::logSecurityDates(flags.dds);
   auto participant = proto::Participant::create(flags.dds);
   if (!participant) return fail(participant.error());
 
