@@ -19,6 +19,7 @@
 #include "server/core/api.hpp"
 #include "server/core/validate.hpp"
 #include "server/net/admin_worker.hpp"
+#include "server/net/listen.hpp"
 #include "server/net/streamed_downloads.hpp"
 #include "server/net/tls_front.hpp"
 #include "server/net/viewer_files.hpp"
@@ -511,23 +512,12 @@ common::Result<std::unique_ptr<HttpServer>> HttpServer::create(const HttpServerO
                            " left out: links leaving the folder, unreadable or too large)"
                      : "");
   }
-  beast::error_code ec;
-  const auto address = asio::ip::make_address(options.address, ec);
-  if (ec) {
-    return common::makeError(common::ErrorCode::kInvalidArgument,
-                             "'" + options.address + "' is not an IP address");
-  }
+  // Behind TLS the plain server listens on loopback only (TlsFront checks options.address).
   const bool tls = !options.tls_cert.empty();
-  const tcp::endpoint endpoint(tls ? asio::ip::make_address("127.0.0.1") : address,
-                               tls ? 0 : options.port);
-  impl->acceptor.open(endpoint.protocol(), ec);
-  if (!ec) impl->acceptor.set_option(asio::socket_base::reuse_address(true), ec);
-  if (!ec) impl->acceptor.bind(endpoint, ec);
-  if (!ec) impl->acceptor.listen(asio::socket_base::max_listen_connections, ec);
-  if (ec) {
-    return common::makeError(common::ErrorCode::kUnavailable,
-                             "cannot listen on " + options.address + ":" +
-                                 std::to_string(options.port) + ": " + ec.message());
+  if (auto listening =
+          listenOn(impl->acceptor, tls ? "127.0.0.1" : options.address, tls ? 0 : options.port);
+      !listening) {
+    return listening.error();
   }
   if (tls) {
     auto front = TlsFront::start({.address = options.address,

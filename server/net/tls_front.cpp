@@ -2,6 +2,8 @@
 
 #include "server/net/tls_front.hpp"
 
+#include "server/net/listen.hpp"
+
 #include <spdlog/spdlog.h>
 #include <boost/asio.hpp>
 #include <boost/asio/ssl.hpp>
@@ -175,20 +177,8 @@ common::Result<std::unique_ptr<TlsFront>> TlsFront::start(const TlsFrontOptions&
         "--tls-key " + options.key_file +
             ": not an unencrypted PEM key matching --tls-cert: " + ec.message());
   }
-  const auto address = asio::ip::make_address(options.address, ec);
-  if (ec) {
-    return common::makeError(common::ErrorCode::kInvalidArgument,
-                             "'" + options.address + "' is not an IP address");
-  }
-  const tcp::endpoint endpoint(address, options.port);
-  impl->acceptor.open(endpoint.protocol(), ec);
-  if (!ec) impl->acceptor.set_option(asio::socket_base::reuse_address(true), ec);
-  if (!ec) impl->acceptor.bind(endpoint, ec);
-  if (!ec) impl->acceptor.listen(asio::socket_base::max_listen_connections, ec);
-  if (ec) {
-    return common::makeError(common::ErrorCode::kUnavailable,
-                             "cannot listen on " + options.address + ":" +
-                                 std::to_string(options.port) + ": " + ec.message());
+  if (auto listening = listenOn(impl->acceptor, options.address, options.port); !listening) {
+    return listening.error();
   }
   impl->accept();
   auto* raw = impl.get();
