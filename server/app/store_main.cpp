@@ -16,11 +16,14 @@
 #include <nlohmann/json.hpp>
 
 #include "common/cli.hpp"
+#include "common/files.hpp"
 #include "common/transform_args.hpp"
 #include "proto/journal/journal.hpp"
+#include "server/align/map_diff.hpp"
 #include "server/app/store_tool.hpp"
 #include "server/core/exports.hpp"
 #include "server/core/map_server.hpp"
+#include "server/core/session_align.hpp"
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 #include "server/fusion/occupancy_map.hpp"
@@ -35,6 +38,9 @@ using namespace stereomap;
 namespace fs = std::filesystem;
 using stereomap::app::Args;
 using stereomap::app::fail;
+
+// The exit code of an alignment refused (the maps do not overlap enough, or ambiguously).
+constexpr int kRefused = 3;
 
 struct Store {
   std::unique_ptr<store::SessionJournals> journals;
@@ -265,9 +271,80 @@ int deleteSession(Store& store, Args& a) {
   return 0;
 }
 
+// Both cores (this tool is alone on the machine, unlike a server); progress on stderr.
+align::AlignOptions toolAlignOptions() {
+  return {.threads = 2, .progress = [](const std::string& step) {
+            std::fprintf(stderr, "align: %s\n", step.c_str());
+          }};
+}
+
+// The alignment of b onto a, its details and its line printed; nullopt (the exit code in
+// `code`) when it failed or was refused.
+std::optional<align::Alignment> alignAndReport(Store& store, const std::string& a,
+                                               const std::string& b, int& code) {
+  auto found = core::alignSessions(*store.server, store.admin.get(), a, b, toolAlignOptions());
+  if (!found) {
+    code = fail(found.error().message);
+    return std::nullopt;
+  }
+  if (found->found) {
+    std::printf(
+        "confidence %.2f, agreement %.0f%%, %zu and %zu occupied voxels, cells of %.2f m for "
+        "the search, %zu feature matches, %d poses compared\n",
+        found->confidence, 100 * found->agreement, found->voxels_a, found->voxels_b,
+        found->working_cell_m, found->matches, found->poses_tried);
+  }
+  std::printf("%s\n", align::alignLine(a, b, *found).c_str());
+  std::fflush(stdout);
+  code = found->found ? 0 : kRefused;
+  if (!found->found) return std::nullopt;
+  return *found;
+}
+
+int alignSessions(Store& store, Args& a) {
+  int code = 0;
+  alignAndReport(store, a.first, a.second, code);
+  return code;
+}
+
+int diffSessions(Store& store, Args& a) {
+  auto request = stereomap::app::mergeRequestOf(a);  // its --transform
+  if (!request) return fail(request.error().message);
+  common::Rigid3 T_a_b = request->T_first_second;
+  if (a.transform.empty()) {
+    int code = 0;
+    const auto found = alignAndReport(store, a.first, a.second, code);
+    if (!found) return code;
+    T_a_b = found->T_a_b;
+  }
+  auto map_a = core::sessionMap(*store.server, store.admin.get(), a.first);
+  if (!map_a) return fail(map_a.error().message);
+  auto map_b = core::sessionMap(*store.server, store.admin.get(), a.second);
+  if (!map_b) return fail(map_b.error().message);
+  if ((*map_a)->resolution() != (*map_b)->resolution()) {
+    return fail("the sessions' maps have different resolutions");
+  }
+  const auto diff = align::diffMaps(**map_a, **map_b, T_a_b);
+  const std::string out = a.out.empty() ? a.first + "-" + a.second + ".diff.ply" : a.out;
+  const std::string ply = align::diffPly(diff);
+  if (auto written = common::writeFileAtomically(out, ply); !written) {
+    return fail("cannot write " + out + ": " + written.error().message);
+  }
+  std::printf("%s: %zu changed voxels (green appeared, red disappeared), in %s's frame\n",
+              out.c_str(), diff.appeared.size() + diff.disappeared.size(), a.first.c_str());
+  std::printf("%s\n", align::diffLine(a.first, a.second, diff).c_str());
+  return 0;
+}
+
 int mergeSessions(Store& store, Args& a) {
   auto request = stereomap::app::mergeRequestOf(a);
   if (!request) return fail(request.error().message);
+  if (a.align == "auto") {
+    int code = 0;
+    const auto found = alignAndReport(store, a.first, a.second, code);
+    if (!found) return code;
+    request->T_first_second = found->T_a_b;
+  }
   if (auto merged = store.admin->merge(*request); !merged) return fail(merged.error().message);
   const auto status = store.server->find(a.into)->status();
   if (auto closed = store.admin->close(a.into); !closed) return fail(closed.error().message);
@@ -380,7 +457,38 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
                    "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: identity)")
       ->delimiter(',')
       ->expected(7);
+  merge_cmd
+      ->add_option("--align", a.align,
+                   "auto: find the transform from the maps (as `align`); refused: exit 3, "
+                   "nothing merged")
+      ->check(CLI::IsMember({"auto"}))
+      ->excludes("--transform");
   commands.push_back({merge_cmd, true, mergeSessions});
+
+  auto* align_cmd = app.add_subcommand(
+      "align",
+      "Find the rigid transform that puts the second session's map onto the first's, with no "
+      "hint (x_first = R x_second + t); exit 3 when the maps do not overlap enough or the "
+      "match is ambiguous. Last line: align A B: t tx ty tz q qx qy qz qw, overlap O%, rmse "
+      "E m, S s (or: align A B: none (reason))");
+  align_cmd->add_option("first", a.first, "The session whose frame is kept")->required();
+  align_cmd->add_option("second", a.second, "The session to move onto it")->required();
+  commands.push_back({align_cmd, false, alignSessions});
+
+  auto* diff_cmd = app.add_subcommand(
+      "diff",
+      "What changed from the first session to the second (aligned first, or by --transform): "
+      "voxels that appeared or disappeared where the other flight saw free space (unknown is "
+      "not free), as a coloured PLY in the first's frame");
+  diff_cmd->add_option("first", a.first, "The earlier session")->required();
+  diff_cmd->add_option("second", a.second, "The later session")->required();
+  diff_cmd->add_option("--out", a.out, "The PLY file (default: FIRST-SECOND.diff.ply)");
+  diff_cmd
+      ->add_option("--transform", a.transform,
+                   "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: found by aligning)")
+      ->delimiter(',')
+      ->expected(7);
+  commands.push_back({diff_cmd, false, diffSessions});
   return commands;
 }
 
@@ -388,7 +496,8 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "stereomap-store: list, check, export, close, delete and merge the sessions of a "
+      "stereomap-store: list, check, export, close, delete, merge, align and diff the "
+      "sessions of a "
       "stereomap store (the directory given to stereomap-server --store)"};
   Args args;
   const auto commands = addCommands(app, args);

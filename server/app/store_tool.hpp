@@ -30,6 +30,7 @@ struct Args {
   std::string map_file;
   std::string first, second, into;
   std::vector<double> transform;
+  std::string align;  // merge --align: "auto" or empty
   std::string cluster_url;
 };
 

@@ -4,9 +4,11 @@
 
 #include <algorithm>
 #include <map>
+#include <optional>
 
 #include "common/transform_args.hpp"
 #include "common/url.hpp"
+#include "server/core/session_align.hpp"
 #include "server/core/session_json.hpp"
 #include "server/core/validate.hpp"
 
@@ -295,14 +297,56 @@ bool isAdminRequest(std::string_view method, std::string_view target) {
   return parts.size() >= 3 && parts[0] == "api" && parts[1] == "sessions";
 }
 
+namespace {
+
+HttpAnswer errorOf(const common::Error& failure) {
+  const auto code = failure.code;
+  return error(code == common::ErrorCode::kNotFound          ? 404
+               : code == common::ErrorCode::kConflict        ? 409
+               : code == common::ErrorCode::kInvalidArgument ? 400
+               : code == common::ErrorCode::kUnavailable     ? 503
+                                                             : 500,
+               failure.message);
+}
+
+// On the server: one OpenMP thread, so that ingest keeps the other core.
+align::AlignOptions serverAlignOptions() { return {.threads = 1}; }
+
+// 200 with the alignment, or 422 with the reason it was refused.
+HttpAnswer answerAlign(const MapServer& server, SessionAdmin* admin, const std::string& first,
+                       const std::string& second) {
+  auto found = alignSessions(server, admin, first, second, serverAlignOptions());
+  if (!found) return errorOf(found.error());
+  return HttpAnswer{found->found ? 200 : 422, "application/json",
+                    alignmentJson(first, second, *found).dump() + "\n", ""};
+}
+
+}  // namespace
+
 HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string_view method,
                        std::string_view target, const std::string& body) {
   if (admin == nullptr) return error(503, "this server keeps no store: sessions cannot be managed");
   const auto parts = segments(target);
   common::Status done = common::Ok{};
   std::string id;
+  if (method == "POST" && parts.size() == 3 && parts[2] == "align") {
+    std::string first, second;
+    try {
+      const json doc = json::parse(body);
+      first = doc.at("first").get<std::string>();
+      second = doc.at("second").get<std::string>();
+    } catch (const std::exception&) {
+      return error(400, "align wants a JSON body {\"first\": ID, \"second\": ID}");
+    }
+    for (const auto& [what, value] : {std::pair{"first", first}, std::pair{"second", second}}) {
+      if (auto bad = badId(std::string("align: ") + what, value)) return *bad;
+    }
+    return answerAlign(server, admin, first, second);
+  }
+  std::optional<json> alignment;  // a merge's, with "align": "auto"
   if (method == "POST" && parts.size() == 3 && parts[2] == "merge") {
     MergeRequest request;
+    bool align_auto = false;
     try {
       const json doc = json::parse(body);
       request.first = doc.at("first").get<std::string>();
@@ -313,11 +357,18 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
         if (!T) throw std::invalid_argument("transform");
         request.T_first_second = *T;
       }
+      if (doc.contains("align")) {
+        if (doc["align"] != "auto" || doc.contains("transform")) {
+          throw std::invalid_argument("align");
+        }
+        align_auto = true;
+      }
     } catch (const std::exception&) {
       return error(400,
                    "merge wants a JSON body {\"first\": ID, \"second\": ID, \"into\": NEW_ID, "
                    "\"transform\": [tx, ty, tz, qx, qy, qz, qw] (optional, a unit quaternion; "
-                   "maps the second session's frame into the first's)}");
+                   "maps the second session's frame into the first's) or \"align\": \"auto\" "
+                   "(found from the maps)}");
     }
     for (const auto& [what, value] :
          {std::pair{"first", request.first}, std::pair{"second", request.second},
@@ -325,6 +376,17 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
       if (auto bad = badId(std::string("merge: ") + what, value)) return *bad;
     }
     id = request.into;
+    if (align_auto) {
+      if (server.find(request.into)) {
+        return error(409, "session '" + request.into + "' already exists");
+      }
+      auto found =
+          alignSessions(server, admin, request.first, request.second, serverAlignOptions());
+      if (!found) return errorOf(found.error());
+      alignment = alignmentJson(request.first, request.second, *found);
+      if (!found->found) return HttpAnswer{422, "application/json", alignment->dump() + "\n", ""};
+      request.T_first_second = found->T_a_b;
+    }
     done = admin->merge(request);
   } else if (auto bad = badId("session id", parts[2])) {
     return *bad;
@@ -341,17 +403,11 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
   } else {
     return error(404, "unknown request " + std::string(method) + " " + std::string(target));
   }
-  if (!done) {
-    const auto code = done.error().code;
-    return error(code == common::ErrorCode::kNotFound          ? 404
-                 : code == common::ErrorCode::kConflict        ? 409
-                 : code == common::ErrorCode::kInvalidArgument ? 400
-                 : code == common::ErrorCode::kUnavailable     ? 503
-                                                               : 500,
-                 done.error().message);
-  }
+  if (!done) return errorOf(done.error());
   if (const auto session = server.find(id)) {
-    return HttpAnswer{200, "application/json", sessionObject(session->status()).dump() + "\n", ""};
+    auto object = sessionObject(session->status());
+    if (alignment) object["alignment"] = *alignment;
+    return HttpAnswer{200, "application/json", object.dump() + "\n", ""};
   }
   for (const auto& closed : admin->closedSessions()) {
     if (closed.id == id)

@@ -45,8 +45,10 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
                                     std::string_view if_none_match = {});
 
 // True for the requests answerAdmin() serves: POST /api/sessions/{id}/open|close,
-// DELETE /api/sessions/{id}, POST /api/sessions/merge. They may take seconds (a replay), so
-// the network layer runs them off its own thread.
+// DELETE /api/sessions/{id}, POST /api/sessions/merge (its "align": "auto" finds the
+// transform), POST /api/sessions/align (200 with the transform, 422 with the reason it was
+// refused). They may take seconds (a replay, an alignment), so the network layer runs them
+// off its own thread.
 bool isAdminRequest(std::string_view method, std::string_view target);
 HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string_view method,
                        std::string_view target, const std::string& body);

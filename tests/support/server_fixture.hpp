@@ -10,7 +10,8 @@
 // Foxglove's readers (tests/interop), 112 its benchmark (stereomap-bench-interop), 113-114
 // Foxglove live (tests/interop), 122-129 DDS Security (tests/dds_security_test.cpp), 130 roles
 // (tests/security_test.cpp), 131 nginx and tokens (tests/cluster_e2e_test.cpp), 132-133 TLS
-// (tests/interop/tls_clients.mjs). A new test takes a free one and adds it here.
+// (tests/interop/tls_clients.mjs), 134 aligning sessions (tests/align_e2e_test.cpp). A new
+// test takes a free one and adds it here.
 #pragma once
 
 #include <chrono>

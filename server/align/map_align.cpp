@@ -1,0 +1,466 @@
+#include "server/align/map_align.hpp"
+
+#include <omp.h>
+
+#include <open3d/geometry/KDTreeFlann.h>
+#include <open3d/geometry/PointCloud.h>
+#include <open3d/pipelines/registration/CorrespondenceChecker.h>
+#include <open3d/pipelines/registration/Feature.h>
+#include <open3d/pipelines/registration/Registration.h>
+#include <open3d/pipelines/registration/TransformationEstimation.h>
+#include <open3d/utility/Logging.h>
+#include <open3d/utility/Random.h>
+
+#include <Eigen/Eigenvalues>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <memory>
+#include <mutex>
+#include <vector>
+
+namespace stereomap::align {
+
+namespace {
+
+using open3d::geometry::KDTreeFlann;
+using open3d::geometry::KDTreeSearchParamHybrid;
+using open3d::geometry::PointCloud;
+namespace reg = open3d::pipelines::registration;
+using fusion::OccupancyMap;
+
+// Open3D's random generator and OpenMP's thread count are process-wide: one alignment at a
+// time.
+std::mutex g_align_mutex;
+
+// A map's occupied cells at every depth, as sorted Morton codes: a parent's code is its
+// child's shifted by three bits, so each level comes from the finer one without sorting.
+class Pyramid {
+ public:
+  explicit Pyramid(const OccupancyMap& map) : map_(map) {
+    auto& finest = codes_[fusion::kTreeDepth];
+    for (const auto& v : map.occupiedVoxels()) finest.push_back(fusion::voxelCode(v));
+    std::sort(finest.begin(), finest.end());
+    for (unsigned d = fusion::kTreeDepth; d > kCoarsest; --d) {
+      auto& coarser = codes_[d - 1];
+      for (const uint64_t code : codes_[d]) {
+        if (coarser.empty() || coarser.back() != code >> 3) coarser.push_back(code >> 3);
+      }
+    }
+  }
+  static constexpr unsigned kCoarsest = 6;
+  size_t size(unsigned depth) const { return codes_[depth].size(); }
+  std::shared_ptr<PointCloud> cloud(unsigned depth) const {
+    auto cloud = std::make_shared<PointCloud>();
+    const double edge = map_.cellSize(depth);
+    const int32_t offset = fusion::kKeyOffset >> (fusion::kTreeDepth - depth);
+    cloud->points_.reserve(codes_[depth].size());
+    for (const uint64_t code : codes_[depth]) {
+      const auto key = [&](unsigned axis) {
+        return static_cast<int32_t>(fusion::detail::compactBits(code >> axis)) - offset + 0.5;
+      };
+      cloud->points_.emplace_back(key(0) * edge, key(1) * edge, key(2) * edge);
+    }
+    return cloud;
+  }
+  const OccupancyMap& map() const { return map_; }
+
+ private:
+  const OccupancyMap& map_;
+  std::vector<uint64_t> codes_[fusion::kTreeDepth + 1];
+};
+
+// Normals point out of the surface, towards the free space the sensor saw it from: FPFH
+// compares normals' directions, and a map carries no per-voxel viewpoint.
+void orientTowardsFreeSpace(PointCloud& cloud, const OccupancyMap& map, double edge) {
+  for (size_t i = 0; i < cloud.points_.size(); ++i) {
+    const Eigen::Vector3d& p = cloud.points_[i];
+    Eigen::Vector3d& n = cloud.normals_[i];
+    const bool free_ahead = map.query(p + n * edge) == fusion::Occupancy::kFree;
+    const bool free_behind = map.query(p - n * edge) == fusion::Occupancy::kFree;
+    if (free_behind && !free_ahead) n = -n;
+  }
+}
+
+// B's cells taken evenly (they are in code order: a stride spreads them over the map).
+std::shared_ptr<PointCloud> thinned(std::shared_ptr<PointCloud> cloud, size_t at_most) {
+  if (cloud->points_.size() <= at_most) return cloud;
+  auto out = std::make_shared<PointCloud>();
+  const double step = static_cast<double>(cloud->points_.size()) / at_most;
+  for (size_t k = 0; k < at_most; ++k) {
+    const size_t i = static_cast<size_t>(k * step);
+    out->points_.push_back(cloud->points_[i]);
+    if (cloud->HasNormals()) out->normals_.push_back(cloud->normals_[i]);
+  }
+  return out;
+}
+
+// One map at one level: its occupied cells' centres with normals, a k-d tree over them, and
+// an even share of them to count agreement with (the whole set is needed only as a target).
+struct Side {
+  const OccupancyMap* map = nullptr;
+  std::shared_ptr<PointCloud> cloud, sample;
+  std::unique_ptr<KDTreeFlann> tree;
+};
+
+Side sideAt(const Pyramid& pyramid, unsigned depth, size_t sample) {
+  Side side{&pyramid.map(), pyramid.cloud(depth), nullptr, nullptr};
+  const double edge = pyramid.map().cellSize(depth);
+  side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
+  orientTowardsFreeSpace(*side.cloud, pyramid.map(), edge);
+  side.tree = std::make_unique<KDTreeFlann>(*side.cloud);
+  side.sample = thinned(side.cloud, sample);
+  return side;
+}
+
+struct Score {
+  size_t agree = 0, contradict = 0;
+  double overlap = 0;  // the larger of the two maps' shares that agree
+  double agreement() const {
+    return agree + contradict > 0 ? static_cast<double>(agree) / (agree + contradict) : 0.0;
+  }
+  // A contradiction (an occupied cell where the other map saw through free space) is strong
+  // evidence against a pose; an agreement is weak evidence for it (planes agree under many
+  // poses). A pose that puts a room's furniture where the other flight flew counts little.
+  double value() const {
+    return std::max(0.0, static_cast<double>(agree) - kContradictionWeight * contradict);
+  }
+  static constexpr double kContradictionWeight = 10;
+};
+
+// Cells of `from` moved by T into `onto`: agreeing (an occupied cell of `onto` within 1.5
+// cells) or contradicting (in `onto`'s free space); the rest fall in unknown space.
+void countInto(const Side& from, const Side& onto, const Eigen::Matrix4d& T, double edge,
+               size_t& agree, size_t& contradict) {
+  const double reach2 = (1.5 * edge) * (1.5 * edge);
+  std::vector<int> index(1);
+  std::vector<double> distance2(1);
+  const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
+  const Eigen::Vector3d t = T.block<3, 1>(0, 3);
+  for (const auto& p : from.sample->points_) {
+    const Eigen::Vector3d q = R * p + t;
+    if (onto.tree->SearchKNN(q, 1, index, distance2) > 0 && distance2[0] <= reach2) {
+      ++agree;
+    } else if (onto.map->query(q) == fusion::Occupancy::kFree) {
+      ++contradict;
+    }
+  }
+}
+
+Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
+  size_t agree_b = 0, contra_b = 0, agree_a = 0, contra_a = 0;
+  countInto(b, a, T_a_b, edge, agree_b, contra_b);
+  countInto(a, b, T_a_b.inverse(), edge, agree_a, contra_a);
+  Score score;
+  score.agree = agree_a + agree_b;
+  score.contradict = contra_a + contra_b;
+  score.overlap = std::max(static_cast<double>(agree_a) / a.sample->points_.size(),
+                           static_cast<double>(agree_b) / b.sample->points_.size());
+  return score;
+}
+
+// Weakest over strongest direction of translation the matched cells' normals constrain
+// (point-to-plane: each match pins its normal's direction only).
+double constraintRatio(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
+  Eigen::Matrix3d sum = Eigen::Matrix3d::Zero();
+  const double reach2 = (1.5 * edge) * (1.5 * edge);
+  std::vector<int> index(1);
+  std::vector<double> distance2(1);
+  for (const auto& p : b.sample->points_) {
+    const Eigen::Vector3d q = T_a_b.block<3, 3>(0, 0) * p + T_a_b.block<3, 1>(0, 3);
+    if (a.tree->SearchKNN(q, 1, index, distance2) > 0 && distance2[0] <= reach2) {
+      const Eigen::Vector3d& n = a.cloud->normals_[index[0]];
+      sum += n * n.transpose();
+    }
+  }
+  const Eigen::Vector3d eigen = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(sum).eigenvalues();
+  return eigen.maxCoeff() > 0 ? std::max(0.0, eigen.minCoeff()) / eigen.maxCoeff() : 0.0;
+}
+
+// Mutual nearest neighbours in feature space (B's cell i, A's cell j); one-way when too few
+// are mutual (a repetitive scene).
+reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa) {
+  const KDTreeFlann tree_a(fa), tree_b(fb);
+  std::vector<int> index(1);
+  std::vector<double> distance2(1);
+  reg::CorrespondenceSet one_way, mutual;
+  for (int i = 0; i < static_cast<int>(fb.Num()); ++i) {
+    if (tree_a.SearchKNN(Eigen::VectorXd(fb.data_.col(i)), 1, index, distance2) < 1) continue;
+    const int j = index[0];
+    one_way.emplace_back(i, j);
+    if (tree_b.SearchKNN(Eigen::VectorXd(fa.data_.col(j)), 1, index, distance2) > 0 &&
+        index[0] == i) {
+      mutual.emplace_back(i, j);
+    }
+  }
+  return mutual.size() >= 30 ? mutual : one_way;
+}
+
+double angleDeg(const Eigen::Matrix3d& R) {
+  return std::acos(std::clamp((R.trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
+}
+
+struct Hypothesis {
+  Eigen::Matrix4d T;
+  Score score;
+};
+
+common::Rigid3 rigidOf(const Eigen::Matrix4d& T) {
+  common::Rigid3 out;
+  out.rotation = common::Quat(Eigen::Matrix3d(T.block<3, 3>(0, 0))).normalized();
+  out.translation = T.block<3, 1>(0, 3);
+  return out;
+}
+
+// A's cells within `margin` of B's (moved by T) bounding box: the rest cannot match.
+std::shared_ptr<PointCloud> near(const PointCloud& a, const PointCloud& b, const Eigen::Matrix4d& T,
+                                 double margin) {
+  PointCloud moved = b;
+  moved.Transform(T);
+  const Eigen::Vector3d lo = moved.GetMinBound().array() - margin;
+  const Eigen::Vector3d hi = moved.GetMaxBound().array() + margin;
+  auto out = std::make_shared<PointCloud>();
+  for (size_t i = 0; i < a.points_.size(); ++i) {
+    const Eigen::Vector3d& p = a.points_[i];
+    if ((p.array() >= lo.array()).all() && (p.array() <= hi.array()).all()) {
+      out->points_.push_back(p);
+      if (a.HasNormals()) out->normals_.push_back(a.normals_[i]);
+    }
+  }
+  return out;
+}
+
+// Cells of each map counted for scores (an even share of them beyond this).
+constexpr size_t kScoreSample = 40000;
+// B's cells each candidate pose is refined with.
+constexpr size_t kHypothesisSample = 5000;
+
+class Progress {
+ public:
+  explicit Progress(const AlignOptions& options) : options_(options) {}
+  void operator()(const std::string& step) const {
+    if (options_.progress) options_.progress(step);
+  }
+
+ private:
+  const AlignOptions& options_;
+};
+
+}  // namespace
+
+common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b,
+                                    const AlignOptions& options) {
+  const auto start = std::chrono::steady_clock::now();
+  Alignment out;
+  out.voxels_a = a.occupiedCount();
+  out.voxels_b = b.occupiedCount();
+  if (std::abs(a.resolution() - b.resolution()) > 1e-9 * a.resolution()) {
+    char text[160];
+    std::snprintf(text, sizeof(text),
+                  "the maps have different resolutions (%g m and %g m): align maps of one "
+                  "resolution",
+                  a.resolution(), b.resolution());
+    return common::makeError(common::ErrorCode::kInvalidArgument, text);
+  }
+  for (const auto& [name, count] : {std::pair{"first", out.voxels_a}, {"second", out.voxels_b}}) {
+    if (count < kMinVoxels) {
+      return common::makeError(common::ErrorCode::kInvalidArgument,
+                               std::string("the ") + name + " map has " + std::to_string(count) +
+                                   " occupied voxels; aligning needs at least " +
+                                   std::to_string(kMinVoxels));
+    }
+  }
+  std::lock_guard lock(g_align_mutex);
+  open3d::utility::SetVerbosityLevel(open3d::utility::VerbosityLevel::Error);
+  open3d::utility::random::Seed(static_cast<int>(options.seed));
+  omp_set_num_threads(static_cast<int>(std::max(1u, options.threads)));
+  const Progress progress(options);
+  const auto finish = [&](std::string reason) {
+    out.found = reason.empty();
+    out.reason = std::move(reason);
+    out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    return out;
+  };
+
+  // 1. The working level (features, RANSAC) and the scoring level one finer (poses are
+  //    told apart there: a finer map shows more of what contradicts a wrong pose).
+  const Pyramid pyramid_a(a), pyramid_b(b);
+  unsigned depth = fusion::kTreeDepth;
+  while (depth > Pyramid::kCoarsest &&
+         std::max(pyramid_a.size(depth), pyramid_b.size(depth)) > options.max_points) {
+    --depth;
+  }
+  const unsigned score_depth = std::min(depth + 1, fusion::kTreeDepth);
+  const double edge = a.cellSize(depth), score_edge = a.cellSize(score_depth);
+  out.working_cell_m = edge;
+  char step[96];
+  std::snprintf(step, sizeof(step), "features of %zu and %zu cells of %.2f m",
+                pyramid_a.size(depth), pyramid_b.size(depth), edge);
+  progress(step);
+  const Side side_a = sideAt(pyramid_a, depth, options.max_points);
+  const Side side_b = sideAt(pyramid_b, depth, options.max_points);
+  const Side score_a = sideAt(pyramid_a, score_depth, kScoreSample);
+  const Side score_b = sideAt(pyramid_b, score_depth, kScoreSample);
+  const KDTreeSearchParamHybrid feature_search(5.0 * edge, 50);
+  const auto feature_a = reg::ComputeFPFHFeature(*side_a.cloud, feature_search);
+  const auto feature_b = reg::ComputeFPFHFeature(*side_b.cloud, feature_search);
+  auto remaining = featureMatches(*feature_b, *feature_a);
+  out.matches = remaining.size();
+
+  // 2. Distinct poses: RANSAC on the matches no pose so far explains; each refined at the
+  //    working and the scoring level, and scored there.
+  progress("matching " + std::to_string(remaining.size()) + " features");
+  const reg::CorrespondenceCheckerBasedOnEdgeLength edge_check(0.9);
+  const reg::CorrespondenceCheckerBasedOnDistance distance_check(1.5 * edge);
+  const Eigen::Vector3d centre_b = side_b.cloud->GetCenter();
+  // Poses are told apart on a share of B's cells; only the best is refined on all of them.
+  const auto hypothesis_b = thinned(side_b.cloud, kHypothesisSample);
+  const auto hypothesis_score_b = thinned(score_b.cloud, kHypothesisSample);
+  std::vector<Hypothesis> poses;
+  for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
+    // The first search may need many draws (little overlap); later ones look for a rival
+    // and stop sooner.
+    // RANSAC scores each draw on every source point: give it only the matched ones.
+    PointCloud matched_b;
+    reg::CorrespondenceSet compact;
+    compact.reserve(remaining.size());
+    for (const auto& c : remaining) {
+      compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
+      matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
+    }
+    const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
+        matched_b, *side_a.cloud, compact, 1.5 * edge,
+        reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
+        reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
+    if (ransac.correspondence_set_.size() < 3) break;
+    ++out.poses_tried;
+    Eigen::Matrix4d T = ransac.transformation_;
+    T = reg::RegistrationICP(*hypothesis_b, *side_a.cloud, 2.0 * edge, T,
+                             reg::TransformationEstimationPointToPlane(),
+                             reg::ICPConvergenceCriteria(1e-6, 1e-6, 30))
+            .transformation_;
+    if (score_depth != depth) {
+      T = reg::RegistrationICP(*hypothesis_score_b, *score_a.cloud, 2.0 * score_edge, T,
+                               reg::TransformationEstimationPointToPlane(),
+                               reg::ICPConvergenceCriteria(1e-6, 1e-6, 30))
+              .transformation_;
+    }
+    Hypothesis pose{T, scorePose(score_a, score_b, T, score_edge)};
+    // Matches this pose explains (before or after refinement) are not drawn from again.
+    const auto explained = [&](const Eigen::Vector2i& c) {
+      for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), pose.T}) {
+        const Eigen::Vector3d q =
+            M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
+        if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * edge) return true;
+      }
+      return false;
+    };
+    std::erase_if(remaining, explained);
+    poses.push_back(pose);
+  }
+  if (poses.empty()) return finish("no consistent feature matches between the maps");
+
+  // The best pose, and the best of those distinct from it.
+  std::sort(poses.begin(), poses.end(), [](const Hypothesis& x, const Hypothesis& y) {
+    return x.score.value() > y.score.value();
+  });
+  const Hypothesis& best = poses.front();
+  const double best_value = best.score.value();
+  double second = 0;
+  for (size_t i = 1; i < poses.size(); ++i) {
+    const Eigen::Matrix4d& T = poses[i].T;
+    const double moved = ((T.block<3, 3>(0, 0) - best.T.block<3, 3>(0, 0)) * centre_b +
+                          T.block<3, 1>(0, 3) - best.T.block<3, 1>(0, 3))
+                             .norm();
+    const double turned = angleDeg(T.block<3, 3>(0, 0).transpose() * best.T.block<3, 3>(0, 0));
+    if (moved > options.distinct_cells * edge || turned > options.distinct_deg) {
+      second = std::max(second, poses[i].score.value());
+    }
+  }
+  out.confidence = best_value > 0 ? 1.0 - second / best_value : 0.0;
+
+  // 3. Level by level to the finest voxels, from the best pose.
+  progress("refining");
+  Eigen::Matrix4d T = best.T;
+  double rmse = 0;
+  for (unsigned d = score_depth + 1; d <= fusion::kTreeDepth; ++d) {
+    const double cell = a.cellSize(d);
+    auto cells_b = thinned(pyramid_b.cloud(d), kScoreSample);
+    auto cells_a = near(*pyramid_a.cloud(d), *cells_b, T, 3.0 * cell);
+    if (cells_a->points_.size() < 3) break;
+    cells_a->EstimateNormals(KDTreeSearchParamHybrid(2.5 * cell, 30));
+    const auto icp = reg::RegistrationICP(*cells_b, *cells_a, 2.0 * cell, T,
+                                          reg::TransformationEstimationPointToPlane(),
+                                          reg::ICPConvergenceCriteria(1e-7, 1e-7, 50));
+    if (icp.correspondence_set_.size() < 3) break;
+    T = icp.transformation_;
+  }
+  // The fit's error at the finest level (the whole of B's sample).
+  {
+    const double cell = a.resolution();
+    auto cells_b = thinned(pyramid_b.cloud(fusion::kTreeDepth), kScoreSample);
+    auto cells_a = near(*pyramid_a.cloud(fusion::kTreeDepth), *cells_b, T, 3.0 * cell);
+    rmse = reg::EvaluateRegistration(*cells_b, *cells_a, 2.0 * cell, T).inlier_rmse_;
+  }
+  out.T_a_b = rigidOf(T);
+  out.rmse_m = rmse;
+
+  // 4. Gates, on the final pose at the scoring level.
+  progress("gating");
+  const Score final_score = scorePose(score_a, score_b, T, score_edge);
+  out.overlap = final_score.overlap;
+  out.agreement = final_score.agreement();
+  out.constraint_ratio = constraintRatio(score_a, score_b, T, score_edge);
+  char reason[200];
+  if (out.overlap < options.min_overlap) {
+    std::snprintf(reason, sizeof(reason),
+                  "the maps do not overlap enough: %.0f%% of the smaller one matches at best, "
+                  "%.0f%% needed",
+                  100 * out.overlap, 100 * options.min_overlap);
+    return finish(reason);
+  }
+  if (out.agreement < options.min_agreement) {
+    std::snprintf(reason, sizeof(reason),
+                  "no consistent match: at the best pose %.0f%% of the matched voxels fall in "
+                  "the other map's free space",
+                  100 * (1 - out.agreement));
+    return finish(reason);
+  }
+  if (best_value <= 0 || second >= options.max_second_ratio * best_value) {
+    std::snprintf(reason, sizeof(reason),
+                  "ambiguous: another pose fits %.0f%% as well as the best (a symmetric or "
+                  "repeated structure)",
+                  best_value > 0 ? 100 * second / best_value : 100.0);
+    return finish(reason);
+  }
+  if (out.constraint_ratio < options.min_constraint_ratio) {
+    std::snprintf(reason, sizeof(reason),
+                  "degenerate: the overlap leaves a direction of translation unconstrained "
+                  "(a plain corridor or plane; constraint %.3f)",
+                  out.constraint_ratio);
+    return finish(reason);
+  }
+  return finish("");
+}
+
+std::string alignLine(const std::string& a, const std::string& b, const Alignment& alignment) {
+  char text[512];
+  if (!alignment.found) {
+    std::snprintf(text, sizeof(text), "align %s %s: none (%s)", a.c_str(), b.c_str(),
+                  alignment.reason.c_str());
+    return text;
+  }
+  common::Quat q = alignment.T_a_b.rotation.normalized();
+  if (q.w() < 0) q.coeffs() = -q.coeffs();  // one of the two quaternions of a rotation
+  const common::Vec3& t = alignment.T_a_b.translation;
+  std::snprintf(text, sizeof(text),
+                "align %s %s: t %.4f %.4f %.4f q %.6f %.6f %.6f %.6f, overlap %.0f%%, rmse %.4f "
+                "m, %.1f s",
+                a.c_str(), b.c_str(), t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w(),
+                100 * alignment.overlap, alignment.rmse_m, alignment.seconds);
+  return text;
+}
+
+}  // namespace stereomap::align

@@ -1,0 +1,84 @@
+// Aligning two occupancy maps of the same place with no hint: the rigid transform that puts
+// map B onto map A (x_A = T_a_b x_B), or a refusal saying why none can be trusted.
+//
+// How (docs/design/align-plan.md has the choices and their sources):
+//  1. Both maps' occupied cells at one working level (the finest whose cells number at most
+//     `max_points`), with normals oriented towards the map's own free space.
+//  2. FPFH features, mutual nearest matches, then RANSAC over those matches (Open3D). RANSAC
+//     keeps only its best pose, so it is run again on the matches the poses found so far do
+//     not explain: up to `hypotheses` distinct poses, each refined by ICP and scored.
+//  3. Each pose is scored by what both maps say: occupied voxels that land on the other map's
+//     occupied voxels agree; those that land in its free space contradict it (unknown space
+//     says nothing). The best pose is refined level by level down to the finest voxels.
+//  4. Gates, any of which refuses: too little overlap, too many contradictions, a second
+//     distinct pose that fits nearly as well (a symmetric room, a repeated pattern), or an
+//     overlap that leaves a direction of translation unconstrained (a plain corridor).
+//
+//   auto aligned = align::alignMaps(a, b, {});
+//   if (!aligned) error (empty map, different resolutions...);
+//   else if (!aligned->found) refused: aligned->reason
+//   else aligned->T_a_b, aligned->overlap, aligned->rmse_m
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "common/geometry.hpp"
+#include "common/result.hpp"
+#include "server/fusion/occupancy_map.hpp"
+
+namespace stereomap::align {
+
+struct AlignOptions {
+  // Working level: the finest whose occupied cells number at most this in the larger map.
+  size_t max_points = 15000;
+  // Refusals. Overlap: the share of the smaller map's occupied voxels (at the working level)
+  // with an occupied voxel of the other within one cell after alignment.
+  double min_overlap = 0.15;
+  // Agreement: agreeing / (agreeing + contradicting) occupied cells, both ways.
+  double min_agreement = 0.93;
+  // A second pose (further than `distinct_m` or `distinct_deg` from the best) scoring at least
+  // this share of the best's score makes the match ambiguous.
+  double max_second_ratio = 0.75;
+  double distinct_cells = 4.0;  // in working cells
+  double distinct_deg = 10.0;
+  // Degeneracy: the weakest direction of translation must hold at least this share of the
+  // strongest (eigenvalues of the sum of n n^T over the matched cells' normals).
+  double min_constraint_ratio = 0.03;
+  int hypotheses = 4;
+  uint32_t seed = 1;
+  unsigned threads = 1;  // OpenMP threads of the feature and registration steps
+  // Called between steps (what is being done), for progress on long work; may be empty.
+  std::function<void(const std::string&)> progress;
+};
+
+struct Alignment {
+  bool found = false;
+  std::string reason;  // why not, when !found
+  common::Rigid3 T_a_b = common::Rigid3::identity();
+  double overlap = 0;    // 0..1, see AlignOptions::min_overlap
+  double agreement = 0;  // 0..1, see AlignOptions::min_agreement
+  double rmse_m = 0;     // the finest ICP's inlier RMSE
+  // How sure: 1 - (second best score / best score); 1 when no other pose was found.
+  double confidence = 0;
+  double constraint_ratio = 0;  // see AlignOptions::min_constraint_ratio
+  double working_cell_m = 0;
+  size_t voxels_a = 0, voxels_b = 0;  // occupied, finest
+  size_t matches = 0;                 // feature matches RANSAC started from
+  int poses_tried = 0;
+  double seconds = 0;
+};
+
+// Errors (kInvalidArgument): a map with fewer than `kMinVoxels` occupied voxels, maps of
+// different resolutions. A refusal is not an error: found == false with a reason.
+inline constexpr size_t kMinVoxels = 50;
+common::Result<Alignment> alignMaps(const fusion::OccupancyMap& a, const fusion::OccupancyMap& b,
+                                    const AlignOptions& options);
+
+// "align A B: t ... q ..., overlap O%, rmse E m, S s" or "align A B: none (reason)": the
+// line the CLI and the REST answer end with.
+std::string alignLine(const std::string& a, const std::string& b, const Alignment& alignment);
+
+}  // namespace stereomap::align

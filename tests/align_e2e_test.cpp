@@ -1,0 +1,178 @@
+// Aligning stored sessions from outside: stereomap-store align / diff / merge --align auto
+// (their exact last lines and exit codes) and POST /api/sessions/align, on flights of one
+// room imported as sessions, each in its own frame.
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <regex>
+
+#include "tests/support/align_pairs.hpp"
+#include "tests/support/process.hpp"
+#include "tests/support/server_fixture.hpp"
+
+namespace stereomap {
+namespace {
+
+namespace fs = std::filesystem;
+using common::Vec3;
+using nlohmann::json;
+using testing::poseOf;
+using testing::runTool;
+
+constexpr int kDomain = 134;
+const std::string kStore = std::string(STEREOMAP_BIN_DIR) + "/stereomap-store";
+
+// A store holding: "monday" and "tuesday", two flights of one room started 20 m and 180
+// degrees apart (tuesday with a crate that monday did not have), and "elsewhere", another
+// room.
+class AlignE2e : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    store_ = testing::makeTempDir("stereomap-align");
+    const auto room = sim::Scene::makeRoom({.seed = 3});
+    auto boxes = room.boxes();
+    crate_ = {Vec3(-1.0, -3.9, 0), Vec3(0.0, -3.0, 1.0), 0.5f};
+    boxes.push_back(crate_);
+    const sim::Scene room_with_crate(boxes, 3);
+    const auto T_monday_world = poseOf(23, Vec3(0.537, -1.213, 0.031));
+    const auto T_tuesday_world = poseOf(180, Vec3(12.345, 15.731, 0.372));
+    truth_ = T_monday_world * T_tuesday_world.inverse();
+    T_monday_world_ = T_monday_world;
+    importMap("monday", *testing::flyRoom(room, {}, 0, 40, T_monday_world, 0.1));
+    importMap("tuesday", *testing::flyRoom(room_with_crate, {.radius_x = 2.6, .radius_y = 2.0}, 10,
+                                           50, T_tuesday_world, 0.1));
+    importMap("elsewhere",
+              *testing::flyRoom(sim::Scene::makeRoom({.seed = 8, .length = 14, .width = 9}), {}, 0,
+                                30, poseOf(-70, Vec3(4.1, 2.2, 0)), 0.1));
+  }
+  void importMap(const std::string& id, const fusion::OccupancyMap& map) {
+    const std::string file = store_ + "/" + id + ".bt";
+    {
+      std::ofstream out(file, std::ios::binary);
+      ASSERT_TRUE(map.writeBinary(out));
+    }
+    const auto imported = runTool({kStore, "--store", store_, "import", file, "--session", id});
+    ASSERT_EQ(imported.exit_code, 0) << imported.output;
+    fs::remove(file);
+  }
+  testing::ToolRun store(std::vector<std::string> args) {
+    args.insert(args.begin(), {kStore, "--store", store_});
+    return runTool(args);
+  }
+
+  std::string store_;
+  sim::SceneBox crate_;
+  common::Rigid3 truth_, T_monday_world_;
+};
+
+std::string lastLine(const std::string& output) {
+  std::string text = output;
+  while (!text.empty() && text.back() == '\n') text.pop_back();
+  return text.substr(text.rfind('\n') + 1);
+}
+
+TEST_F(AlignE2e, TheCliFindsTheTransformAndRefusesUnrelatedMaps) {
+  const auto aligned = store({"align", "monday", "tuesday"});
+  ASSERT_EQ(aligned.exit_code, 0) << aligned.output;
+  const std::string number = "(-?[0-9]+\\.[0-9]+)";
+  const std::regex line("align monday tuesday: t " + number + " " + number + " " + number + " q " +
+                        number + " " + number + " " + number + " " + number +
+                        ", overlap ([0-9]+)%, rmse ([0-9.]+) m, ([0-9.]+) s");
+  std::smatch m;
+  // The last line of stdout (progress goes to stderr, which runTool mixes in before it).
+  const std::string last = lastLine(aligned.output);
+  ASSERT_TRUE(std::regex_match(last, m, line)) << aligned.output;
+  common::Rigid3 found;
+  found.translation = Vec3(std::stod(m[1]), std::stod(m[2]), std::stod(m[3]));
+  found.rotation = common::Quat(std::stod(m[7]), std::stod(m[4]), std::stod(m[5]), std::stod(m[6]));
+  const auto error = testing::poseError(found, truth_);
+  EXPECT_LE(error.translation_m, 0.1);
+  EXPECT_LE(error.rotation_deg, 0.5);
+  EXPECT_GE(std::stoi(m[8]), 50);
+
+  const auto refused = store({"align", "monday", "elsewhere"});
+  EXPECT_EQ(refused.exit_code, 3) << refused.output;
+  EXPECT_TRUE(lastLine(refused.output).starts_with("align monday elsewhere: none ("))
+      << refused.output;
+
+  // Nothing is merged when the alignment is refused.
+  const auto merged = store({"merge", "monday", "elsewhere", "--into", "both", "--align", "auto"});
+  EXPECT_EQ(merged.exit_code, 3) << merged.output;
+  EXPECT_FALSE(fs::exists(fs::path(store_) / "both"));
+
+  for (const auto& bad : std::vector<std::vector<std::string>>{{"align", "monday", "nosuch"},
+                                                               {"align", "monday", "monday"},
+                                                               {"align", "../x", "monday"}}) {
+    const auto run = store(bad);
+    EXPECT_EQ(run.exit_code, 1) << run.output;
+  }
+}
+
+TEST_F(AlignE2e, DiffFindsTheCrateThatAppeared) {
+  const std::string ply = store_ + "/changes.ply";
+  const auto diffed = store({"diff", "monday", "tuesday", "--out", ply});
+  ASSERT_EQ(diffed.exit_code, 0) << diffed.output;
+  const std::regex line(
+      "diff monday tuesday: ([0-9]+) appeared, ([0-9]+) disappeared, ([0-9]+) unchanged; ([0-9]+) "
+      "not seen by monday, ([0-9]+) not seen by tuesday");
+  std::smatch m;
+  const std::string last = lastLine(diffed.output);
+  ASSERT_TRUE(std::regex_match(last, m, line)) << diffed.output;
+  // The crate's voxels in monday's frame, within a voxel of its box.
+  std::ifstream in(ply);
+  std::string text;
+  size_t in_crate = 0, appeared = 0;
+  bool body = false;
+  while (std::getline(in, text)) {
+    if (!body) {
+      body = text == "end_header";
+      continue;
+    }
+    double x, y, z;
+    int r, g, b;
+    ASSERT_EQ(std::sscanf(text.c_str(), "%lf %lf %lf %d %d %d", &x, &y, &z, &r, &g, &b), 6);
+    if (g < 100) continue;  // disappeared
+    ++appeared;
+    const Vec3 world = T_monday_world_.inverse() * Vec3(x, y, z);
+    in_crate += (world.array() >= crate_.min.array() - 0.15).all() &&
+                (world.array() <= crate_.max.array() + 0.15).all();
+  }
+  EXPECT_EQ(appeared, std::stoul(m[1]));
+  std::printf("%s\n%zu of %zu appeared voxels on the crate\n", last.c_str(), in_crate, appeared);
+  EXPECT_GE(in_crate, 100u);
+  EXPECT_GE(static_cast<double>(in_crate), 0.5 * appeared);
+}
+
+TEST_F(AlignE2e, RestAlignsAndRefuses) {
+  testing::ServerProcess server(kDomain, {}, store_);
+  const auto aligned =
+      server.request("POST", "/api/sessions/align", R"({"first": "monday", "second": "tuesday"})");
+  ASSERT_EQ(aligned.status, 200) << aligned.body;
+  const auto doc = json::parse(aligned.body);
+  ASSERT_TRUE(doc["found"].get<bool>());
+  const auto t = doc["transform"].get<std::vector<double>>();
+  ASSERT_EQ(t.size(), 7u);
+  const common::Rigid3 found{common::Quat(t[6], t[3], t[4], t[5]), Vec3(t[0], t[1], t[2])};
+  EXPECT_LE(testing::poseError(found, truth_).translation_m, 0.1);
+  EXPECT_TRUE(doc["line"].get<std::string>().starts_with("align monday tuesday: t "));
+
+  const auto refused = server.request("POST", "/api/sessions/align",
+                                      R"({"first": "monday", "second": "elsewhere"})");
+  EXPECT_EQ(refused.status, 422) << refused.body;
+  EXPECT_FALSE(json::parse(refused.body)["reason"].get<std::string>().empty());
+  EXPECT_EQ(server.request("POST", "/api/sessions/align", R"({"first": "monday"})").status, 400);
+  EXPECT_EQ(
+      server.request("POST", "/api/sessions/align", R"({"first": "monday", "second": "nosuch"})")
+          .status,
+      404);
+  EXPECT_EQ(
+      server.request("POST", "/api/sessions/align", R"({"first": "monday", "second": "../../etc"})")
+          .status,
+      400);
+}
+
+}  // namespace
+}  // namespace stereomap
