@@ -18,7 +18,7 @@ using testing::poseError;
 using testing::poseOf;
 
 align::Alignment aligned(const fusion::OccupancyMap& a, const fusion::OccupancyMap& b) {
-  auto result = align::alignMaps(a, b, {.threads = 2});
+  auto result = align::alignMaps(a, b, {});
   EXPECT_TRUE(result) << (result ? "" : result.error().message);
   if (!result) return {};
   std::printf("%s (confidence %.2f, agreement %.2f, constraint %.3f, cell %.2f m, %zu matches)\n",
@@ -57,26 +57,13 @@ std::unique_ptr<fusion::OccupancyMap> loadSample(const char* name) {
   return map ? std::move(map).value() : nullptr;
 }
 
-// Two windows of a real map overlapping by `share` along x, the second moved far away.
-testing::MapPair windows(const fusion::OccupancyMap& whole, double width, double share,
-                         const common::Rigid3& T_b_world) {
-  const common::Box3 bounds = whole.occupiedBounds();
-  const Vec3 centre = (bounds.min + bounds.max) / 2;
-  common::Box3 box_a{Vec3(centre.x() - width, centre.y() - width / 2, bounds.min.z()),
-                     Vec3(centre.x(), centre.y() + width / 2, bounds.max.z())};
-  common::Box3 box_b = box_a;
-  box_b.min.x() += (1 - share) * width;
-  box_b.max.x() += (1 - share) * width;
-  return testing::cutPair(whole, box_a, box_b, T_b_world);
-}
-
 TEST(Align, WindowsOfARealMap) {
   const auto campus = loadSample("fr_campus.bt");
   if (!campus) GTEST_SKIP() << "fr_campus.bt not found under " << STEREOMAP_DATA_DIR;
   for (const double share : {0.3, 0.6}) {
     SCOPED_TRACE(share);
     const auto T_b_world = poseOf(137, Vec3(-14.3, 8.71, 1.3), 1.5, -2);
-    const auto pair = windows(*campus, 60, share, T_b_world);
+    const auto pair = testing::windowPair(*campus, 60, share, T_b_world);
     std::printf("voxels %zu %zu\n", pair.a->occupiedCount(), pair.b->occupiedCount());
     expectTruth(aligned(*pair.a, *pair.b), pair.T_a_b, campus->resolution());
   }

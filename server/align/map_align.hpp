@@ -46,10 +46,12 @@ struct AlignOptions {
   double distinct_deg = 10.0;
   // Degeneracy: the weakest direction of translation must hold at least this share of the
   // strongest (eigenvalues of the sum of n n^T over the matched cells' normals).
-  double min_constraint_ratio = 0.03;
-  int hypotheses = 4;
+  double min_constraint_ratio = 0.1;
+  int hypotheses = 6;
   uint32_t seed = 1;
-  unsigned threads = 1;  // OpenMP threads of the feature and registration steps
+  // OpenMP threads of the feature and registration steps. More than one makes Open3D's RANSAC
+  // draw differently from run to run: the same maps may then get different answers.
+  unsigned threads = 1;
   // Called between steps (what is being done), for progress on long work; may be empty.
   std::function<void(const std::string&)> progress;
 };

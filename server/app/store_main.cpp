@@ -271,9 +271,10 @@ int deleteSession(Store& store, Args& a) {
   return 0;
 }
 
-// Both cores (this tool is alone on the machine, unlike a server); progress on stderr.
+// One thread, as the server: Open3D's RANSAC draws differently on more, and the same maps
+// must give the same answer. Progress on stderr.
 align::AlignOptions toolAlignOptions() {
-  return {.threads = 2, .progress = [](const std::string& step) {
+  return {.threads = 1, .progress = [](const std::string& step) {
             std::fprintf(stderr, "align: %s\n", step.c_str());
           }};
 }

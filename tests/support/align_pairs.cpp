@@ -94,6 +94,18 @@ MapPair cutPair(const OccupancyMap& whole, const common::Box3& box_a, const comm
   return pair;
 }
 
+MapPair windowPair(const OccupancyMap& whole, double width, double share, const Rigid3& T_b_world,
+                   const Vec3& offset) {
+  const common::Box3 bounds = whole.occupiedBounds();
+  const Vec3 centre = (bounds.min + bounds.max) / 2 + offset;
+  common::Box3 box_a{Vec3(centre.x() - width, centre.y() - width / 2, bounds.min.z()),
+                     Vec3(centre.x(), centre.y() + width / 2, bounds.max.z())};
+  common::Box3 box_b = box_a;
+  box_b.min.x() += (1 - share) * width;
+  box_b.max.x() += (1 - share) * width;
+  return cutPair(whole, box_a, box_b, T_b_world);
+}
+
 std::unique_ptr<OccupancyMap> corridorMap(double x0, double x1, double pitch,
                                           const Rigid3& T_own_world, double resolution) {
   constexpr double kHalfWidth = 1.2, kHeight = 3.0, kPillar = 0.4;

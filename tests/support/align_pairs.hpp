@@ -35,6 +35,12 @@ std::unique_ptr<fusion::OccupancyMap> flyRoom(const sim::Scene& scene,
 MapPair cutPair(const fusion::OccupancyMap& whole, const common::Box3& box_a,
                 const common::Box3& box_b, const common::Rigid3& T_b_world);
 
+// Two windows of `whole`, `width` metres square over its whole height, centred `offset` from
+// the middle of its occupied bounds and overlapping by `share` of the width along x; the
+// second moved by T_b_world (cutPair).
+MapPair windowPair(const fusion::OccupancyMap& whole, double width, double share,
+                   const common::Rigid3& T_b_world, const common::Vec3& offset = {0, 0, 0});
+
 // A map made of the given voxel centres (occupied wins over free where both fall).
 std::unique_ptr<fusion::OccupancyMap> mapOfPoints(double resolution,
                                                   const std::vector<common::Vec3>& occupied,
