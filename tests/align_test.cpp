@@ -48,6 +48,19 @@ TEST(Align, FlightsOfOneRoomStartedFarApart) {
   expectTruth(aligned(*a, *b), T_a_world * T_b_world.inverse(), v);
 }
 
+// The same maps give the same answer: every random draw (RANSAC, FLANN's trees) is seeded.
+TEST(Align, TheSameMapsGiveTheSameAnswer) {
+  const auto room = sim::Scene::makeRoom({.seed = 5});
+  const auto a = testing::flyRoom(room, {}, 0, 20, poseOf(31, Vec3(0.21, 0.43, 0.05)), 0.1);
+  const auto b = testing::flyRoom(room, {.radius_x = 2.5}, 10, 30, poseOf(-97, Vec3(9, 4, 0)), 0.1);
+  const auto first = align::alignMaps(*a, *b, {}), second = align::alignMaps(*a, *b, {});
+  ASSERT_TRUE(first && second);
+  EXPECT_EQ(first->found, second->found);
+  EXPECT_EQ(first->T_a_b.translation, second->T_a_b.translation);
+  EXPECT_EQ(first->T_a_b.rotation.coeffs(), second->T_a_b.rotation.coeffs());
+  EXPECT_EQ(first->matches, second->matches);
+}
+
 std::unique_ptr<fusion::OccupancyMap> loadSample(const char* name) {
   const std::filesystem::path path =
       std::filesystem::path(STEREOMAP_DATA_DIR) / "octomap_samples" / name;

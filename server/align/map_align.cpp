@@ -2,6 +2,9 @@
 
 #include <omp.h>
 
+#include <opencv2/core.hpp>
+#include <opencv2/flann.hpp>
+
 #include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/pipelines/registration/CorrespondenceChecker.h>
@@ -17,6 +20,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <vector>
@@ -105,11 +109,17 @@ struct Side {
   std::unique_ptr<KDTreeFlann> tree;
 };
 
-Side sideAt(const Pyramid& pyramid, unsigned depth, size_t sample) {
+// What a side needs its normals for: features (oriented), a target of point-to-plane ICP
+// and of the constraint measure (any sign), or nothing (a source only).
+enum class Normals { kOriented, kUnoriented, kNone };
+
+Side sideAt(const Pyramid& pyramid, unsigned depth, size_t sample, Normals normals) {
   Side side{&pyramid.map(), pyramid.cloud(depth), nullptr, nullptr};
   const double edge = pyramid.map().cellSize(depth);
-  side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
-  orientTowardsFreeSpace(*side.cloud, pyramid.map(), edge);
+  if (normals != Normals::kNone) {
+    side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
+  }
+  if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, pyramid.map(), edge);
   side.tree = std::make_unique<KDTreeFlann>(*side.cloud);
   side.sample = thinned(side.cloud, sample);
   return side;
@@ -161,9 +171,14 @@ Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, doub
   return score;
 }
 
-// Weakest over strongest direction of translation the matched cells' normals constrain
-// (point-to-plane: each match pins its normal's direction only).
-double constraintRatio(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
+// How the matched cells' normals constrain translation (point-to-plane: each match pins its
+// normal's direction only): the weakest over the strongest direction, and the weakest.
+struct Constraint {
+  double ratio = 0;
+  Eigen::Vector3d weakest = Eigen::Vector3d::UnitX();
+};
+
+Constraint constraintOf(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
   Eigen::Matrix3d sum = Eigen::Matrix3d::Zero();
   const double reach2 = (1.5 * edge) * (1.5 * edge);
   std::vector<int> index(1);
@@ -175,25 +190,47 @@ double constraintRatio(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_
       sum += n * n.transpose();
     }
   }
-  const Eigen::Vector3d eigen = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(sum).eigenvalues();
-  return eigen.maxCoeff() > 0 ? std::max(0.0, eigen.minCoeff()) / eigen.maxCoeff() : 0.0;
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(sum);
+  const Eigen::Vector3d eigen = solver.eigenvalues();  // ascending
+  Constraint out;
+  out.weakest = solver.eigenvectors().col(0);
+  out.ratio = eigen(2) > 0 ? std::max(0.0, eigen(0)) / eigen(2) : 0.0;
+  return out;
+}
+
+// Features as rows of floats, for OpenCV's FLANN.
+cv::Mat featureRows(const reg::Feature& feature) {
+  cv::Mat rows(static_cast<int>(feature.Num()), static_cast<int>(feature.Dimension()), CV_32F);
+  for (int i = 0; i < rows.rows; ++i) {
+    for (int d = 0; d < rows.cols; ++d)
+      rows.at<float>(i, d) = static_cast<float>(feature.data_(d, i));
+  }
+  return rows;
+}
+
+// Each row's nearest row of `in` (approximate: randomized k-d trees, whose draws come from
+// OpenCV's thread-local generator, seeded here so that the same maps give the same matches).
+cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed) {
+  cv::theRNG() = cv::RNG(seed);
+  cv::flann::Index index(in, cv::flann::KDTreeIndexParams(4));
+  cv::Mat nearest, distances;
+  index.knnSearch(queries, nearest, distances, 1, cv::flann::SearchParams(64));
+  return nearest;
 }
 
 // Mutual nearest neighbours in feature space (B's cell i, A's cell j); one-way when too few
-// are mutual (a repetitive scene).
-reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa) {
-  const KDTreeFlann tree_a(fa), tree_b(fb);
-  std::vector<int> index(1);
-  std::vector<double> distance2(1);
+// are mutual (a repetitive scene). Exact search in 33 dimensions took a second for 13k cells.
+reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa,
+                                      uint32_t seed) {
+  const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
+  const cv::Mat b_to_a = nearestRows(rows_a, rows_b, seed);
+  const cv::Mat a_to_b = nearestRows(rows_b, rows_a, seed);
   reg::CorrespondenceSet one_way, mutual;
-  for (int i = 0; i < static_cast<int>(fb.Num()); ++i) {
-    if (tree_a.SearchKNN(Eigen::VectorXd(fb.data_.col(i)), 1, index, distance2) < 1) continue;
-    const int j = index[0];
+  for (int i = 0; i < b_to_a.rows; ++i) {
+    const int j = b_to_a.at<int>(i, 0);
+    if (j < 0 || j >= a_to_b.rows) continue;
     one_way.emplace_back(i, j);
-    if (tree_b.SearchKNN(Eigen::VectorXd(fa.data_.col(j)), 1, index, distance2) > 0 &&
-        index[0] == i) {
-      mutual.emplace_back(i, j);
-    }
+    if (a_to_b.at<int>(j, 0) == i) mutual.emplace_back(i, j);
   }
   return mutual.size() >= 30 ? mutual : one_way;
 }
@@ -236,6 +273,8 @@ std::shared_ptr<PointCloud> near(const PointCloud& a, const PointCloud& b, const
 constexpr size_t kScoreSample = 40000;
 // B's cells each candidate pose is refined with.
 constexpr size_t kHypothesisSample = 5000;
+// How far (scoring cells) a pose is slid to see whether the match holds it.
+constexpr double kSlideCells = 3;
 
 class Progress {
  public:
@@ -284,8 +323,9 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     return out;
   };
 
-  // 1. The working level (features, RANSAC) and the scoring level one finer (poses are
-  //    told apart there: a finer map shows more of what contradicts a wrong pose).
+  // 1. Two search levels: the finest whose cells number at most max_points, and the one
+  //    finer (features see structure at their own scale: a road's kerbs, a building's rooms).
+  //    Poses are scored at the finer one: it shows more of what contradicts a wrong pose.
   const Pyramid pyramid_a(a), pyramid_b(b);
   unsigned depth = fusion::kTreeDepth;
   while (depth > Pyramid::kCoarsest &&
@@ -295,70 +335,155 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const unsigned score_depth = std::min(depth + 1, fusion::kTreeDepth);
   const double edge = a.cellSize(depth), score_edge = a.cellSize(score_depth);
   out.working_cell_m = edge;
-  char step[96];
-  std::snprintf(step, sizeof(step), "features of %zu and %zu cells of %.2f m",
-                pyramid_a.size(depth), pyramid_b.size(depth), edge);
-  progress(step);
-  const Side side_a = sideAt(pyramid_a, depth, options.max_points);
-  const Side side_b = sideAt(pyramid_b, depth, options.max_points);
-  const Side score_a = sideAt(pyramid_a, score_depth, kScoreSample);
-  const Side score_b = sideAt(pyramid_b, score_depth, kScoreSample);
-  const KDTreeSearchParamHybrid feature_search(5.0 * edge, 50);
-  const auto feature_a = reg::ComputeFPFHFeature(*side_a.cloud, feature_search);
-  const auto feature_b = reg::ComputeFPFHFeature(*side_b.cloud, feature_search);
-  auto remaining = featureMatches(*feature_b, *feature_a);
-  out.matches = remaining.size();
-
-  // 2. Distinct poses: RANSAC on the matches no pose so far explains; each refined at the
-  //    working and the scoring level, and scored there.
-  progress("matching " + std::to_string(remaining.size()) + " features");
-  const reg::CorrespondenceCheckerBasedOnEdgeLength edge_check(0.9);
-  const reg::CorrespondenceCheckerBasedOnDistance distance_check(1.5 * edge);
-  const Eigen::Vector3d centre_b = side_b.cloud->GetCenter();
+  std::map<unsigned, Side> sides_a, sides_b;
+  for (unsigned d = depth; d <= score_depth; ++d) {
+    sides_a.emplace(d, sideAt(pyramid_a, d, kScoreSample, Normals::kOriented));
+    sides_b.emplace(d, sideAt(pyramid_b, d, kScoreSample, Normals::kOriented));
+  }
+  const Side& score_a = sides_a.at(score_depth);
+  const Side& score_b = sides_b.at(score_depth);
+  const Eigen::Vector3d centre_b = score_b.cloud->GetCenter();
   // Poses are told apart on a share of B's cells; only the best is refined on all of them.
-  const auto hypothesis_b = thinned(side_b.cloud, kHypothesisSample);
   const auto hypothesis_score_b = thinned(score_b.cloud, kHypothesisSample);
-  std::vector<Hypothesis> poses;
-  for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
-    // The first search may need many draws (little overlap); later ones look for a rival
-    // and stop sooner.
-    // RANSAC scores each draw on every source point: give it only the matched ones.
-    PointCloud matched_b;
-    reg::CorrespondenceSet compact;
-    compact.reserve(remaining.size());
-    for (const auto& c : remaining) {
-      compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
-      matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
-    }
-    const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
-        matched_b, *side_a.cloud, compact, 1.5 * edge,
-        reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
-        reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
-    if (ransac.correspondence_set_.size() < 3) break;
-    ++out.poses_tried;
-    Eigen::Matrix4d T = ransac.transformation_;
-    T = reg::RegistrationICP(*hypothesis_b, *side_a.cloud, 2.0 * edge, T,
-                             reg::TransformationEstimationPointToPlane(),
-                             reg::ICPConvergenceCriteria(1e-6, 1e-6, 30))
-            .transformation_;
-    if (score_depth != depth) {
-      T = reg::RegistrationICP(*hypothesis_score_b, *score_a.cloud, 2.0 * score_edge, T,
-                               reg::TransformationEstimationPointToPlane(),
-                               reg::ICPConvergenceCriteria(1e-6, 1e-6, 30))
-              .transformation_;
-    }
-    Hypothesis pose{T, scorePose(score_a, score_b, T, score_edge)};
-    // Matches this pose explains (before or after refinement) are not drawn from again.
-    const auto explained = [&](const Eigen::Vector2i& c) {
-      for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), pose.T}) {
-        const Eigen::Vector3d q =
-            M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
-        if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * edge) return true;
+
+  // The best score among poses distinct from the best (sorted, best first).
+  const auto rivalOf = [&](const std::vector<Hypothesis>& sorted) {
+    double rival = 0;
+    const Eigen::Matrix4d& top = sorted.front().T;
+    for (size_t i = 1; i < sorted.size(); ++i) {
+      const Eigen::Matrix4d& T = sorted[i].T;
+      const double moved = ((T.block<3, 3>(0, 0) - top.block<3, 3>(0, 0)) * centre_b +
+                            T.block<3, 1>(0, 3) - top.block<3, 1>(0, 3))
+                               .norm();
+      const double turned = angleDeg(T.block<3, 3>(0, 0).transpose() * top.block<3, 3>(0, 0));
+      if (moved > options.distinct_cells * edge || turned > options.distinct_deg) {
+        rival = std::max(rival, sorted[i].score.value());
       }
-      return false;
+    }
+    return rival;
+  };
+  // Why pose T (scoring `best_value`, its rival `second`) cannot be trusted, or "" when it
+  // can; the measures go to `out`.
+  const auto judge = [&](const Eigen::Matrix4d& T, double best_value, double second) {
+    const Score score = scorePose(score_a, score_b, T, score_edge);
+    out.overlap = score.overlap;
+    out.agreement = score.agreement();
+    const Constraint constraint = constraintOf(score_a, score_b, T, score_edge);
+    out.constraint_ratio = constraint.ratio;
+    // Slid along its weakest direction by a few cells, does the match hold as well? A road,
+    // a corridor or a floor and one wall let a pose slide; a place pins it.
+    double slid = 0;
+    for (const double cells : {-kSlideCells, kSlideCells}) {
+      Eigen::Matrix4d moved = T;
+      moved.block<3, 1>(0, 3) += cells * score_edge * constraint.weakest;
+      slid = std::max(slid, scorePose(score_a, score_b, moved, score_edge).value());
+    }
+    out.slide = score.value() > 0 ? slid / score.value() : 1.0;
+    char reason[200];
+    if (out.overlap < options.min_overlap) {
+      std::snprintf(reason, sizeof(reason),
+                    "the maps do not overlap enough: %.0f%% of the smaller one matches at "
+                    "best, %.0f%% needed",
+                    100 * out.overlap, 100 * options.min_overlap);
+    } else if (out.agreement < options.min_agreement) {
+      std::snprintf(reason, sizeof(reason),
+                    "no consistent match: at the best pose %.0f%% of the matched voxels fall "
+                    "in the other map's free space",
+                    100 * (1 - out.agreement));
+    } else if (best_value <= 0 || second >= options.max_second_ratio * best_value) {
+      std::snprintf(reason, sizeof(reason),
+                    "ambiguous: another pose fits %.0f%% as well as the best (a symmetric or "
+                    "repeated structure)",
+                    best_value > 0 ? 100 * second / best_value : 100.0);
+    } else if (out.constraint_ratio < options.min_constraint_ratio) {
+      std::snprintf(reason, sizeof(reason),
+                    "degenerate: the overlap leaves a direction of translation unconstrained "
+                    "(a plain corridor or plane; constraint %.3f)",
+                    out.constraint_ratio);
+    } else if (out.slide >= options.max_slide) {
+      std::snprintf(reason, sizeof(reason),
+                    "degenerate: slid %.0f cells along its weakest direction the match holds "
+                    "%.0f%% of its score (a road, a corridor, a floor and one wall)",
+                    kSlideCells, 100 * out.slide);
+    } else {
+      reason[0] = '\0';
+    }
+    return std::string(reason);
+  };
+
+  // 2. At each search level, distinct poses: RANSAC on the matches no pose so far explains;
+  //    each refined at its level and the scoring level, and scored there.
+  std::vector<Hypothesis> poses;
+  for (unsigned d = depth; d <= score_depth; ++d) {
+    const Side& side_a = sides_a.at(d);
+    const Side& side_b = sides_b.at(d);
+    const double cell = a.cellSize(d);
+    char step[96];
+    std::snprintf(step, sizeof(step), "features of %zu and %zu cells of %.2f m",
+                  side_a.cloud->points_.size(), side_b.cloud->points_.size(), cell);
+    progress(step);
+    const KDTreeSearchParamHybrid feature_search(5.0 * cell, 50);
+    const auto feature_a = reg::ComputeFPFHFeature(*side_a.cloud, feature_search);
+    const auto feature_b = reg::ComputeFPFHFeature(*side_b.cloud, feature_search);
+    auto remaining = featureMatches(*feature_b, *feature_a, options.seed);
+    out.matches += remaining.size();
+    progress("matching " + std::to_string(remaining.size()) + " features");
+    const reg::CorrespondenceCheckerBasedOnEdgeLength edge_check(0.9);
+    const reg::CorrespondenceCheckerBasedOnDistance distance_check(1.5 * cell);
+    const auto hypothesis_b = thinned(side_b.cloud, kHypothesisSample);
+    // A candidate pose, refined at this level and the scoring level, and scored there.
+    const auto consider = [&](const Eigen::Matrix4d& initial) {
+      ++out.poses_tried;
+      Eigen::Matrix4d T = reg::RegistrationICP(*hypothesis_b, *side_a.cloud, 2.0 * cell, initial,
+                                               reg::TransformationEstimationPointToPlane(),
+                                               reg::ICPConvergenceCriteria(1e-6, 1e-6, 20))
+                              .transformation_;
+      if (score_depth != d) {
+        T = reg::RegistrationICP(*hypothesis_score_b, *score_a.cloud, 2.0 * score_edge, T,
+                                 reg::TransformationEstimationPointToPlane(),
+                                 reg::ICPConvergenceCriteria(1e-6, 1e-6, 20))
+                .transformation_;
+      }
+      poses.push_back({T, scorePose(score_a, score_b, T, score_edge)});
+      return T;
     };
-    std::erase_if(remaining, explained);
-    poses.push_back(pose);
+    for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
+      // RANSAC scores each draw on every source point: give it only the matched ones. The
+      // first search may need many draws (little overlap); later ones look for a rival.
+      PointCloud matched_b;
+      reg::CorrespondenceSet compact;
+      compact.reserve(remaining.size());
+      for (const auto& c : remaining) {
+        compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
+        matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
+      }
+      // Each search its own seed: what one draws does not change what another finds.
+      open3d::utility::random::Seed(static_cast<int>(options.seed + 1000 * d + k));
+      const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
+          matched_b, *side_a.cloud, compact, 1.5 * cell,
+          reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
+          reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
+      if (ransac.correspondence_set_.size() < 3) break;
+      const Eigen::Matrix4d refined = consider(ransac.transformation_);
+      // Matches this pose explains (before or after refinement) are not drawn from again.
+      const auto explained = [&](const Eigen::Vector2i& c) {
+        for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), refined}) {
+          const Eigen::Vector3d q =
+              M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
+          if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * cell) return true;
+        }
+        return false;
+      };
+      std::erase_if(remaining, explained);
+    }
+    // The coarser level's best pose passes every gate: the finer search is not needed.
+    if (d < score_depth && !poses.empty()) {
+      std::vector<Hypothesis> sorted = poses;
+      std::sort(sorted.begin(), sorted.end(), [](const Hypothesis& x, const Hypothesis& y) {
+        return x.score.value() > y.score.value();
+      });
+      if (judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted)).empty()) break;
+    }
   }
   if (poses.empty()) return finish("no consistent feature matches between the maps");
 
@@ -368,17 +493,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   });
   const Hypothesis& best = poses.front();
   const double best_value = best.score.value();
-  double second = 0;
-  for (size_t i = 1; i < poses.size(); ++i) {
-    const Eigen::Matrix4d& T = poses[i].T;
-    const double moved = ((T.block<3, 3>(0, 0) - best.T.block<3, 3>(0, 0)) * centre_b +
-                          T.block<3, 1>(0, 3) - best.T.block<3, 1>(0, 3))
-                             .norm();
-    const double turned = angleDeg(T.block<3, 3>(0, 0).transpose() * best.T.block<3, 3>(0, 0));
-    if (moved > options.distinct_cells * edge || turned > options.distinct_deg) {
-      second = std::max(second, poses[i].score.value());
-    }
-  }
+  const double second = rivalOf(poses);
   out.confidence = best_value > 0 ? 1.0 - second / best_value : 0.0;
 
   // 3. Level by level to the finest voxels, from the best pose.
@@ -409,40 +524,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
 
   // 4. Gates, on the final pose at the scoring level.
   progress("gating");
-  const Score final_score = scorePose(score_a, score_b, T, score_edge);
-  out.overlap = final_score.overlap;
-  out.agreement = final_score.agreement();
-  out.constraint_ratio = constraintRatio(score_a, score_b, T, score_edge);
-  char reason[200];
-  if (out.overlap < options.min_overlap) {
-    std::snprintf(reason, sizeof(reason),
-                  "the maps do not overlap enough: %.0f%% of the smaller one matches at best, "
-                  "%.0f%% needed",
-                  100 * out.overlap, 100 * options.min_overlap);
-    return finish(reason);
-  }
-  if (out.agreement < options.min_agreement) {
-    std::snprintf(reason, sizeof(reason),
-                  "no consistent match: at the best pose %.0f%% of the matched voxels fall in "
-                  "the other map's free space",
-                  100 * (1 - out.agreement));
-    return finish(reason);
-  }
-  if (best_value <= 0 || second >= options.max_second_ratio * best_value) {
-    std::snprintf(reason, sizeof(reason),
-                  "ambiguous: another pose fits %.0f%% as well as the best (a symmetric or "
-                  "repeated structure)",
-                  best_value > 0 ? 100 * second / best_value : 100.0);
-    return finish(reason);
-  }
-  if (out.constraint_ratio < options.min_constraint_ratio) {
-    std::snprintf(reason, sizeof(reason),
-                  "degenerate: the overlap leaves a direction of translation unconstrained "
-                  "(a plain corridor or plane; constraint %.3f)",
-                  out.constraint_ratio);
-    return finish(reason);
-  }
-  return finish("");
+  return finish(judge(T, best_value, second));
 }
 
 std::string alignLine(const std::string& a, const std::string& b, const Alignment& alignment) {

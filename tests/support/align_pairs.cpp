@@ -2,6 +2,9 @@
 
 #include <octomap/OcTree.h>
 
+#include "onboard/sources/source_registry.hpp"
+#include "onboard/stereo/depth_step.hpp"
+
 #include <algorithm>
 #include <cmath>
 #include <sstream>
@@ -91,6 +94,48 @@ MapPair cutPair(const OccupancyMap& whole, const common::Box3& box_a, const comm
   };
   pair.a = cut(box_a, nullptr);
   pair.b = cut(box_b, &T_b_world);
+  return pair;
+}
+
+std::optional<Drive> readDrive(const std::string& spec, double resolution) {
+  auto opened = sources::openSource(spec, {});
+  if (!opened) return std::nullopt;
+  auto& source = *opened->source;
+  stereo::DepthOptions options;
+  options.range = stereo::AutoRange{.map_resolution_m = resolution};
+  stereo::DepthStep depth(source.camera(), options);
+  Drive drive;
+  while (auto frame = source.next()) {
+    if (!frame->T_map_body) return std::nullopt;
+    const Rigid3 T_world_camera = frame->T_map_camera_truth();
+    drive.clouds.push_back(
+        depth.compute(frame->left, frame->right, T_world_camera, 0, frame->raw_noise_sigma));
+    drive.T_world_camera.push_back(T_world_camera);
+  }
+  for (const auto& cloud : drive.clouds) {
+    for (const auto& p : cloud.points) {
+      drive.max_range_m = std::max(drive.max_range_m, static_cast<double>(p.norm()));
+    }
+  }
+  return drive;
+}
+
+MapPair drivePair(const Drive& drive, size_t first_end, size_t second_begin, const Rigid3& T_extra,
+                  double resolution) {
+  const auto fuse = [&](size_t begin, size_t end, const Rigid3& T_own_world) {
+    auto map = std::make_unique<OccupancyMap>(OccupancyMap::Options::octomapPreset(resolution));
+    for (size_t i = begin; i < end && i < drive.clouds.size(); ++i) {
+      map->insertCloud(drive.clouds[i], T_own_world * drive.T_world_camera[i],
+                       drive.max_range_m + resolution);
+    }
+    return map;
+  };
+  MapPair pair;
+  const Rigid3 T_a_world = drive.T_world_camera.front().inverse();
+  const Rigid3 T_b_world = T_extra * drive.T_world_camera.at(second_begin).inverse();
+  pair.a = fuse(0, first_end, T_a_world);
+  pair.b = fuse(second_begin, drive.clouds.size(), T_b_world);
+  pair.T_a_b = T_a_world * T_b_world.inverse();
   return pair;
 }
 

@@ -8,9 +8,12 @@
 #pragma once
 
 #include <memory>
+#include <optional>
+#include <string>
 #include <vector>
 
 #include "common/geometry.hpp"
+#include "common/point_cloud.hpp"
 #include "onboard/sim/flight.hpp"
 #include "onboard/sim/scene.hpp"
 #include "server/fusion/occupancy_map.hpp"
@@ -34,6 +37,22 @@ std::unique_ptr<fusion::OccupancyMap> flyRoom(const sim::Scene& scene,
 // leaves no holes; free space sampled at most 8 per axis per pruned block).
 MapPair cutPair(const fusion::OccupancyMap& whole, const common::Box3& box_a,
                 const common::Box3& box_b, const common::Rigid3& T_b_world);
+
+// A real drive's frames as the vehicle maps them: each frame's cloud (the onboard depth step,
+// default options for `resolution`) and the left camera's true pose.
+struct Drive {
+  std::vector<common::PointCloud> clouds;
+  std::vector<common::Rigid3> T_world_camera;
+  double max_range_m = 0;
+};
+// The source `spec` ("kitti:DIR"), read to its end; nullopt when it cannot be opened or has
+// no ground truth.
+std::optional<Drive> readDrive(const std::string& spec, double resolution);
+
+// Frames [0, first_end) and [second_begin, end) of the drive, each fused in the frame of its
+// own first camera pose (moved further by `T_extra` for the second), at `resolution`.
+MapPair drivePair(const Drive& drive, size_t first_end, size_t second_begin,
+                  const common::Rigid3& T_extra, double resolution);
 
 // Two windows of `whole`, `width` metres square over its whole height, centred `offset` from
 // the middle of its occupied bounds and overlapping by `share` of the width along x; the
