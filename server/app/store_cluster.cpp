@@ -9,6 +9,7 @@
 #include <iostream>
 #include <limits>
 #include <nlohmann/json.hpp>
+#include <sstream>
 
 #include "server/app/store_tool.hpp"
 #include "server/cluster/cluster_journal.hpp"
@@ -114,9 +115,23 @@ int readSession(const std::string& command, cluster::ClusterStore& store,
       a);
 }
 
+// A session's map, replayed from the cluster's journal.
+core::SessionMapSource mapsOf(cluster::ClusterStore& store) {
+  return [&store](const std::string& id) -> common::Result<std::unique_ptr<fusion::OccupancyMap>> {
+    auto session = store.replay(id, std::numeric_limits<int64_t>::max());
+    if (!session) return session.error();
+    (*session)->waitUntilIdle();
+    auto bytes = (*session)->mapFull();
+    if (!bytes) return bytes.error();
+    std::istringstream in(*bytes);
+    return fusion::OccupancyMap::load(in);
+  };
+}
+
 int merge(cluster::ClusterStore& store, const Args& a) {
-  auto request = mergeRequestOf(a);
-  if (!request) return fail(request.error().message);
+  int code = 0;
+  const auto request = mergeRequestAligned(mapsOf(store), a, code);
+  if (!request) return code;
   if (auto merged = store.merge(*request); !merged) return fail(merged.error().message);
   auto replayed = store.replay(a.into, std::numeric_limits<int64_t>::max());
   if (!replayed) return fail(replayed.error().message);
@@ -178,6 +193,9 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "show" || command == "export") return readSession(command, **store, **journal, a);
   if (command == "merge") return merge(**store, a);
   if (command == "compact") return compact(**store, a);
+  if (command == "align") return alignCommand(mapsOf(**store), a);
+  if (command == "diff") return diffCommand(mapsOf(**store), a);
+  if (command != "close" && command != "delete") return fail(command + ": not on a cluster");
   const auto done = command == "close" ? (*store)->close(a.id) : (*store)->remove(a.id);
   if (!done) return fail(done.error().message);
   // Its server (if any) lets it go at its next round (a second): fenced by the raised epoch.

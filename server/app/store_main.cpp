@@ -39,9 +39,6 @@ namespace fs = std::filesystem;
 using stereomap::app::Args;
 using stereomap::app::fail;
 
-// The exit code of an alignment refused (the maps do not overlap enough, or ambiguously).
-constexpr int kRefused = 3;
-
 struct Store {
   std::unique_ptr<store::SessionJournals> journals;
   std::unique_ptr<core::MapServer> server;
@@ -271,81 +268,21 @@ int deleteSession(Store& store, Args& a) {
   return 0;
 }
 
-// One thread, as the server: Open3D's RANSAC draws differently on more, and the same maps
-// must give the same answer. Progress on stderr.
-align::AlignOptions toolAlignOptions() {
-  return {.threads = 1, .progress = [](const std::string& step) {
-            std::fprintf(stderr, "align: %s\n", step.c_str());
-          }};
+// A session's map, replayed into this tool's private server (opened read-only).
+core::SessionMapSource mapsOf(Store& store) {
+  return [&store](const std::string& id) {
+    return core::sessionMap(*store.server, store.admin.get(), id);
+  };
 }
 
-// The alignment of b onto a, its details and its line printed; nullopt (the exit code in
-// `code`) when it failed or was refused.
-std::optional<align::Alignment> alignAndReport(Store& store, const std::string& a,
-                                               const std::string& b, int& code) {
-  auto found = core::alignSessions(*store.server, store.admin.get(), a, b, toolAlignOptions());
-  if (!found) {
-    code = fail(found.error().message);
-    return std::nullopt;
-  }
-  if (found->found) {
-    std::printf(
-        "confidence %.2f, agreement %.0f%%, %zu and %zu occupied voxels, cells of %.2f m for "
-        "the search, %zu feature matches, %d poses compared\n",
-        found->confidence, 100 * found->agreement, found->voxels_a, found->voxels_b,
-        found->working_cell_m, found->matches, found->poses_tried);
-  }
-  std::printf("%s\n", align::alignLine(a, b, *found).c_str());
-  std::fflush(stdout);
-  code = found->found ? 0 : kRefused;
-  if (!found->found) return std::nullopt;
-  return *found;
-}
+int alignSessions(Store& store, Args& a) { return stereomap::app::alignCommand(mapsOf(store), a); }
 
-int alignSessions(Store& store, Args& a) {
-  int code = 0;
-  alignAndReport(store, a.first, a.second, code);
-  return code;
-}
-
-int diffSessions(Store& store, Args& a) {
-  auto request = stereomap::app::mergeRequestOf(a);  // its --transform
-  if (!request) return fail(request.error().message);
-  common::Rigid3 T_a_b = request->T_first_second;
-  if (a.transform.empty()) {
-    int code = 0;
-    const auto found = alignAndReport(store, a.first, a.second, code);
-    if (!found) return code;
-    T_a_b = found->T_a_b;
-  }
-  auto map_a = core::sessionMap(*store.server, store.admin.get(), a.first);
-  if (!map_a) return fail(map_a.error().message);
-  auto map_b = core::sessionMap(*store.server, store.admin.get(), a.second);
-  if (!map_b) return fail(map_b.error().message);
-  if ((*map_a)->resolution() != (*map_b)->resolution()) {
-    return fail("the sessions' maps have different resolutions");
-  }
-  const auto diff = align::diffMaps(**map_a, **map_b, T_a_b);
-  const std::string out = a.out.empty() ? a.first + "-" + a.second + ".diff.ply" : a.out;
-  const std::string ply = align::diffPly(diff);
-  if (auto written = common::writeFileAtomically(out, ply); !written) {
-    return fail("cannot write " + out + ": " + written.error().message);
-  }
-  std::printf("%s: %zu changed voxels (green appeared, red disappeared), in %s's frame\n",
-              out.c_str(), diff.appeared.size() + diff.disappeared.size(), a.first.c_str());
-  std::printf("%s\n", align::diffLine(a.first, a.second, diff).c_str());
-  return 0;
-}
+int diffSessions(Store& store, Args& a) { return stereomap::app::diffCommand(mapsOf(store), a); }
 
 int mergeSessions(Store& store, Args& a) {
-  auto request = stereomap::app::mergeRequestOf(a);
-  if (!request) return fail(request.error().message);
-  if (a.align == "auto") {
-    int code = 0;
-    const auto found = alignAndReport(store, a.first, a.second, code);
-    if (!found) return code;
-    request->T_first_second = found->T_a_b;
-  }
+  int code = 0;
+  const auto request = stereomap::app::mergeRequestAligned(mapsOf(store), a, code);
+  if (!request) return code;
   if (auto merged = store.admin->merge(*request); !merged) return fail(merged.error().message);
   const auto status = store.server->find(a.into)->status();
   if (auto closed = store.admin->close(a.into); !closed) return fail(closed.error().message);

@@ -8,7 +8,9 @@
 #include <filesystem>
 #include <fstream>
 
+#include "common/files.hpp"
 #include "common/transform_args.hpp"
+#include "server/align/map_diff.hpp"
 
 namespace stereomap::app {
 
@@ -111,6 +113,91 @@ common::Result<core::MergeRequest> mergeRequestOf(const Args& a) {
     request.T_first_second = *T;
   }
   return request;
+}
+
+namespace {
+
+// One thread, as the server: Open3D's RANSAC draws differently on more, and the same maps
+// must give the same answer. Progress on stderr.
+align::AlignOptions toolAlignOptions() {
+  return {.threads = 1, .progress = [](const std::string& step) {
+            std::fprintf(stderr, "align: %s\n", step.c_str());
+          }};
+}
+
+// The alignment of b onto a, its details and its line printed; nullopt (the exit code in
+// `code`) when it failed or was refused.
+std::optional<align::Alignment> alignAndReport(const core::SessionMapSource& maps,
+                                               const std::string& a, const std::string& b,
+                                               int& code) {
+  auto found = core::alignSessions(maps, a, b, toolAlignOptions());
+  if (!found) {
+    code = fail(found.error().message);
+    return std::nullopt;
+  }
+  if (found->found) {
+    std::printf(
+        "confidence %.2f, agreement %.0f%%, %zu and %zu occupied voxels, cells of %.2f m for "
+        "the search, %zu feature matches, %d poses compared\n",
+        found->confidence, 100 * found->agreement, found->voxels_a, found->voxels_b,
+        found->working_cell_m, found->matches, found->poses_tried);
+  }
+  std::printf("%s\n", align::alignLine(a, b, *found).c_str());
+  std::fflush(stdout);
+  code = found->found ? 0 : kRefused;
+  if (!found->found) return std::nullopt;
+  return *found;
+}
+
+}  // namespace
+
+int alignCommand(const core::SessionMapSource& maps, const Args& a) {
+  int code = 0;
+  alignAndReport(maps, a.first, a.second, code);
+  return code;
+}
+
+int diffCommand(const core::SessionMapSource& maps, const Args& a) {
+  auto request = mergeRequestOf(a);  // its --transform
+  if (!request) return fail(request.error().message);
+  common::Rigid3 T_a_b = request->T_first_second;
+  if (a.transform.empty()) {
+    int code = 0;
+    const auto found = alignAndReport(maps, a.first, a.second, code);
+    if (!found) return code;
+    T_a_b = found->T_a_b;
+  }
+  auto map_a = maps(a.first);
+  if (!map_a) return fail(map_a.error().message);
+  auto map_b = maps(a.second);
+  if (!map_b) return fail(map_b.error().message);
+  if ((*map_a)->resolution() != (*map_b)->resolution()) {
+    return fail("the sessions' maps have different resolutions");
+  }
+  const auto diff = align::diffMaps(**map_a, **map_b, T_a_b);
+  const std::string out = a.out.empty() ? a.first + "-" + a.second + ".diff.ply" : a.out;
+  if (auto written = common::writeFileAtomically(out, align::diffPly(diff)); !written) {
+    return fail("cannot write " + out + ": " + written.error().message);
+  }
+  std::printf("%s: %zu changed voxels (green appeared, red disappeared), in %s's frame\n",
+              out.c_str(), diff.appeared.size() + diff.disappeared.size(), a.first.c_str());
+  std::printf("%s\n", align::diffLine(a.first, a.second, diff).c_str());
+  return 0;
+}
+
+std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSource& maps,
+                                                      const Args& a, int& code) {
+  auto request = mergeRequestOf(a);
+  if (!request) {
+    code = fail(request.error().message);
+    return std::nullopt;
+  }
+  if (a.align == "auto") {
+    const auto found = alignAndReport(maps, a.first, a.second, code);
+    if (!found) return std::nullopt;
+    request->T_first_second = found->T_a_b;
+  }
+  return *request;
 }
 
 }  // namespace stereomap::app

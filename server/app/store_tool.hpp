@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -10,6 +11,7 @@
 #include "server/core/exports.hpp"
 #include "server/core/session.hpp"
 #include "server/core/session_admin.hpp"
+#include "server/core/session_align.hpp"
 #include "server/interop/session_mcap.hpp"
 
 namespace stereomap::app {
@@ -46,6 +48,18 @@ int exportSessionMcap(const core::Session& session, const interop::JournalSource
                       const Args& a);
 // merge's sessions and --transform.
 common::Result<core::MergeRequest> mergeRequestOf(const Args& a);
+
+// align, diff and merge --align auto, over a store folder or a cluster: `maps` reads a
+// session's map. Exit codes: 0, 1 (an error) or kRefused.
+inline constexpr int kRefused = 3;  // the maps overlap too little, or ambiguously
+// Prints the alignment's details and its line (align::alignLine, last).
+int alignCommand(const core::SessionMapSource& maps, const Args& a);
+// Aligns (or takes --transform), then writes the changes as a PLY and prints the diff line.
+int diffCommand(const core::SessionMapSource& maps, const Args& a);
+// merge's request, its transform found by aligning with --align auto (printed); nullopt with
+// the exit code in `code` when it failed or was refused.
+std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSource& maps,
+                                                      const Args& a, int& code);
 
 // Subcommand `command` against the cluster's database at a.cluster_url.
 int runInCluster(const std::string& command, Args& a);

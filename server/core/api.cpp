@@ -312,10 +312,17 @@ HttpAnswer errorOf(const common::Error& failure) {
 // On the server: one OpenMP thread, so that ingest keeps the other core.
 align::AlignOptions serverAlignOptions() { return {.threads = 1}; }
 
+common::Result<align::Alignment> alignOnServer(const MapServer& server, SessionAdmin* admin,
+                                               const std::string& first,
+                                               const std::string& second) {
+  return alignSessions([&](const std::string& id) { return sessionMap(server, admin, id); }, first,
+                       second, serverAlignOptions());
+}
+
 // 200 with the alignment, or 422 with the reason it was refused.
 HttpAnswer answerAlign(const MapServer& server, SessionAdmin* admin, const std::string& first,
                        const std::string& second) {
-  auto found = alignSessions(server, admin, first, second, serverAlignOptions());
+  auto found = alignOnServer(server, admin, first, second);
   if (!found) return errorOf(found.error());
   return HttpAnswer{found->found ? 200 : 422, "application/json",
                     alignmentJson(first, second, *found).dump() + "\n", ""};
@@ -380,8 +387,7 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
       if (server.find(request.into)) {
         return error(409, "session '" + request.into + "' already exists");
       }
-      auto found =
-          alignSessions(server, admin, request.first, request.second, serverAlignOptions());
+      auto found = alignOnServer(server, admin, request.first, request.second);
       if (!found) return errorOf(found.error());
       alignment = alignmentJson(request.first, request.second, *found);
       if (!found->found) return HttpAnswer{422, "application/json", alignment->dump() + "\n", ""};

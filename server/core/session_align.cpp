@@ -22,16 +22,16 @@ common::Result<std::unique_ptr<fusion::OccupancyMap>> sessionMap(const MapServer
   return fusion::OccupancyMap::load(in);
 }
 
-common::Result<align::Alignment> alignSessions(const MapServer& server, SessionAdmin* admin,
+common::Result<align::Alignment> alignSessions(const SessionMapSource& map_of,
                                                const std::string& first, const std::string& second,
                                                const align::AlignOptions& options) {
   if (first == second) {
     return common::makeError(common::ErrorCode::kInvalidArgument,
                              "align needs two different sessions");
   }
-  auto a = sessionMap(server, admin, first);
+  auto a = map_of(first);
   if (!a) return a.error();
-  auto b = sessionMap(server, admin, second);
+  auto b = map_of(second);
   if (!b) return b.error();
   auto aligned = align::alignMaps(**a, **b, options);
   if (!aligned) {

@@ -3,6 +3,7 @@
 // the server has not loaded is opened read-only first, as a viewer opening it would.
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -19,7 +20,13 @@ common::Result<std::unique_ptr<fusion::OccupancyMap>> sessionMap(const MapServer
                                                                  SessionAdmin* admin,
                                                                  const std::string& id);
 
-common::Result<align::Alignment> alignSessions(const MapServer& server, SessionAdmin* admin,
+// Where a session's map comes from: sessionMap() on a server or a store folder, a replay
+// of a cluster's journal in stereomap-store --cluster.
+using SessionMapSource =
+    std::function<common::Result<std::unique_ptr<fusion::OccupancyMap>>(const std::string& id)>;
+
+// The second session's map aligned onto the first's (an error names the session at fault).
+common::Result<align::Alignment> alignSessions(const SessionMapSource& map_of,
                                                const std::string& first, const std::string& second,
                                                const align::AlignOptions& options);
 

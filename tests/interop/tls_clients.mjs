@@ -120,7 +120,10 @@ async function main() {
     check(curl(['--cacert', certs.ca, `${base}/healthz`]).body.trim() === 'ok', 'curl trusting the test CA: GET /healthz over https');
     check(curl([`${base}/healthz`]).code === 60, 'curl without the CA refuses the server (exit 60)');
     check(curl([`http://127.0.0.1:${port}/healthz`]).code !== 0, 'plain http on the https port gets nothing');
-    check(servers[0].log().includes(`viewer: https://127.0.0.1:${port}/ (Foxglove: wss://`), 'the server says https and wss');
+    // The line may reach the pipe after /healthz answers (a loaded machine): wait for it.
+    const says = () => servers[0].log().includes(`viewer: https://127.0.0.1:${port}/ (Foxglove: wss://`);
+    await waitFor('the server\'s viewer line', 10_000, says).catch(() => {});
+    check(says(), 'the server says https and wss');
 
     const flight = await fly('tls', args.domain);
     check(flight.code === 0, `a vehicle flew into the TLS server (exit ${flight.code})`);
