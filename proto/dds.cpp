@@ -349,6 +349,7 @@ struct Topic<SessionEventMsg> {
     c.cy = m.cy;
     c.baseline = m.baseline;
     c.resolution_hint = m.resolution_hint;
+    c.frame = static_cast<uint32_t>(m.frame);
     return common::Ok{};
   }
   static Result<SessionEventMsg> fromC(const C& c) {
@@ -370,6 +371,9 @@ struct Topic<SessionEventMsg> {
     m.cy = c.cy;
     m.baseline = c.baseline;
     m.resolution_hint = c.resolution_hint;
+    auto frame = checkedEnum<VehicleFrame>(c.frame, 2, "frame");
+    if (!frame) return frame.error();
+    m.frame = *frame;
     return m;
   }
 };
@@ -393,6 +397,9 @@ struct Topic<AckMsg> {
     c.corrections = m.corrections;
     c.status = static_cast<uint32_t>(m.status);
     if (auto s = copyText(m.reason, c.reason, "ack reason"); !s) return s;
+    c.frame_state = static_cast<uint32_t>(m.frame_state);
+    std::copy(m.frame_position.begin(), m.frame_position.end(), c.frame_position);
+    std::copy(m.frame_orientation.begin(), m.frame_orientation.end(), c.frame_orientation);
     return common::Ok{};
   }
   static Result<AckMsg> fromC(const C& c) {
@@ -409,6 +416,12 @@ struct Topic<AckMsg> {
     m.clouds = c.clouds;
     m.events = c.events;
     m.corrections = c.corrections;
+    auto frame_state = checkedEnum<FrameState>(c.frame_state, 3, "frame_state");
+    if (!frame_state) return frame_state.error();
+    m.frame_state = *frame_state;
+    std::copy(std::begin(c.frame_position), std::end(c.frame_position), m.frame_position.begin());
+    std::copy(std::begin(c.frame_orientation), std::end(c.frame_orientation),
+              m.frame_orientation.begin());
     return m;
   }
 };

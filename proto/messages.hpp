@@ -18,6 +18,11 @@ enum class TrackingState : uint8_t { kInit, kOk, kDegraded, kLost };
 enum class PoseSource : uint8_t { kGroundTruth, kVisualOdometry, kExternal };
 enum class CloudEncoding : uint8_t { kDraco, kRawF32, kQuantZstd };
 enum class SessionEventKind : uint8_t { kStarted, kEnded };
+// Which frame a vehicle's poses are in (its start event says): the session's, or its own
+// (odometry from wherever it started), which the server finds by aligning the vehicle's map.
+enum class VehicleFrame : uint8_t { kSession, kOwn };
+// A vehicle in its own frame, as the server's acknowledgements tell it.
+enum class FrameState : uint8_t { kNone, kAligning, kAligned };
 enum class LandingState : uint8_t { kSearching, kTracking, kLost };
 enum class LandingMode : uint8_t { kDefault, kPatent };
 
@@ -118,6 +123,23 @@ struct SessionEventMsg {
   uint32_t height = 0;
   double fx = 0, fy = 0, cx = 0, cy = 0, baseline = 0;
   double resolution_hint = 0;
+  VehicleFrame frame = VehicleFrame::kSession;
+};
+
+// Written by the server, never sent on DDS: a vehicle in its own frame was aligned into its
+// session's (x_session = T x_own, T = position + orientation), with how well its map fit.
+// Journaled so that recovery fuses the vehicle's frames where they were fused.
+struct FrameAlignmentMsg {
+  std::string vehicle_id;
+  std::string session_id;
+  uint64_t stream = 0;  // unused (the server's record): 0
+  uint64_t seq = 0;
+  uint64_t unacked_from = 0;
+  int64_t stamp_ns = 0;  // when it was found
+  std::array<double, 3> position{};
+  std::array<double, 4> orientation{0, 0, 0, 1};  // x y z w
+  double overlap = 0;  // share of the vehicle's occupied voxels in the session's map
+  double rmse_m = 0;
 };
 
 // What a server has journaled of one vehicle's stream in a session, per topic: every sample
@@ -141,6 +163,9 @@ struct AckMsg {
   uint64_t corrections = 0;
   AckStatus status = AckStatus::kJournaled;
   std::string reason;
+  FrameState frame_state = FrameState::kNone;
+  std::array<double, 3> frame_position{};  // T_session_own when aligned
+  std::array<double, 4> frame_orientation{0, 0, 0, 1};
 };
 
 // A vehicle's own counters, once a second while it runs, for the operator (never journaled:

@@ -48,7 +48,7 @@ inline size_t wireBytes(const SessionEventMsg& m) {
   using namespace wire_detail;
   size_t n = string(string(4, m.vehicle_id), m.session_id);
   n = align(n, 8) + 4 * 8 + 4 + 4 + 4;  // stream, seq, unacked_from, stamp, kind, size
-  n = align(n, 8) + 6 * 8;              // the camera model and the resolution hint
+  n = align(n, 8) + 6 * 8 + 4;          // the camera model, the resolution hint, the frame
   return withHeaders(n);
 }
 
@@ -57,6 +57,14 @@ inline size_t wireBytes(const PoseCorrectionMsg& m) {
   size_t n = string(string(4, m.vehicle_id), m.session_id);
   n = align(n, 8) + 4 * 8 + 4;  // stream, seq, unacked_from, stamp, the keyframes' count
   n = align(n, 8) + m.keyframes.size() * 8 * 8;  // stamp and 7 doubles each
+  return withHeaders(n);
+}
+
+// A server's record, never sent: what it would take (the variant of journal records has it).
+inline size_t wireBytes(const FrameAlignmentMsg& m) {
+  using namespace wire_detail;
+  size_t n = string(string(4, m.vehicle_id), m.session_id);
+  n = align(n, 8) + 4 * 8 + (3 + 4 + 2) * 8;
   return withHeaders(n);
 }
 
@@ -74,6 +82,8 @@ inline size_t wireBytes(const AckMsg& m) {
   size_t n = string(string(4, m.vehicle_id), m.session_id);
   n = align(n, 8) + 6 * 8 + 4;  // stream, stamp, four counts, status
   n = string(n, m.reason);
+  n = align(n, 4) + 4;            // the frame state
+  n = align(n, 8) + (3 + 4) * 8;  // T_session_own
   return withHeaders(n);
 }
 

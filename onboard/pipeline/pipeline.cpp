@@ -75,6 +75,8 @@ common::Status VehiclePublisher::write(const link::SpoolRecord& record) {
         if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
           return corrections_->write(message);
         }
+        // A server's record (FrameAlignmentMsg): never in a vehicle's spool.
+        return common::makeError(common::ErrorCode::kInvalidArgument, "not a vehicle's sample");
       },
       record);
 }

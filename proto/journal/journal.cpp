@@ -34,7 +34,8 @@ enum RecordType : uint8_t {
   kPose = 2,
   kSessionEvent = 3,
   kPoseCorrection = 4,
-  kStreamed = 4,  // added to a type: the same message with its stream
+  kFrameAlignment = 5,  // written as 9 only (the server's record has a header like streams')
+  kStreamed = 4,        // added to a type: the same message with its stream
 };
 
 // Little-endian field writer/reader; the reader fails (ok() false) on any overrun.
@@ -86,6 +87,7 @@ class Reader {
     return b;
   }
   bool ok() const { return ok_ && at_ == size_; }
+  bool atEnd() const { return at_ >= size_; }
 
  private:
   const uint8_t* data_;
@@ -143,6 +145,16 @@ std::vector<uint8_t> encode(const JournalRecord& record, uint8_t& type) {
     w.put(e->width);
     w.put(e->height);
     for (double v : {e->fx, e->fy, e->cx, e->cy, e->baseline, e->resolution_hint}) w.put(v);
+    // Only when it is not the session's: records of vehicles in the session's frame stay
+    // byte for byte what earlier versions wrote (and read).
+    if (e->frame != proto::VehicleFrame::kSession) w.put(static_cast<uint8_t>(e->frame));
+  } else if (const auto* a = std::get_if<proto::FrameAlignmentMsg>(&record)) {
+    type = kFrameAlignment + kStreamed;
+    putHeader(w, *a);
+    putArray(w, a->position);
+    putArray(w, a->orientation);
+    w.put(a->overlap);
+    w.put(a->rmse_m);
   } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
     type = kPoseCorrection + kStreamed;
     putHeader(w, *c);
@@ -203,7 +215,20 @@ bool decode(uint8_t type, const uint8_t* data, size_t size, JournalRecord& out) 
     for (double* v : {&e.fx, &e.fy, &e.cx, &e.cy, &e.baseline, &e.resolution_hint}) {
       *v = r.get<double>();
     }
+    if (!r.atEnd()) {
+      const uint8_t frame = r.get<uint8_t>();
+      if (frame > static_cast<uint8_t>(proto::VehicleFrame::kOwn)) return false;
+      e.frame = static_cast<proto::VehicleFrame>(frame);
+    }
     out = std::move(e);
+  } else if (type == kFrameAlignment && streamed) {
+    proto::FrameAlignmentMsg a;
+    getHeader(r, a, streamed);
+    getArray(r, a.position);
+    getArray(r, a.orientation);
+    a.overlap = r.get<double>();
+    a.rmse_m = r.get<double>();
+    out = std::move(a);
   } else if (type == kPoseCorrection) {
     proto::PoseCorrectionMsg c;
     getHeader(r, c, streamed);

@@ -30,7 +30,7 @@
 namespace stereomap::proto::journal {
 
 using JournalRecord = std::variant<proto::CloudFrameMsg, proto::PoseMsg, proto::SessionEventMsg,
-                                   proto::PoseCorrectionMsg>;
+                                   proto::PoseCorrectionMsg, proto::FrameAlignmentMsg>;
 
 // A stretch of the file that could not be read. Reading continued after it.
 struct JournalDamage {

@@ -16,6 +16,8 @@ namespace journal = proto::journal;
 namespace {
 
 // The kind column: what a row holds, so that frames can be read without the rest.
+// A vehicle's frame alignment is a correction too: like a pose graph's, it moves frames already
+// fused, so no snapshot older than it may be used (recovery and compaction go by kind 4).
 enum Kind : int { kCloud = 1, kPose = 2, kEvent = 3, kCorrection = 4 };
 
 // A group's bounds: PostgreSQL takes at most 65535 parameters (6 per row), and a group
@@ -171,6 +173,10 @@ common::Result<uint64_t> ClusterJournal::append(const proto::SessionEventMsg& ev
 }
 common::Result<uint64_t> ClusterJournal::append(const proto::PoseCorrectionMsg& correction) {
   return appendRecord(correction.session_id, kCorrection, correction);
+}
+
+common::Result<uint64_t> ClusterJournal::append(const proto::FrameAlignmentMsg& alignment) {
+  return appendRecord(alignment.session_id, kCorrection, alignment);
 }
 
 common::Result<uint64_t> ClusterJournal::appendRecord(const std::string& session, int kind,

@@ -36,6 +36,7 @@ class IngestLog {
   virtual common::Result<uint64_t> append(const proto::PoseMsg& pose) = 0;
   virtual common::Result<uint64_t> append(const proto::SessionEventMsg& event) = 0;
   virtual common::Result<uint64_t> append(const proto::PoseCorrectionMsg& correction) = 0;
+  virtual common::Result<uint64_t> append(const proto::FrameAlignmentMsg& alignment) = 0;
 };
 
 // Where journaled frames can be read again (the store): a session's map is fused again from

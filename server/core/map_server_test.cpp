@@ -247,6 +247,7 @@ class NoRoomForCorrections : public IngestLog {
   common::Result<uint64_t> append(const proto::PoseCorrectionMsg&) override {
     return common::makeError(common::ErrorCode::kIo, "No space left on device");
   }
+  common::Result<uint64_t> append(const proto::FrameAlignmentMsg&) override { return ++number_; }
 
  private:
   uint64_t number_ = 0;

@@ -213,6 +213,10 @@ common::Result<uint64_t> SessionJournals::append(const proto::PoseCorrectionMsg&
   return appendTo(correction.session_id, correction);
 }
 
+common::Result<uint64_t> SessionJournals::append(const proto::FrameAlignmentMsg& alignment) {
+  return appendTo(alignment.session_id, alignment);
+}
+
 common::Status SessionJournals::forEachFrame(
     const std::string& session, uint64_t after, uint64_t up_to,
     const std::function<void(const proto::CloudFrameMsg& frame, uint64_t number)>& visit) const {

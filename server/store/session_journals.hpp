@@ -40,6 +40,7 @@ class SessionJournals : public core::IngestLog,
   common::Result<uint64_t> append(const proto::PoseMsg& pose) override;
   common::Result<uint64_t> append(const proto::SessionEventMsg& event) override;
   common::Result<uint64_t> append(const proto::PoseCorrectionMsg& correction) override;
+  common::Result<uint64_t> append(const proto::FrameAlignmentMsg& alignment) override;
   // Reads the session's journal file (streamed: one frame in memory at a time).
   common::Status forEachFrame(const std::string& session, uint64_t after, uint64_t up_to,
                               const std::function<void(const proto::CloudFrameMsg& frame,
