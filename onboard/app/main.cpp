@@ -14,6 +14,9 @@
 #include <ctime>
 #include <filesystem>
 #include <map>
+#include <optional>
+#include <string>
+#include <vector>
 
 #include "common/cli.hpp"
 #include "common/shutdown.hpp"
@@ -51,6 +54,7 @@ struct Flags {
   proto::DdsOptions dds;
   uint32_t seed = 1;
   double start_s = 0;
+  std::string frame = "session", start_pose = "0,0,0,0";
   std::string stereo_preset = "fast", noise_handling = "auto", codec = "auto";
   std::string camera_preset;
   double noise_sigma = 0, blur_sigma = 0;
@@ -85,9 +89,9 @@ void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--frames", f.frames, "Stop after N frames (0: run until Ctrl-C)")
       ->capture_default_str();
   app.add_option("--start", f.start_s,
-                 "sim:deck: seconds into the 60 s descent to begin (50: the last 6.5 m, the "
-                 "final approach)")
-      ->check(CLI::Range(0.0, 60.0))
+                 "The simulators: seconds into the flight to begin; sim: into its 40 s loop, "
+                 "sim:deck: into its 60 s descent (50: the last 6.5 m, the final approach)")
+      ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   app.add_option("--rate", f.rate_hz, "Frames per second (0: as fast as possible)")
       ->check(CLI::Range(0.0, 1000.0))
@@ -95,6 +99,17 @@ void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--session", f.pipeline.session_id, "Session name (letters, digits, . _ -)")
       ->capture_default_str();
   app.add_option("--vehicle", f.pipeline.vehicle_id, "Vehicle id")->capture_default_str();
+  app.add_option("--frame", f.frame,
+                 "The frame poses and clouds are sent in: session (the source's map, shared by "
+                 "the session's vehicles) or own (the vehicle's own, fixed at its first pose, "
+                 "which is sent as --start-pose; the server holds its clouds apart until it has "
+                 "aligned its map into the session's)")
+      ->check(CLI::IsMember({"session", "own"}))
+      ->capture_default_str();
+  app.add_option("--start-pose", f.start_pose,
+                 "With --frame own: the first pose sent, x,y,z,yaw_deg (metres, degrees about "
+                 "+z; no roll or pitch)")
+      ->capture_default_str();
   proto::addDdsFlags(app, f.dds);
   app.add_option("--seed", f.seed, "Simulated room's seed")->capture_default_str();
   app.add_option("--stereo", f.stereo_preset,
@@ -150,8 +165,8 @@ void addFlags(CLI::App& app, Flags& f) {
       ->check(CLI::IsMember({"fast", "paper", "gt"}))
       ->capture_default_str();
   app.add_option("--trajectory-out", f.trajectory_out,
-                 "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw; with "
-                 "--pose-graph, every frame through the final graph");
+                 "Write the poses (T_map_body) as TUM: t tx ty tz qx qy qz qw, in the frame "
+                 "sent (--frame); with --pose-graph, every frame through the final graph");
   auto* pose_graph =
       app.add_flag("--pose-graph", f.pipeline.pose_graph,
                    "Correct the odometry with a pose graph over its keyframes: loop closures and "
@@ -164,9 +179,11 @@ void addFlags(CLI::App& app, Flags& f) {
                  "and stereomap-posegraph read)")
       ->needs(pose_graph);
   app.add_option("--odometry-trajectory-out", f.odometry_out,
-                 "Write the odometry's own poses (T_map_body, TUM), before any correction");
+                 "Write the odometry's own poses (T_map_body, TUM, in the frame sent), before "
+                 "any correction");
   app.add_option("--truth-out", f.truth_out,
-                 "Write the source's ground-truth poses (T_map_body, TUM), where it has them");
+                 "Write the source's ground-truth poses (T_map_body, TUM), where it has them, "
+                 "at the stamps sent; in the source's frame, also with --frame own");
   app.add_option("--kitti-poses-out", f.kitti_out,
                  "Write the left camera's poses relative to the first frame, KITTI format");
   app.add_flag("--no-publish", f.no_publish,
@@ -247,9 +264,41 @@ void addFlags(CLI::App& app, Flags& f) {
       ->capture_default_str();
 }
 
+// --start-pose's "x,y,z,yaw_deg" as T_own_body; nullopt for anything else.
+std::optional<common::Rigid3> parseStartPose(const std::string& text) {
+  std::vector<double> values;
+  std::string rest = text;
+  for (size_t comma = 0; comma != std::string::npos && values.size() <= 4;) {
+    comma = rest.find(',');
+    const auto value = common::autoOrNumber(rest.substr(0, comma));
+    if (!value) return std::nullopt;
+    values.push_back(*value);
+    rest = comma == std::string::npos ? std::string() : rest.substr(comma + 1);
+  }
+  if (values.size() != 4) return std::nullopt;
+  const double yaw_rad = values[3] * M_PI / 180.0;
+  return common::Rigid3{common::Quat(Eigen::AngleAxisd(yaw_rad, common::Vec3::UnitZ())),
+                        common::Vec3(values[0], values[1], values[2])};
+}
+
 // Completes f.pipeline from the flags CLI11 cannot check alone; false (said) on bad usage.
-bool pipelineOptions(Flags& f) {
+bool pipelineOptions(const CLI::App& app, Flags& f) {
   auto& options = f.pipeline;
+  if (f.frame == "own") {
+    const auto start_pose = parseStartPose(f.start_pose);
+    if (!start_pose) {
+      spdlog::error("--start-pose '{}' must be x,y,z,yaw_deg: four numbers, commas between",
+                    f.start_pose);
+      return false;
+    }
+    options.frame = proto::VehicleFrame::kOwn;
+    options.start_pose = *start_pose;
+  } else if (app.count("--start-pose") > 0) {
+    spdlog::error(
+        "--start-pose needs --frame own (in the session's frame the source's poses go "
+        "as they are)");
+    return false;
+  }
   if (options.session_id.empty() || options.session_id.size() > proto::kMaxIdLength ||
       options.session_id.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
                                            "0123456789._-") != std::string::npos) {
@@ -553,6 +602,23 @@ int reportSummary(const Flags& f, const pipeline::PipelineSummary& summary) {
         spool.dropped_clouds, spool.dropped_other, spool.disk_bytes / 1024,
         spool.disk_ok ? std::string() : "; disk problem: " + spool.disk_problem);
   }
+  if (f.pipeline.frame == proto::VehicleFrame::kOwn) {
+    const auto& T = summary.T_session_own;
+    switch (summary.frame_state) {
+      case proto::FrameState::kAligned:
+        spdlog::info("frame: own, aligned, t {:.6f} {:.6f} {:.6f} q {:.6f} {:.6f} {:.6f} {:.6f}",
+                     T.translation.x(), T.translation.y(), T.translation.z(), T.rotation.x(),
+                     T.rotation.y(), T.rotation.z(), T.rotation.w());
+        break;
+      case proto::FrameState::kAligning:
+        spdlog::info("frame: own, aligning");
+        break;
+      case proto::FrameState::kNone:
+        spdlog::info("frame: own, the server said nothing of its alignment{}",
+                     summary.outbox ? "" : " (acknowledgements need a spool: --spool)");
+        break;
+    }
+  }
   if (!summary.closed_by_server.empty()) {
     const uint64_t held_back = summary.outbox ? summary.outbox->held_back : 0;
     const uint64_t dropped = summary.spool ? summary.spool->dropped_closed : 0;
@@ -574,7 +640,7 @@ int main(int argc, char** argv) {
   Flags flags;
   addFlags(app, flags);
   if (auto exit_code = common::parseCommandLine(app, argc, argv)) return *exit_code;
-  if (!pipelineOptions(flags)) return 2;
+  if (!pipelineOptions(app, flags)) return 2;
 
   auto opened = sources::openSource(flags.source, sourceOptions(app, flags));
   if (!opened) {

@@ -135,12 +135,40 @@ void VehiclePublisher::service(std::chrono::milliseconds wait) {
       }
       continue;
     }
+    takeFrameState(ack);
     outbox_->acknowledge(ack);
   }
   const bool present = serverPresent();
   announceWhileUnserved(present);
   outbox_->resend(steadyNs(), present);
   outbox_->spool().sync();
+}
+
+void VehiclePublisher::takeFrameState(const proto::AckMsg& ack) {
+  // kNone: a vehicle in the session's frame, or a server that does not say.
+  if (ack.frame_state == proto::FrameState::kNone || ack.session_id != session_id_ ||
+      ack.vehicle_id != outbox_->options().vehicle_id) {
+    return;
+  }
+  const auto T_session_own = proto::rigidFromFields(ack.frame_position, ack.frame_orientation);
+  const bool aligned = ack.frame_state == proto::FrameState::kAligned;
+  const bool moved =
+      aligned && (T_session_own.translation != T_session_own_.translation ||
+                  T_session_own.rotation.coeffs() != T_session_own_.rotation.coeffs());
+  if (ack.frame_state == frame_state_ && !moved) return;
+  frame_state_ = ack.frame_state;
+  if (!aligned) {
+    spdlog::info(
+        "frame: aligning (the server holds this vehicle's clouds apart until its map overlaps "
+        "the session's)");
+    return;
+  }
+  T_session_own_ = T_session_own;
+  const auto& t = ack.frame_position;
+  const auto& q = ack.frame_orientation;
+  spdlog::info(
+      "frame: aligned into the session's: t {:.6f} {:.6f} {:.6f} q {:.6f} {:.6f} {:.6f} {:.6f}",
+      t[0], t[1], t[2], q[0], q[1], q[2], q[3]);
 }
 
 bool VehiclePublisher::serverPresent() const { return poses_->matchedReaders() > 0; }
@@ -337,6 +365,7 @@ proto::SessionEventMsg makeSessionEvent(const PipelineOptions& options,
   event.baseline = camera.baseline;
   // The voxel the clouds are thinned to: a server mapping finer than that gets too few points.
   event.resolution_hint = options.link ? options.link->map_resolution_m : 0;
+  event.frame = options.frame;
   return event;
 }
 
@@ -385,21 +414,27 @@ class PipelineRun {
     // The left camera's mount; a forward-looking camera when the source does not say.
     const common::Rigid3 T_body_camera = frame.mount();
     std::optional<odometry::VoEstimate> estimate;
-    const auto T_map_body = pose(frame, T_body_camera, report, estimate);
-    if (!T_map_body) {
+    const auto T_source_body = pose(frame, T_body_camera, report, estimate);
+    if (!T_source_body) {
       spdlog::warn("frame {} has no ground-truth pose; skipped (use --vo fast)", frame.index);
       return;
     }
-    report.T_map_body = *T_map_body;
-    report.T_map_camera = *T_map_body * T_body_camera;
+    if (options_.frame == proto::VehicleFrame::kOwn && !T_own_source_) {
+      T_own_source_ = options_.start_pose * T_source_body->inverse();
+    }
+    // From here on "map" is the frame published in (published()).
+    const common::Rigid3 T_map_body = published(*T_source_body);
+    report.T_map_body_odometry = T_map_body;
+    report.T_map_body = T_map_body;
+    report.T_map_camera = T_map_body * T_body_camera;
     // Before this frame's pose: a correction may name keyframes up to the previous frame.
     sendCorrection(frame.stamp_ns, T_body_camera, /*now=*/false);
     last_T_body_camera_ = T_body_camera;
     last_stamp_ = frame.stamp_ns;
-    const common::Vec3 velocity = velocityAt(frame.stamp_ns, *T_map_body);
-    watchLanding(frame, *T_map_body, T_body_camera);
+    const common::Vec3 velocity = velocityAt(frame.stamp_ns, T_map_body);
+    watchLanding(frame, T_map_body, T_body_camera);
     // The pose goes first, whatever becomes of the cloud.
-    auto pose_msg = makePoseMsg(options_, summary_.frames, frame.stamp_ns, *T_map_body, velocity,
+    auto pose_msg = makePoseMsg(options_, summary_.frames, frame.stamp_ns, T_map_body, velocity,
                                 estimate ? &*estimate : nullptr);
     publish(pose_msg, "Pose");
     summary_.wire_bytes += proto::wireBytes(pose_msg);
@@ -458,6 +493,8 @@ class PipelineRun {
                      publisher_->outbox() ? "; the spool keeps them for the next run on it"
                                           : "; it learns of the end when the vehicle falls silent");
       }
+      summary_.frame_state = publisher_->frameState();
+      summary_.T_session_own = publisher_->T_session_own();
       if (const auto* outbox = publisher_->outbox()) {
         summary_.outbox = outbox->stats();
         summary_.spool = outbox->spool().stats();
@@ -477,7 +514,8 @@ class PipelineRun {
     if (graph_) {
       const auto poses = graph_->finish();
       for (size_t i = 0; i < poses.size(); ++i) {
-        summary_.corrected_T_map_body.push_back(*anchor_ * poses[i] * T_body_cameras_[i].inverse());
+        summary_.corrected_T_map_body.push_back(
+            published(*anchor_ * poses[i] * T_body_cameras_[i].inverse()));
       }
       summary_.graph = graph_->stats();
       summary_.keyframe_graph = graph_->keyframeGraph();
@@ -497,19 +535,23 @@ class PipelineRun {
     }
   }
 
-  // The body's pose: the odometry's (anchored at the source's first ground truth), or the
-  // source's ground truth; nullopt when there is none.
+  // A pose in the source's map frame as published: in the vehicle's own frame with
+  // VehicleFrame::kOwn (once fixed at the first pose), else as it is. Every map-frame pose the
+  // vehicle sends goes through here.
+  common::Rigid3 published(const common::Rigid3& T_source_x) const {
+    return T_own_source_ ? *T_own_source_ * T_source_x : T_source_x;
+  }
+
+  // The body's pose in the source's map frame: the odometry's (anchored at the source's first
+  // ground truth), or the source's ground truth; nullopt when there is none.
   std::optional<common::Rigid3> pose(const camera::SourceFrame& frame,
                                      const common::Rigid3& T_body_camera, FrameReport& report,
                                      std::optional<odometry::VoEstimate>& estimate) {
-    if (!odometry_) {
-      if (frame.T_map_body) report.T_map_body_odometry = *frame.T_map_body;
-      return frame.T_map_body;
-    }
+    if (!odometry_) return frame.T_map_body;
     estimate = odometry_->track(frame.left, frame.right);
     odometry_ms_.push_back(estimate->milliseconds);
     if (!anchor_) anchor_ = frame.T_map_camera_truth();
-    report.T_map_body_odometry = *anchor_ * estimate->T_world_camera * T_body_camera.inverse();
+    const common::Rigid3 T_map_body = *anchor_ * estimate->T_world_camera * T_body_camera.inverse();
     // With the graph, the odometry's own poses are still what is published: the graph's
     // corrections go separately (PoseCorrection), and the server applies them to every
     // pose and cloud, earlier and later ones alike. Published poses corrected live would
@@ -526,7 +568,7 @@ class PipelineRun {
     summary_.degraded_frames += estimate->state == odometry::TrackingState::kDegraded;
     summary_.right_offset_px = estimate->right_offset_px;
     summary_.right_gain = estimate->right_gain;
-    return report.T_map_body_odometry;
+    return T_map_body;
   }
 
   // Sends the graph's newest correction, at most once per period (or now, at the end); the
@@ -542,7 +584,7 @@ class PipelineRun {
     }
     if (publisher_ != nullptr) {
       publish(makePoseCorrectionMsg(options_, summary_.corrections, stamp_ns, unsent_correction_,
-                                    *anchor_, T_body_camera),
+                                    published(*anchor_), T_body_camera),
               "PoseCorrection");
       spdlog::info(
           "pose graph: sent the corrected poses of {} keyframes ({} loop closures, {} "
@@ -570,9 +612,11 @@ class PipelineRun {
   void watchLanding(const camera::SourceFrame& frame, const common::Rigid3& T_map_body,
                     const common::Rigid3& T_body_camera) {
     if (!landing_) return;
-    const auto& seen =
-        landing_->update(common::nsToSeconds(frame.stamp_ns), frame.left, frame.right, T_map_body,
-                         T_body_camera, frame.T_world_map.value_or(common::Rigid3{}));
+    // The world's frame stays the source's: T_world_map of the frame published in.
+    common::Rigid3 T_world_map = frame.T_world_map.value_or(common::Rigid3{});
+    if (T_own_source_) T_world_map = T_world_map * T_own_source_->inverse();
+    const auto& seen = landing_->update(common::nsToSeconds(frame.stamp_ns), frame.left,
+                                        frame.right, T_map_body, T_body_camera, T_world_map);
     summary_.landing_tracked += seen.state == landing::TrackState::kTracking;
     summary_.landing_poses += seen.has_pose;
     publish(makeLandingTargetMsg(options_, summary_.frames, frame.stamp_ns, seen,
@@ -645,6 +689,8 @@ class PipelineRun {
   std::vector<double> depth_ms_, encode_ms_, frame_ms_, odometry_ms_;
   std::vector<common::Rigid3> T_body_cameras_;  // per frame, for the corrected trajectory
   std::optional<common::Rigid3> anchor_;        // T_map_camera of the odometry's world frame
+  // T_own_map with VehicleFrame::kOwn, fixed at the first pose (published()).
+  std::optional<common::Rigid3> T_own_source_;
   // The graph's newest keyframe poses not yet sent, and when the last were.
   std::vector<posegraph::KeyframePose> unsent_correction_;
   std::optional<Clock::time_point> last_correction_;

@@ -35,8 +35,9 @@ struct FrameReport {
   odometry::TrackingState state = odometry::TrackingState::kOk;
   common::Rigid3 T_map_body;  // as published (the odometry's; the graph's corrections go apart)
   common::Rigid3 T_map_camera;
-  common::Rigid3 T_map_body_odometry;              // the odometry's own
-  std::optional<common::Rigid3> T_map_body_truth;  // when the source knows it
+  common::Rigid3 T_map_body_odometry;  // the odometry's own
+  // When the source knows it; in the source's frame whatever PipelineOptions::frame says.
+  std::optional<common::Rigid3> T_map_body_truth;
   double odometry_ms = 0;
   double frame_ms = 0;
 };
@@ -78,6 +79,14 @@ struct PipelineOptions {
   // deck's motion, distance and bearing.
   std::optional<landing::LandingWatchOptions> landing;
   std::function<void(const FrameReport&)> on_frame;  // after every frame, if set
+  // The frame every map-frame pose is published in (poses, clouds' sensor poses, corrections,
+  // landing targets): kSession, the source's map as given (the session's frame, shared by
+  // its vehicles); kOwn, the vehicle's own, fixed at its first pose so that this pose is
+  // published as start_pose (T_own_map = start_pose * T_map_body_first^-1); the server holds
+  // such a vehicle's clouds apart until it has aligned its map into the session's. Ground
+  // truth (FrameReport::T_map_body_truth) stays in the source's frame either way.
+  proto::VehicleFrame frame = proto::VehicleFrame::kSession;
+  common::Rigid3 start_pose;  // T_own_body of the first frame, with kOwn
 };
 
 struct PipelineSummary {
@@ -122,6 +131,10 @@ struct PipelineSummary {
   uint64_t corrections = 0;  // corrections the graph made (PoseCorrection samples, if publishing)
   // With landing: frames the pad was tracked in, and those with a pose published.
   uint64_t landing_tracked = 0, landing_poses = 0;
+  // With VehicleFrame::kOwn: what the server last said of the vehicle's frame (acknowledgements
+  // only come with an outbox), and T_session_own once aligned (x_session = T * x_own).
+  proto::FrameState frame_state = proto::FrameState::kNone;
+  common::Rigid3 T_session_own;
 };
 
 // The DDS side of the vehicle: one writer per topic and, with an outbox, the acknowledgements:
@@ -163,6 +176,11 @@ class VehiclePublisher {
   static constexpr std::chrono::seconds kStatusEvery{1};
   // Why the server said the session takes no more samples; "" while it takes them.
   const std::string& closedBecause() const { return closed_because_; }
+  // What the server's acknowledgements last said of this vehicle's frame (kNone: nothing, as
+  // for a vehicle in the session's frame), and T_session_own while kAligned. Each change is
+  // said once in the log.
+  proto::FrameState frameState() const { return frame_state_; }
+  const common::Rigid3& T_session_own() const { return T_session_own_; }
 
  private:
   common::Status write(const link::SpoolRecord& record);
@@ -171,6 +189,7 @@ class VehiclePublisher {
   // Says the session started again, every kAnnounceEvery, while samples wait and no server
   // reads them.
   void announceWhileUnserved(bool server_present);
+  void takeFrameState(const proto::AckMsg& ack);
   static constexpr std::chrono::seconds kAnnounceEvery{2};
 
   std::unique_ptr<proto::Writer<proto::SessionEventMsg>> events_;
@@ -182,6 +201,8 @@ class VehiclePublisher {
   std::unique_ptr<proto::Reader<proto::AckMsg>> acks_;
   std::string session_id_;
   std::string closed_because_;
+  proto::FrameState frame_state_ = proto::FrameState::kNone;
+  common::Rigid3 T_session_own_;
   std::chrono::steady_clock::time_point last_status_{};
   std::optional<link::Outbox> outbox_;
   std::vector<proto::AckMsg> ack_batch_;

@@ -102,6 +102,102 @@ TEST(Pipeline, APoseGraphCorrectsThePoses) {
   EXPECT_LT(corrected, odometry);
 }
 
+// The poses a run reports (as published), with ground truth, from the sim's first frames.
+std::vector<FrameReport> reportsOf(PipelineOptions options, uint64_t frames) {
+  sim::SimSource source({.seed = 1, .max_frames = frames});
+  common::Shutdown shutdown;
+  options.rate_hz = 0;
+  options.progress_every = 0;
+  options.depth = false;
+  std::vector<FrameReport> reports;
+  options.on_frame = [&](const FrameReport& r) { reports.push_back(r); };
+  runPipeline(source, nullptr, options, shutdown);
+  return reports;
+}
+
+void expectNear(const common::Rigid3& a, const common::Rigid3& b, double tolerance = 1e-9) {
+  EXPECT_NEAR((a.translation - b.translation).norm(), 0.0, tolerance);
+  EXPECT_NEAR(a.rotation.angularDistance(b.rotation), 0.0, tolerance);
+}
+
+// In its own frame (issue 56) the vehicle's first pose is the start pose, and every later one
+// keeps its motion from there; the ground truth stays the source's.
+TEST(Pipeline, InItsOwnFrameTheFirstPoseIsTheStartPose) {
+  const common::Rigid3 start{common::Quat(Eigen::AngleAxisd(M_PI / 6, common::Vec3::UnitZ())),
+                             common::Vec3(1, 2, 3)};
+  for (const auto pose_source : {PoseSource::kGroundTruth, PoseSource::kOdometry}) {
+    SCOPED_TRACE(pose_source == PoseSource::kOdometry ? "odometry" : "ground truth");
+    const auto session = reportsOf({.pose_source = pose_source}, 4);
+    const auto own = reportsOf(
+        {.pose_source = pose_source, .frame = proto::VehicleFrame::kOwn, .start_pose = start}, 4);
+    ASSERT_EQ(own.size(), 4u);
+    ASSERT_EQ(session.size(), 4u);
+    expectNear(own[0].T_map_body, start);
+    for (size_t i = 0; i < own.size(); ++i) {
+      expectNear(own[0].T_map_body.inverse() * own[i].T_map_body,
+                 session[0].T_map_body.inverse() * session[i].T_map_body, 1e-6);
+      // The camera's, and so the clouds', poses move with the body's.
+      expectNear(own[i].T_map_camera,
+                 own[0].T_map_body * session[0].T_map_body.inverse() * session[i].T_map_camera,
+                 1e-6);
+      ASSERT_TRUE(own[i].T_map_body_truth && session[i].T_map_body_truth);
+      EXPECT_EQ(own[i].T_map_body_truth->translation, session[i].T_map_body_truth->translation);
+    }
+  }
+  // In the session's frame the source's poses go as they are.
+  const auto session = reportsOf({.pose_source = PoseSource::kGroundTruth}, 2);
+  for (const auto& r : session) {
+    EXPECT_EQ(r.T_map_body.translation, r.T_map_body_truth->translation);
+    EXPECT_EQ(r.T_map_body.rotation.coeffs(), r.T_map_body_truth->rotation.coeffs());
+  }
+}
+
+TEST(Pipeline, TheSessionEventSaysTheFrame) {
+  const camera::StereoCamera camera;
+  EXPECT_EQ(makeSessionEvent({}, camera, proto::SessionEventKind::kStarted).frame,
+            proto::VehicleFrame::kSession);
+  EXPECT_EQ(makeSessionEvent({.frame = proto::VehicleFrame::kOwn}, camera,
+                             proto::SessionEventKind::kEnded)
+                .frame,
+            proto::VehicleFrame::kOwn);
+}
+
+// A vehicle in its own frame learns from the acknowledgements whether the server has aligned it,
+// and where its frame sits in the session's.
+TEST(Pipeline, TheAcknowledgementsSayWhereTheVehiclesFrameIs) {
+  auto participant =
+      proto::Participant::create({.domain_id = 135, .config_file = STEREOMAP_DDS_CONFIG});
+  ASSERT_TRUE(participant) << participant.error().message;
+  auto acks =
+      proto::Writer<proto::AckMsg>::create(*participant, {proto::vehiclePartition("s1", "uav")});
+  ASSERT_TRUE(acks);
+  auto spool = link::Spool::open({});
+  ASSERT_TRUE(spool);
+  auto publisher =
+      VehiclePublisher::create(*participant, "s1", std::move(*spool), {.vehicle_id = "uav"});
+  ASSERT_TRUE(publisher) << publisher.error().message;
+  EXPECT_EQ((*publisher)->frameState(), proto::FrameState::kNone);
+  proto::AckMsg ack;
+  ack.session_id = "s1";
+  ack.vehicle_id = "uav";
+  ack.stream = 1;
+  auto expectState = [&](proto::FrameState state) {
+    ack.frame_state = state;
+    const auto deadline = std::chrono::steady_clock::now() + 3s;
+    while ((*publisher)->frameState() != state && std::chrono::steady_clock::now() < deadline) {
+      ASSERT_TRUE((*acks)->write(ack));  // again until the reader has matched
+      (*publisher)->service(50ms);
+    }
+    EXPECT_EQ((*publisher)->frameState(), state);
+  };
+  expectState(proto::FrameState::kAligning);
+  ack.frame_position = {1, 2, 3};
+  ack.frame_orientation = {0, 0, std::sin(0.25), std::cos(0.25)};
+  expectState(proto::FrameState::kAligned);
+  expectNear((*publisher)->T_session_own(),
+             {common::Quat(Eigen::AngleAxisd(0.5, common::Vec3::UnitZ())), common::Vec3(1, 2, 3)});
+}
+
 // A vehicle holding samples that no server reads (in a cluster: its session left memory while
 // the vehicle went on) says its session started again every 2 s, as its start event was first
 // sent, so that a server takes the session up; once nothing waits, it stops.

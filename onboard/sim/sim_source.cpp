@@ -18,10 +18,12 @@ std::optional<camera::SourceFrame> SimSource::next() {
   // The clock starts with the first frame taken, as a camera's does: a vehicle that first
   // waits for its server must not stamp its frames as that much older.
   if (options_.start_stamp_ns == 0) options_.start_stamp_ns = common::nowNs();
-  const double t_s = static_cast<double>(index_) / options_.rate_hz;
+  const double since_start_s = static_cast<double>(index_) / options_.rate_hz;
+  const double t_s = options_.start_s + since_start_s;
   camera::SourceFrame frame;
   frame.index = index_++;
-  frame.stamp_ns = options_.start_stamp_ns + static_cast<int64_t>(std::llround(t_s * 1e9));
+  frame.stamp_ns =
+      options_.start_stamp_ns + static_cast<int64_t>(std::llround(since_start_s * 1e9));
   frame.T_map_body = flight_.T_map_body(t_s);
   frame.T_body_camera = flight_.T_body_camera();
   const double half_exposure = 0.5 * options_.render.camera.exposure_s;

@@ -14,6 +14,9 @@ struct SimSourceOptions {
   double rate_hz = 10.0;       // simulated time between frames is 1 / rate_hz
   uint64_t max_frames = 0;     // 0: unlimited (the flight loops)
   int64_t start_stamp_ns = 0;  // stamp of frame 0; 0 = when frame 0 is taken
+  // Where in the flight frame 0 is, seconds (the flight loops every FlightOptions::period_s);
+  // stamps still start at start_stamp_ns.
+  double start_s = 0;
   RenderOptions render;
   FlightOptions flight;
 };

@@ -1,5 +1,7 @@
 #include "onboard/sources/source_registry.hpp"
 
+#include <sstream>
+
 #include "onboard/camera/dataset_source.hpp"
 #include "onboard/camera/prefetch_source.hpp"
 #include "onboard/sim/deck.hpp"
@@ -33,9 +35,23 @@ std::unique_ptr<camera::FrameSource> prefetched(std::unique_ptr<camera::FrameSou
   return std::make_unique<camera::PrefetchSource>(std::move(sim));
 }
 
+// --start within [0, end) seconds of a simulated flight (`what`), or why not.
+std::optional<common::Error> startOutside(const SourceOptions& options, double end,
+                                          const std::string& what) {
+  if (options.start_s >= 0 && options.start_s <= end) return std::nullopt;
+  std::ostringstream message;
+  message << "--start " << options.start_s << ": " << what << " lasts " << end
+          << " s; start from 0 to " << end << " s";
+  return makeError(ErrorCode::kInvalidArgument, message.str());
+}
+
 Result<OpenedSource> openSim(const std::string&, const SourceOptions& options) {
-  sim::SimSourceOptions sim{
-      .seed = options.seed, .rate_hz = simRate(options), .max_frames = options.max_frames};
+  sim::SimSourceOptions sim{.seed = options.seed,
+                            .rate_hz = simRate(options),
+                            .max_frames = options.max_frames,
+                            .start_s = options.start_s};
+  // Past one loop it flies the same again: a start there is a mistake, not a choice.
+  if (auto error = startOutside(options, sim.flight.period_s, "the sim's loop")) return *error;
   applyCameraModel(options, sim.render.camera);
   return OpenedSource{prefetched(std::make_unique<sim::SimSource>(sim)), std::nullopt};
 }
@@ -45,6 +61,7 @@ Result<OpenedSource> openDeck(const std::string&, const SourceOptions& options) 
                               .rate_hz = simRate(options),
                               .max_frames = options.max_frames,
                               .start_s = options.start_s};
+  if (auto error = startOutside(options, deck.flight.duration_s, "the descent")) return *error;
   applyCameraModel(options, deck.render.camera);
   return OpenedSource{prefetched(std::make_unique<sim::DeckSource>(deck)),
                       "sim:deck: mapped in the deck's frame, poses from the sim's navigation "
@@ -56,6 +73,11 @@ template <typename Location>
 auto dataset(Result<std::unique_ptr<camera::FrameSource>> (*open)(const Location&,
                                                                   const camera::DatasetOptions&)) {
   return [open](const std::string& location, const SourceOptions& options) -> Result<OpenedSource> {
+    if (options.start_s != 0) {
+      return makeError(ErrorCode::kInvalidArgument,
+                       "--start: only the simulators (sim, sim:deck) start later; a data set or "
+                       "camera starts at its first frame");
+    }
     camera::DatasetOptions dataset{.calibration_file = options.calibration_file,
                                    .max_frames = options.max_frames,
                                    .rate_hz = options.rate_hz > 0 ? options.rate_hz : 10.0};

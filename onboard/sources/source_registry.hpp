@@ -26,7 +26,9 @@ struct SourceOptions {
   // The simulator's: the room or deck's seed, and its camera model (a preset name, "" for the
   // source's default, then the read noise and defocus blur when given).
   uint32_t seed = 1;
-  double start_s = 0;  // sim:deck: seconds into the 60 s descent to begin (its final approach)
+  // The simulators: seconds into the flight to begin (sim: its 40 s loop; sim:deck: its 60 s
+  // descent, 50 for the final approach); other sources refuse anything but 0.
+  double start_s = 0;
   std::string camera_preset;
   std::optional<double> noise_sigma, blur_sigma;
 };

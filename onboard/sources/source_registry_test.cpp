@@ -2,7 +2,11 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdlib>
 #include <set>
+#include <tuple>
+
+#include "onboard/sim/flight.hpp"
 
 namespace stereomap::sources {
 namespace {
@@ -30,6 +34,31 @@ TEST(SourceRegistry, OpensTheSimulatorsWithTheirOptions) {
   ASSERT_TRUE(deck) << deck.error().message;
   ASSERT_TRUE(deck->prefer_ground_truth);  // the deck moves with the scene
   EXPECT_NE(deck->prefer_ground_truth->find("GPS/INS"), std::string::npos);
+}
+
+// --start: the room's flight begins that far into its loop, the stamps at the first frame.
+TEST(SourceRegistry, TheSimulatorsStartLaterInTheirFlight) {
+  auto from_start = openSource("sim", {.max_frames = 1});
+  auto later = openSource("sim", {.max_frames = 1, .start_s = 10});
+  ASSERT_TRUE(from_start && later);
+  const auto first = from_start->source->next();
+  const auto first_later = later->source->next();
+  ASSERT_TRUE(first && first_later);
+  const sim::Flight flight;
+  EXPECT_LT((first_later->T_map_body->translation - flight.T_map_body(10).translation).norm(),
+            1e-12);
+  EXPECT_GT((first_later->T_map_body->translation - first->T_map_body->translation).norm(), 1.0);
+  EXPECT_LT(std::abs(first_later->stamp_ns - first->stamp_ns), 1'000'000'000);
+
+  for (const auto& [spec, start, needle] :
+       {std::tuple{"sim", 41.0, "--start 41: the sim's loop lasts 40 s; start from 0 to 40 s"},
+        std::tuple{"sim:deck", 61.0, "--start 61: the descent lasts 60 s"},
+        std::tuple{"kitti:/nonexistent", 5.0, "--start: only the simulators"}}) {
+    auto opened = openSource(spec, {.start_s = start});
+    ASSERT_FALSE(opened) << spec;
+    EXPECT_EQ(opened.error().code, common::ErrorCode::kInvalidArgument);
+    EXPECT_NE(opened.error().message.find(needle), std::string::npos) << opened.error().message;
+  }
 }
 
 TEST(SourceRegistry, ASpecNoSourceTakesIsAClearError) {

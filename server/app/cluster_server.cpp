@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include "server/app/run.hpp"
+#include "server/core/frame_aligner.hpp"
 #include "server/cluster/cluster_admin.hpp"
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
@@ -32,6 +33,7 @@ int runClusterServer(Flags& flags, const net::HttpServerOptions& http,
   flags.options.snapshot_interval = std::chrono::milliseconds(static_cast<int64_t>(
       (flags.snapshot_interval_s < 0 ? 30 : flags.snapshot_interval_s) * 1000));
   core::MapServer server(flags.options);
+  core::FrameAligner aligner(server, {});  // vehicles in their own frame, into their sessions'
 
   // The HTTP port first: with --http ADDRESS:0 it is known only once bound, and the cluster
   // must know where this server is reached before it is given sessions.

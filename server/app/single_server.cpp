@@ -5,6 +5,7 @@
 #include <thread>
 
 #include "server/app/run.hpp"
+#include "server/core/frame_aligner.hpp"
 #include "server/ingest/ack_router.hpp"
 #include "server/ingest/dds_ingest.hpp"
 #include "server/interop/session_mcap.hpp"
@@ -96,6 +97,8 @@ int runSingleServer(Flags& flags, const net::HttpServerOptions& http,
                                          {.default_resolution = flags.options.resolution});
   if (!admin) return fail(admin.error());
   recoverSessions(**admin);
+  // Vehicles in their own frame are aligned into their sessions' (until it is destroyed).
+  core::FrameAligner aligner(server, {});
   // The readers only now: a vehicle sees the server once it takes samples. Created before the
   // recovery, they matched vehicles whose live poses then waited out the recovery in their
   // queues (a pose 200 ms old on arrival after a 5-minute outage; docs/BENCHMARKS.md); the

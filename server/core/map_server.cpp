@@ -8,6 +8,7 @@
 
 #include "common/heap.hpp"
 #include "common/time.hpp"
+#include "proto/pose_fields.hpp"
 #include "proto/wire_size.hpp"
 
 namespace stereomap::core {
@@ -428,9 +429,66 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
         "m: the map will have holes (start it with --map-resolution {})",
         event.session_id, event.vehicle_id, event.resolution_hint, mapped, mapped);
   }
+  if (event.kind == proto::SessionEventKind::kStarted && event.frame == proto::VehicleFrame::kOwn &&
+      session->holdApart(event.vehicle_id, origin == Origin::kLive)) {
+    // The first vehicle of an empty session: the session's frame is its own.
+    proto::FrameAlignmentMsg reference;
+    reference.vehicle_id = event.vehicle_id;
+    reference.session_id = event.session_id;
+    reference.stamp_ns = common::nowNs();
+    reference.overlap = 1.0;
+    ingest(reference, origin);
+  } else if (event.kind == proto::SessionEventKind::kStarted &&
+             event.frame == proto::VehicleFrame::kOwn && origin == Origin::kLive) {
+    spdlog::info(
+        "session '{}': vehicle '{}' flies in its own frame: its clouds are held apart until "
+        "its map is aligned with the session's",
+        event.session_id, event.vehicle_id);
+  }
   if (event.kind == proto::SessionEventKind::kEnded) {
     session->markEnded();
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
+  }
+  return true;
+}
+
+bool MapServer::ingest(const proto::FrameAlignmentMsg& alignment, Origin origin) {
+  auto session = find(alignment.session_id);
+  const common::Rigid3 T = proto::rigidFromFields(alignment.position, alignment.orientation);
+  const bool finite = T.translation.allFinite() && std::isfinite(alignment.overlap) &&
+                      std::isfinite(alignment.rmse_m);
+  if (!session || (origin == Origin::kLive && session->readOnly()) ||
+      !isValidId(alignment.vehicle_id) || !finite ||
+      !common::isUnitQuaternion(common::Quat(alignment.orientation[3], alignment.orientation[0],
+                                             alignment.orientation[1], alignment.orientation[2]))) {
+    spdlog::warn(
+        "session '{}': frame alignment of vehicle '{}' not taken (no such session, or "
+        "not a valid transform)",
+        alignment.session_id, alignment.vehicle_id);
+    return false;
+  }
+  if (origin == Origin::kLive && options_.log != nullptr) {
+    // No snapshot from here until the re-fusion has swapped in: one would claim the journal's
+    // alignment without holding the vehicle's frames where it puts them.
+    session->announceCorrection();
+    if (auto logged = options_.log->append(alignment); !logged) {
+      session->withdrawCorrection();
+      spdlog::error(
+          "session '{}': vehicle '{}' aligned, but the journal cannot keep it ({}): "
+          "it stays held apart and is aligned again",
+          alignment.session_id, alignment.vehicle_id, logged.error().message);
+      return false;
+    }
+  }
+  session->join(alignment.vehicle_id, T, alignment.overlap, alignment.rmse_m,
+                origin == Origin::kLive);
+  if (origin == Origin::kLive) {
+    const auto& t = alignment.position;
+    spdlog::info(
+        "session '{}': vehicle '{}' aligned into the session's frame: t {:.3f} {:.3f} "
+        "{:.3f}, overlap {:.0f}%, rmse {:.3f} m",
+        alignment.session_id, alignment.vehicle_id, t[0], t[1], t[2], 100 * alignment.overlap,
+        alignment.rmse_m);
   }
   return true;
 }

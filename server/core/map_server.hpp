@@ -110,6 +110,12 @@ class MapServer {
   // the frames) do not. Refused (counted, reason "unknown_poses") when none of its keyframes
   // is a pose the vehicle sent.
   bool ingest(const proto::PoseCorrectionMsg& correction, Origin origin = Origin::kLive);
+  // A vehicle in its own frame aligned into its session's (FrameAligner; or at identity, the
+  // session's reference vehicle): a live one is journaled, then the vehicle is joined
+  // (Session::join: what it held is fused again in the session's frame); a replayed one
+  // (recovery, before the frames) joins it without re-fusion. False when the session is not
+  // loaded, the record is not valid or the journal could not keep it.
+  bool ingest(const proto::FrameAlignmentMsg& alignment, Origin origin = Origin::kLive);
   // A vehicle's view of the landing pad: kept as the newest per vehicle in its session, never
   // journaled. Refused (reason "unknown_session") when the session does not exist: a
   // landing target alone does not make one.

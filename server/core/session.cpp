@@ -4,11 +4,14 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
+#include <sstream>
 
 #include <spdlog/spdlog.h>
 
 #include "common/forked_write.hpp"
 #include "common/time.hpp"
+#include "proto/pose_fields.hpp"
 
 namespace stereomap::core {
 
@@ -25,18 +28,26 @@ uint32_t noteVehicle(std::vector<std::string>& vehicles, const std::string& vehi
   return static_cast<uint32_t>(vehicles.size() - 1);
 }
 
-// Fuses one frame into `map`, moved by its vehicle's correction in `corrections` if any.
-void fuse(fusion::OccupancyMap& map, const FusionJob& job,
-          const std::map<std::string, std::shared_ptr<const PoseCorrection>>& corrections,
-          fusion::MapChanges* changes) {
-  const auto correction = corrections.find(job.vehicle_id);
-  const common::Rigid3 T_map_camera =
-      correction == corrections.end() ? job.T_map_camera
-                                      : correction->second->delta(job.stamp_ns) * job.T_map_camera;
+// Fuses one frame into `map`, placed by its vehicle's entry in `placements` if any; a held
+// vehicle's frame is not (false).
+bool fuse(fusion::OccupancyMap& map, const FusionJob& job,
+          const std::map<std::string, Placement>& placements, fusion::MapChanges* changes) {
+  const auto placement = placements.find(job.vehicle_id);
+  if (placement != placements.end() && placement->second.held) return false;
+  const common::Rigid3 T_map_camera = placement == placements.end()
+                                          ? job.T_map_camera
+                                          : placement->second.place(job.stamp_ns, job.T_map_camera);
   map.insertCloud(job.cloud_camera, T_map_camera, job.max_range_m, changes);
+  return true;
 }
 
 }  // namespace
+
+common::Rigid3 Placement::place(int64_t stamp_ns, const common::Rigid3& T_sent) const {
+  common::Rigid3 T = correction ? correction->delta(stamp_ns) * T_sent : T_sent;
+  if (T_session_own) T = *T_session_own * T;
+  return T;
+}
 
 const char* stateName(const SessionStatus& status) {
   if (status.closed) return "closed";
@@ -98,7 +109,14 @@ std::vector<proto::AckMsg> Session::takeAcks() {
     std::lock_guard state(state_mutex_);
     acks = receipts_.takeAcks();
   }
-  for (auto& ack : acks) ack.session_id = id_;
+  for (auto& ack : acks) {
+    ack.session_id = id_;
+    common::Rigid3 T = common::Rigid3::identity();
+    ack.frame_state = frameState(ack.vehicle_id, &T);
+    if (ack.frame_state == proto::FrameState::kAligned) {
+      proto::fieldsFromRigid(T, ack.frame_position, ack.frame_orientation);
+    }
+  }
   return acks;
 }
 
@@ -156,6 +174,7 @@ common::Status Session::restore(std::istream& ot, uint64_t journal_number) {
 void Session::countCovered(const std::string& vehicle_id) {
   std::lock_guard state(state_mutex_);
   noteVehicle(vehicles_, vehicle_id);
+  if (frames_.count(vehicle_id) == 0) in_map_.insert(vehicle_id);
   ++frames_received_;
   ++frames_fused_;
 }
@@ -236,19 +255,143 @@ void Session::correct(const std::string& vehicle, std::shared_ptr<const PoseCorr
     ++trajectory_version_;
     if (!refuse || !options_.reread_frames) corrections_in_map_ = corrections_set_;
   }
-  if (refuse && options_.reread_frames) {
-    {
-      std::lock_guard lock(queue_mutex_);
-      refuse_wanted_ = true;
-      if (!refuser_.joinable()) refuser_ = std::thread([this] { refuseLoop(); });
-    }
-    refuse_changed_.notify_all();
-  }
+  if (refuse && options_.reread_frames) requestRefusion();
 }
 
-std::map<std::string, std::shared_ptr<const PoseCorrection>> Session::corrections() const {
+void Session::requestRefusion() {
+  {
+    std::lock_guard lock(queue_mutex_);
+    refuse_wanted_ = true;
+    if (!refuser_.joinable()) refuser_ = std::thread([this] { refuseLoop(); });
+  }
+  refuse_changed_.notify_all();
+}
+
+Session::Corrections Session::corrections() const {
   std::lock_guard lock(state_mutex_);
-  return corrections_;
+  Corrections placements;
+  for (const auto& [vehicle, correction] : corrections_)
+    placements[vehicle].correction = correction;
+  for (const auto& [vehicle, held] : frames_) {
+    auto& placement = placements[vehicle];
+    placement.held = !held.status.aligned;
+    if (held.status.aligned) placement.T_session_own = held.status.T_session_own;
+  }
+  return placements;
+}
+
+bool Session::holdApart(const std::string& vehicle, bool live) {
+  bool refuse = false, reference = false;
+  {
+    std::lock_guard lock(state_mutex_);
+    if (frames_.count(vehicle) != 0) return false;  // known (a restart, or recovery joined it)
+    auto& held = frames_[vehicle];
+    held.status.vehicle_id = vehicle;
+    reference = live && (in_map_.empty() || (in_map_.size() == 1 && in_map_.count(vehicle)));
+    // Frames it sent before this announcement arrived are in the map, in the wrong frame.
+    refuse = live && !reference && in_map_.count(vehicle) != 0 && options_.reread_frames;
+    if (refuse) ++corrections_set_;
+    in_map_.erase(vehicle);
+  }
+  if (refuse) requestRefusion();
+  return reference;
+}
+
+std::vector<std::string> Session::alignmentsDue() const {
+  std::vector<std::pair<std::string, size_t>> held;
+  {
+    std::lock_guard lock(state_mutex_);
+    if (options_.read_only) return {};
+    for (const auto& [vehicle, state] : frames_) {
+      if (!state.status.aligned &&
+          state.status.held_frames >= state.frames_at_attempt + kMinNewHeldFrames) {
+        held.emplace_back(vehicle, state.status.held_frames);
+      }
+    }
+  }
+  std::vector<std::string> due;
+  std::lock_guard lock(map_mutex_);
+  for (const auto& [vehicle, frames] : held) {
+    const auto map = held_maps_.find(vehicle);
+    if (map != held_maps_.end() && map->second->occupiedCount() >= kMinHeldVoxels) {
+      due.push_back(vehicle);
+    }
+  }
+  return due;
+}
+
+std::unique_ptr<fusion::OccupancyMap> Session::heldMap(const std::string& vehicle) const {
+  std::stringstream bytes;
+  {
+    std::lock_guard lock(map_mutex_);
+    const auto map = held_maps_.find(vehicle);
+    if (map == held_maps_.end() || !map->second->writeFull(bytes)) return nullptr;
+  }
+  auto copy = fusion::OccupancyMap::load(bytes);
+  return copy ? std::move(*copy) : nullptr;
+}
+
+bool Session::noteAttempt(const std::string& vehicle,
+                          const std::optional<common::Rigid3>& T_session_own,
+                          const std::string& reason, double max_step_m, double max_step_deg) {
+  std::lock_guard lock(state_mutex_);
+  const auto found = frames_.find(vehicle);
+  if (found == frames_.end() || found->second.status.aligned) return false;
+  auto& held = found->second;
+  ++held.status.attempts;
+  held.frames_at_attempt = held.status.held_frames;
+  held.status.reason = T_session_own ? "" : reason;
+  bool agrees = false;
+  if (T_session_own && held.candidate) {
+    const common::Rigid3 step = held.candidate->inverse() * *T_session_own;
+    const double angle_deg = Eigen::AngleAxisd(step.rotation.normalized()).angle() * 180.0 / M_PI;
+    agrees = step.translation.norm() <= max_step_m && angle_deg <= max_step_deg;
+    if (!agrees) held.status.reason = "two attempts disagree: waiting for a third";
+  }
+  held.candidate = T_session_own;
+  return agrees;
+}
+
+void Session::join(const std::string& vehicle, const common::Rigid3& T_session_own, double overlap,
+                   double rmse_m, bool refuse) {
+  bool refusion = false;
+  {
+    std::lock_guard lock(state_mutex_);
+    auto& held = frames_[vehicle];
+    held.status.vehicle_id = vehicle;
+    held.status.aligned = true;
+    held.status.T_session_own = T_session_own;
+    held.status.overlap = overlap;
+    held.status.rmse_m = rmse_m;
+    held.status.reason.clear();
+    if (held.first_held != std::chrono::steady_clock::time_point{}) {
+      held.status.aligned_s =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - held.first_held).count();
+    }
+    if (refuse && corrections_announced_ > 0) --corrections_announced_;
+    ++corrections_set_;
+    ++trajectory_version_;
+    // Only frames held so far need fusing again (a reference joins before it has any), or a
+    // re-fusion still to come, whose swap must count this join too.
+    refusion = refuse && options_.reread_frames &&
+               (held.status.held_frames > 0 || corrections_in_map_ + 1 < corrections_set_);
+    if (!refusion) corrections_in_map_ = corrections_set_;
+  }
+  {
+    std::lock_guard lock(map_mutex_);
+    held_maps_.erase(vehicle);
+  }
+  if (refusion) requestRefusion();
+}
+
+proto::FrameState Session::frameState(const std::string& vehicle,
+                                      common::Rigid3* T_session_own) const {
+  std::lock_guard lock(state_mutex_);
+  const auto found = frames_.find(vehicle);
+  if (found == frames_.end()) return proto::FrameState::kNone;
+  if (!found->second.status.aligned) return proto::FrameState::kAligning;
+  if (T_session_own != nullptr) *T_session_own = found->second.status.T_session_own;
+  return proto::FrameState::kAligned;
 }
 
 bool Session::stopping() const {
@@ -433,9 +576,24 @@ void Session::run() {
 
 uint64_t Session::fuseIntoMap(FusionJob&& job, const Corrections& corrections) {
   const auto start = std::chrono::steady_clock::now();
+  bool in_map = true;
   {
     std::lock_guard lock(map_mutex_);
-    fuse(*map_, job, corrections, &changes_);
+    in_map = fuse(*map_, job, corrections, &changes_);
+    if (!in_map) {
+      // Held apart: into the vehicle's own map, in its own frame (its pose graph's corrections
+      // applied), which aligning it reads.
+      auto& held = held_maps_[job.vehicle_id];
+      if (!held) {
+        held = std::make_unique<fusion::OccupancyMap>(fusion::OccupancyMap::Options{
+            .resolution = options_.resolution, .pool = options_.pool.get()});
+      }
+      Placement own = corrections.at(job.vehicle_id);
+      own.held = false;
+      held->insertCloud(job.cloud_camera, own.place(job.stamp_ns, job.T_map_camera),
+                        job.max_range_m, nullptr);
+      changes_ = {.complete = true, .voxels = {}};
+    }
     // Deferred frames come after newer ones: the map holds every frame up to here once
     // nothing is deferred (snapshots wait until then).
     last_fused_number_ = std::max<uint64_t>(last_fused_number_, job.journal_number);
@@ -462,6 +620,11 @@ uint64_t Session::fuseIntoMap(FusionJob&& job, const Corrections& corrections) {
   const double seconds = std::chrono::duration<double>(published - start).count();
   std::lock_guard state(state_mutex_);
   fusion_seconds_ += seconds;
+  if (in_map) {
+    in_map_.insert(job.vehicle_id);
+  } else if (auto held = frames_.find(job.vehicle_id); held != frames_.end()) {
+    if (held->second.status.held_frames++ == 0) held->second.first_held = start;
+  }
   if (job.arrived != std::chrono::steady_clock::time_point{}) {
     publish_lag_.add(std::chrono::duration<double>(published - job.arrived).count());
   }
@@ -640,6 +803,7 @@ SessionStatus Session::status() const {
   status.refusion_error = refusion_error_;
   status.refusion_seconds = refusion_seconds_;
   status.trajectory_version = trajectory_version_;
+  for (const auto& [vehicle, held] : frames_) status.vehicle_frames.push_back(held.status);
   return status;
 }
 
@@ -718,8 +882,14 @@ std::vector<PoseRecord> Session::trajectory(size_t from, size_t until) const {
   }
   for (auto& pose : poses) {
     const auto correction = corrections_.find(pose.vehicle_id);
-    if (correction == corrections_.end()) continue;
-    pose.T_map_body = correction->second->delta(pose.stamp_ns) * pose.T_map_body;
+    if (correction != corrections_.end()) {
+      pose.T_map_body = correction->second->delta(pose.stamp_ns) * pose.T_map_body;
+    }
+    // A held vehicle's poses stay in its own frame (viewers are told it is aligning).
+    if (const auto held = frames_.find(pose.vehicle_id);
+        held != frames_.end() && held->second.status.aligned) {
+      pose.T_map_body = held->second.status.T_session_own * pose.T_map_body;
+    }
     pose.T_map_body.rotation.normalize();
   }
   return poses;

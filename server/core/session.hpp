@@ -62,6 +62,32 @@ struct FusionJob {
   std::chrono::steady_clock::time_point arrived{};
 };
 
+// A vehicle in its own frame (its start event said so; proto::VehicleFrame::kOwn): its frames
+// are held apart, in a map of their own, until the server has aligned that map with the
+// session's (FrameAligner) and joined it.
+struct VehicleFrameStatus {
+  std::string vehicle_id;
+  bool aligned = false;
+  uint64_t attempts = 0;  // alignments tried
+  std::string reason;     // why the last one was not taken ("" none yet, or taken)
+  common::Rigid3 T_session_own = common::Rigid3::identity();  // when aligned
+  double overlap = 0, rmse_m = 0;                             // the alignment's fit
+  // From its first held frame to the join, on this server (0: joined by recovery).
+  double aligned_s = 0;
+  size_t held_frames = 0;  // frames in its held map
+};
+
+// How one vehicle's frames go into the map: moved by its pose graph's correction, and, for a
+// vehicle in its own frame, by its alignment into the session's frame; held apart while it
+// has none.
+struct Placement {
+  std::shared_ptr<const PoseCorrection> correction;
+  bool held = false;
+  std::optional<common::Rigid3> T_session_own;
+  // T_map_x (a body or sensor pose the vehicle sent at `stamp_ns`) in the session's frame.
+  common::Rigid3 place(int64_t stamp_ns, const common::Rigid3& T_sent) const;
+};
+
 struct SessionStatus {
   std::string id;
   std::vector<std::string> vehicles;  // in order of first appearance
@@ -108,6 +134,7 @@ struct SessionStatus {
     int64_t received_ns = 0;
   };
   std::vector<VehicleCounters> vehicle_status;
+  std::vector<VehicleFrameStatus> vehicle_frames;  // vehicles in their own frame only
 };
 
 // "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
@@ -181,6 +208,32 @@ class Session {
   void correct(const std::string& vehicle, std::shared_ptr<const PoseCorrection> correction,
                bool refuse);
   void markEnded();  // by its vehicle's end event
+
+  // Vehicles in their own frame (VehicleFrameStatus). holdApart: vehicle `vehicle` announced
+  // its own frame; from now its frames go to its held map. `live`: a frame of it already in the
+  // session's map (sent before the announcement arrived) is taken out by a re-fusion. Returns
+  // true when the vehicle is the session's reference: no other vehicle's frames are in the
+  // map, so the session's frame is its own (the caller joins it at identity).
+  bool holdApart(const std::string& vehicle, bool live);
+  // The held vehicles whose map is due for an alignment attempt: at least kMinHeldVoxels
+  // occupied and kMinNewHeldFrames frames since the last attempt.
+  static constexpr size_t kMinHeldVoxels = 1000;
+  static constexpr size_t kMinNewHeldFrames = 10;
+  std::vector<std::string> alignmentsDue() const;
+  // A copy of a held vehicle's map (its own frame); nullptr when it has none.
+  std::unique_ptr<fusion::OccupancyMap> heldMap(const std::string& vehicle) const;
+  // An attempt's outcome: `T_session_own` found, or not (`reason`). True when it agrees with
+  // the previous attempt's (within `max_step_m` and `max_step_deg`), made on a smaller map:
+  // two attempts that agree are what a join takes.
+  bool noteAttempt(const std::string& vehicle, const std::optional<common::Rigid3>& T_session_own,
+                   const std::string& reason, double max_step_m, double max_step_deg);
+  // The vehicle's frames go into the map moved by T_session_own from now on, and (`refuse`,
+  // live joins) those held so far are fused again into the map by a re-fusion; recovery joins
+  // before it fuses. Announce it first (announceCorrection()) when it is journaled.
+  void join(const std::string& vehicle, const common::Rigid3& T_session_own, double overlap,
+            double rmse_m, bool refuse);
+  // The vehicle's state for its acknowledgements (proto::FrameState, T_session_own).
+  proto::FrameState frameState(const std::string& vehicle, common::Rigid3* T_session_own) const;
   // A live sample of `bytes` on the link arrived (a new one or DDS history): the vehicle is
   // there. Revives a session that silence had ended.
   void noteLive(int64_t now_ns, size_t bytes);
@@ -231,10 +284,12 @@ class Session {
   void run();
   // On the worker, with the queue drained: the deferred frames, read from the journal.
   void fuseDeferred(std::set<uint64_t> numbers);
-  using Corrections = std::map<std::string, std::shared_ptr<const PoseCorrection>>;
+  using Corrections = std::map<std::string, Placement>;
   // One frame into the map, the tiles and a re-fusion's tail: the frames fused so far.
   uint64_t fuseIntoMap(FusionJob&& job, const Corrections& corrections);
   Corrections corrections() const;
+  // Asks the re-fusion thread for a new map (with the placements as they are now).
+  void requestRefusion();
   void refuseLoop();  // the re-fusion thread
   // On the worker, between frames: the re-fused map takes the frames fused since it was read
   // from the journal (the tail) and replaces the live one.
@@ -308,6 +363,18 @@ class Session {
   std::string store_error_;
   uint64_t samples_refused_ = 0;
   std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections_;  // by vehicle
+  // Vehicles in their own frame, and what aligning them found (by vehicle).
+  struct HeldVehicle {
+    VehicleFrameStatus status;
+    std::optional<common::Rigid3> candidate;  // the last attempt's pose, to be confirmed
+    size_t frames_at_attempt = 0;
+    std::chrono::steady_clock::time_point first_held{};
+  };
+  std::map<std::string, HeldVehicle> frames_;
+  std::set<std::string> in_map_;  // vehicles with frames in the session's map (not held)
+  // Held vehicles' maps (their own frames), by vehicle: under map_mutex_, written by the
+  // worker.
+  std::map<std::string, std::unique_ptr<fusion::OccupancyMap>> held_maps_;
   uint64_t corrections_announced_ = 0;  // announced, not yet set (or withdrawn)
   uint64_t corrections_set_ = 0;        // correct() calls
   uint64_t corrections_in_map_ = 0;     // correct() calls the map reflects (swapped in)
@@ -325,8 +392,8 @@ class Session {
   struct Refused {
     std::unique_ptr<fusion::OccupancyMap> map;
     uint64_t up_to = 0;  // journal number of its last frame
-    std::map<std::string, std::shared_ptr<const PoseCorrection>> corrections;
-    uint64_t corrections_set = 0;  // how many correct() calls it reflects
+    Corrections corrections;
+    uint64_t corrections_set = 0;  // how many correct() and join() calls it reflects
   };
   static constexpr size_t kMaxTail = 100;
   std::optional<Refused> refused_;

@@ -59,6 +59,25 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                         {"received_s", static_cast<double>(received_ns) * 1e-9}});
   }
   object["vehicle_status"] = std::move(counters);
+  json frames = json::array();
+  for (const auto& f : s.vehicle_frames) {
+    json entry{{"vehicle_id", f.vehicle_id},
+               {"frame", f.aligned ? "aligned" : "aligning"},
+               {"attempts", f.attempts},
+               {"reason", textOrNull(f.reason)},
+               {"held_frames", f.held_frames}};
+    if (f.aligned) {
+      common::Quat q = f.T_session_own.rotation.normalized();
+      if (q.w() < 0) q.coeffs() = -q.coeffs();
+      const common::Vec3& t = f.T_session_own.translation;
+      entry.update(json{{"transform", {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()}},
+                        {"overlap", f.overlap},
+                        {"rmse_m", f.rmse_m},
+                        {"aligned_s", f.aligned_s}});
+    }
+    frames.push_back(std::move(entry));
+  }
+  object["vehicle_frames"] = std::move(frames);
   return object;
 }
 

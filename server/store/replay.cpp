@@ -9,21 +9,41 @@
 
 namespace stereomap::store {
 
+namespace {
+
+// A vehicle's announcement that it flies in its own frame: replayed with the poses, before
+// any frame, so that its frames are held apart as they were live.
+bool ownFrame(const proto::SessionEventMsg& event) {
+  return event.kind == proto::SessionEventKind::kStarted &&
+         event.frame == proto::VehicleFrame::kOwn;
+}
+
+}  // namespace
+
 uint64_t replayPosesAndCorrections(core::MapServer& server,
                                    const proto::journal::JournalReplay& replay, int64_t until_ns,
                                    size_t& poses) {
-  std::map<std::string, size_t> newest;  // vehicle -> record index
+  std::map<std::string, size_t> newest, aligned;  // vehicle -> record index
   for (size_t i = 0; i < replay.records.size(); ++i) {
     const auto& record = replay.records[i];
     if (const auto* pose = std::get_if<proto::PoseMsg>(&record)) {
       if (pose->stamp_ns <= until_ns) poses += server.ingest(*pose, core::Origin::kReplay);
     } else if (const auto* c = std::get_if<proto::PoseCorrectionMsg>(&record)) {
       if (c->stamp_ns <= until_ns) newest[c->vehicle_id] = i;
+    } else if (const auto* a = std::get_if<proto::FrameAlignmentMsg>(&record)) {
+      if (a->stamp_ns <= until_ns) aligned[a->vehicle_id] = i;
+    } else if (const auto* e = std::get_if<proto::SessionEventMsg>(&record); e && ownFrame(*e)) {
+      server.ingest(*e, core::Origin::kReplay);  // held apart before its frames come
     }
   }
   uint64_t newest_number = 0;
   for (const auto& [vehicle, i] : newest) {
     server.ingest(std::get<proto::PoseCorrectionMsg>(replay.records[i]), core::Origin::kReplay);
+    newest_number = std::max(newest_number, replay.numbers[i]);
+  }
+  // A vehicle's alignment moves its frames as a correction does: no older snapshot holds them.
+  for (const auto& [vehicle, i] : aligned) {
+    server.ingest(std::get<proto::FrameAlignmentMsg>(replay.records[i]), core::Origin::kReplay);
     newest_number = std::max(newest_number, replay.numbers[i]);
   }
   return newest_number;
@@ -38,7 +58,7 @@ void replayFrameOrEvent(core::MapServer& server, const proto::journal::JournalRe
         server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
     snapshot_frames += covered;
   } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
-    server.ingest(*event, core::Origin::kReplay);
+    if (!ownFrame(*event)) server.ingest(*event, core::Origin::kReplay);  // else taken before
   }
 }
 
@@ -101,6 +121,8 @@ void MergedRecords::apply(proto::journal::JournalRecord& record, int source) con
           transformPose(T, m.sensor_position, m.sensor_orientation);
         } else if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
           for (auto& k : m.keyframes) transformPose(T, k.position, k.orientation);
+        } else if constexpr (std::is_same_v<Message, proto::FrameAlignmentMsg>) {
+          transformPose(T, m.position, m.orientation);  // own frame -> second's -> first's
         } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
           transformPose(T, m.position, m.orientation);
           // The velocity is in the map frame too.

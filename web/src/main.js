@@ -154,7 +154,7 @@ function updateStatus() {
   if (pad) text += ` · ${pad}`;
   elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
-  const vehicles = vehicleLines(session?.status?.vehicleStatus);
+  const vehicles = vehicleLines(session?.status?.vehicleStatus, session?.status?.vehicleFrames);
   elements.vehicles.textContent = vehicles.join('\n');
   elements.vehicles.hidden = vehicles.length === 0;
 }

@@ -72,18 +72,41 @@ export function statusText(link, session) {
   return parts.join(' · ');
 }
 
+// Where the server is with aligning a vehicle in its own frame into the session's:
+// "aligning (4 tries: too little overlap)", "aligned (overlap 62 %, rmse 0.04 m)".
+function frameText(f) {
+  if (f.frame === 'aligned') {
+    const fit = [];
+    if (f.overlap != null) fit.push(`overlap ${Math.round(f.overlap * 100)} %`);
+    if (f.rmseM != null) fit.push(`rmse ${f.rmseM.toFixed(2)} m`);
+    return fit.length > 0 ? `aligned (${fit.join(', ')})` : 'aligned';
+  }
+  const tries = f.attempts > 0 ? `${f.attempts} ${f.attempts === 1 ? 'try' : 'tries'}` : '';
+  const why = [tries, f.reason].filter((t) => t).join(': ');
+  return why ? `aligning (${why})` : 'aligning';
+}
+
 /**
  * One line per vehicle of a session from its own counters (protocol.js: the status's
- * vehicleStatus): what an operator needs to see of a vehicle they cannot reach. The spool
- * always; the other counts only when not zero. "sim-1: spool 3 samples (8.3 kB) · 2 frames
- * skipped". (A vehicle told its session is closed sends no more status: the server keeps none.)
+ * vehicleStatus) and, for a vehicle in its own frame, its alignment (vehicleFrames), merged
+ * by vehicle id: what an operator needs to see of a vehicle they cannot reach. The frame
+ * first, then the spool always and the other counts only when not zero. "sim-2: aligning
+ * (4 tries: too little overlap) · spool 3 samples (8.3 kB) · 2 frames skipped". (A vehicle
+ * told its session is closed sends no more status: the server keeps none.)
  */
-export function vehicleLines(vehicleStatus) {
-  return (vehicleStatus ?? []).map((v) => {
+export function vehicleLines(vehicleStatus, vehicleFrames) {
+  const frames = new Map((vehicleFrames ?? []).map((f) => [f.vehicleId, f]));
+  const lines = (vehicleStatus ?? []).map((v) => {
     const parts = [`spool ${plural(v.spoolSamples, 'sample')}${v.spoolBytes > 0 ? ` (${(v.spoolBytes / 1000).toFixed(1)} kB)` : ''}`];
     if (v.skippedFrames > 0) parts.push(`${plural(v.skippedFrames, 'frame')} skipped`);
     if (v.lateFrames > 0) parts.push(`${plural(v.lateFrames, 'frame')} late`);
     if (v.givenUp > 0) parts.push(`${plural(v.givenUp, 'sample')} given up`);
+    const frame = frames.get(v.vehicleId);
+    frames.delete(v.vehicleId);
+    if (frame) parts.unshift(frameText(frame));
     return `${v.vehicleId}: ${parts.join(' · ')}`;
   });
+  // Vehicles with no status of their own (yet) still show their frame.
+  for (const f of frames.values()) lines.push(`${f.vehicleId}: ${frameText(f)}`);
+  return lines;
 }

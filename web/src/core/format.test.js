@@ -59,4 +59,18 @@ describe('vehicleLines', () => {
     expect(vehicleLines([{ vehicleId: 'uav-2', spoolSamples: 1234, spoolBytes: 8300, skippedFrames: 2, lateFrames: 1, givenUp: 5, heldBack: 40, sessionClosed: true }]))
       .toEqual(['uav-2: spool 1,234 samples (8.3 kB) · 2 frames skipped · 1 frame late · 5 samples given up']);
   });
+  it('says where a vehicle in its own frame is with its alignment, merged by vehicle id', () => {
+    const status = [
+      { vehicleId: 'sim-1', spoolSamples: 0, spoolBytes: 0, skippedFrames: 0, lateFrames: 0, givenUp: 0 },
+      { vehicleId: 'sim-2', spoolSamples: 3, spoolBytes: 0, skippedFrames: 0, lateFrames: 0, givenUp: 0 },
+    ];
+    const aligning = { vehicleId: 'sim-2', frame: 'aligning', attempts: 4, reason: 'too little overlap', transform: null, overlap: null, rmseM: null, alignedS: null };
+    expect(vehicleLines(status, [aligning]))
+      .toEqual(['sim-1: spool 0 samples', 'sim-2: aligning (4 tries: too little overlap) · spool 3 samples']);
+    const aligned = { vehicleId: 'sim-2', frame: 'aligned', attempts: 5, reason: '', transform: [1, 2, 0, 0, 0, 0, 1], overlap: 0.62, rmseM: 0.04, alignedS: 3.1 };
+    expect(vehicleLines(status, [aligned])[1]).toBe('sim-2: aligned (overlap 62 %, rmse 0.04 m) · spool 3 samples');
+    // Before its first status, and before a first try.
+    expect(vehicleLines([], [{ ...aligning, vehicleId: 'sim-3', attempts: 0, reason: '' }])).toEqual(['sim-3: aligning']);
+    expect(vehicleLines(undefined, [{ ...aligning, attempts: 1, reason: '' }])).toEqual(['sim-2: aligning (1 try)']);
+  });
 });

@@ -84,6 +84,34 @@ function vehicleStatus(m) {
   });
 }
 
+const kVehicleFrameStates = ['aligning', 'aligned'];
+const optionalNumber = (m, name, isValid, expected) => field(m, name, isValid, expected, { optional: true, fallback: null });
+
+// The vehicles in their own frame and where the server is with aligning each into the
+// session's (the status's vehicle_frames; none from an older server, or when every vehicle
+// is in the session's frame).
+function vehicleFrames(m) {
+  const list = field(m, 'vehicle_frames', Array.isArray, 'an array', { optional: true, fallback: [] });
+  return list.map((v, i) => {
+    if (typeof v !== 'object' || v === null || Array.isArray(v)) {
+      throw new ProtocolError(`${m.type} message: "vehicle_frames"[${i}] must be an object, got ${shown(v)}`);
+    }
+    const entry = { ...v, type: m.type };
+    return {
+      vehicleId: requireId(entry, 'vehicle_id'),
+      frame: field(entry, 'frame', (f) => kVehicleFrameStates.includes(f), '"aligning" or "aligned"'),
+      attempts: optionalCount(entry, 'attempts'),
+      reason: field(entry, 'reason', isString, 'a string', { optional: true, fallback: '' }),
+      // T_session_own: [tx, ty, tz, qx, qy, qz, qw].
+      transform: optionalNumber(entry, 'transform', (t) => Array.isArray(t) && t.length === 7 && t.every(isFiniteNumber),
+        '7 finite numbers [tx, ty, tz, qx, qy, qz, qw]'),
+      overlap: optionalNumber(entry, 'overlap', (x) => isFiniteNumber(x) && x >= 0 && x <= 1, 'a share from 0 to 1'),
+      rmseM: optionalNumber(entry, 'rmse_m', (x) => isFiniteNumber(x) && x >= 0, 'a non-negative number (metres)'),
+      alignedS: optionalNumber(entry, 'aligned_s', isFiniteNumber, 'a number (seconds)'),
+    };
+  });
+}
+
 // A session's status (GET /api/sessions entries, "session" messages).
 function status(m) {
   return {
@@ -103,6 +131,7 @@ function status(m) {
     refusing: field(m, 'refusing', (v) => typeof v === 'boolean', 'true or false', { optional: true, fallback: false }),
     bounds: bounds(m),
     vehicleStatus: vehicleStatus(m),
+    vehicleFrames: vehicleFrames(m),
   };
 }
 

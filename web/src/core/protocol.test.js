@@ -31,6 +31,16 @@ describe('parseMessage', () => {
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [{ vehicle_id: '' }] }))).toThrow(/vehicle_id/);
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [{ vehicle_id: 'a', spool_samples: -3 }] }))).toThrow(/spool_samples/);
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_status: [7] }))).toThrow(/vehicle_status/);
+    // Vehicles in their own frame and their alignment; none from an older server.
+    expect(list.sessions[0].vehicleFrames).toEqual([]);
+    const frames = parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_frames: [
+      { vehicle_id: 'sim-2', frame: 'aligned', attempts: 4, reason: '', transform: [1, 2, 3, 0, 0, 0, 1], overlap: 0.62, rmse_m: 0.04, aligned_s: 3.1 },
+      { vehicle_id: 'sim-3', frame: 'aligning' }] }));
+    expect(frames.vehicleFrames).toEqual([
+      { vehicleId: 'sim-2', frame: 'aligned', attempts: 4, reason: '', transform: [1, 2, 3, 0, 0, 0, 1], overlap: 0.62, rmseM: 0.04, alignedS: 3.1 },
+      { vehicleId: 'sim-3', frame: 'aligning', attempts: 0, reason: '', transform: null, overlap: null, rmseM: null, alignedS: null }]);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_frames: [{ vehicle_id: 'a', frame: 'lost' }] }))).toThrow(/"frame" must be "aligning" or "aligned"/);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_frames: [{ vehicle_id: 'a', frame: 'aligned', transform: [1, 2] }] }))).toThrow(/transform/);
   });
 
   it('rejects what it cannot trust, naming the field', () => {
