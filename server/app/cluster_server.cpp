@@ -3,13 +3,13 @@
 #include <spdlog/spdlog.h>
 
 #include "server/app/run.hpp"
-#include "server/core/frame_aligner.hpp"
 #include "server/cluster/cluster_admin.hpp"
 #include "server/cluster/cluster_db.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_node.hpp"
 #include "server/cluster/cluster_store.hpp"
 #include "server/cluster/pg.hpp"
+#include "server/core/frame_aligner.hpp"
 
 namespace stereomap::app {
 
