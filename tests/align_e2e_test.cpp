@@ -10,6 +10,7 @@
 #include <regex>
 
 #include "tests/support/align_pairs.hpp"
+#include "tests/support/live_join.hpp"
 #include "tests/support/process.hpp"
 #include "tests/support/server_fixture.hpp"
 
@@ -172,6 +173,59 @@ TEST_F(AlignE2e, RestAlignsAndRefuses) {
       server.request("POST", "/api/sessions/align", R"({"first": "monday", "second": "../../etc"})")
           .status,
       400);
+}
+
+}  // namespace
+}  // namespace stereomap
+
+namespace stereomap {
+namespace {
+
+// A vehicle joining a live session in its own frame (stereomap-onboard --frame own), a vehicle
+// of another room that never overlaps beside it, then the server killed and restarted.
+TEST(LiveJoin, AVehicleInItsOwnFrameJoinsAndAStrangerIsNeverFused) {
+  constexpr int kLiveDomain = 136;
+  const std::string store = testing::makeTempDir("stereomap-livejoin-store");
+  const auto run = testing::runLiveJoin(
+      {.domain = kLiveDomain, .store = store, .stranger = true, .kill_server = true});
+  ASSERT_TRUE(run.aligned) << run.session.dump(1) << run.log;
+  // Joined while it flew (15 s; how soon is stereomap-bench-align's J), where it is: within
+  // a voxel (measured: 0.009 m RMS).
+  EXPECT_LT(run.aligned_s, 15.0) << run.session.dump(1);
+  EXPECT_LE(run.error_m, 0.1) << run.session.dump(1);
+  EXPECT_EQ(run.session.value("refusion_error", json()), json());
+  // The hall never overlaps the room: held apart, tried, never joined, and none of it in the
+  // map (its walls, 18 m apart, would stretch the room's bounds; frames it sent before its
+  // start event arrived were fused and are taken out again).
+  ASSERT_TRUE(run.stranger.is_object()) << run.session.dump(1);
+  EXPECT_EQ(run.stranger.value("frame", ""), "aligning");
+  EXPECT_GE(run.stranger.value("attempts", 0), 1);
+  EXPECT_GE(run.stranger.value("held_frames", 0), 50);
+  EXPECT_FALSE(run.stranger.value("reason", json()).is_null());
+  const auto& bounds = run.session["bounds"];
+  for (size_t axis = 0; axis < 3; ++axis) {
+    EXPECT_GE(bounds["min"][axis].get<double>(), run.bounds_before["min"][axis].get<double>() - 0.3)
+        << run.session.dump(1);
+    EXPECT_LE(bounds["max"][axis].get<double>(), run.bounds_before["max"][axis].get<double>() + 0.3)
+        << run.session.dump(1);
+  }
+
+  // After kill -9: the journal says where sim-2 is, sim-3 is still held apart, same map.
+  testing::ServerProcess again(kLiveDomain, {}, store, true, std::chrono::seconds(60));
+  const auto reply = again.get("/api/sessions/site");
+  ASSERT_EQ(reply.status, 200) << again.log();
+  const auto session = json::parse(reply.body);
+  const auto joined = testing::vehicleFrame(session, "sim-2");
+  ASSERT_TRUE(joined.is_object()) << reply.body;
+  EXPECT_EQ(joined.value("frame", ""), "aligned");
+  const auto before = testing::vehicleFrame(run.session, "sim-2")["transform"];
+  for (size_t i = 0; i < 7; ++i) {
+    EXPECT_DOUBLE_EQ(joined["transform"][i].get<double>(), before[i].get<double>());
+  }
+  EXPECT_EQ(testing::vehicleFrame(session, "sim-3").value("frame", ""), "aligning");
+  EXPECT_EQ(session.value("occupied_voxels", 0), run.session.value("occupied_voxels", 0));
+  std::error_code ec;
+  fs::remove_all(store, ec);
 }
 
 }  // namespace

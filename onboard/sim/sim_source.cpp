@@ -9,7 +9,8 @@ namespace stereomap::sim {
 
 SimSource::SimSource(const SimSourceOptions& options)
     : options_(options),
-      scene_(Scene::makeRoom({.seed = options.seed})),
+      scene_(Scene::makeRoom(
+          {.seed = options.seed, .length = options.room_length, .width = options.room_width})),
       flight_(options.flight),
       renderer_(scene_, camera_, options.render) {}
 

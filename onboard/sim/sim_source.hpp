@@ -17,6 +17,9 @@ struct SimSourceOptions {
   // Where in the flight frame 0 is, seconds (the flight loops every FlightOptions::period_s);
   // stamps still start at start_stamp_ns.
   double start_s = 0;
+  // The room's size (the seed places its obstacles): sim flies 12 x 10 m, sim:hall 18 x 7 m,
+  // a place no flight of the other overlaps.
+  double room_length = 12.0, room_width = 10.0;
   RenderOptions render;
   FlightOptions flight;
 };

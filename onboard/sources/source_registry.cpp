@@ -45,11 +45,12 @@ std::optional<common::Error> startOutside(const SourceOptions& options, double e
   return makeError(ErrorCode::kInvalidArgument, message.str());
 }
 
-Result<OpenedSource> openSim(const std::string&, const SourceOptions& options) {
+Result<OpenedSource> openSim(const std::string& name, const SourceOptions& options) {
   sim::SimSourceOptions sim{.seed = options.seed,
                             .rate_hz = simRate(options),
                             .max_frames = options.max_frames,
                             .start_s = options.start_s};
+  if (name == "sim:hall") sim.room_length = 18.0, sim.room_width = 7.0;
   // Past one loop it flies the same again: a start there is a mistake, not a choice.
   if (auto error = startOutside(options, sim.flight.period_s, "the sim's loop")) return *error;
   applyCameraModel(options, sim.render.camera);
@@ -94,6 +95,8 @@ bool takesLocation(const SourceKind& kind) { return kind.prefix.back() == ':'; }
 const std::vector<SourceKind>& sourceKinds() {
   static const std::vector<SourceKind> kinds = {
       {"sim", "sim", "the simulated room's flight", openSim},
+      {"sim:hall", "sim:hall",
+       "the same flight in another place, a hall of 18 x 7 m (no map of sim overlaps it)", openSim},
       {"sim:deck", "sim:deck", "a descent onto a moving ship's deck with the landing pad",
        openDeck},
       {"kitti:", "kitti:DIR", "a KITTI odometry sequence", dataset(camera::openKitti)},
@@ -119,7 +122,7 @@ Result<OpenedSource> openSource(const std::string& spec, const SourceOptions& op
   for (const auto& kind : sourceKinds()) usages += (usages.empty() ? "" : ", ") + kind.usage;
   for (const auto& kind : sourceKinds()) {
     if (!takesLocation(kind)) {
-      if (spec == kind.prefix) return kind.open("", options);
+      if (spec == kind.prefix) return kind.open(spec, options);  // the name: sim or sim:hall
       continue;
     }
     if (spec.rfind(kind.prefix, 0) != 0) continue;

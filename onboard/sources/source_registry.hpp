@@ -45,6 +45,7 @@ struct SourceKind {
   std::string prefix;  // "sim", "sim:deck", "kitti:"; a prefix ending in ':' takes a location
   std::string usage;   // as the help shows it: "kitti:DIR"
   std::string help;    // what it is, in a few words
+  // `location`: what follows the prefix; for a source without one, its name (the prefix).
   std::function<common::Result<OpenedSource>(const std::string& location,
                                              const SourceOptions& options)>
       open;

@@ -55,6 +55,45 @@ TEST_F(JournalTest, SessionEventsRoundTrip) {
   EXPECT_DOUBLE_EQ(back.baseline, 0.12);
 }
 
+// A vehicle in its own frame: its start event's trailing frame byte, and the server's
+// alignment record; a session-frame event is written byte for byte as before (no byte more).
+TEST_F(JournalTest, OwnFrameEventsAndFrameAlignmentsRoundTrip) {
+  proto::SessionEventMsg event;
+  event.vehicle_id = "uav";
+  event.session_id = "s";
+  const size_t session_frame_bytes = encodeRecord(event).size();
+  event.frame = proto::VehicleFrame::kOwn;
+  EXPECT_EQ(encodeRecord(event).size(), session_frame_bytes + 1);
+  proto::FrameAlignmentMsg alignment;
+  alignment.vehicle_id = "uav";
+  alignment.session_id = "s";
+  alignment.stamp_ns = 99;
+  alignment.position = {1.5, -2.0, 0.25};
+  alignment.orientation = {0, 0, 0.6, 0.8};
+  alignment.overlap = 0.7;
+  alignment.rmse_m = 0.03;
+  {
+    auto journal = Journal::open(path_);
+    ASSERT_TRUE(journal.ok());
+    ASSERT_TRUE((*journal)->append(event).ok());
+    ASSERT_TRUE((*journal)->append(alignment).ok());
+  }
+  auto replay = readJournal(path_);
+  ASSERT_TRUE(replay.ok());
+  ASSERT_EQ(replay->records.size(), 2u) << replay->problem;
+  EXPECT_EQ(std::get<proto::SessionEventMsg>(replay->records[0]).frame, proto::VehicleFrame::kOwn);
+  const auto& back = std::get<proto::FrameAlignmentMsg>(replay->records[1]);
+  EXPECT_EQ(back.stamp_ns, 99);
+  EXPECT_EQ(back.position, alignment.position);
+  EXPECT_EQ(back.orientation, alignment.orientation);
+  EXPECT_DOUBLE_EQ(back.overlap, 0.7);
+  EXPECT_DOUBLE_EQ(back.rmse_m, 0.03);
+  // A frame byte out of range is damage, not a frame.
+  auto bytes = encodeRecord(event);
+  bytes.back() = 2;
+  EXPECT_FALSE(decodeRecord(bytes.data(), bytes.size()).has_value());
+}
+
 TEST_F(JournalTest, PoseCorrectionsRoundTripAndStreamFromANumber) {
   auto journal = Journal::open(path_);
   ASSERT_TRUE(journal.ok());

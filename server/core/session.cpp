@@ -303,8 +303,9 @@ std::vector<std::string> Session::alignmentsDue() const {
     std::lock_guard lock(state_mutex_);
     if (options_.read_only) return {};
     for (const auto& [vehicle, state] : frames_) {
+      const size_t new_frames = state.candidate ? kMinNewConfirmingFrames : kMinNewHeldFrames;
       if (!state.status.aligned &&
-          state.status.held_frames >= state.frames_at_attempt + kMinNewHeldFrames) {
+          state.status.held_frames >= state.frames_at_attempt + new_frames) {
         held.emplace_back(vehicle, state.status.held_frames);
       }
     }
@@ -331,12 +332,13 @@ std::unique_ptr<fusion::OccupancyMap> Session::heldMap(const std::string& vehicl
   return copy ? std::move(*copy) : nullptr;
 }
 
-bool Session::noteAttempt(const std::string& vehicle,
-                          const std::optional<common::Rigid3>& T_session_own,
-                          const std::string& reason, double max_step_m, double max_step_deg) {
+Session::AttemptNoted Session::noteAttempt(const std::string& vehicle,
+                                           const std::optional<common::Rigid3>& T_session_own,
+                                           const std::string& reason, double max_step_m,
+                                           double max_step_deg) {
   std::lock_guard lock(state_mutex_);
   const auto found = frames_.find(vehicle);
-  if (found == frames_.end() || found->second.status.aligned) return false;
+  if (found == frames_.end() || found->second.status.aligned) return {};
   auto& held = found->second;
   ++held.status.attempts;
   held.frames_at_attempt = held.status.held_frames;
@@ -349,7 +351,7 @@ bool Session::noteAttempt(const std::string& vehicle,
     if (!agrees) held.status.reason = "two attempts disagree: waiting for a third";
   }
   held.candidate = T_session_own;
-  return agrees;
+  return {agrees, held.status.attempts};
 }
 
 void Session::join(const std::string& vehicle, const common::Rigid3& T_session_own, double overlap,

@@ -216,17 +216,26 @@ class Session {
   // map, so the session's frame is its own (the caller joins it at identity).
   bool holdApart(const std::string& vehicle, bool live);
   // The held vehicles whose map is due for an alignment attempt: at least kMinHeldVoxels
-  // occupied and kMinNewHeldFrames frames since the last attempt.
+  // occupied and kMinNewHeldFrames frames since the last attempt (kMinNewConfirmingFrames
+  // when that attempt found a pose that the next must confirm: a vehicle waits held apart,
+  // and may land soon).
   static constexpr size_t kMinHeldVoxels = 1000;
   static constexpr size_t kMinNewHeldFrames = 10;
+  static constexpr size_t kMinNewConfirmingFrames = 3;
   std::vector<std::string> alignmentsDue() const;
   // A copy of a held vehicle's map (its own frame); nullptr when it has none.
   std::unique_ptr<fusion::OccupancyMap> heldMap(const std::string& vehicle) const;
   // An attempt's outcome: `T_session_own` found, or not (`reason`). True when it agrees with
   // the previous attempt's (within `max_step_m` and `max_step_deg`), made on a smaller map:
   // two attempts that agree are what a join takes.
-  bool noteAttempt(const std::string& vehicle, const std::optional<common::Rigid3>& T_session_own,
-                   const std::string& reason, double max_step_m, double max_step_deg);
+  // `attempts`: the vehicle's so far, this one included.
+  struct AttemptNoted {
+    bool agrees = false;
+    uint64_t attempts = 0;
+  };
+  AttemptNoted noteAttempt(const std::string& vehicle,
+                           const std::optional<common::Rigid3>& T_session_own,
+                           const std::string& reason, double max_step_m, double max_step_deg);
   // The vehicle's frames go into the map moved by T_session_own from now on, and (`refuse`,
   // live joins) those held so far are fused again into the map by a re-fusion; recovery joins
   // before it fuses. Announce it first (announceCorrection()) when it is journaled.

@@ -183,3 +183,90 @@ TEST(Session, AFullQueueDefersFramesAndFusesThemFromTheJournal) {
 
 }  // namespace
 }  // namespace stereomap::core
+
+namespace stereomap::core {
+namespace {
+
+// A vehicle in its own frame (holdApart): its frames stay out of the session's map, in a map
+// of their own, until join(); then a re-fusion puts them where its alignment says, and the map
+// is the one a vehicle in the session's frame would have made with the same frames.
+TEST(Session, AVehicleInItsOwnFrameIsHeldApartUntilItJoins) {
+  std::vector<FusionJob> journal;
+  std::mutex journal_mutex;
+  // T_session_own: where vehicle b's frame lies in the session's.
+  const common::Rigid3 T{common::Quat(Eigen::AngleAxisd(2.0, common::Vec3::UnitZ())),
+                         common::Vec3(4.0, -3.0, 0.5)};
+  auto frame = [&](const std::string& vehicle, int i, const common::Rigid3& T_frame_session) {
+    common::Rigid3 pose;
+    pose.translation = {0.3 * i, 0.5, 0.1 * i};
+    return FusionJob{vehicle,
+                     static_cast<uint64_t>(i),
+                     1000 + i,
+                     testing::planeCloud(2.0, 0.4, 0.05),
+                     T_frame_session * pose,
+                     10,
+                     0};
+  };
+  Session::Options options{.resolution = 0.1};
+  options.reread_frames = [&](uint64_t after, uint64_t up_to,
+                              const std::function<void(FusionJob &&)>& fuse) {
+    std::lock_guard lock(journal_mutex);
+    for (const auto& job : journal) {
+      if (job.journal_number > after && job.journal_number <= up_to) fuse(FusionJob(job));
+    }
+    return common::Status(common::Ok{});
+  };
+  Session session("own", options);
+  Session reference("ref", {.resolution = 0.1});  // every frame sent in the session's frame
+  auto send = [&](FusionJob job, const common::Rigid3& T_session_frame) {
+    {
+      std::lock_guard lock(journal_mutex);
+      job.journal_number = journal.size() + 1;
+      journal.push_back(job);
+    }
+    session.addPose({job.vehicle_id, job.stamp_ns, job.T_map_camera});
+    FusionJob placed = job;
+    placed.T_map_camera = T_session_frame * job.T_map_camera;
+    ASSERT_TRUE(reference.enqueue(std::move(placed), true));
+    ASSERT_TRUE(session.enqueue(std::move(job), true));
+  };
+  EXPECT_TRUE(Session("empty", {.resolution = 0.1}).holdApart("first", true))
+      << "the first vehicle of an empty session is its reference";
+  for (int i = 0; i < 5; ++i) send(frame("a", i, common::Rigid3::identity()), {});
+  session.waitUntilIdle();
+  const auto only_a = session.occupiedVoxels();
+  EXPECT_FALSE(session.holdApart("b", true)) << "a's frames are in the map: b is not the reference";
+  for (int i = 0; i < 5; ++i) send(frame("b", i, T.inverse()), T);
+  session.waitUntilIdle();
+  EXPECT_EQ(session.occupiedVoxels(), only_a) << "b's frames were fused before it joined";
+  ASSERT_NE(session.heldMap("b"), nullptr);
+  EXPECT_GT(session.heldMap("b")->occupiedCount(), 100u);
+  EXPECT_EQ(session.frameState("b", nullptr), proto::FrameState::kAligning);
+  EXPECT_EQ(session.status().vehicle_frames.at(0).held_frames, 5u);
+
+  // Two attempts must agree before a join (the caller's rule, kept by the session).
+  EXPECT_FALSE(session.noteAttempt("b", T, "", 0.1, 0.5).agrees);
+  EXPECT_FALSE(session.noteAttempt("b", std::nullopt, "too little overlap", 0.1, 0.5).agrees);
+  EXPECT_FALSE(session.noteAttempt("b", T, "", 0.1, 0.5).agrees);
+  const auto agreed = session.noteAttempt("b", T, "", 0.1, 0.5);
+  EXPECT_TRUE(agreed.agrees);
+  EXPECT_EQ(agreed.attempts, 4u);
+
+  session.join("b", T, 0.9, 0.03, /*refuse=*/true);
+  send(frame("b", 5, T.inverse()), T);  // after the join: placed at once
+  session.waitUntilIdle();
+  reference.waitUntilIdle();
+  EXPECT_EQ(session.occupiedVoxels(), reference.occupiedVoxels());
+  common::Rigid3 told;
+  EXPECT_EQ(session.frameState("b", &told), proto::FrameState::kAligned);
+  EXPECT_LT((told.translation - T.translation).norm(), 1e-12);
+  EXPECT_EQ(session.heldMap("b"), nullptr);
+  const auto poses = session.trajectory();
+  const common::Vec3 in_session =
+      frame("b", 5, common::Rigid3::identity()).T_map_camera.translation;
+  EXPECT_LT((poses.back().T_map_body.translation - in_session).norm(), 1e-9);
+  EXPECT_EQ(session.status().refusions, 1u);
+}
+
+}  // namespace
+}  // namespace stereomap::core

@@ -10,10 +10,14 @@
 //            0.1 m) in the frame of its own first camera pose, the second moved further;
 //   unrelated: different rooms, disjoint windows of one campus, a plain corridor and one with
 //            pillars at a fixed pitch: all must be refused.
+//   live:    a vehicle joining a live session in its own frame (tests/support/live_join.hpp),
+//            real server and vehicles on DDS domain 137, from three start poses: J is the
+//            worst time from its first held frame to its join, JT the worst RMS position error
+//            of its poses put into the session's frame.
 // Errors are of T_a_b against the truth; S is the total time over the total voxels of both
 // maps of every pair (one thread, as the CLI and the server).
 //
-//   stereomap-bench-align [--data ../shared/data] [--only sim,campus,geb079,kitti,unrelated]
+//   stereomap-bench-align [--data ../shared/data] [--only sim,campus,geb079,kitti,unrelated,live]
 //
 // Last line:
 //   align: <N> pairs, translation error p95 <T> m, rotation error p95 <R> deg, <U>/<UN>
@@ -28,6 +32,9 @@
 #include <limits>
 #include <string>
 #include <vector>
+
+#include "tests/support/live_join.hpp"
+#include "tests/support/process.hpp"
 
 #include "server/fusion/octomap_log.hpp"
 
@@ -221,6 +228,37 @@ void unrelatedPairs(Totals& totals, const fusion::OccupancyMap* campus) {
   }
 }
 
+// The live joins' worst figures (NaN when one did not join; unset when not run).
+struct LiveJoins {
+  double worst_s = std::numeric_limits<double>::quiet_NaN();
+  double worst_error_m = std::numeric_limits<double>::quiet_NaN();
+};
+
+LiveJoins liveJoins() {
+  struct Start {
+    double start_s;
+    const char* pose;
+  };
+  LiveJoins out{0, 0};
+  std::printf("\n%-22s %8s %10s %10s %10s %12s\n", "live join (start, pose)", "aligned", "J (s)",
+              "fused (s)", "attempts", "JT (m)");
+  for (const Start start : {Start{20, "20,0,0,90"}, {10, "-15,12,0,180"}, {30, "5,-20,0,-135"}}) {
+    const std::string store = testing::makeTempDir("stereomap-bench-livejoin");
+    const auto run = testing::runLiveJoin(
+        {.domain = 137, .store = store, .start_s = start.start_s, .start_pose = start.pose});
+    std::filesystem::remove_all(store);
+    std::printf("%4.0f s %-16s %8s %10.1f %10.1f %10llu %12.4f\n", start.start_s, start.pose,
+                run.aligned ? "yes" : "no", run.aligned_s, run.fused_s,
+                static_cast<unsigned long long>(run.attempts), run.error_m);
+    // max() with a NaN first keeps it: a join that failed is the worst.
+    out.worst_s = std::isnan(out.worst_s) ? out.worst_s : std::max(run.aligned_s, out.worst_s);
+    if (!run.aligned) out.worst_s = out.worst_error_m = std::numeric_limits<double>::quiet_NaN();
+    if (!std::isnan(out.worst_error_m))
+      out.worst_error_m = std::max(out.worst_error_m, run.error_m);
+  }
+  return out;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -228,11 +266,11 @@ int main(int argc, char** argv) {
       "stereomap-bench-align: align pairs of maps with a known transform and refuse "
       "unrelated ones (docs/BENCHMARKS.md)"};
   std::string data = STEREOMAP_DATA_DIR;
-  std::vector<std::string> only = {"sim", "campus", "geb079", "kitti", "unrelated"};
+  std::vector<std::string> only = {"sim", "campus", "geb079", "kitti", "unrelated", "live"};
   app.add_option("--data", data, "The shared data folder")->capture_default_str();
   app.add_option("--only", only, "Kinds of pairs")
       ->delimiter(',')
-      ->check(CLI::IsMember({"sim", "campus", "geb079", "kitti", "unrelated"}));
+      ->check(CLI::IsMember({"sim", "campus", "geb079", "kitti", "unrelated", "live"}));
   CLI11_PARSE(app, argc, argv);
   fusion::OctomapLogRoute octomap_log;  // OctoMap's "done." lines off the table
   const auto wanted = [&](const char* kind) {
@@ -266,6 +304,7 @@ int main(int argc, char** argv) {
     }
   }
   if (wanted("unrelated")) unrelatedPairs(totals, campus.get());
+  const LiveJoins live = wanted("live") ? liveJoins() : LiveJoins{};
 
   std::vector<double> translation, rotation, in_voxels;
   size_t pairs = 0, unrelated = 0, refused = 0;
@@ -303,12 +342,11 @@ int main(int argc, char** argv) {
   }
   std::printf("all pairs: translation error p95 %.2f voxels; %.1f s over %.2f million voxels\n",
               p95(in_voxels), seconds, voxels / 1e6);
-  // The live join (a vehicle joining a live session in its own frame) is not built yet.
   std::printf(
       "\nalign: %zu pairs, translation error p95 %.3f m, rotation error p95 %.2f deg, %zu/%zu "
-      "unrelated refused, %.1f s per million voxels; live join after n/a s, error n/a m\n",
+      "unrelated refused, %.1f s per million voxels; live join after %.1f s, error %.3f m\n",
       pairs, p95(translation), p95(rotation), refused, unrelated,
-      voxels > 0 ? seconds / (voxels / 1e6) : 0.0);
+      voxels > 0 ? seconds / (voxels / 1e6) : 0.0, live.worst_s, live.worst_error_m);
   const bool all_found = std::all_of(translation.begin(), translation.end(),
                                      [](double t) { return std::isfinite(t); });
   return all_found && refused == unrelated ? 0 : 1;
