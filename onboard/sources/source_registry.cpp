@@ -75,9 +75,10 @@ auto dataset(Result<std::unique_ptr<camera::FrameSource>> (*open)(const Location
                                                                   const camera::DatasetOptions&)) {
   return [open](const std::string& location, const SourceOptions& options) -> Result<OpenedSource> {
     if (options.start_s != 0) {
-      return makeError(ErrorCode::kInvalidArgument,
-                       "--start: only the simulators (sim, sim:deck) start later; a data set or "
-                       "camera starts at its first frame");
+      return makeError(
+          ErrorCode::kInvalidArgument,
+          "--start: only the simulators (sim, sim:hall, sim:deck) start later; a data set or "
+          "camera starts at its first frame");
     }
     camera::DatasetOptions dataset{.calibration_file = options.calibration_file,
                                    .max_frames = options.max_frames,

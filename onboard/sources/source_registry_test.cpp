@@ -19,8 +19,8 @@ TEST(SourceRegistry, EverySourceIsListedOnceWithItsHelp) {
     EXPECT_EQ(kind.usage.rfind(kind.prefix, 0), 0u) << kind.usage;
     EXPECT_NE(sourcesHelp().find(kind.usage + " (" + kind.help + ")"), std::string::npos);
   }
-  EXPECT_EQ(prefixes,
-            (std::set<std::string>{"sim", "sim:deck", "kitti:", "euroc:", "folder:", "camera:"}));
+  EXPECT_EQ(prefixes, (std::set<std::string>{"sim", "sim:deck", "sim:hall",
+                                             "kitti:", "euroc:", "folder:", "camera:"}));
 }
 
 TEST(SourceRegistry, OpensTheSimulatorsWithTheirOptions) {
@@ -71,7 +71,8 @@ TEST(SourceRegistry, ASpecNoSourceTakesIsAClearError) {
   };
   using common::ErrorCode;
   expectError("tape:/x", ErrorCode::kInvalidArgument,
-              "unknown source 'tape:/x': use sim, sim:deck, kitti:DIR, euroc:DIR, folder:DIR, "
+              "unknown source 'tape:/x': use sim, sim:hall, sim:deck, kitti:DIR, euroc:DIR, "
+              "folder:DIR, "
               "camera:LEFT,RIGHT");
   expectError("sim:room", ErrorCode::kInvalidArgument, "unknown source 'sim:room'");
   expectError("kitti", ErrorCode::kInvalidArgument, "needs a location: kitti:DIR");

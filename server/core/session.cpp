@@ -887,10 +887,10 @@ std::vector<PoseRecord> Session::trajectory(size_t from, size_t until) const {
     if (correction != corrections_.end()) {
       pose.T_map_body = correction->second->delta(pose.stamp_ns) * pose.T_map_body;
     }
-    // A held vehicle's poses stay in its own frame (viewers are told it is aligning).
-    if (const auto held = frames_.find(pose.vehicle_id);
-        held != frames_.end() && held->second.status.aligned) {
-      pose.T_map_body = held->second.status.T_session_own * pose.T_map_body;
+    // A held vehicle's poses stay in its own frame, marked.
+    if (const auto held = frames_.find(pose.vehicle_id); held != frames_.end()) {
+      pose.held = !held->second.status.aligned;
+      if (!pose.held) pose.T_map_body = held->second.status.T_session_own * pose.T_map_body;
     }
     pose.T_map_body.rotation.normalize();
   }

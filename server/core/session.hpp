@@ -47,6 +47,9 @@ struct PoseRecord {
   std::string vehicle_id;
   int64_t stamp_ns = 0;
   common::Rigid3 T_map_body;
+  // Its vehicle flies in its own frame and is not aligned yet: T_map_body is in that frame, not
+  // the session's (viewers leave it out until the join, which bumps the trajectory's version).
+  bool held = false;
 };
 
 struct FusionJob {

@@ -243,6 +243,8 @@ TEST(Session, AVehicleInItsOwnFrameIsHeldApartUntilItJoins) {
   EXPECT_GT(session.heldMap("b")->occupiedCount(), 100u);
   EXPECT_EQ(session.frameState("b", nullptr), proto::FrameState::kAligning);
   EXPECT_EQ(session.status().vehicle_frames.at(0).held_frames, 5u);
+  EXPECT_TRUE(session.trajectory().back().held) << "b's poses are in its own frame";
+  EXPECT_FALSE(session.trajectory().front().held);
 
   // Two attempts must agree before a join (the caller's rule, kept by the session).
   EXPECT_FALSE(session.noteAttempt("b", T, "", 0.1, 0.5).agrees);
@@ -262,6 +264,7 @@ TEST(Session, AVehicleInItsOwnFrameIsHeldApartUntilItJoins) {
   EXPECT_LT((told.translation - T.translation).norm(), 1e-12);
   EXPECT_EQ(session.heldMap("b"), nullptr);
   const auto poses = session.trajectory();
+  EXPECT_FALSE(poses.back().held);
   const common::Vec3 in_session =
       frame("b", 5, common::Rigid3::identity()).T_map_camera.translation;
   EXPECT_LT((poses.back().T_map_body.translation - in_session).norm(), 1e-9);

@@ -95,7 +95,7 @@ class Export {
     const int64_t end = summary_.messages > 0 ? summary_.end_ns : 0;
     std::map<std::string, std::vector<common::Rigid3>> corrected;
     for (const auto& pose : session_.trajectory()) {
-      corrected[pose.vehicle_id].push_back(pose.T_map_body);
+      if (!pose.held) corrected[pose.vehicle_id].push_back(pose.T_map_body);
     }
     for (const auto& [id, poses] : corrected) {
       write(vehicle(id).trajectory, end,

@@ -343,7 +343,9 @@ struct FoxgloveHub::Impl {
       feed.trajectory_version = version;
       feed.paths.clear();
       const auto all = session.trajectory();
-      for (const auto& pose : all) feed.paths[pose.vehicle_id].push_back(pose.T_map_body);
+      for (const auto& pose : all) {
+        if (!pose.held) feed.paths[pose.vehicle_id].push_back(pose.T_map_body);
+      }
       for (const auto& [vehicle, path] : feed.paths) feed.paths_changed.insert(vehicle);
       poses.assign(all.begin() + static_cast<long>(std::min(feed.poses, all.size())), all.end());
       feed.poses = all.size();
@@ -351,10 +353,14 @@ struct FoxgloveHub::Impl {
       poses = session.trajectory(feed.poses);
       feed.poses += poses.size();
       for (const auto& pose : poses) {
+        if (pose.held) continue;
         feed.paths[pose.vehicle_id].push_back(pose.T_map_body);
         feed.paths_changed.insert(pose.vehicle_id);
       }
     }
+    // A vehicle in its own frame, not aligned yet: nowhere in the map's frame (until its join
+    // bumps the version and every path is sent again).
+    std::erase_if(poses, [](const core::PoseRecord& pose) { return pose.held; });
     const uint32_t tf = feed.channels.at({Kind::kTf, ""});
     const bool wanted = subscribed(tf);
     for (const auto& pose : poses) {

@@ -69,6 +69,7 @@ std::vector<Text> poseMessages(const std::string& session,
   std::vector<std::string> order;
   for (const auto& pose : poses) {
     if (!only_vehicle.empty() && pose.vehicle_id != only_vehicle) continue;
+    if (pose.held) continue;  // in a frame of its own until it joins (the lines say "aligning")
     auto [it, inserted] = by_vehicle.try_emplace(pose.vehicle_id);
     if (inserted) order.push_back(pose.vehicle_id);
     const auto& t = pose.T_map_body.translation;
