@@ -252,6 +252,7 @@ void Session::correct(const std::string& vehicle, std::shared_ptr<const PoseCorr
     if (refuse && corrections_announced_ > 0) --corrections_announced_;
     corrections_[vehicle] = std::move(correction);
     ++corrections_set_;
+    ++pose_corrections_;
     ++trajectory_version_;
     if (!refuse || !options_.reread_frames) corrections_in_map_ = corrections_set_;
   }
@@ -799,7 +800,7 @@ SessionStatus Session::status() const {
   status.publish_lag = publish_lag_;
   status.store_error = store_error_;
   status.samples_refused = samples_refused_;
-  status.corrections = corrections_set_;
+  status.corrections = pose_corrections_;
   status.refusions = refusions_;
   status.refusing = corrections_in_map_ < corrections_set_ && refusion_error_.empty();
   status.refusion_error = refusion_error_;
