@@ -388,8 +388,8 @@ class Session {
   // worker.
   std::map<std::string, std::unique_ptr<fusion::OccupancyMap>> held_maps_;
   uint64_t corrections_announced_ = 0;  // announced, not yet set (or withdrawn)
-  uint64_t corrections_set_ = 0;  // correct() and join() calls, and holdApart()'s re-fusions
-  uint64_t pose_corrections_ = 0;  // correct() calls (the status's count)
+  uint64_t corrections_set_ = 0;        // correct() and join() calls, and holdApart()'s re-fusions
+  uint64_t pose_corrections_ = 0;       // correct() calls (the status's count)
   uint64_t corrections_in_map_ = 0;     // correct() calls the map reflects (swapped in)
   uint64_t refusions_ = 0;
   double refusion_seconds_ = 0;
