@@ -189,9 +189,11 @@ TEST(LiveJoin, AVehicleInItsOwnFrameJoinsAndAStrangerIsNeverFused) {
   const auto run = testing::runLiveJoin(
       {.domain = kLiveDomain, .store = store, .stranger = true, .kill_server = true});
   ASSERT_TRUE(run.aligned) << run.session.dump(1) << run.log;
-  // Joined while it flew (15 s; how soon is stereomap-bench-align's J), where it is: within
-  // a voxel (measured: 0.009 m RMS).
-  EXPECT_LT(run.aligned_s, 15.0) << run.session.dump(1);
+  // Joined while it flew: frames came after the join, unheld (how soon is
+  // stereomap-bench-align's J: on a machine as loaded as a full test run, 16 s once). Where it
+  // is: within a voxel (measured: 0.004-0.017 m RMS).
+  EXPECT_LT(testing::vehicleFrame(run.session, "sim-2").value("held_frames", 150), 150)
+      << run.session.dump(1);
   EXPECT_LE(run.error_m, 0.1) << run.session.dump(1);
   EXPECT_EQ(run.session.value("refusion_error", json()), json());
   // The hall never overlaps the room: held apart, tried, never joined, and none of it in the
