@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <regex>
 
@@ -145,6 +146,58 @@ TEST_F(AlignE2e, DiffFindsTheCrateThatAppeared) {
   std::printf("%s\n%zu of %zu appeared voxels on the crate\n", last.c_str(), in_crate, appeared);
   EXPECT_GE(in_crate, 100u);
   EXPECT_GE(static_cast<double>(in_crate), 0.5 * appeared);
+}
+
+// The diff kept as a session (diff --into): one map whose voxels' probabilities tell the
+// classes apart (map_diff.hpp), served like any session; the viewer's "change" mode reads them.
+TEST_F(AlignE2e, DiffKeptAsASessionCarriesItsClassesAndIsServed) {
+  const auto diffed = store({"diff", "monday", "tuesday", "--into", "changes"});
+  ASSERT_EQ(diffed.exit_code, 0) << diffed.output;
+  EXPECT_FALSE(fs::exists(fs::path(store_) / "monday-tuesday.diff.ply")) << "--into alone: no PLY";
+  std::smatch m;
+  const std::string last = lastLine(diffed.output);
+  ASSERT_TRUE(std::regex_match(last, m,
+                               std::regex("diff monday tuesday: ([0-9]+) appeared, ([0-9]+) "
+                                          "disappeared, ([0-9]+) unchanged; .*")))
+      << diffed.output;
+  const size_t appeared = std::stoul(m[1]), disappeared = std::stoul(m[2]),
+               unchanged = std::stoul(m[3]);
+  const std::string ot = store_ + "/changes.ot";
+  const auto exported = store({"export", "changes", "--format", "ot", "--out", ot});
+  ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  std::ifstream in(ot, std::ios::binary);
+  auto map = fusion::OccupancyMap::load(in);
+  ASSERT_TRUE(map) << map.error().message;
+  std::map<int, size_t> by_value;
+  (*map)->visitOccupied(0, 0, [&](uint64_t, unsigned depth, uint8_t value) {
+    by_value[value] += size_t{1} << (3 * (16 - depth));  // a pruned block: its voxels
+  });
+  // Where an appeared voxel of tuesday's grid falls on a voxel of monday's, the change wins:
+  // each class holds at most its count, and together they hold nearly all.
+  EXPECT_LE(by_value[248], appeared);
+  EXPECT_LE(by_value[217], disappeared);
+  EXPECT_LE(by_value[184], unchanged);
+  EXPECT_GE(by_value[248], appeared * 9 / 10);
+  EXPECT_EQ(by_value[248] + by_value[217] + by_value[184], (*map)->occupiedCount());
+  EXPECT_GE(by_value[184] + by_value[217] + by_value[248],
+            (appeared + disappeared + unchanged) * 9 / 10);
+  std::printf("%s\nthe diff session: %zu appeared, %zu disappeared, %zu unchanged voxels\n",
+              last.c_str(), by_value[248], by_value[217], by_value[184]);
+
+  // Taken ids, bad ids: refused, nothing written over.
+  for (const auto& bad : std::vector<std::vector<std::string>>{
+           {"diff", "monday", "tuesday", "--into", "monday"},
+           {"diff", "monday", "tuesday", "--into", "../diff-escape"}}) {
+    const auto run = store(bad);
+    EXPECT_EQ(run.exit_code, 1) << run.output;
+  }
+  EXPECT_FALSE(fs::exists(fs::path(store_).parent_path() / "diff-escape"));
+
+  testing::ServerProcess server(kDomain, {}, store_);
+  const auto served = server.request("GET", "/api/sessions/changes");
+  ASSERT_EQ(served.status, 200) << served.body;
+  EXPECT_EQ(json::parse(served.body).value("occupied_voxels", size_t{0}), (*map)->occupiedCount())
+      << served.body;
 }
 
 TEST_F(AlignE2e, RestAlignsAndRefuses) {

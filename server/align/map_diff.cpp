@@ -1,9 +1,12 @@
 #include "server/align/map_diff.hpp"
 
+#include <octomap/OcTree.h>
 #include <array>
 #include <cmath>
 #include <cstdio>
+
 #include <set>
+#include <sstream>
 
 namespace stereomap::align {
 
@@ -70,7 +73,7 @@ MapDiff diffMaps(const OccupancyMap& a, const OccupancyMap& b, const common::Rig
     const Vec3 p = a.voxelCentre(voxel);
     const Vec3 q = T_b_a * p;
     if (occupiedNear(b, q)) {
-      ++diff.unchanged_a;
+      diff.unchanged.push_back(p);
     } else if (b.query(q) == Occupancy::kFree) {
       diff.disappeared.push_back(p);
     } else {
@@ -101,13 +104,35 @@ std::string diffPly(const MapDiff& diff) {
   return out;
 }
 
+std::string diffOctomap(const MapDiff& diff, double resolution) {
+  octomap::OcTree tree(resolution);
+  // Written from the least to the most changed: where two classes meet in one voxel (B's
+  // voxels snap onto A's grid), the change wins.
+  const std::pair<const std::vector<Vec3>*, double> classes[] = {
+      {&diff.unchanged, kDiffUnchangedP},
+      {&diff.disappeared, kDiffDisappearedP},
+      {&diff.appeared, kDiffAppearedP}};
+  for (const auto& [points, p] : classes) {
+    const float log_odds = octomap::logodds(p);
+    for (const auto& v : *points) {
+      tree.setNodeValue(octomap::point3d(static_cast<float>(v.x()), static_cast<float>(v.y()),
+                                         static_cast<float>(v.z())),
+                        log_odds, /*lazy_eval=*/true);
+    }
+  }
+  tree.updateInnerOccupancy();
+  std::ostringstream out;
+  tree.write(out);
+  return out.str();
+}
+
 std::string diffLine(const std::string& a, const std::string& b, const MapDiff& diff) {
   char text[320];
   std::snprintf(text, sizeof(text),
                 "diff %s %s: %zu appeared, %zu disappeared, %zu unchanged; %zu not seen by %s, "
                 "%zu not seen by %s",
                 a.c_str(), b.c_str(), diff.appeared.size(), diff.disappeared.size(),
-                diff.unchanged_a, diff.unseen_by_a, a.c_str(), diff.unseen_by_b, b.c_str());
+                diff.unchanged.size(), diff.unseen_by_a, a.c_str(), diff.unseen_by_b, b.c_str());
   return text;
 }
 

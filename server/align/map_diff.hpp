@@ -14,11 +14,12 @@
 namespace stereomap::align {
 
 struct MapDiff {
-  std::vector<common::Vec3> appeared;       // B's voxel centres (in A's frame), A saw free there
-  std::vector<common::Vec3> disappeared;    // A's voxel centres, B saw free there
-  size_t unchanged_a = 0, unchanged_b = 0;  // occupied in both (within one voxel), per map
-  size_t unseen_by_a = 0;                   // B's occupied voxels A never observed
-  size_t unseen_by_b = 0;                   // A's occupied voxels B never observed
+  std::vector<common::Vec3> appeared;     // B's voxel centres (in A's frame), A saw free there
+  std::vector<common::Vec3> disappeared;  // A's voxel centres, B saw free there
+  std::vector<common::Vec3> unchanged;    // A's voxel centres occupied in both (within a voxel)
+  size_t unchanged_b = 0;                 // B's voxels occupied in both
+  size_t unseen_by_a = 0;                 // B's occupied voxels A never observed
+  size_t unseen_by_b = 0;                 // A's occupied voxels B never observed
 };
 
 // A is the earlier flight, B the later one; T_a_b puts B's frame into A's. Same resolution.
@@ -27,6 +28,16 @@ MapDiff diffMaps(const fusion::OccupancyMap& a, const fusion::OccupancyMap& b,
 
 // ASCII PLY of the changes in A's frame: appeared green, disappeared red.
 std::string diffPly(const MapDiff& diff);
+
+// The diff as one map a session can hold (OctoMap's full format, .ot, in A's frame at A's
+// resolution): its three classes told apart by occupancy probability, all occupied under
+// either sensor model the server uses. Tiles carry round(255 P) (proto/tiles/FORMAT.md), and
+// the viewer's "change" colour mode reads the bands: appeared >= 240, disappeared 200-239,
+// unchanged below. At coarser tile levels a cell takes its most changed voxel's value.
+inline constexpr double kDiffAppearedP = 0.971;    // OctoMap's clamp: 248
+inline constexpr double kDiffDisappearedP = 0.85;  // 217
+inline constexpr double kDiffUnchangedP = 0.72;    // 184
+std::string diffOctomap(const MapDiff& diff, double resolution);
 
 // "diff A B: N appeared, M disappeared, U unchanged; K not seen by A, L not seen by B"
 std::string diffLine(const std::string& a, const std::string& b, const MapDiff& diff);

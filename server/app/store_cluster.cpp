@@ -194,7 +194,17 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "merge") return merge(**store, a);
   if (command == "compact") return compact(**store, a);
   if (command == "align") return alignCommand(mapsOf(**store), a);
-  if (command == "diff") return diffCommand(mapsOf(**store), a);
+  if (command == "diff") {
+    // The cluster keeps no meta beside a session: the diff's description is in the CLI's lines.
+    const auto keep = [&](const std::string& id, double resolution, const std::string& ot,
+                          const std::string&) -> common::Status {
+      auto db =
+          cluster::PgConnection::connect(a.cluster_url, {.deadline = std::chrono::minutes(2)});
+      if (!db) return db.error();
+      return cluster::importSession(**db, id, resolution, ot);
+    };
+    return diffCommand(mapsOf(**store), keep, a);
+  }
   if (command != "close" && command != "delete") return fail(command + ": not on a cluster");
   const auto done = command == "close" ? (*store)->close(a.id) : (*store)->remove(a.id);
   if (!done) return fail(done.error().message);

@@ -277,7 +277,18 @@ core::SessionMapSource mapsOf(Store& store) {
 
 int alignSessions(Store& store, Args& a) { return stereomap::app::alignCommand(mapsOf(store), a); }
 
-int diffSessions(Store& store, Args& a) { return stereomap::app::diffCommand(mapsOf(store), a); }
+int diffSessions(Store& store, Args& a) {
+  const auto keep = [&](const std::string& id, double resolution, const std::string& ot,
+                        const std::string& about) -> common::Status {
+    if (!store.admin) {
+      return common::makeError(common::ErrorCode::kUnavailable, "the store is open read-only");
+    }
+    auto imported = store.admin->importMap({resolution, ot}, id, nlohmann::json::parse(about));
+    if (!imported) return imported.error();
+    return common::Ok{};
+  };
+  return stereomap::app::diffCommand(mapsOf(store), keep, a);
+}
 
 int mergeSessions(Store& store, Args& a) {
   int code = 0;
@@ -417,10 +428,14 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
       "diff",
       "What changed from the first session to the second (aligned first, or by --transform): "
       "voxels that appeared or disappeared where the other flight saw free space (unknown is "
-      "not free), as a coloured PLY in the first's frame");
+      "not free), as a coloured PLY and/or a session in the first's frame");
   diff_cmd->add_option("first", a.first, "The earlier session")->required();
   diff_cmd->add_option("second", a.second, "The later session")->required();
-  diff_cmd->add_option("--out", a.out, "The PLY file (default: FIRST-SECOND.diff.ply)");
+  diff_cmd->add_option("--out", a.out,
+                       "The PLY file (default: FIRST-SECOND.diff.ply, unless --into is given)");
+  diff_cmd->add_option("--into", a.into,
+                       "Keep the diff as a new, closed session of this id too: appeared, "
+                       "disappeared and unchanged voxels, coloured by the viewer's 'change' mode");
   diff_cmd
       ->add_option("--transform", a.transform,
                    "T_first_second as tx,ty,tz,qx,qy,qz,qw (default: found by aligning)")
@@ -450,7 +465,9 @@ int main(int argc, char** argv) {
     return fail("delete is permanent: add --yes to delete '" + args.id + "'");
   }
   if (!args.cluster_url.empty()) return stereomap::app::runInCluster(command.app->get_name(), args);
-  auto store = openStore(args.root, args.resolution, command.writes);
+  // diff writes only when it keeps its result as a session.
+  const bool writes = command.writes || (command.app->get_name() == "diff" && !args.into.empty());
+  auto store = openStore(args.root, args.resolution, writes);
   if (!store) return fail(store.error().message);
   return command.run(*store, args);
 }

@@ -7,10 +7,12 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
 #include "common/files.hpp"
 #include "common/transform_args.hpp"
 #include "server/align/map_diff.hpp"
+#include "server/core/validate.hpp"
 
 namespace stereomap::app {
 
@@ -157,9 +159,12 @@ int alignCommand(const core::SessionMapSource& maps, const Args& a) {
   return code;
 }
 
-int diffCommand(const core::SessionMapSource& maps, const Args& a) {
+int diffCommand(const core::SessionMapSource& maps, const KeepDiffSession& keep, const Args& a) {
   auto request = mergeRequestOf(a);  // its --transform
   if (!request) return fail(request.error().message);
+  if (!a.into.empty() && !core::isValidId(a.into)) {
+    return fail("--into: session id '" + a.into.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
+  }
   common::Rigid3 T_a_b = request->T_first_second;
   if (a.transform.empty()) {
     int code = 0;
@@ -175,12 +180,35 @@ int diffCommand(const core::SessionMapSource& maps, const Args& a) {
     return fail("the sessions' maps have different resolutions");
   }
   const auto diff = align::diffMaps(**map_a, **map_b, T_a_b);
-  const std::string out = a.out.empty() ? a.first + "-" + a.second + ".diff.ply" : a.out;
-  if (auto written = common::writeFileAtomically(out, align::diffPly(diff)); !written) {
-    return fail("cannot write " + out + ": " + written.error().message);
+  const size_t changed = diff.appeared.size() + diff.disappeared.size();
+  if (!a.out.empty() || a.into.empty()) {
+    const std::string out = a.out.empty() ? a.first + "-" + a.second + ".diff.ply" : a.out;
+    if (auto written = common::writeFileAtomically(out, align::diffPly(diff)); !written) {
+      return fail("cannot write " + out + ": " + written.error().message);
+    }
+    std::printf("%s: %zu changed voxels (green appeared, red disappeared), in %s's frame\n",
+                out.c_str(), changed, a.first.c_str());
   }
-  std::printf("%s: %zu changed voxels (green appeared, red disappeared), in %s's frame\n",
-              out.c_str(), diff.appeared.size() + diff.disappeared.size(), a.first.c_str());
+  if (!a.into.empty()) {
+    const nlohmann::json about = {{"diff",
+                                   {{"first", a.first},
+                                    {"second", a.second},
+                                    {"appeared", diff.appeared.size()},
+                                    {"disappeared", diff.disappeared.size()},
+                                    {"unchanged", diff.unchanged.size()},
+                                    {"unseen_by_first", diff.unseen_by_a},
+                                    {"unseen_by_second", diff.unseen_by_b}}}};
+    const double resolution = (*map_a)->resolution();
+    if (auto kept = keep(a.into, resolution, align::diffOctomap(diff, resolution), about.dump());
+        !kept) {
+      return fail("cannot keep the diff as session '" + a.into + "': " + kept.error().message);
+    }
+    std::printf(
+        "session '%s': the diff in %s's frame, %zu changed and %zu unchanged voxels; the viewer "
+        "colours it with ?session=%s&colour=change (green appeared, red disappeared, grey "
+        "unchanged)\n",
+        a.into.c_str(), a.first.c_str(), changed, diff.unchanged.size(), a.into.c_str());
+  }
   std::printf("%s\n", align::diffLine(a.first, a.second, diff).c_str());
   return 0;
 }

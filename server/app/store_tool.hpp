@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
@@ -54,8 +55,13 @@ common::Result<core::MergeRequest> mergeRequestOf(const Args& a);
 inline constexpr int kRefused = 3;  // the maps overlap too little, or ambiguously
 // Prints the alignment's details and its line (align::alignLine, last).
 int alignCommand(const core::SessionMapSource& maps, const Args& a);
-// Aligns (or takes --transform), then writes the changes as a PLY and prints the diff line.
-int diffCommand(const core::SessionMapSource& maps, const Args& a);
+// Keeps a diff as a new session `id` (diff --into): its map in OctoMap's full format (.ot),
+// `about` (JSON text) describing it where the store keeps such things.
+using KeepDiffSession = std::function<common::Status(
+    const std::string& id, double resolution, const std::string& ot, const std::string& about)>;
+// Aligns (or takes --transform), then writes the changes as a PLY (--out, the default) and/or
+// as a session (--into, through `keep`), and prints the diff line.
+int diffCommand(const core::SessionMapSource& maps, const KeepDiffSession& keep, const Args& a);
 // merge's request, its transform found by aligning with --align auto (printed); nullopt with
 // the exit code in `code` when it failed or was refused.
 std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSource& maps,

@@ -596,8 +596,17 @@ namespace stereomap::store {
 
 common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
                                                        const std::string& id) {
-  std::lock_guard lock(mutex_);
-  if (auto writable = requireWritable("import a map"); !writable) return writable.error();
+  if (auto refused = refuseImport(id); !refused) return refused.error();
+  // The whole file is read and checked before anything is written.
+  auto map = readImportableMap(file);
+  if (!map) return map.error();
+  auto imported = importMap(*map, id, {{"imported_from", file.filename().string()}});
+  if (imported) spdlog::info("{} imported as session '{}'", file.string(), id);
+  return imported;
+}
+
+common::Status StoreAdmin::refuseImport(const std::string& id) const {
+  if (auto writable = requireWritable("import a map"); !writable) return writable;
   if (!core::isValidId(id)) {
     return makeError(ErrorCode::kInvalidArgument,
                      "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
@@ -606,20 +615,25 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
   if (server_.find(id) || fs::exists(root_ / id, ec)) {
     return makeError(ErrorCode::kConflict, "session '" + id + "' already exists");
   }
-  // The whole file is read and checked before anything is written.
-  auto map = readImportableMap(file);
-  if (!map) return map.error();
-  const double resolution = map->resolution;
+  return common::Ok{};
+}
 
+common::Result<RecoveredSession> StoreAdmin::importMap(const ImportableMap& map,
+                                                       const std::string& id, const json& about) {
+  std::lock_guard lock(mutex_);
+  if (auto refused = refuseImport(id); !refused) return refused.error();
+  const double resolution = map.resolution;
+  std::error_code ec;
   const fs::path staging = root_ / (".import-" + id + "-" + std::to_string(common::nowNs()));
   fs::create_directories(staging, ec);
-  json meta = {{"resolution", resolution}, {"imported_from", file.filename().string()}};
+  json meta = about;
+  meta["resolution"] = resolution;
   common::Status written =
       ec ? common::Status(
                makeError(ErrorCode::kIo, "cannot create " + staging.string() + ": " + ec.message()))
          : common::writeFileAtomically(staging / kMetaName, meta.dump() + "\n");
   if (written) written = common::writeFileAtomically(staging / kClosedMarker, "");
-  if (written) written = common::writeFileAtomically(snapshotPath(staging, 0), map->ot);
+  if (written) written = common::writeFileAtomically(snapshotPath(staging, 0), map.ot);
   if (written) {
     auto journal = Journal::open(staging / kJournalName);  // empty: no frames, no poses
     if (!journal) written = journal.error();
@@ -648,7 +662,6 @@ common::Result<RecoveredSession> StoreAdmin::importMap(const fs::path& file,
     record(status);
     rememberClosed(status);
   }
-  spdlog::info("{} imported as session '{}'", file.string(), id);
   return loaded;
 }
 

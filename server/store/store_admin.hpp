@@ -12,6 +12,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
@@ -19,6 +20,7 @@
 #include "server/core/map_server.hpp"
 #include "server/core/session_admin.hpp"
 #include "server/store/catalog.hpp"
+#include "server/store/map_import.hpp"
 #include "server/store/session_journals.hpp"
 #include "server/store/store.hpp"
 
@@ -76,6 +78,10 @@ class StoreAdmin : public core::SessionAdmin {
   // opened read-only. Writable only.
   common::Result<RecoveredSession> importMap(const std::filesystem::path& file,
                                              const std::string& id);
+  // The same for a map already read and checked (a diff's); `about` (a JSON object) is kept
+  // in the session's meta.json beside its resolution.
+  common::Result<RecoveredSession> importMap(const ImportableMap& map, const std::string& id,
+                                             const nlohmann::json& about);
 
  private:
   StoreAdmin(std::filesystem::path root, core::MapServer& server, SessionJournals* journals,
@@ -84,6 +90,8 @@ class StoreAdmin : public core::SessionAdmin {
   common::Result<RecoveredSession> load(const std::string& id, bool read_only);
   common::Status closeLocked(const std::string& id);
   common::Status requireWritable(const char* what) const;
+  // Why session `id` cannot be imported (not writable, a bad id, taken), or Ok.
+  common::Status refuseImport(const std::string& id) const;
   void openCatalog();  // catalog_ stays null (and catalog_warning_ says why) when it cannot
   void record(const core::SessionStatus& status);
   // A session's status as last saved on disk.

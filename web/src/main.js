@@ -4,7 +4,7 @@
 // matter most, coarse first) and draws at most once per animation frame. Exposes
 // window.__stereomap for the end-to-end test.
 
-import { rampCssGradient } from './core/colour_ramp.js';
+import { changeCssGradient, rampCssGradient } from './core/colour_ramp.js';
 import { ratesText, statusText, vehicleLines } from './core/format.js';
 import { landingText, padOutline } from './core/landing.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
@@ -25,7 +25,7 @@ const kErrorPx = Number(params.get('error')) || 2; // how large a cell may look 
 const kCacheBytes = (Number(params.get('cache')) || 256) * 2 ** 20; // the page's memory for tiles
 
 const elements = Object.fromEntries(['view', 'status', 'vehicles', 'session-select', 'fit-button', 'colour-select', 'legend',
-  'legend-bar', 'legend-max', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result',
+  'legend-bar', 'legend-max', 'legend-mid', 'legend-min', 'legend-title', 'follow-check', 'measure-button', 'measure-result',
   'timeline', 'time-slider', 'time-label', 'live-button']
   .map((id) => [id, document.getElementById(id)]));
 
@@ -161,12 +161,17 @@ function updateStatus() {
 
 function updateLegend() {
   const range = view.heightRange;
-  const byProbability = view.tiles.colourBy === 'probability';
-  elements.legend.hidden = range === null && !byProbability;
-  elements['legend-title'].textContent = byProbability ? 'occupancy P' : 'height z';
-  if (byProbability) {
+  const mode = view.tiles.colourBy;
+  elements.legend.hidden = mode === 'height' && range === null;
+  elements['legend-title'].textContent = { probability: 'occupancy P', change: 'change' }[mode] ?? 'height z';
+  elements['legend-bar'].style.background = mode === 'change' ? changeCssGradient() : rampCssGradient();
+  elements['legend-mid'].textContent = mode === 'change' ? 'disappeared' : '';
+  if (mode === 'probability') {
     elements['legend-min'].textContent = '0.5';
     elements['legend-max'].textContent = '1.0';
+  } else if (mode === 'change') {
+    elements['legend-min'].textContent = 'unchanged';
+    elements['legend-max'].textContent = 'appeared';
   } else if (range) {
     elements['legend-min'].textContent = `${range[0].toFixed(1)} m`;
     elements['legend-max'].textContent = `${range[1].toFixed(1)} m`;
@@ -345,7 +350,11 @@ window.addEventListener('keydown', (event) => {
   if (event.key === 'Escape') setMeasuring(false);
 });
 
-elements['legend-bar'].style.background = rampCssGradient();
+// ?colour=height|probability|change picks the colour mode (a diff session's link says change).
+if (['height', 'probability', 'change'].includes(params.get('colour'))) {
+  elements['colour-select'].value = params.get('colour');
+  view.tiles.setColourBy(params.get('colour'));
+}
 // What the session's vehicles see of the landing pad (REST, once a second): outlined in the map
 // while tracked, and said on the status line.
 const landing = { sessionId: null, vehicles: [] };

@@ -26,3 +26,26 @@ export function rampCssGradient() {
   });
   return `linear-gradient(to top, ${stops.join(', ')})`;
 }
+
+// A diff session's classes (server/align/map_diff.hpp: kDiff*P), told apart by each voxel's
+// tile value round(255 P): appeared 248, disappeared 217, unchanged 184. Most changed first.
+export const kChangeClasses = [
+  { name: 'appeared', from: 240, rgb: [0.16, 0.78, 0.24] },
+  { name: 'disappeared', from: 200, rgb: [0.86, 0.16, 0.16] },
+  { name: 'unchanged', from: 0, rgb: [0.6, 0.6, 0.62] },
+];
+
+/** sRGB colour of a diff session's voxel from its tile value (0-255). */
+export function changeColour(value) {
+  return kChangeClasses.find((c) => value >= c.from).rgb;
+}
+
+/** CSS bands of the change classes for the legend: unchanged at the bottom, appeared on top. */
+export function changeCssGradient() {
+  const n = kChangeClasses.length;
+  const stops = [...kChangeClasses].reverse().map(({ rgb }, i) => {
+    const css = `rgb(${rgb.map((c) => Math.round(c * 255)).join(', ')})`;
+    return `${css} ${((100 * i) / n).toFixed(0)}%, ${css} ${((100 * (i + 1)) / n).toFixed(0)}%`;
+  });
+  return `linear-gradient(to top, ${stops.join(', ')})`;
+}

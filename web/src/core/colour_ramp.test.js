@@ -1,5 +1,7 @@
 import { describe, expect, it } from 'vitest';
-import { kHeightRamp, rampColour, rampCssGradient } from './colour_ramp.js';
+import {
+  changeColour, changeCssGradient, kChangeClasses, kHeightRamp, rampColour, rampCssGradient,
+} from './colour_ramp.js';
 
 describe('rampColour', () => {
   it('hits the end stops, clamps and interpolates', () => {
@@ -15,5 +17,22 @@ describe('rampColour', () => {
   it('gives the legend one CSS stop per ramp stop', () => {
     expect(rampCssGradient().match(/rgb\(/g)).toHaveLength(kHeightRamp.length);
     expect(rampCssGradient()).toMatch(/^linear-gradient\(to top, rgb\(46, 64, 191\) 0%/);
+  });
+});
+
+describe('changeColour', () => {
+  it('tells the server diff classes apart by their tile values', () => {
+    const rgbOf = (name) => kChangeClasses.find((c) => c.name === name).rgb;
+    expect(changeColour(248)).toEqual(rgbOf('appeared')); // P 0.971
+    expect(changeColour(217)).toEqual(rgbOf('disappeared')); // P 0.85
+    expect(changeColour(184)).toEqual(rgbOf('unchanged')); // P 0.72
+    expect(changeColour(0)).toEqual(rgbOf('unchanged'));
+    expect(changeColour(255)).toEqual(rgbOf('appeared'));
+  });
+
+  it('draws the legend as hard bands, unchanged at the bottom', () => {
+    const css = changeCssGradient();
+    expect(css.match(/rgb\(/g)).toHaveLength(2 * kChangeClasses.length);
+    expect(css).toMatch(/^linear-gradient\(to top, rgb\(153, 153, 158\) 0%, rgb\(153, 153, 158\) 33%/);
   });
 });

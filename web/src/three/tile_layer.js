@@ -1,10 +1,11 @@
 // The subscribed session's tiles drawn as boxes: one InstancedMesh per tile (a tile that
 // changes is rebuilt alone; a tile that goes is disposed), each cell a box of its level's
-// size, coloured by height over the map's z range or by occupancy probability.
+// size, coloured by height over the map's z range, by occupancy probability, or by a diff
+// session's change class (appeared, disappeared, unchanged).
 // Entry point: TileLayer.sync(session) from the view's beforeRender.
 
 import * as THREE from 'three';
-import { rampColour } from '../core/colour_ramp.js';
+import { changeColour, rampColour } from '../core/colour_ramp.js';
 import { TILE_BITS, cellCoordinates } from '../core/tile_codec.js';
 
 const kBoxFill = 0.92; // a box fills this fraction of its cell, so neighbours stay tellable apart
@@ -23,6 +24,17 @@ const kRampLinear = (() => {
 })();
 const kRampSteps = kRampLinear.length / 3 - 1;
 
+// A change class's colour in the linear working space, for each tile value.
+const kChangeLinear = (() => {
+  const table = new Float32Array(256 * 3);
+  const colour = new THREE.Color();
+  for (let v = 0; v < 256; v += 1) {
+    colour.setRGB(...changeColour(v), THREE.SRGBColorSpace);
+    table.set([colour.r, colour.g, colour.b], v * 3);
+  }
+  return table;
+})();
+
 export class TileLayer {
   constructor(scene) {
     this.scene = scene;
@@ -30,7 +42,7 @@ export class TileLayer {
     this.material = new THREE.MeshLambertMaterial({ color: 0xffffff });
     this.drawn = new Map(); // tile key text → {mesh, revision, box}
     this.sessionId = null;
-    this.colourBy = 'height'; // or 'probability'
+    this.colourBy = 'height'; // or 'probability', 'change'
     this.zRange = null; // [zMin, zMax] the height ramp spans, metres
     this.count = 0; // boxes drawn
     this.bounds = new THREE.Box3(); // of the drawn boxes, metres; empty when none
@@ -120,10 +132,15 @@ export class TileLayer {
       const z = origin[2] + (c[2] + 0.5) * cell;
       // Column-major scale + translation: a box of edge `size` centred on the cell's centre.
       matrices.set([size, 0, 0, 0, 0, size, 0, 0, 0, 0, size, 0, x, y, z, 1], i * 16);
-      const t = this.colourBy === 'probability' ? tile.values[i] / 255
-        : zMax > zMin ? Math.min(1, Math.max(0, (z - zMin) / (zMax - zMin))) : 0.5;
-      const step = Math.round(t * kRampSteps);
-      colours.set(kRampLinear.subarray(step * 3, step * 3 + 3), i * 3);
+      if (this.colourBy === 'change') {
+        const v = tile.values[i];
+        colours.set(kChangeLinear.subarray(v * 3, v * 3 + 3), i * 3);
+      } else {
+        const t = this.colourBy === 'probability' ? tile.values[i] / 255
+          : zMax > zMin ? Math.min(1, Math.max(0, (z - zMin) / (zMax - zMin))) : 0.5;
+        const step = Math.round(t * kRampSteps);
+        colours.set(kRampLinear.subarray(step * 3, step * 3 + 3), i * 3);
+      }
       lo[0] = Math.min(lo[0], x); lo[1] = Math.min(lo[1], y); lo[2] = Math.min(lo[2], z);
       hi[0] = Math.max(hi[0], x); hi[1] = Math.max(hi[1], y); hi[2] = Math.max(hi[2], z);
     }
