@@ -285,3 +285,104 @@ TEST(LiveJoin, AVehicleInItsOwnFrameJoinsAndAStrangerIsNeverFused) {
 
 }  // namespace
 }  // namespace stereomap
+
+namespace stereomap {
+namespace {
+
+// A site from three flights flown by real vehicles into a real server's store: "mon" maps the
+// room in the sim's frame, "tue" flies it in its own frame (20 s later into the loop, its
+// origin 20 m and 90 degrees away), "hall" flies another building. `stereomap-store site`
+// registers tue into mon's frame with no hint, leaves hall out, and the site session keeps
+// and shows the transforms; a server serves it as one session.
+TEST(Site, FlightsOfOnePlaceAreRegisteredIntoOneFrameAndAStrangerIsLeftOut) {
+  constexpr int kSiteDomain = 138;
+  const std::string store = testing::makeTempDir("stereomap-site-store");
+  const std::string dir = testing::makeTempDir("stereomap-site");
+  const std::string own = dir + "/own.tum", truth = dir + "/truth.tum";
+  {
+    testing::ServerProcess server(kSiteDomain, {}, store);
+    // One vehicle id in all three: the site renames the later flights' (VEHICLE-SESSION).
+    // mon covers most of the room (30 s of the sim's 40 s loop), as the live join's sim-1.
+    auto fly = [&](const std::string& session, const std::string& source,
+                   std::vector<std::string> extra) {
+      extra.insert(extra.end(), {"--vehicle", "sim-1", "--vo", "gt", "--rate", "10"});
+      auto argv = testing::onboardArgs(kSiteDomain, session, session == "mon" ? 300 : 150, extra);
+      *std::next(std::find(argv.begin(), argv.end(), "--source")) = source;
+      return std::make_unique<testing::ChildProcess>(argv, dir + "/" + session + ".log");
+    };
+    auto mon = fly("mon", "sim", {});
+    auto tue = fly("tue", "sim",
+                   {"--frame", "own", "--start-pose", "20,0,0,90", "--start", "20",
+                    "--trajectory-out", own, "--truth-out", truth});
+    auto hall = fly("hall", "sim:hall", {"--frame", "own"});
+    for (auto* vehicle : {&mon, &tue, &hall}) {
+      EXPECT_EQ((*vehicle)->waitExit(testing::scaledTimeout(std::chrono::seconds(180))), 0);
+    }
+    testing::waitUntil(testing::scaledTimeout(std::chrono::seconds(60)), [&] {
+      for (const char* id : {"mon", "tue", "hall"}) {
+        const auto reply = server.get(std::string("/api/sessions/") + id);
+        if (reply.status != 200 || json::parse(reply.body).value("fusion_backlog", 1) != 0) {
+          return false;
+        }
+      }
+      return true;
+    });
+  }  // the server stops: the store is the tool's
+
+  const std::string kStore = std::string(STEREOMAP_BIN_DIR) + "/stereomap-store";
+  const auto site =
+      testing::runTool({kStore, "--store", store, "site", "both", "hall", "mon", "tue"});
+  // hall first: it gives the frame, and nothing aligns onto it.
+  EXPECT_EQ(site.exit_code, 3) << site.output;
+  EXPECT_TRUE(lastLine(site.output).starts_with("site both: none (")) << site.output;
+  EXPECT_FALSE(fs::exists(fs::path(store) / "both"));
+
+  const auto made =
+      testing::runTool({kStore, "--store", store, "site", "both", "mon", "hall", "tue"});
+  ASSERT_EQ(made.exit_code, 0) << made.output;
+  EXPECT_NE(made.output.find("site both: hall: left out ("), std::string::npos) << made.output;
+  EXPECT_TRUE(
+      lastLine(made.output)
+          .starts_with("site both: 2 of 3 sessions registered in mon's frame, 1 left out; "))
+      << made.output;
+
+  testing::ServerProcess server(kSiteDomain, {}, store);
+  const auto opened = server.request("POST", "/api/sessions/both/open", "");
+  ASSERT_EQ(opened.status, 200) << opened.body;
+  const auto doc = json::parse(opened.body);
+  const auto& members = doc["origin"]["site"]["sessions"];
+  ASSERT_EQ(members.size(), 2u) << doc.dump(1);
+  EXPECT_EQ(members[0]["session"], "mon");
+  EXPECT_EQ(members[1]["session"], "tue");
+  EXPECT_EQ(members[1]["onto"], "mon");
+  ASSERT_EQ(doc["origin"]["site"]["left_out"].size(), 1u);
+  EXPECT_EQ(doc["origin"]["site"]["left_out"][0]["session"], "hall");
+  const auto t = members[1]["transform"].get<std::vector<double>>();
+  const common::Rigid3 T_site_tue{common::Quat(t[6], t[3], t[4], t[5]), Vec3(t[0], t[1], t[2])};
+  // mon maps in the sim's frame, so the site's frame is the truth's.
+  const double error = testing::trajectoryError(T_site_tue, own, truth);
+  std::printf("site: tue registered within %.3f m of its truth\n", error);
+  EXPECT_LE(error, 0.1) << made.output;
+  EXPECT_EQ(doc["vehicles"], json({"sim-1", "sim-1-tue"})) << doc.dump(1);
+  // tue's clouds are in the site's map in the site's frame: the room, not a second room 20 m
+  // away (a misplaced flight would stretch the bounds by metres and add its walls).
+  const auto mon = server.get("/api/sessions/mon");  // loaded: it ended, it was not closed
+  ASSERT_EQ(mon.status, 200) << mon.body;
+  const auto mon_doc = json::parse(mon.body);
+  const double voxels = doc.value("occupied_voxels", 0.0),
+               mon_voxels = mon_doc.value("occupied_voxels", 0.0);
+  std::printf("site: %.0f occupied voxels, mon alone %.0f\n", voxels, mon_voxels);
+  EXPECT_GE(voxels, mon_voxels);
+  EXPECT_LE(voxels, 1.2 * mon_voxels);
+  for (const char* corner : {"min", "max"}) {
+    for (int axis = 0; axis < 3; ++axis) {
+      EXPECT_NEAR(doc["bounds"][corner][axis].get<double>(),
+                  mon_doc["bounds"][corner][axis].get<double>(), 0.5)
+          << corner << " " << axis << "\n"
+          << doc["bounds"] << " vs " << mon_doc["bounds"];
+    }
+  }
+}
+
+}  // namespace
+}  // namespace stereomap

@@ -128,14 +128,23 @@ core::SessionMapSource mapsOf(cluster::ClusterStore& store) {
   };
 }
 
+// Merges in one transaction, then replays the merged session for its counts.
+MergeSessions mergeInCluster(cluster::ClusterStore& store) {
+  return [&store](const core::MergeRequest& request) -> common::Result<core::SessionStatus> {
+    if (auto merged = store.merge(request); !merged) return merged.error();
+    auto replayed = store.replay(request.into, std::numeric_limits<int64_t>::max());
+    if (!replayed) return replayed.error();
+    return (*replayed)->status();
+  };
+}
+
 int merge(cluster::ClusterStore& store, const Args& a) {
   int code = 0;
   const auto request = mergeRequestAligned(mapsOf(store), a, code);
   if (!request) return code;
-  if (auto merged = store.merge(*request); !merged) return fail(merged.error().message);
-  auto replayed = store.replay(a.into, std::numeric_limits<int64_t>::max());
-  if (!replayed) return fail(replayed.error().message);
-  const auto status = (*replayed)->status();
+  const auto merged = mergeInCluster(store)(*request);
+  if (!merged) return fail(merged.error().message);
+  const auto& status = *merged;
   std::printf(
       "merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
       a.first.c_str(), a.second.c_str(), a.into.c_str(),
@@ -194,6 +203,7 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "merge") return merge(**store, a);
   if (command == "compact") return compact(**store, a);
   if (command == "align") return alignCommand(mapsOf(**store), a);
+  if (command == "site") return siteCommand(mapsOf(**store), mergeInCluster(**store), a);
   if (command == "diff") {
     // The cluster keeps no meta beside a session: the diff's description is in the CLI's lines.
     const auto keep = [&](const std::string& id, double resolution, const std::string& ot,

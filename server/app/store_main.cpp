@@ -290,13 +290,27 @@ int diffSessions(Store& store, Args& a) {
   return stereomap::app::diffCommand(mapsOf(store), keep, a);
 }
 
+// Merges, then closes the merged session (it was opened read-only): its status.
+stereomap::app::MergeSessions mergeInStore(Store& store) {
+  return [&store](const core::MergeRequest& request) -> common::Result<core::SessionStatus> {
+    if (auto merged = store.admin->merge(request); !merged) return merged.error();
+    const auto status = store.server->find(request.into)->status();
+    if (auto closed = store.admin->close(request.into); !closed) return closed.error();
+    return status;
+  };
+}
+
+int siteSessions(Store& store, Args& a) {
+  return stereomap::app::siteCommand(mapsOf(store), mergeInStore(store), a);
+}
+
 int mergeSessions(Store& store, Args& a) {
   int code = 0;
   const auto request = stereomap::app::mergeRequestAligned(mapsOf(store), a, code);
   if (!request) return code;
-  if (auto merged = store.admin->merge(*request); !merged) return fail(merged.error().message);
-  const auto status = store.server->find(a.into)->status();
-  if (auto closed = store.admin->close(a.into); !closed) return fail(closed.error().message);
+  const auto merged = mergeInStore(store)(*request);
+  if (!merged) return fail(merged.error().message);
+  const auto& status = *merged;
   std::printf(
       "merged '%s' and '%s' into '%s' (closed): %llu frames, %zu poses, %zu occupied voxels\n",
       a.first.c_str(), a.second.c_str(), a.into.c_str(),
@@ -442,6 +456,18 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
       ->delimiter(',')
       ->expected(7);
   commands.push_back({diff_cmd, false, diffSessions});
+
+  auto* site_cmd = app.add_subcommand(
+      "site",
+      "Register flights of one place into the first one's frame with no hint (each aligned "
+      "onto one already registered) and merge them into a new, closed session that keeps each "
+      "session's transform (its origin, shown by the viewer). A session that aligns onto none "
+      "is left out and named; exit 3 (nothing made) when none aligns");
+  site_cmd->add_option("site", a.into, "The new session's id")->required();
+  site_cmd->add_option("sessions", a.sessions, "Two or more sessions; the first gives the frame")
+      ->required()
+      ->expected(2, static_cast<int>(core::MergeRequest::kMaxSources));
+  commands.push_back({site_cmd, true, siteSessions});
   return commands;
 }
 
@@ -449,7 +475,7 @@ std::vector<Command> addCommands(CLI::App& app, Args& a) {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "stereomap-store: list, check, export, close, delete, merge, align and diff the "
+      "stereomap-store: list, check, export, close, delete, merge, align, diff and site the "
       "sessions of a "
       "stereomap store (the directory given to stereomap-server --store)"};
   Args args;

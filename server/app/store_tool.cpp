@@ -104,7 +104,7 @@ int exportSessionFile(const core::Session& session, Args& a) {
 }
 
 common::Result<core::MergeRequest> mergeRequestOf(const Args& a) {
-  core::MergeRequest request{a.first, a.second, a.into, common::Rigid3::identity()};
+  auto request = core::MergeRequest::pair(a.first, a.second, a.into);
   if (!a.transform.empty()) {
     const auto T = common::rigidFromTxyzQxyzw(a.transform);
     if (!T) {
@@ -112,7 +112,7 @@ common::Result<core::MergeRequest> mergeRequestOf(const Args& a) {
           common::ErrorCode::kInvalidArgument,
           "--transform: 7 finite numbers tx,ty,tz,qx,qy,qz,qw with a unit quaternion");
     }
-    request.T_first_second = *T;
+    request.sources[1].T_into_source = *T;
   }
   return request;
 }
@@ -165,7 +165,7 @@ int diffCommand(const core::SessionMapSource& maps, const KeepDiffSession& keep,
   if (!a.into.empty() && !core::isValidId(a.into)) {
     return fail("--into: session id '" + a.into.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
   }
-  common::Rigid3 T_a_b = request->T_first_second;
+  common::Rigid3 T_a_b = request->sources[1].T_into_source;
   if (a.transform.empty()) {
     int code = 0;
     const auto found = alignAndReport(maps, a.first, a.second, code);
@@ -213,6 +213,32 @@ int diffCommand(const core::SessionMapSource& maps, const KeepDiffSession& keep,
   return 0;
 }
 
+int siteCommand(const core::SessionMapSource& maps, const MergeSessions& merge, const Args& a) {
+  if (!core::isValidId(a.into)) {
+    return fail("site: session id '" + a.into.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
+  }
+  auto plan = core::planSite(maps, a.sessions, toolAlignOptions(), [&](const core::SiteMember& m) {
+    std::printf("%s\n", core::siteMemberLine(a.into, m).c_str());
+    std::fflush(stdout);
+  });
+  if (!plan) return fail(plan.error().message);
+  const size_t registered = plan->registered(), left_out = plan->members.size() - registered;
+  if (registered < 2) {
+    std::printf("site %s: none (no session aligns onto %s: nothing made)\n", a.into.c_str(),
+                a.sessions.front().c_str());
+    return kRefused;
+  }
+  auto merged = merge(plan->mergeRequest(a.into));
+  if (!merged) return fail(merged.error().message);
+  std::printf(
+      "site %s: %zu of %zu sessions registered in %s's frame, %zu left out; %llu frames, %zu "
+      "poses, %zu occupied voxels\n",
+      a.into.c_str(), registered, plan->members.size(), a.sessions.front().c_str(), left_out,
+      static_cast<unsigned long long>(merged->frames_fused), merged->poses,
+      merged->occupied_voxels);
+  return 0;
+}
+
 std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSource& maps,
                                                       const Args& a, int& code) {
   auto request = mergeRequestOf(a);
@@ -223,7 +249,7 @@ std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSour
   if (a.align == "auto") {
     const auto found = alignAndReport(maps, a.first, a.second, code);
     if (!found) return std::nullopt;
-    request->T_first_second = found->T_a_b;
+    request->sources[1].T_into_source = found->T_a_b;
   }
   return *request;
 }

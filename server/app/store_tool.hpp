@@ -33,7 +33,8 @@ struct Args {
   std::string map_file;
   std::string first, second, into;
   std::vector<double> transform;
-  std::string align;  // merge --align: "auto" or empty
+  std::string align;                  // merge --align: "auto" or empty
+  std::vector<std::string> sessions;  // site: the flights, the first giving the frame
   std::string cluster_url;
 };
 
@@ -66,6 +67,14 @@ int diffCommand(const core::SessionMapSource& maps, const KeepDiffSession& keep,
 // the exit code in `code` when it failed or was refused.
 std::optional<core::MergeRequest> mergeRequestAligned(const core::SessionMapSource& maps,
                                                       const Args& a, int& code);
+
+// Merges as asked and answers the merged session's status (closed).
+using MergeSessions =
+    std::function<common::Result<core::SessionStatus>(const core::MergeRequest& request)>;
+// site: registers a.sessions into the first's frame (core::planSite, a line per session as it
+// is decided), then merges those registered into session a.into. Exit kRefused (nothing
+// made) when fewer than two could be registered.
+int siteCommand(const core::SessionMapSource& maps, const MergeSessions& merge, const Args& a);
 
 // Subcommand `command` against the cluster's database at a.cluster_url.
 int runInCluster(const std::string& command, Args& a);

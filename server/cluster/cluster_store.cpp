@@ -109,13 +109,11 @@ common::Status ClusterStore::remove(const std::string& id) {
 }
 
 common::Status ClusterStore::merge(const core::MergeRequest& request) {
-  for (const auto* id : {&request.first, &request.second, &request.into}) {
-    if (!core::isValidId(*id)) return invalidId(*id);
+  if (const auto problem = request.problem(); !problem.empty()) {
+    return makeError(ErrorCode::kInvalidArgument, problem);
   }
-  if (request.first == request.second) {
-    return makeError(ErrorCode::kInvalidArgument, "merge needs two different sessions");
-  }
-  for (const auto* id : {&request.first, &request.second}) {
+  for (const auto& source : request.sources) {
+    const std::string* id = &source.id;
     auto existing = session(*id);
     if (!existing) return existing.error();
     if (existing->compacted_up_to > 0) {
@@ -143,7 +141,7 @@ common::Status ClusterStore::merge(const core::MergeRequest& request) {
 }
 
 common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
-  auto first = session(request.first);
+  auto first = session(request.sources.front().id);
   if (!first) return first.error();
   // Born closed at epoch 1, in this transaction: the fencing trigger finds it.
   auto created = exec(
@@ -154,16 +152,18 @@ common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
   if (created->affected() == 0) {
     return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");
   }
-  // The first session's vehicles, so that the second's of the same name are renamed.
-  std::set<std::string> vehicles;
-  auto named = journal_.forEachRecord(
-      request.first,
-      [&](proto::journal::JournalRecord&& record, uint64_t) {
-        std::visit([&](const auto& m) { vehicles.insert(m.vehicle_id); }, record);
-      },
-      static_cast<uint64_t>(std::numeric_limits<int64_t>::max()));
-  if (!named) return named.error();
-  const store::MergedRecords merged(request, {vehicles.begin(), vehicles.end()});
+  // Each source's vehicles, so that a later one's of the same name is renamed, and those in
+  // their own frame.
+  std::vector<store::SourceVehicles> vehicles;
+  for (const auto& source : request.sources) {
+    store::SourceVehicles named;
+    auto read = journal_.forEachRecord(
+        source.id, [&](proto::journal::JournalRecord&& record, uint64_t) { named.note(record); },
+        static_cast<uint64_t>(std::numeric_limits<int64_t>::max()));
+    if (!read) return read.error();
+    vehicles.push_back(std::move(named));
+  }
+  const store::MergedRecords merged(request, vehicles);
   JournalRows rows;
   uint64_t number = 0;
   common::Status written = common::Ok{};
@@ -174,8 +174,8 @@ common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
     if (!inserted) return inserted.error();
     return common::Ok{};
   };
-  for (int source = 0; source < 2 && written; ++source) {
-    auto read = journal_.forEachRecord(source == 0 ? request.first : request.second,
+  for (size_t source = 0; source < request.sources.size() && written; ++source) {
+    auto read = journal_.forEachRecord(request.sources[source].id,
                                        [&](proto::journal::JournalRecord&& record, uint64_t) {
                                          if (!written) return;
                                          merged.apply(record, source);
@@ -186,8 +186,8 @@ common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
   }
   if (written) written = flush();
   if (!written) return written;
-  spdlog::info("sessions '{}' and '{}' merged into '{}': {} records", request.first, request.second,
-               request.into, number);
+  spdlog::info("{} sessions merged into '{}': {} records", request.sources.size(), request.into,
+               number);
   return common::Ok{};
 }
 

@@ -121,8 +121,8 @@ TEST_F(ClusterStoreTest, OperatorsOpenMergeReplayAndDeleteStoredSessions) {
   fly(c, "first", "v", 4);
   fly(c, "second", "v", 3);
 
-  core::MergeRequest request{"first", "second", "both", common::Rigid3::identity()};
-  request.T_first_second.translation = common::Vec3(0, 10, 0);
+  auto request = core::MergeRequest::pair("first", "second", "both");
+  request.sources[1].T_into_source.translation = common::Vec3(0, 10, 0);
   auto done = c.store->merge(request);
   ASSERT_TRUE(done) << done.error().message;
   const auto merged = posesOf(c, "both");
@@ -139,7 +139,7 @@ TEST_F(ClusterStoreTest, OperatorsOpenMergeReplayAndDeleteStoredSessions) {
   ASSERT_FALSE(clash);
   EXPECT_EQ(clash.error().code, common::ErrorCode::kConflict);
   EXPECT_EQ(posesOf(c, "both").size(), 7u) << "a refused merge leaves nothing";
-  EXPECT_EQ(c.store->merge({"first", "missing", "x", common::Rigid3::identity()}).error().code,
+  EXPECT_EQ(c.store->merge(core::MergeRequest::pair("first", "missing", "x")).error().code,
             common::ErrorCode::kNotFound);
   EXPECT_FALSE(c.store->session("x")) << "a failed merge leaves no session";
 
@@ -223,7 +223,7 @@ TEST_F(ClusterStoreTest, AClosedSessionIsCompactedBelowItsSnapshotWithItsTraject
   ASSERT_FALSE(before);
   EXPECT_EQ(before.error().code, common::ErrorCode::kConflict) << before.error().message;
   fly(c, "other", "w", 2);
-  auto merged = c.store->merge({"other", "s", "both", common::Rigid3::identity()});
+  auto merged = c.store->merge(core::MergeRequest::pair("other", "s", "both"));
   ASSERT_FALSE(merged);
   EXPECT_EQ(merged.error().code, common::ErrorCode::kInvalidArgument);
   EXPECT_NE(merged.error().message.find("compacted"), std::string::npos);

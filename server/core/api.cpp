@@ -356,13 +356,13 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
     bool align_auto = false;
     try {
       const json doc = json::parse(body);
-      request.first = doc.at("first").get<std::string>();
-      request.second = doc.at("second").get<std::string>();
-      request.into = doc.at("into").get<std::string>();
+      request = MergeRequest::pair(doc.at("first").get<std::string>(),
+                                   doc.at("second").get<std::string>(),
+                                   doc.at("into").get<std::string>());
       if (doc.contains("transform")) {
         const auto T = common::rigidFromTxyzQxyzw(doc["transform"].get<std::vector<double>>());
         if (!T) throw std::invalid_argument("transform");
-        request.T_first_second = *T;
+        request.sources[1].T_into_source = *T;
       }
       if (doc.contains("align")) {
         if (doc["align"] != "auto" || doc.contains("transform")) {
@@ -378,7 +378,7 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
                    "(found from the maps)}");
     }
     for (const auto& [what, value] :
-         {std::pair{"first", request.first}, std::pair{"second", request.second},
+         {std::pair{"first", request.sources[0].id}, std::pair{"second", request.sources[1].id},
           std::pair{"into", request.into}}) {
       if (auto bad = badId(std::string("merge: ") + what, value)) return *bad;
     }
@@ -387,11 +387,12 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
       if (server.find(request.into)) {
         return error(409, "session '" + request.into + "' already exists");
       }
-      auto found = alignOnServer(server, admin, request.first, request.second);
+      const std::string &first = request.sources[0].id, &second = request.sources[1].id;
+      auto found = alignOnServer(server, admin, first, second);
       if (!found) return errorOf(found.error());
-      alignment = alignmentJson(request.first, request.second, *found);
+      alignment = alignmentJson(first, second, *found);
       if (!found->found) return HttpAnswer{422, "application/json", alignment->dump() + "\n", ""};
-      request.T_first_second = found->T_a_b;
+      request.sources[1].T_into_source = found->T_a_b;
     }
     done = admin->merge(request);
   } else if (auto bad = badId("session id", parts[2])) {

@@ -768,6 +768,11 @@ common::Result<std::pair<uint64_t, std::string>> Session::snapshotNow() const {
   }
 }
 
+void Session::setOrigin(std::string origin) {
+  std::lock_guard state(state_mutex_);
+  origin_ = std::move(origin);
+}
+
 SessionStatus Session::status() const {
   SessionStatus status;
   status.id = id_;
@@ -778,6 +783,7 @@ SessionStatus Session::status() const {
   }
   std::lock_guard state(state_mutex_);
   status.vehicles = vehicles_;
+  status.origin = origin_;
   for (const auto& [vehicle, kept] : vehicle_status_) {
     status.vehicle_status.push_back({kept.first, kept.second});
   }

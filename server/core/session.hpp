@@ -130,6 +130,9 @@ struct SessionStatus {
   std::string refusion_error;       // why the last re-fusion failed ("" when it did not)
   uint64_t trajectory_version = 0;  // bumps when poses already shown change (a correction)
   std::string server;  // in a cluster: the address of the server that serves it ("": this one)
+  // What made a session that is not a flight, as a JSON object's text ("" for a flight):
+  // {"imported_from": FILE}, {"diff": {...}} or {"site": [...]} (docs/PROTOCOL.md).
+  std::string origin;
   // Each vehicle's newest own counters (VehicleStatus), and when they arrived (this server's
   // wall clock: a time, not an age, so that a status unchanged reads the same).
   struct VehicleCounters {
@@ -255,6 +258,8 @@ class Session {
   int64_t lastLiveNs() const;
 
   SessionStatus status() const;
+  // Says what made this session (SessionStatus::origin), from its store's record of it.
+  void setOrigin(std::string origin);
   // SessionStatus::trajectory_version alone (viewers poll it).
   uint64_t trajectoryVersion() const;
   // The newest landing target per vehicle (kept in memory, not journaled: a sighting of the
@@ -345,6 +350,7 @@ class Session {
 
   mutable std::mutex state_mutex_;
   std::vector<std::string> vehicles_;
+  std::string origin_;
   Receipts receipts_;
   // A pose as the session keeps it, for as long as it is loaded: 72 bytes (a PoseRecord,
   // with its id string and padded Eigen types, is 112), in a deque, which grows by blocks

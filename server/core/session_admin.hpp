@@ -11,14 +11,55 @@
 #include "common/geometry.hpp"
 #include "common/result.hpp"
 #include "server/core/session.hpp"
+#include "server/core/validate.hpp"
 
 namespace stereomap::core {
 
+// One session of a merge, and where its map frame goes in the merged session's.
+struct MergeSource {
+  std::string id;  // an existing session (loaded or closed)
+  common::Rigid3 T_into_source = common::Rigid3::identity();
+};
+
 struct MergeRequest {
-  std::string first, second;  // existing sessions (loaded or closed)
-  std::string into;           // the new session's id
-  // Maps the second session's map frame into the first's (identity: same frame).
-  common::Rigid3 T_first_second;
+  // Two or more sessions; the first's frame is the merged session's (its transform is the
+  // identity). A site is such a merge, each session registered into the first's frame.
+  std::vector<MergeSource> sources;
+  std::string into;  // the new session's id
+  // What made it, kept with the merged session and shown in its status ("origin"): a JSON
+  // object as text ({"site": [...]}), or "" for none.
+  std::string origin;
+
+  // The usual merge: `second` moved by T_first_second (identity: the same frame).
+  static MergeRequest pair(std::string first, std::string second, std::string into,
+                           const common::Rigid3& T_first_second = common::Rigid3::identity()) {
+    return {{{std::move(first), common::Rigid3::identity()}, {std::move(second), T_first_second}},
+            std::move(into),
+            ""};
+  }
+  // Why it cannot be merged as asked (fewer than two sessions, a bad or repeated id), or "".
+  std::string problem() const {
+    if (sources.size() < 2) return "merge needs two or more sessions";
+    if (sources.size() > kMaxSources) {
+      return "merge takes at most " + std::to_string(kMaxSources) + " sessions";
+    }
+    for (size_t i = 0; i < sources.size(); ++i) {
+      if (!isValidId(sources[i].id)) return badId(sources[i].id);
+      for (size_t j = 0; j < i; ++j) {
+        if (sources[j].id == sources[i].id) {
+          return "merge needs different sessions ('" + sources[i].id + "' twice)";
+        }
+      }
+    }
+    return isValidId(into) ? "" : badId(into);
+  }
+  // A site of more would fuse for long; split it.
+  static constexpr size_t kMaxSources = 64;
+
+ private:
+  static std::string badId(const std::string& id) {
+    return "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]";
+  }
 };
 
 class SessionAdmin {
@@ -35,8 +76,9 @@ class SessionAdmin {
   virtual common::Status close(const std::string& id) = 0;
   // Deletes a session that is not live (closed, ended or opened read-only) from the store.
   virtual common::Status remove(const std::string& id) = 0;
-  // Writes a new, closed session whose journal holds both sessions' frames (the second's
-  // moved by the transform; its vehicles renamed where they clash) and opens it read-only.
+  // Writes a new, closed session whose journal holds every source's frames (each moved by
+  // its transform; a vehicle renamed where an earlier source has one of its name) and opens
+  // it read-only.
   virtual common::Status merge(const MergeRequest& request) = 0;
   // The session as it was at `until_ns` (sample stamps, ns since the epoch): a new read-only
   // Session, loaded nowhere, fused from the journal's frames and poses stamped no later

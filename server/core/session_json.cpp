@@ -45,6 +45,11 @@ json sessionObject(const SessionStatus& s, SessionFields fields) {
                       {{"p50", 1000 * s.publish_lag.quantile(0.5)},
                        {"p95", 1000 * s.publish_lag.quantile(0.95)}}}});
   if (!s.server.empty()) object["server"] = s.server;
+  if (!s.origin.empty()) {
+    if (auto origin = json::parse(s.origin, nullptr, false); origin.is_object()) {
+      object["origin"] = std::move(origin);
+    }
+  }
   json counters = json::array();
   for (const auto& [v, received_ns] : s.vehicle_status) {
     counters.push_back({{"vehicle_id", v.vehicle_id},
@@ -118,6 +123,9 @@ SessionStatus sessionFromJson(const std::string& id, const json& doc) {
   s.corrections = count("corrections");
   s.refusions = count("refusions");
   s.ended_by = text("ended_by");
+  if (const auto origin = doc.find("origin"); origin != doc.end() && origin->is_object()) {
+    s.origin = origin->dump();
+  }
   const std::string state = text("state");
   s.closed = state == "closed";
   s.read_only = state == "opened";

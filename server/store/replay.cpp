@@ -102,27 +102,53 @@ void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
 
 }  // namespace
 
-MergedRecords::MergedRecords(const core::MergeRequest& request,
-                             const std::vector<std::string>& first_vehicles)
-    : request_(request), first_vehicles_(first_vehicles) {}
+void SourceVehicles::note(const proto::journal::JournalRecord& record) {
+  std::visit([&](const auto& m) { all.insert(m.vehicle_id); }, record);
+  if (const auto* event = std::get_if<proto::SessionEventMsg>(&record);
+      event != nullptr && event->frame == proto::VehicleFrame::kOwn) {
+    own_frame.insert(event->vehicle_id);
+  }
+}
 
-void MergedRecords::apply(proto::journal::JournalRecord& record, int source) const {
+MergedRecords::MergedRecords(const core::MergeRequest& request,
+                             const std::vector<SourceVehicles>& vehicles)
+    : request_(request), renamed_(request.sources.size()), own_frame_(request.sources.size()) {
+  std::set<std::string> taken;
+  for (size_t source = 0; source < vehicles.size() && source < renamed_.size(); ++source) {
+    own_frame_[source] = vehicles[source].own_frame;
+    std::vector<std::string> named;
+    for (const auto& vehicle : vehicles[source].all) {
+      std::string name = vehicle;
+      if (taken.count(name) > 0) {
+        name = (vehicle + "-" + request.sources[source].id).substr(0, proto::kMaxIdLength);
+        renamed_[source][vehicle] = name;
+      }
+      named.push_back(name);
+    }
+    taken.insert(named.begin(), named.end());
+  }
+}
+
+void MergedRecords::apply(proto::journal::JournalRecord& record, size_t source) const {
   std::visit(
       [&](auto& m) {
         m.session_id = request_.into;
-        if (source == 0) return;
-        if (std::find(first_vehicles_.begin(), first_vehicles_.end(), m.vehicle_id) !=
-            first_vehicles_.end()) {
-          m.vehicle_id = (m.vehicle_id + "-" + request_.second).substr(0, proto::kMaxIdLength);
+        if (source >= renamed_.size()) return;
+        const bool own_frame = own_frame_[source].count(m.vehicle_id) > 0;
+        if (const auto it = renamed_[source].find(m.vehicle_id); it != renamed_[source].end()) {
+          m.vehicle_id = it->second;
         }
-        const auto& T = request_.T_first_second;
+        const auto& T = request_.sources[source].T_into_source;
+        if (T.translation.isZero(0) && T.rotation.isApprox(common::Quat::Identity(), 0)) return;
         using Message = std::decay_t<decltype(m)>;
+        // Its frames stay in its own frame; where that lies in the source's moves.
+        if (own_frame && !std::is_same_v<Message, proto::FrameAlignmentMsg>) return;
         if constexpr (std::is_same_v<Message, proto::CloudFrameMsg>) {
           transformPose(T, m.sensor_position, m.sensor_orientation);
         } else if constexpr (std::is_same_v<Message, proto::PoseCorrectionMsg>) {
           for (auto& k : m.keyframes) transformPose(T, k.position, k.orientation);
         } else if constexpr (std::is_same_v<Message, proto::FrameAlignmentMsg>) {
-          transformPose(T, m.position, m.orientation);  // own frame -> second's -> first's
+          transformPose(T, m.position, m.orientation);  // own frame -> source's -> merged
         } else if constexpr (std::is_same_v<Message, proto::PoseMsg>) {
           transformPose(T, m.position, m.orientation);
           // The velocity is in the map frame too.
@@ -132,14 +158,6 @@ void MergedRecords::apply(proto::journal::JournalRecord& record, int source) con
         }
       },
       record);
-}
-
-std::vector<std::string> vehiclesOf(const std::vector<proto::journal::JournalRecord>& records) {
-  std::set<std::string> seen;
-  for (const auto& record : records) {
-    std::visit([&](const auto& m) { seen.insert(m.vehicle_id); }, record);
-  }
-  return {seen.begin(), seen.end()};
 }
 
 }  // namespace stereomap::store

@@ -5,7 +5,9 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -42,22 +44,29 @@ common::Result<std::shared_ptr<core::Session>> replayUntil(const std::string& id
                                                            int64_t until_ns,
                                                            const RecordSource& records);
 
-// Merging two sessions' journals (SessionAdmin::merge): every record of `first` and then of
-// `second`, moved into session `into`; the second's poses, clouds and corrections moved by
-// T_first_second, and its vehicles renamed (VEHICLE-SECOND) where the first has the same
-// name: two flights of one vehicle are two trajectories in the merged session.
+// What a merge learns of a source in a first reading: its vehicles, and which of them fly in
+// their own frame (their frames stay in it: only their alignment moves).
+struct SourceVehicles {
+  std::set<std::string> all, own_frame;
+  void note(const proto::journal::JournalRecord& record);
+};
+
+// Merging sessions' journals (SessionAdmin::merge): every record of each source in turn,
+// moved into session `into`; each source's poses, clouds, corrections and alignments moved by
+// its transform (a vehicle in its own frame: its alignment only), and its vehicles renamed
+// (VEHICLE-SOURCE) where an earlier source has one of the same name: two flights of one
+// vehicle are two trajectories in the merged session.
 class MergedRecords {
  public:
-  MergedRecords(const core::MergeRequest& request, const std::vector<std::string>& first_vehicles);
-  // `record` of the first (source 0) or second (1) session, as the merged journal holds it.
-  void apply(proto::journal::JournalRecord& record, int source) const;
+  // `vehicles[i]`: source i's (SourceVehicles::note over its records).
+  MergedRecords(const core::MergeRequest& request, const std::vector<SourceVehicles>& vehicles);
+  // `record` of source `source` (an index into request.sources), as the merged journal holds it.
+  void apply(proto::journal::JournalRecord& record, size_t source) const;
 
  private:
   core::MergeRequest request_;
-  std::vector<std::string> first_vehicles_;
+  std::vector<std::map<std::string, std::string>> renamed_;  // per source: vehicle -> new name
+  std::vector<std::set<std::string>> own_frame_;             // per source
 };
-
-// The vehicles that appear in `records`.
-std::vector<std::string> vehiclesOf(const std::vector<proto::journal::JournalRecord>& records);
 
 }  // namespace stereomap::store

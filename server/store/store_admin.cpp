@@ -55,6 +55,18 @@ double resolutionOf(const fs::path& dir, double fallback) {
   return fallback;
 }
 
+// What made the session when it is not a flight (SessionStatus::origin): meta.json's
+// description of an import, a diff or a site; "" for a flight.
+std::string originOf(const fs::path& dir) {
+  json meta = readJson(dir / kMetaName);
+  if (!meta.is_object()) return "";
+  json origin = json::object();
+  for (const char* key : {"imported_from", "diff", "site"}) {
+    if (meta.contains(key)) origin[key] = meta[key];
+  }
+  return origin.empty() ? "" : origin.dump();
+}
+
 // Deletes a directory tree, renaming it aside first so that it vanishes from the store at
 // once even if the removal is interrupted (leftovers are swept at the next start).
 common::Status removeTree(const fs::path& root, const fs::path& dir) {
@@ -314,6 +326,7 @@ common::Result<RecoveredSession> StoreAdmin::load(const std::string& id, bool re
                                        read_only, snapshots_allowed);
   if (!created) return created.error();
   const auto& session = *created;
+  session->setOrigin(originOf(dir));
   RecoveredSession result{id};
   result.problem = upgrade_problem;
   if (!replay->problem.empty()) {
@@ -520,54 +533,58 @@ common::Status StoreAdmin::remove(const std::string& id) {
 common::Status StoreAdmin::merge(const core::MergeRequest& request) {
   std::lock_guard lock(mutex_);
   if (auto writable = requireWritable("merge sessions"); !writable) return writable;
-  for (const auto* id : {&request.first, &request.second, &request.into}) {
-    if (!core::isValidId(*id)) {
-      return makeError(ErrorCode::kInvalidArgument,
-                       "session id '" + *id + "' is not 1-64 of [A-Za-z0-9._-]");
-    }
-  }
-  if (request.first == request.second) {
-    return makeError(ErrorCode::kInvalidArgument, "merge needs two different sessions");
+  if (const auto problem = request.problem(); !problem.empty()) {
+    return makeError(ErrorCode::kInvalidArgument, problem);
   }
   std::error_code ec;
   if (server_.find(request.into) || fs::exists(root_ / request.into, ec)) {
     return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");
   }
-  std::vector<JournalReplay> sources;
-  for (const auto* id : {&request.first, &request.second}) {
-    if (!fs::exists(root_ / *id / kJournalName, ec)) {
-      return makeError(ErrorCode::kNotFound, "no session '" + *id + "' in the store");
+  // Read twice, a record at a time (a site of many long flights never sits in memory whole):
+  // once for each source's vehicles and damage, once to write.
+  std::vector<SourceVehicles> vehicles;
+  for (const auto& source : request.sources) {
+    const std::string& id = source.id;
+    if (!fs::exists(root_ / id / kJournalName, ec)) {
+      return makeError(ErrorCode::kNotFound, "no session '" + id + "' in the store");
     }
     // Merging re-fuses journaled frames; an imported map has none.
-    if (fs::exists(snapshotPath(root_ / *id, 0), ec)) {
+    if (fs::exists(snapshotPath(root_ / id, 0), ec)) {
       return makeError(ErrorCode::kInvalidArgument,
-                       "session '" + *id + "' is an imported map: it has no frames to merge");
+                       "session '" + id + "' is an imported map: it has no frames to merge");
     }
-    auto replay = readJournal(root_ / *id / kJournalName);
+    SourceVehicles named;
+    auto replay = visitJournal(root_ / id / kJournalName, 0,
+                               [&](JournalRecord&& record, uint64_t) { named.note(record); });
     if (!replay) return replay.error();
-    if (!replay->problem.empty()) spdlog::warn("merging session '{}': {}", *id, replay->problem);
-    sources.push_back(std::move(replay).value());
+    if (!replay->problem.empty()) spdlog::warn("merging session '{}': {}", id, replay->problem);
+    vehicles.push_back(std::move(named));
   }
-  const MergedRecords merged(request, vehiclesOf(sources[0].records));
+  const MergedRecords merged(request, vehicles);
   const fs::path staging =
       root_ / (".merge-" + request.into + "-" + std::to_string(common::nowNs()));
   fs::create_directories(staging, ec);
-  const double resolution = resolutionOf(root_ / request.first, options_.default_resolution);
+  const double resolution =
+      resolutionOf(root_ / request.sources.front().id, options_.default_resolution);
   // Born closed: it is opened read-only below, and stays in the store (not loaded at start).
-  common::Status written = common::writeFileAtomically(
-      staging / kMetaName, "{\"resolution\": " + std::to_string(resolution) + "}\n");
+  json meta = json::parse(request.origin.empty() ? "{}" : request.origin, nullptr, false);
+  if (!meta.is_object()) meta = json::object();
+  meta["resolution"] = resolution;
+  common::Status written = common::writeFileAtomically(staging / kMetaName, meta.dump() + "\n");
   if (written) written = common::writeFileAtomically(staging / kClosedMarker, "");
   if (written) {
     auto journal = Journal::open(staging / kJournalName);
     if (!journal) written = journal.error();
-    for (size_t source = 0; source < 2 && written; ++source) {
-      for (auto record : sources[source].records) {
-        merged.apply(record, static_cast<int>(source));
-        if (auto appended = (*journal)->append(record); !appended) {
-          written = appended.error();
-          break;
-        }
-      }
+    for (size_t source = 0; source < request.sources.size() && written; ++source) {
+      auto read = visitJournal(root_ / request.sources[source].id / kJournalName, 0,
+                               [&](JournalRecord&& record, uint64_t) {
+                                 if (!written) return;
+                                 merged.apply(record, source);
+                                 if (auto appended = (*journal)->append(record); !appended) {
+                                   written = appended.error();
+                                 }
+                               });
+      if (!read && written) written = read.error();
     }
   }
   if (written) {
@@ -584,8 +601,8 @@ common::Status StoreAdmin::merge(const core::MergeRequest& request) {
   rememberClosed(savedStatus(request.into));
   auto loaded = load(request.into, /*read_only=*/true);
   if (!loaded) return loaded.error();
-  spdlog::info("sessions '{}' and '{}' merged into '{}': {} frames, {} poses", request.first,
-               request.second, request.into, loaded->frames, loaded->poses);
+  spdlog::info("{} sessions merged into '{}': {} frames, {} poses", request.sources.size(),
+               request.into, loaded->frames, loaded->poses);
   if (auto session = server_.find(request.into)) record(session->status());
   return common::Ok{};
 }

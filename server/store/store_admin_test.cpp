@@ -318,8 +318,8 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   const auto a = server.map->find("a")->status();
   const auto b = server.admin->closedSessions().at(0);
 
-  core::MergeRequest request{"a", "b", "ab", {}};
-  request.T_first_second.translation = {0, 5, 0};
+  auto request = core::MergeRequest::pair("a", "b", "ab");
+  request.sources[1].T_into_source.translation = {0, 5, 0};
   ASSERT_TRUE(server.admin->merge(request).ok());
   const auto merged = server.map->find("ab");
   ASSERT_NE(merged, nullptr);
@@ -339,9 +339,12 @@ TEST_F(StoreAdminTest, MergeJoinsTwoFlightsMovedByTheTransform) {
   EXPECT_GT(status.occupied_voxels, b.occupied_voxels);
 
   EXPECT_EQ(server.admin->merge(request).error().code, ErrorCode::kConflict);  // exists
-  EXPECT_EQ(server.admin->merge({"a", "zz", "c", {}}).error().code, ErrorCode::kNotFound);
-  EXPECT_EQ(server.admin->merge({"a", "a", "c", {}}).error().code, ErrorCode::kInvalidArgument);
-  EXPECT_EQ(server.admin->merge({"a", "b", "../x", {}}).error().code, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(server.admin->merge(core::MergeRequest::pair("a", "zz", "c")).error().code,
+            ErrorCode::kNotFound);
+  EXPECT_EQ(server.admin->merge(core::MergeRequest::pair("a", "a", "c")).error().code,
+            ErrorCode::kInvalidArgument);
+  EXPECT_EQ(server.admin->merge(core::MergeRequest::pair("a", "b", "../x")).error().code,
+            ErrorCode::kInvalidArgument);
 }
 
 // Listings (REST, every viewer's "sessions") are answered from memory, not by reading every
@@ -375,7 +378,7 @@ TEST_F(StoreAdminTest, ACheckpointDoesNotWaitBehindAMerge) {
   ASSERT_TRUE(server.admin->close("b").ok());
   std::atomic<bool> merged{false};
   std::thread merge([&] {
-    EXPECT_TRUE(server.admin->merge({"a", "b", "ab", {}}).ok());
+    EXPECT_TRUE(server.admin->merge(core::MergeRequest::pair("a", "b", "ab")).ok());
     merged = true;
   });
   auto staging = [&] {
@@ -402,7 +405,7 @@ TEST_F(StoreAdminTest, AMergedSessionThatCannotBeOpenedStaysClosed) {
   fly(*server.map, "a", 2);
   ASSERT_TRUE(server.admin->close("a").ok());
   fly(*server.map, "b", 2);
-  const auto merged = server.admin->merge({"a", "b", "ab", {}});
+  const auto merged = server.admin->merge(core::MergeRequest::pair("a", "b", "ab"));
   ASSERT_FALSE(merged.ok());
   EXPECT_EQ(merged.error().code, ErrorCode::kUnavailable) << merged.error().message;
   ASSERT_TRUE(server.admin->close("b").ok());  // room for a session again

@@ -37,11 +37,12 @@ class IdCheckingAdmin : public core::SessionAdmin {
   common::Status close(const std::string& id) override { return check(id); }
   common::Status remove(const std::string& id) override { return check(id); }
   common::Status merge(const core::MergeRequest& request) override {
-    checkId(request.first);
-    checkId(request.second);
-    if (!request.T_first_second.rotation.coeffs().allFinite() ||
-        !request.T_first_second.translation.allFinite()) {
-      __builtin_trap();
+    for (const auto& source : request.sources) {
+      checkId(source.id);
+      if (!source.T_into_source.rotation.coeffs().allFinite() ||
+          !source.T_into_source.translation.allFinite()) {
+        __builtin_trap();
+      }
     }
     return check(request.into);
   }

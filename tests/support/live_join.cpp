@@ -22,8 +22,10 @@ nlohmann::json sessionJson(const ServerProcess& server, const std::string& id) {
   return nlohmann::json::parse(reply.body, nullptr, false);
 }
 
+}  // namespace
+
 // RMS of |T p_own - p_truth| over the poses both files have (by stamp).
-double jointError(const common::Rigid3& T, const std::string& own, const std::string& truth) {
+double trajectoryError(const common::Rigid3& T, const std::string& own, const std::string& truth) {
   auto a = common::readTrajectory(own);
   auto b = common::readTrajectory(truth);
   if (!a || !b) return LiveJoinResult::kNaN;
@@ -39,8 +41,6 @@ double jointError(const common::Rigid3& T, const std::string& own, const std::st
   }
   return n > 0 ? std::sqrt(sum / static_cast<double>(n)) : LiveJoinResult::kNaN;
 }
-
-}  // namespace
 
 nlohmann::json vehicleFrame(const nlohmann::json& session, const std::string& vehicle) {
   if (!session.is_object() || !session.contains("vehicle_frames")) return nullptr;
@@ -114,7 +114,7 @@ LiveJoinResult runLiveJoin(const LiveJoinOptions& o) {
         common::Quat(t[6].get<double>(), t[3].get<double>(), t[4].get<double>(),
                      t[5].get<double>()),
         common::Vec3(t[0].get<double>(), t[1].get<double>(), t[2].get<double>())};
-    result.error_m = jointError(T, own, truth);
+    result.error_m = trajectoryError(T, own, truth);
   }
   result.stranger = vehicleFrame(result.session, "sim-3");
   if (o.kill_server) server.process().kill9();

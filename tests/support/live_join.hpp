@@ -10,6 +10,8 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
+#include "common/geometry.hpp"
+
 namespace stereomap::testing {
 
 struct LiveJoinOptions {
@@ -43,6 +45,10 @@ struct LiveJoinResult {
 };
 
 LiveJoinResult runLiveJoin(const LiveJoinOptions& options);
+
+// RMS of |T p_own - p_truth| over the poses two TUM files both have (by stamp): where a
+// vehicle's own frame was placed (T), against its ground truth. NaN when none match.
+double trajectoryError(const common::Rigid3& T, const std::string& own, const std::string& truth);
 
 // The vehicle's entry in a session's "vehicle_frames" (null when none).
 nlohmann::json vehicleFrame(const nlohmann::json& session, const std::string& vehicle);

@@ -12,7 +12,8 @@
 // (tests/security_test.cpp), 131 nginx and tokens (tests/cluster_e2e_test.cpp), 132-133 TLS
 // (tests/interop/tls_clients.mjs), 134 aligning sessions (tests/align_e2e_test.cpp), 135 frame
 // acknowledgements (onboard/pipeline/pipeline_test.cpp), 136 a live join
-// (tests/align_e2e_test.cpp), 137 its benchmark (stereomap-bench-align). A new test takes a free
+// (tests/align_e2e_test.cpp), 137 its benchmark (stereomap-bench-align), 138 sites
+// (tests/align_e2e_test.cpp). A new test takes a free
 // one and adds it here.
 #pragma once
 
