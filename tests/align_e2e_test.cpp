@@ -382,6 +382,29 @@ TEST(Site, FlightsOfOnePlaceAreRegisteredIntoOneFrameAndAStrangerIsLeftOut) {
           << doc["bounds"] << " vs " << mon_doc["bounds"];
     }
   }
+
+  // The same over REST (an operator's request): made, refused, or a bad request.
+  const auto rest = server.request("POST", "/api/sessions/site",
+                                   R"({"into": "again", "sessions": ["mon", "tue"]})");
+  ASSERT_EQ(rest.status, 200) << rest.body;
+  const auto again = json::parse(rest.body);
+  EXPECT_EQ(again["origin"]["site"]["sessions"].size(), 2u) << rest.body;
+  EXPECT_EQ(again.value("occupied_voxels", 0.0), voxels);
+  const auto refused = server.request("POST", "/api/sessions/site",
+                                      R"({"into": "none", "sessions": ["hall", "mon"]})");
+  EXPECT_EQ(refused.status, 422) << refused.body;
+  EXPECT_EQ(json::parse(refused.body)["site"]["left_out"].size(), 1u) << refused.body;
+  for (const char* bad : {R"({"into": "x", "sessions": ["mon"]})",
+                          R"({"into": "x", "sessions": ["mon", "mon"]})",
+                          R"({"into": "../x", "sessions": ["mon", "tue"]})",
+                          R"({"into": "x", "sessions": ["mon", "../../etc"]})",
+                          R"({"into": "x", "sessions": "mon"})", "not json"}) {
+    EXPECT_EQ(server.request("POST", "/api/sessions/site", bad).status, 400) << bad;
+  }
+  EXPECT_EQ(server.request("POST", "/api/sessions/site",
+                           R"({"into": "both", "sessions": ["mon", "tue"]})")
+                .status,
+            409);
 }
 
 }  // namespace

@@ -205,7 +205,8 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   const auto parts = segments(target);
   if (method != "GET" && method != "HEAD") {
     return error(405,
-                 "use GET here (POST .../open, .../close and /api/sessions/merge, "
+                 "use GET here (POST .../open, .../close, /api/sessions/merge and "
+                 "/api/sessions/site, "
                  "DELETE /api/sessions/{id} manage sessions)");
   }
 
@@ -351,7 +352,33 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
     return answerAlign(server, admin, first, second);
   }
   std::optional<json> alignment;  // a merge's, with "align": "auto"
-  if (method == "POST" && parts.size() == 3 && parts[2] == "merge") {
+  if (method == "POST" && parts.size() == 3 && parts[2] == "site") {
+    std::vector<std::string> sessions;
+    try {
+      const json doc = json::parse(body);
+      id = doc.at("into").get<std::string>();
+      sessions = doc.at("sessions").get<std::vector<std::string>>();
+    } catch (const std::exception&) {
+      return error(400,
+                   "site wants a JSON body {\"into\": NEW_ID, \"sessions\": [ID, ID, ...]} (two "
+                   "or more sessions; the first gives the site's frame)");
+    }
+    if (auto bad = badId("site: into", id)) return *bad;
+    for (const auto& session : sessions) {
+      if (auto bad = badId("site: sessions", session)) return *bad;
+    }
+    if (server.find(id)) return error(409, "session '" + id + "' already exists");
+    auto plan = planSite([&](const std::string& s) { return sessionMap(server, admin, s); },
+                         sessions, serverAlignOptions());
+    if (!plan) return errorOf(plan.error());
+    if (plan->registered() < 2) {
+      const json refused = {{"site", plan->json()},
+                            {"reason", "no session aligns onto " + sessions.front() +
+                                           ": nothing made"}};
+      return HttpAnswer{422, "application/json", refused.dump() + "\n", ""};
+    }
+    done = admin->merge(plan->mergeRequest(id));
+  } else if (method == "POST" && parts.size() == 3 && parts[2] == "merge") {
     MergeRequest request;
     bool align_auto = false;
     try {

@@ -420,6 +420,9 @@ class HttpSession : public std::enable_shared_from_this<HttpSession> {
     response->keep_alive(keep_alive);
     response->prepare_payload();
     if (head_length) response->content_length(*head_length);
+    // The timer armed at the request's read may have run out meanwhile (a site's alignments
+    // take minutes on the admin worker); the answer gets a whole timeout of its own.
+    stream_.expires_after(kIdleTimeout);
     http::async_write(
         stream_, *response,
         [self = shared_from_this(), response, keep_alive](beast::error_code ec, size_t) {

@@ -5,7 +5,7 @@
 // window.__stereomap for the end-to-end test.
 
 import { changeCssGradient, rampCssGradient } from './core/colour_ramp.js';
-import { ratesText, statusText, vehicleLines } from './core/format.js';
+import { originLines, ratesText, statusText, vehicleLines } from './core/format.js';
 import { landingText, padOutline } from './core/landing.js';
 import { MapStore, tileKeyText } from './core/map_state.js';
 import { ProtocolError, dropMessage, helloMessage, parseMessage, replayMessage, subscribeMessage, viewMessage } from './core/protocol.js';
@@ -137,6 +137,7 @@ function updateStatus() {
     ageSeconds: session?.lastMessageMs ? (Date.now() - session.lastMessageMs) / 1000 : null,
     corrections: session?.status?.corrections ?? 0,
     refusing: session?.status?.refusing ?? false,
+    isDiff: Boolean(session?.status?.origin?.diff),
   });
   const live = liveSession() !== null;
   const rates = ratesText({
@@ -154,7 +155,8 @@ function updateStatus() {
   if (pad) text += ` · ${pad}`;
   elements.status.textContent = text;
   elements.status.classList.toggle('offline', !link.connected);
-  const vehicles = vehicleLines(session?.status?.vehicleStatus, session?.status?.vehicleFrames);
+  const vehicles = [...originLines(session?.status?.origin),
+    ...vehicleLines(session?.status?.vehicleStatus, session?.status?.vehicleFrames)];
   elements.vehicles.textContent = vehicles.join('\n');
   elements.vehicles.hidden = vehicles.length === 0;
 }

@@ -62,8 +62,9 @@ export function statusText(link, session) {
     // Cells drawn (coarser levels far away) against the map's voxels at the finest level.
     const { renderedVoxels: shown, serverVoxels: total } = session;
     parts.push(total > 0 && total !== shown ? `${formatCount(shown)} cells of ${plural(total, 'voxel')}` : plural(shown, 'voxel'));
-    // A map with voxels and no frames came from a file (stereomap-store import).
-    parts.push(session.frames === 0 && total > 0 ? 'imported map' : plural(session.frames, 'frame'));
+    // A map with voxels and no frames came from a file (stereomap-store import) or a diff.
+    const made = session.isDiff ? 'diff of two flights' : 'imported map';
+    parts.push(session.frames === 0 && total > 0 ? made : plural(session.frames, 'frame'));
     if (session.corrections > 0) {
       parts.push(`${plural(session.corrections, 'pose correction')}${session.refusing ? ', map being fused again' : ''}`);
     }
@@ -108,5 +109,43 @@ export function vehicleLines(vehicleStatus, vehicleFrames) {
   });
   // Vehicles with no status of their own (yet) still show their frame.
   for (const f of frames.values()) lines.push(`${f.vehicleId}: ${frameText(f)}`);
+  return lines;
+}
+
+/** Yaw in degrees of a quaternion [qx, qy, qz, qw] (rotation about z, -180..180). */
+function yawDegrees([qx, qy, qz, qw]) {
+  return (Math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)) * 180) / Math.PI;
+}
+
+/**
+ * What made a session that is not a flight (a parsed status origin), as panel lines: a site's
+ * sessions and where each was placed ("tue: moved (20.00, 0.00, 0.00) m, yaw 90.0° · onto mon:
+ * overlap 64 %, rmse 0.031 m"), those left out, a diff's counts, or the file imported. None
+ * for a flight.
+ */
+export function originLines(origin) {
+  if (!origin) return [];
+  const lines = [];
+  if (origin.site) {
+    const [first, ...rest] = origin.site.sessions;
+    if (first) lines.push(`site in ${first.session}'s frame: ${plural(origin.site.sessions.length, 'session')}`);
+    for (const s of rest) {
+      const [x, y, z] = s.transform;
+      let line = `${s.session}: moved (${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) m, yaw ${yawDegrees(s.transform.slice(3)).toFixed(1)}°`;
+      if (s.onto) {
+        line += ` · onto ${s.onto}`;
+        if (s.overlap !== null) line += `: overlap ${(100 * s.overlap).toFixed(0)} %`;
+        if (s.rmseM !== null) line += `, rmse ${s.rmseM.toFixed(3)} m`;
+      }
+      lines.push(line);
+    }
+    for (const l of origin.site.leftOut) lines.push(`${l.session}: left out${l.reason ? ` (${l.reason})` : ''}`);
+  }
+  if (origin.diff) {
+    const d = origin.diff;
+    lines.push(`diff ${d.first} → ${d.second}: ${formatCount(d.appeared)} appeared, ${formatCount(d.disappeared)} disappeared, ${formatCount(d.unchanged)} unchanged`);
+    lines.push(`not seen by ${d.first}: ${formatCount(d.unseenByFirst)} · by ${d.second}: ${formatCount(d.unseenBySecond)} (unknown is not free)`);
+  }
+  if (origin.importedFrom) lines.push(`imported from ${origin.importedFrom}`);
   return lines;
 }

@@ -1,5 +1,5 @@
 import { describe, expect, it } from 'vitest';
-import { formatAge, formatCount, formatKilobytesPerSecond, ratesText, statusText, vehicleLines } from './format.js';
+import { formatAge, formatCount, formatKilobytesPerSecond, originLines, ratesText, statusText, vehicleLines } from './format.js';
 
 describe('formatAge', () => {
   it.each([
@@ -25,6 +25,7 @@ describe('statusText', () => {
     expect(statusText({ connected: true }, session)).toBe('connected · session e2e (sim-1) · 12,345 voxels · 1 frame · updated 2.1 s ago');
     expect(statusText({ connected: true }, { ...session, serverVoxels: 99999 })).toBe('connected · session e2e (sim-1) · 12,345 cells of 99,999 voxels · 1 frame · updated 2.1 s ago');
     expect(statusText({ connected: true }, { ...session, frames: 0, serverVoxels: 1198329 })).toBe('connected · session e2e (sim-1) · 12,345 cells of 1,198,329 voxels · imported map · updated 2.1 s ago');
+    expect(statusText({ connected: true }, { ...session, frames: 0, serverVoxels: 1198329, isDiff: true })).toContain(' · diff of two flights · ');
     expect(statusText({ connected: true }, { ...session, frames: 0, renderedVoxels: 0, serverVoxels: 0 })).toBe('connected · session e2e (sim-1) · 0 voxels · 0 frames · updated 2.1 s ago');
     expect(statusText({ connected: false, retryInSeconds: 1.2 }, null)).toBe('disconnected, retrying in 2 s · no session yet');
     expect(statusText({ connected: true }, { id: 'x', known: false })).toBe('connected · session x not on the server (yet)');
@@ -72,5 +73,26 @@ describe('vehicleLines', () => {
     // Before its first status, and before a first try.
     expect(vehicleLines([], [{ ...aligning, vehicleId: 'sim-3', attempts: 0, reason: '' }])).toEqual(['sim-3: aligning']);
     expect(vehicleLines(undefined, [{ ...aligning, attempts: 1, reason: '' }])).toEqual(['sim-2: aligning (1 try)']);
+  });
+});
+
+describe('originLines', () => {
+  it('says where each session of a site was placed, and which were left out', () => {
+    const yaw90 = [0, 0, Math.SQRT1_2, Math.SQRT1_2];
+    expect(originLines({ site: {
+      sessions: [{ session: 'mon', transform: [0, 0, 0, 0, 0, 0, 1], onto: '', overlap: null, rmseM: null },
+        { session: 'tue', transform: [20, 0, 0.5, ...yaw90], onto: 'mon', overlap: 0.64, rmseM: 0.031 }],
+      leftOut: [{ session: 'hall', reason: 'aligns onto none' }] } })).toEqual([
+      "site in mon's frame: 2 sessions",
+      'tue: moved (20.00, 0.00, 0.50) m, yaw 90.0° · onto mon: overlap 64 %, rmse 0.031 m',
+      'hall: left out (aligns onto none)']);
+  });
+
+  it("gives a diff's counts, an import's file, and nothing for a flight", () => {
+    expect(originLines({ diff: { first: 'a', second: 'b', appeared: 1200, disappeared: 3, unchanged: 24142, unseenByFirst: 9, unseenBySecond: 0 } })).toEqual([
+      'diff a → b: 1,200 appeared, 3 disappeared, 24,142 unchanged',
+      'not seen by a: 9 · by b: 0 (unknown is not free)']);
+    expect(originLines({ importedFrom: 'fr_campus.bt' })).toEqual(['imported from fr_campus.bt']);
+    expect(originLines(null)).toEqual([]);
   });
 });

@@ -112,6 +112,57 @@ function vehicleFrames(m) {
   });
 }
 
+const isObject = (v) => typeof v === 'object' && v !== null && !Array.isArray(v);
+const isTransform = (t) => Array.isArray(t) && t.length === 7 && t.every(isFiniteNumber);
+
+// Each entry of list `name` of `m`, an object read by `read` (a message's nested list).
+function objectList(m, name, read) {
+  return field(m, name, Array.isArray, 'an array', { optional: true, fallback: [] }).map((v, i) => {
+    if (!isObject(v)) throw new ProtocolError(`${m.type} message: "${name}"[${i}] must be an object, got ${shown(v)}`);
+    return read({ ...v, type: m.type });
+  });
+}
+
+// What made a session that is not a flight (the status's origin; null for a flight): a file
+// imported, a diff of two sessions, or a site of sessions registered into the first's frame.
+function origin(m) {
+  const o = field(m, 'origin', isObject, 'an object', { optional: true, fallback: null });
+  if (o === null) return null;
+  const entry = { ...o, type: m.type };
+  const result = {};
+  if (o.imported_from !== undefined) result.importedFrom = field(entry, 'imported_from', isString, 'a string');
+  if (o.diff !== undefined) {
+    const d = { ...field(entry, 'diff', isObject, 'an object'), type: m.type };
+    result.diff = {
+      first: requireId(d, 'first'),
+      second: requireId(d, 'second'),
+      appeared: optionalCount(d, 'appeared'),
+      disappeared: optionalCount(d, 'disappeared'),
+      unchanged: optionalCount(d, 'unchanged'),
+      unseenByFirst: optionalCount(d, 'unseen_by_first'),
+      unseenBySecond: optionalCount(d, 'unseen_by_second'),
+    };
+  }
+  if (o.site !== undefined) {
+    const s = { ...field(entry, 'site', isObject, 'an object'), type: m.type };
+    result.site = {
+      sessions: objectList(s, 'sessions', (e) => ({
+        session: requireId(e, 'session'),
+        // T_site_session: [tx, ty, tz, qx, qy, qz, qw].
+        transform: field(e, 'transform', isTransform, '7 finite numbers [tx, ty, tz, qx, qy, qz, qw]'),
+        onto: field(e, 'onto', isString, 'a string', { optional: true, fallback: '' }),
+        overlap: optionalNumber(e, 'overlap', (x) => isFiniteNumber(x) && x >= 0 && x <= 1, 'a share from 0 to 1'),
+        rmseM: optionalNumber(e, 'rmse_m', (x) => isFiniteNumber(x) && x >= 0, 'a non-negative number (metres)'),
+      })),
+      leftOut: objectList(s, 'left_out', (e) => ({
+        session: requireId(e, 'session'),
+        reason: field(e, 'reason', isString, 'a string', { optional: true, fallback: '' }),
+      })),
+    };
+  }
+  return result;
+}
+
 // A session's status (GET /api/sessions entries, "session" messages).
 function status(m) {
   return {
@@ -132,6 +183,7 @@ function status(m) {
     bounds: bounds(m),
     vehicleStatus: vehicleStatus(m),
     vehicleFrames: vehicleFrames(m),
+    origin: origin(m),
   };
 }
 

@@ -41,6 +41,19 @@ describe('parseMessage', () => {
       { vehicleId: 'sim-3', frame: 'aligning', attempts: 0, reason: '', transform: null, overlap: null, rmseM: null, alignedS: null }]);
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_frames: [{ vehicle_id: 'a', frame: 'lost' }] }))).toThrow(/"frame" must be "aligning" or "aligned"/);
     expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, vehicle_frames: [{ vehicle_id: 'a', frame: 'aligned', transform: [1, 2] }] }))).toThrow(/transform/);
+    // What made a session that is not a flight: a site, a diff, an import; null for a flight.
+    expect(list.sessions[0].origin).toBe(null);
+    const site = parseMessage(JSON.stringify({ type: 'session', ...status, origin: { site: {
+      sessions: [{ session: 'mon', transform: [0, 0, 0, 0, 0, 0, 1] },
+        { session: 'tue', onto: 'mon', transform: [20, 0, 0, 0, 0, 0.7071068, 0.7071068], overlap: 0.64, rmse_m: 0.031 }],
+      left_out: [{ session: 'hall', reason: 'aligns onto none' }] } } }));
+    expect(site.origin.site.sessions[1]).toEqual({ session: 'tue', onto: 'mon', transform: [20, 0, 0, 0, 0, 0.7071068, 0.7071068], overlap: 0.64, rmseM: 0.031 });
+    expect(site.origin.site.leftOut).toEqual([{ session: 'hall', reason: 'aligns onto none' }]);
+    const diff = parseMessage(JSON.stringify({ type: 'session', ...status, origin: { diff: { first: 'a', second: 'b', appeared: 3, disappeared: 1, unchanged: 9, unseen_by_first: 2, unseen_by_second: 0 } } }));
+    expect(diff.origin.diff).toEqual({ first: 'a', second: 'b', appeared: 3, disappeared: 1, unchanged: 9, unseenByFirst: 2, unseenBySecond: 0 });
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, origin: [] }))).toThrow(/"origin" must be an object/);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, origin: { site: { sessions: [{ session: 'x', transform: [1] }] } } }))).toThrow(/transform/);
+    expect(() => parseMessage(JSON.stringify({ type: 'session', ...status, origin: { diff: { first: '', second: 'b' } } }))).toThrow(/first/);
   });
 
   it('rejects what it cannot trust, naming the field', () => {
