@@ -394,17 +394,18 @@ TEST(Site, FlightsOfOnePlaceAreRegisteredIntoOneFrameAndAStrangerIsLeftOut) {
                                       R"({"into": "none", "sessions": ["hall", "mon"]})");
   EXPECT_EQ(refused.status, 422) << refused.body;
   EXPECT_EQ(json::parse(refused.body)["site"]["left_out"].size(), 1u) << refused.body;
-  for (const char* bad : {R"({"into": "x", "sessions": ["mon"]})",
-                          R"({"into": "x", "sessions": ["mon", "mon"]})",
-                          R"({"into": "../x", "sessions": ["mon", "tue"]})",
-                          R"({"into": "x", "sessions": ["mon", "../../etc"]})",
-                          R"({"into": "x", "sessions": "mon"})", "not json"}) {
+  for (const char* bad :
+       {R"({"into": "x", "sessions": ["mon"]})", R"({"into": "x", "sessions": ["mon", "mon"]})",
+        R"({"into": "../x", "sessions": ["mon", "tue"]})",
+        R"({"into": "x", "sessions": ["mon", "../../etc"]})", R"({"into": "x", "sessions": "mon"})",
+        "not json"}) {
     EXPECT_EQ(server.request("POST", "/api/sessions/site", bad).status, 400) << bad;
   }
-  EXPECT_EQ(server.request("POST", "/api/sessions/site",
-                           R"({"into": "both", "sessions": ["mon", "tue"]})")
-                .status,
-            409);
+  EXPECT_EQ(
+      server
+          .request("POST", "/api/sessions/site", R"({"into": "both", "sessions": ["mon", "tue"]})")
+          .status,
+      409);
 }
 
 }  // namespace

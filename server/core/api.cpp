@@ -372,9 +372,9 @@ HttpAnswer answerAdmin(SessionAdmin* admin, const MapServer& server, std::string
                          sessions, serverAlignOptions());
     if (!plan) return errorOf(plan.error());
     if (plan->registered() < 2) {
-      const json refused = {{"site", plan->json()},
-                            {"reason", "no session aligns onto " + sessions.front() +
-                                           ": nothing made"}};
+      const json refused = {
+          {"site", plan->json()},
+          {"reason", "no session aligns onto " + sessions.front() + ": nothing made"}};
       return HttpAnswer{422, "application/json", refused.dump() + "\n", ""};
     }
     done = admin->merge(plan->mergeRequest(id));
