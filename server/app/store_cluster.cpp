@@ -205,13 +205,12 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "align") return alignCommand(mapsOf(**store), a);
   if (command == "site") return siteCommand(mapsOf(**store), mergeInCluster(**store), a);
   if (command == "diff") {
-    // The cluster keeps no meta beside a session: the diff's description is in the CLI's lines.
     const auto keep = [&](const std::string& id, double resolution, const std::string& ot,
-                          const std::string&) -> common::Status {
+                          const std::string& about) -> common::Status {
       auto db =
           cluster::PgConnection::connect(a.cluster_url, {.deadline = std::chrono::minutes(2)});
       if (!db) return db.error();
-      return cluster::importSession(**db, id, resolution, ot);
+      return cluster::importSession(**db, id, resolution, ot, about);
     };
     return diffCommand(mapsOf(**store), keep, a);
   }

@@ -270,8 +270,16 @@ common::Status migrateSchema(PgConnection& db) {
   return common::Ok{};
 }
 
+std::string originSummary(const std::string& id, const std::string& origin) {
+  if (origin.empty()) return "";
+  core::SessionStatus status;
+  status.id = id;
+  status.origin = origin;
+  return core::sessionJson(status);
+}
+
 common::Status importSession(PgConnection& db, const std::string& id, double resolution,
-                             const std::string& ot) {
+                             const std::string& ot, const std::string& origin) {
   if (!core::isValidId(id)) {
     return makeError(ErrorCode::kInvalidArgument,
                      "session id '" + id.substr(0, 80) + "' is not 1-64 of [A-Za-z0-9._-]");
@@ -283,9 +291,9 @@ common::Status importSession(PgConnection& db, const std::string& id, double res
     return error;
   };
   auto session = db.exec(
-      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
-      "VALUES ($1, NULL, 1, $2, 'live') ON CONFLICT (id) DO NOTHING",
-      {id, resolution});
+      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state, summary) "
+      "VALUES ($1, NULL, 1, $2, 'live', $3) ON CONFLICT (id) DO NOTHING",
+      {id, resolution, origin.empty() ? PgParam::null() : PgParam(originSummary(id, origin))});
   if (!session) return fail(session.error());
   if (session->affected() == 0) {
     return fail(makeError(ErrorCode::kConflict, "session '" + id + "' already exists"));

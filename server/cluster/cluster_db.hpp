@@ -166,8 +166,13 @@ class ClusterDb {
 // label 0 and no journal; the least-loaded live server takes it within a round of its
 // control loop (an orphan: no owner yet). kConflict when the session exists. One
 // transaction: a failure leaves nothing.
+// A new session's summary when something other than a flight made it: a status JSON that
+// holds only its id and `origin` (SessionStatus::origin). "" when `origin` is.
+std::string originSummary(const std::string& id, const std::string& origin);
+
+// `origin` (SessionStatus::origin, "" for none) is kept in its summary: a diff's description.
 common::Status importSession(PgConnection& db, const std::string& id, double resolution,
-                             const std::string& ot);
+                             const std::string& ot, const std::string& origin = "");
 
 // Brings the cluster's schema to this build's version: nothing (no lock, no statement that
 // changes a table) when it is there already; otherwise, under an advisory lock that

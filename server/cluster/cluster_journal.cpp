@@ -6,6 +6,7 @@
 
 #include "common/time.hpp"
 #include "server/cluster/snapshot_codec.hpp"
+#include "server/core/session_json.hpp"
 
 namespace stereomap::cluster {
 
@@ -535,6 +536,14 @@ common::Result<StoredSession> ClusterJournal::read(const std::string& session) {
   if (!read) return read.error();
   stored.last_number = read->last_number;
   stored.unreadable = read->unreadable;
+  // What made it (a site, a diff), kept in its summary since it was written.
+  auto summary = exec("SELECT coalesce(summary, '') FROM sm_sessions WHERE id = $1", {session});
+  if (!summary) return summary.error();
+  if (summary->rows() > 0) {
+    stored.origin =
+        core::sessionFromJson(session, nlohmann::json::parse(summary->text(0, 0), nullptr, false))
+            .origin;
+  }
   return stored;
 }
 

@@ -42,6 +42,7 @@ struct StoredSession {
   std::vector<uint64_t> numbers;
   uint64_t last_number = 0;
   uint64_t unreadable = 0;  // rows that did not decode (never expected; counted, skipped)
+  std::string origin;       // SessionStatus::origin, from its row's summary ("" for a flight)
 };
 
 // Journal rows for one INSERT: the commit thread's groups, and a merge's batches. Bounded as

@@ -16,6 +16,7 @@ common::Status recoverSession(core::MapServer& server, ClusterJournal& journal,
                                       /*snapshots=*/!owned.read_only);
   if (!created) return created.error();
   const auto& session = *created;
+  session->setOrigin(stored.origin);
   proto::journal::JournalReplay kept;
   kept.records = std::move(stored.records);
   kept.numbers = std::move(stored.numbers);

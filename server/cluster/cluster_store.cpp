@@ -145,9 +145,11 @@ common::Status ClusterStore::writeMerged(const core::MergeRequest& request) {
   if (!first) return first.error();
   // Born closed at epoch 1, in this transaction: the fencing trigger finds it.
   auto created = exec(
-      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state) "
-      "VALUES ($1, NULL, 1, $2, 'closed') ON CONFLICT (id) DO NOTHING",
-      {request.into, first->resolution});
+      "INSERT INTO sm_sessions (id, owner, epoch, resolution, state, summary) "
+      "VALUES ($1, NULL, 1, $2, 'closed', $3) ON CONFLICT (id) DO NOTHING",
+      {request.into, first->resolution,
+       request.origin.empty() ? PgParam::null()
+                              : PgParam(originSummary(request.into, request.origin))});
   if (!created) return created.error();
   if (created->affected() == 0) {
     return makeError(ErrorCode::kConflict, "session '" + request.into + "' already exists");

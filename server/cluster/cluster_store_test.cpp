@@ -116,6 +116,41 @@ TEST_F(ClusterStoreTest, AClosedOwnersWritesAreFenced) {
   EXPECT_TRUE(c.db->owned()->empty());
 }
 
+// A site: three sessions in one transaction, each moved by its own transform, and what made it
+// (its origin) kept for its listings and for the server that loads it.
+TEST_F(ClusterStoreTest, ASiteMergesSessionsEachByItsTransformAndKeepsItsOrigin) {
+  auto c = openCluster(url());
+  fly(c, "mon", "v", 2);
+  fly(c, "tue", "v", 2);
+  fly(c, "wed", "v", 2);
+  core::MergeRequest request;
+  request.sources = {{"mon", common::Rigid3::identity()},
+                     {"tue", {common::Quat::Identity(), common::Vec3(0, 10, 0)}},
+                     {"wed", {common::Quat::Identity(), common::Vec3(0, 20, 0)}}};
+  request.into = "site";
+  request.origin = R"({"site":{"sessions":[{"session":"mon"}],"left_out":[]}})";
+  ASSERT_TRUE(c.store->merge(request));
+  const auto merged = posesOf(c, "site");
+  ASSERT_EQ(merged.size(), 6u);
+  const std::vector<std::string> vehicles = {"v", "v-tue", "v-wed"};
+  for (size_t i = 0; i < merged.size(); ++i) {
+    EXPECT_EQ(merged[i].vehicle_id, vehicles[i / 2]);
+    EXPECT_DOUBLE_EQ(merged[i].position[1], 10.0 * static_cast<double>(i / 2));
+  }
+  auto row = c.store->session("site");
+  ASSERT_TRUE(row);
+  EXPECT_EQ(row->status().origin, nlohmann::json::parse(request.origin).dump());
+  core::MapServer server(core::MapServerOptions{});
+  auto loaded = c.store->load("site", server);
+  ASSERT_TRUE(loaded) << loaded.error().message;
+  EXPECT_EQ((*loaded)->status().origin, row->status().origin);
+
+  request.sources.push_back({"mon", common::Rigid3::identity()});
+  request.into = "twice";
+  EXPECT_EQ(c.store->merge(request).error().code, common::ErrorCode::kInvalidArgument);
+  EXPECT_FALSE(c.store->session("twice"));
+}
+
 TEST_F(ClusterStoreTest, OperatorsOpenMergeReplayAndDeleteStoredSessions) {
   auto c = openCluster(url());
   fly(c, "first", "v", 4);
