@@ -12,6 +12,7 @@
 #include <sstream>
 
 #include "server/app/store_tool.hpp"
+#include "server/core/validate.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_store.hpp"
 #include "server/cluster/pg.hpp"
@@ -203,7 +204,12 @@ int runInCluster(const std::string& command, Args& a) {
   if (command == "merge") return merge(**store, a);
   if (command == "compact") return compact(**store, a);
   if (command == "align") return alignCommand(mapsOf(**store), a);
-  if (command == "site") return siteCommand(mapsOf(**store), mergeInCluster(**store), a);
+  if (command == "site") {
+    if (core::isValidId(a.into) && (*store)->session(a.into)) {
+      return fail("session '" + a.into + "' already exists");  // before minutes of aligning
+    }
+    return siteCommand(mapsOf(**store), mergeInCluster(**store), a);
+  }
   if (command == "diff") {
     const auto keep = [&](const std::string& id, double resolution, const std::string& ot,
                           const std::string& about) -> common::Status {

@@ -301,6 +301,10 @@ stereomap::app::MergeSessions mergeInStore(Store& store) {
 }
 
 int siteSessions(Store& store, Args& a) {
+  std::error_code ec;
+  if (core::isValidId(a.into) && fs::exists(fs::path(a.root) / a.into, ec)) {
+    return fail("session '" + a.into + "' already exists");  // before minutes of aligning
+  }
   return stereomap::app::siteCommand(mapsOf(store), mergeInStore(store), a);
 }
 
