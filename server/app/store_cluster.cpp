@@ -12,11 +12,11 @@
 #include <sstream>
 
 #include "server/app/store_tool.hpp"
-#include "server/core/validate.hpp"
 #include "server/cluster/cluster_journal.hpp"
 #include "server/cluster/cluster_store.hpp"
 #include "server/cluster/pg.hpp"
 #include "server/core/session_json.hpp"
+#include "server/core/validate.hpp"
 #include "server/store/map_import.hpp"
 
 namespace stereomap::app {
