@@ -316,6 +316,13 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   open3d::utility::random::Seed(static_cast<int>(options.seed));
   omp_set_num_threads(static_cast<int>(std::max(1u, options.threads)));
   const Progress progress(options);
+  // Seconds since the last lap, added to one step's account.
+  auto lap_start = std::chrono::steady_clock::now();
+  const auto lap = [&](double& step) {
+    const auto now = std::chrono::steady_clock::now();
+    step += std::chrono::duration<double>(now - lap_start).count();
+    lap_start = now;
+  };
   const auto finish = [&](std::string reason) {
     out.found = reason.empty();
     out.reason = std::move(reason);
@@ -345,6 +352,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const Eigen::Vector3d centre_b = score_b.cloud->GetCenter();
   // Poses are told apart on a share of B's cells; only the best is refined on all of them.
   const auto hypothesis_score_b = thinned(score_b.cloud, kHypothesisSample);
+  lap(out.steps.levels);
 
   // The best score among poses distinct from the best (sorted, best first).
   const auto rivalOf = [&](const std::vector<Hypothesis>& sorted) {
@@ -415,6 +423,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   //    each refined at its level and the scoring level, and scored there.
   std::vector<Hypothesis> poses;
   for (unsigned d = depth; d <= score_depth; ++d) {
+    ++out.steps.levels_searched;
     const Side& side_a = sides_a.at(d);
     const Side& side_b = sides_b.at(d);
     const double cell = a.cellSize(d);
@@ -428,11 +437,13 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     auto remaining = featureMatches(*feature_b, *feature_a, options.seed);
     out.matches += remaining.size();
     progress("matching " + std::to_string(remaining.size()) + " features");
+    lap(out.steps.features);
     const reg::CorrespondenceCheckerBasedOnEdgeLength edge_check(0.9);
     const reg::CorrespondenceCheckerBasedOnDistance distance_check(1.5 * cell);
     const auto hypothesis_b = thinned(side_b.cloud, kHypothesisSample);
     // A candidate pose, refined at this level and the scoring level, and scored there.
     const auto consider = [&](const Eigen::Matrix4d& initial) {
+      lap(out.steps.ransac);
       ++out.poses_tried;
       Eigen::Matrix4d T = reg::RegistrationICP(*hypothesis_b, *side_a.cloud, 2.0 * cell, initial,
                                                reg::TransformationEstimationPointToPlane(),
@@ -445,6 +456,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                 .transformation_;
       }
       poses.push_back({T, scorePose(score_a, score_b, T, score_edge)});
+      lap(out.steps.hypotheses);
       return T;
     };
     for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
@@ -475,14 +487,19 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
         return false;
       };
       std::erase_if(remaining, explained);
+      lap(out.steps.ransac);
     }
+    lap(out.steps.ransac);  // the last RANSAC, that found too few inliers
     // The coarser level's best pose passes every gate: the finer search is not needed.
     if (d < score_depth && !poses.empty()) {
       std::vector<Hypothesis> sorted = poses;
       std::sort(sorted.begin(), sorted.end(), [](const Hypothesis& x, const Hypothesis& y) {
         return x.score.value() > y.score.value();
       });
-      if (judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted)).empty()) break;
+      const bool passes =
+          judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted)).empty();
+      lap(out.steps.judging);
+      if (passes) break;
     }
   }
   if (poses.empty()) return finish("no consistent feature matches between the maps");
@@ -495,9 +512,19 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const double best_value = best.score.value();
   const double second = rivalOf(poses);
   out.confidence = best_value > 0 ? 1.0 - second / best_value : 0.0;
+  // A rival that fits nearly as well refuses whatever the refinement does to the best pose
+  // (the scores compared are the hypotheses'): judged as it is, without refining it.
+  if (best_value <= 0 || second >= options.max_second_ratio * best_value) {
+    out.T_a_b = rigidOf(best.T);
+    progress("gating");
+    auto reason = judge(best.T, best_value, second);
+    lap(out.steps.judging);
+    return finish(std::move(reason));
+  }
 
   // 3. Level by level to the finest voxels, from the best pose.
   progress("refining");
+  lap(out.steps.judging);
   Eigen::Matrix4d T = best.T;
   double rmse = 0;
   for (unsigned d = score_depth + 1; d <= fusion::kTreeDepth; ++d) {
@@ -521,10 +548,13 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   }
   out.T_a_b = rigidOf(T);
   out.rmse_m = rmse;
+  lap(out.steps.refining);
 
   // 4. Gates, on the final pose at the scoring level.
   progress("gating");
-  return finish(judge(T, best_value, second));
+  auto reason = judge(T, best_value, second);
+  lap(out.steps.judging);
+  return finish(std::move(reason));
 }
 
 }  // namespace stereomap::align

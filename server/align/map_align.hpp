@@ -81,6 +81,17 @@ struct Alignment {
   size_t matches = 0;                 // feature matches RANSAC started from
   int poses_tried = 0;
   double seconds = 0;
+  // Where the seconds went (they add up to `seconds`, but for checks and bookkeeping), and
+  // how many search levels ran (2: the coarser one's best pose did not pass the gates).
+  struct Steps {
+    double levels = 0;      // the pyramids, normals and their orientation, kd-trees
+    double features = 0;    // FPFH and their matching
+    double ransac = 0;      // RANSAC over the matches, and which matches each pose explains
+    double hypotheses = 0;  // each pose's ICP at its level and the scoring level, its score
+    double judging = 0;     // the gates (scores, constraint, slide), at each level and at the end
+    double refining = 0;    // ICP level by level to the finest voxels, and the RMSE
+    int levels_searched = 0;
+  } steps;
 };
 
 // Errors (kInvalidArgument): a map with fewer than `kMinVoxels` occupied voxels, maps of

@@ -58,6 +58,7 @@ struct Outcome {
   size_t voxels = 0;
   std::string reason;
   testing::PoseError pose_error;
+  align::Alignment::Steps steps;
 };
 
 std::string percent(double share) {
@@ -105,6 +106,7 @@ struct Totals {
       o.constraint = result->constraint_ratio;
       o.slide = result->slide;
       o.seconds = result->seconds;
+      o.steps = result->steps;
       o.voxels = result->voxels_a + result->voxels_b;
       if (related) {
         const auto error = testing::poseError(result->T_a_b, pair.T_a_b);
@@ -342,6 +344,33 @@ int main(int argc, char** argv) {
   }
   std::printf("all pairs: translation error p95 %.2f voxels; %.1f s over %.2f million voxels\n",
               p95(in_voxels), seconds, voxels / 1e6);
+  // Where S goes: each step's seconds summed over the pairs of a kind, found and refused apart.
+  std::printf("\n%-9s %-8s %5s %8s %8s %8s %8s %8s %8s %8s %7s\n", "kind", "outcome", "pairs",
+              "levels", "features", "ransac", "poses", "judging", "refining", "total",
+              "2 lvls");
+  for (const char* kind : {"sim", "campus", "geb079", "kitti", "unrelated"}) {
+    for (const bool found : {true, false}) {
+      align::Alignment::Steps sum;
+      size_t n = 0, two_levels = 0;
+      double total = 0;
+      for (const auto& o : totals.outcomes) {
+        if (o.kind != kind || o.found != found) continue;
+        ++n;
+        total += o.seconds;
+        two_levels += o.steps.levels_searched > 1;
+        sum.levels += o.steps.levels;
+        sum.features += o.steps.features;
+        sum.ransac += o.steps.ransac;
+        sum.hypotheses += o.steps.hypotheses;
+        sum.judging += o.steps.judging;
+        sum.refining += o.steps.refining;
+      }
+      if (n == 0) continue;
+      std::printf("%-9s %-8s %5zu %8.2f %8.2f %8.2f %8.2f %8.2f %8.2f %8.2f %7zu\n", kind,
+                  found ? "found" : "refused", n, sum.levels, sum.features, sum.ransac,
+                  sum.hypotheses, sum.judging, sum.refining, total, two_levels);
+    }
+  }
   std::printf(
       "\nalign: %zu pairs, translation error p95 %.3f m, rotation error p95 %.2f deg, %zu/%zu "
       "unrelated refused, %.1f s per million voxels; live join after %.1f s, error %.3f m\n",
