@@ -346,8 +346,7 @@ int main(int argc, char** argv) {
               p95(in_voxels), seconds, voxels / 1e6);
   // Where S goes: each step's seconds summed over the pairs of a kind, found and refused apart.
   std::printf("\n%-9s %-8s %5s %8s %8s %8s %8s %8s %8s %8s %7s\n", "kind", "outcome", "pairs",
-              "levels", "features", "ransac", "poses", "judging", "refining", "total",
-              "2 lvls");
+              "levels", "features", "ransac", "poses", "judging", "refining", "total", "2 lvls");
   for (const char* kind : {"sim", "campus", "geb079", "kitti", "unrelated"}) {
     for (const bool found : {true, false}) {
       align::Alignment::Steps sum;
