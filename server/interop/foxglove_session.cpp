@@ -40,9 +40,17 @@ std::string cloudTopic(const std::string& vehicle, foxglove::Schema schema) {
          (schema == foxglove::Schema::kCompressedPointCloud ? "/cloud" : "/cloud/points");
 }
 
-std::optional<CloudMessage> cloudMessage(const proto::CloudFrameMsg& frame) {
+std::optional<common::Rigid3> framePlacement(const core::Session& session,
+                                             const std::string& vehicle) {
+  common::Rigid3 T = common::Rigid3::identity();
+  if (session.frameState(vehicle, &T) == proto::FrameState::kAligning) return std::nullopt;
+  return T;
+}
+
+std::optional<CloudMessage> cloudMessage(const proto::CloudFrameMsg& frame,
+                                         const common::Rigid3& T_map_sent) {
   const common::Rigid3 pose =
-      proto::rigidFromFields(frame.sensor_position, frame.sensor_orientation);
+      T_map_sent * proto::rigidFromFields(frame.sensor_position, frame.sensor_orientation);
   if (frame.encoding == proto::CloudEncoding::kDraco) {
     return CloudMessage{foxglove::Schema::kCompressedPointCloud,
                         foxglove::compressedPointCloud(

@@ -35,8 +35,17 @@ struct CloudMessage {
   std::string bytes;
 };
 // A Draco payload as it came (Foxglove decodes it: no decoding here, a twentieth the bytes);
-// other encodings decoded to x, y, z. nullopt: the payload does not decode.
-std::optional<CloudMessage> cloudMessage(const proto::CloudFrameMsg& frame);
+// other encodings decoded to x, y, z. nullopt: the payload does not decode. `T_map_sent`
+// places the sensor pose the vehicle sent (framePlacement()).
+std::optional<CloudMessage> cloudMessage(
+    const proto::CloudFrameMsg& frame,
+    const common::Rigid3& T_map_sent = common::Rigid3::identity());
+
+// Where what a vehicle sends goes in the session's map frame: the identity for a vehicle in
+// the session's frame, its alignment for one joined in its own frame, nullopt while it is
+// held apart (nowhere yet: its poses and clouds are left out).
+std::optional<common::Rigid3> framePlacement(const core::Session& session,
+                                             const std::string& vehicle);
 
 // The finest level whose occupied cells, over every tile, are at most `max_cubes`.
 unsigned mapLevel(const std::vector<tiles::TileInfo>& tiles, size_t max_cubes);

@@ -57,7 +57,9 @@ class Export {
 
   void record(proto::journal::JournalRecord&& record) {
     if (auto* pose = std::get_if<proto::PoseMsg>(&record)) {
-      const common::Rigid3 T = proto::rigidFromFields(pose->position, pose->orientation);
+      const auto placed = placement(pose->vehicle_id);
+      if (!placed) return;  // held apart: nowhere in the map's frame
+      const common::Rigid3 T = *placed * proto::rigidFromFields(pose->position, pose->orientation);
       write(tf_, pose->stamp_ns,
             foxglove::frameTransform(pose->stamp_ns, kMapFrame, pose->vehicle_id, T));
       Vehicle& v = vehicle(pose->vehicle_id);
@@ -71,8 +73,10 @@ class Export {
       }
       ++summary_.poses;
     } else if (auto* frame = std::get_if<proto::CloudFrameMsg>(&record)) {
+      const auto placed = placement(frame->vehicle_id);
+      if (!placed) return;
       Vehicle& v = vehicle(frame->vehicle_id);
-      auto cloud = cloudMessage(*frame);
+      auto cloud = cloudMessage(*frame, *placed);
       if (!cloud) {
         ++summary_.unreadable_clouds;
         return;
@@ -130,6 +134,14 @@ class Export {
     int64_t path_sent_ns = 0;
   };
 
+  // framePlacement(), asked once a vehicle: the export shows the session as it is now.
+  const std::optional<common::Rigid3>& placement(const std::string& id) {
+    auto found = placements_.find(id);
+    if (found == placements_.end())
+      found = placements_.emplace(id, framePlacement(session_, id)).first;
+    return found->second;
+  }
+
   Vehicle& vehicle(const std::string& id) {
     auto [it, added] = vehicles_.try_emplace(id);
     if (added) {
@@ -155,6 +167,7 @@ class Export {
   std::map<Schema, uint16_t> schemas_;
   uint16_t tf_ = 0;
   std::map<std::string, Vehicle> vehicles_;
+  std::map<std::string, std::optional<common::Rigid3>> placements_;
   McapExportSummary summary_;
 };
 

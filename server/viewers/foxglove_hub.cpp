@@ -412,7 +412,9 @@ struct FoxgloveHub::Impl {
                      interop::cloudTopic(frame->vehicle_id, schema));
       feed.newest_cloud[cloudKey(frame->vehicle_id, schema)] = frame;
       if (!subscribed(channel)) continue;
-      if (auto cloud = interop::cloudMessage(*frame)) {
+      const auto placed = interop::framePlacement(session, frame->vehicle_id);
+      if (!placed) continue;  // held apart: nowhere in the map's frame yet
+      if (auto cloud = interop::cloudMessage(*frame, *placed)) {
         publish(channel, frame->stamp_ns,
                 std::make_shared<const std::string>(std::move(cloud->bytes)), true);
       }
@@ -581,7 +583,9 @@ struct FoxgloveHub::Impl {
           if (id != channel_id) continue;
           const auto frame = feed.newest_cloud.find(key.second);
           if (frame == feed.newest_cloud.end()) return;
-          if (auto cloud = interop::cloudMessage(*frame->second)) {
+          const auto placed = interop::framePlacement(*session, frame->second->vehicle_id);
+          if (!placed) return;
+          if (auto cloud = interop::cloudMessage(*frame->second, *placed)) {
             send(client, sub, frame->second->stamp_ns,
                  std::make_shared<const std::string>(std::move(cloud->bytes)), true);
           }
