@@ -89,12 +89,13 @@ std::string describe(const Outcome& o) {
 
 struct Totals {
   std::vector<Outcome> outcomes;
+  align::AlignOptions options;  // the server's defaults, unless the command line says otherwise
 
   void run(const std::string& kind, const std::string& name, const testing::MapPair& pair,
            bool related) {
     Outcome o{kind, name, related};
     o.voxel = pair.a->resolution();
-    auto result = align::alignMaps(*pair.a, *pair.b, {});
+    auto result = align::alignMaps(*pair.a, *pair.b, options);
     if (!result) {
       o.reason = "error: " + result.error().message;
     } else {
@@ -273,13 +274,21 @@ int main(int argc, char** argv) {
   app.add_option("--only", only, "Kinds of pairs")
       ->delimiter(',')
       ->check(CLI::IsMember({"sim", "campus", "geb079", "kitti", "unrelated", "live"}));
+  Totals totals;
+  app.add_option("--max-points", totals.options.max_points,
+                 "Experiments: AlignOptions::max_points (the search level's cells)")
+      ->capture_default_str()
+      ->check(CLI::Range(500, 200000));
+  app.add_option("--hypotheses", totals.options.hypotheses,
+                 "Experiments: AlignOptions::hypotheses (RANSAC runs per level)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 16));
   CLI11_PARSE(app, argc, argv);
   fusion::OctomapLogRoute octomap_log;  // OctoMap's "done." lines off the table
   const auto wanted = [&](const char* kind) {
     return std::find(only.begin(), only.end(), kind) != only.end();
   };
 
-  Totals totals;
   if (wanted("sim")) simPairs(totals);
   const auto campus = loadMap(std::filesystem::path(data) / "octomap_samples" / "fr_campus.bt");
   if (!campus && (wanted("campus") || wanted("unrelated"))) {
