@@ -496,10 +496,10 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
       std::sort(sorted.begin(), sorted.end(), [](const Hypothesis& x, const Hypothesis& y) {
         return x.score.value() > y.score.value();
       });
-      const bool passes =
-          judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted)).empty();
+      out.steps.first_level_verdict =
+          judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted));
       lap(out.steps.judging);
-      if (passes) break;
+      if (out.steps.first_level_verdict.empty()) break;
     }
   }
   if (poses.empty()) return finish("no consistent feature matches between the maps");

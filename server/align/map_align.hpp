@@ -91,6 +91,7 @@ struct Alignment {
     double judging = 0;     // the gates (scores, constraint, slide), at each level and at the end
     double refining = 0;    // ICP level by level to the finest voxels, and the RMSE
     int levels_searched = 0;
+    std::string first_level_verdict;  // with two levels: why the first one's best was not taken
   } steps;
 };
 

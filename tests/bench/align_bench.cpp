@@ -120,6 +120,9 @@ struct Totals {
     }
     std::printf("%-9s %-34s %8zu voxels %5.1f s  %s\n", kind.c_str(), name.c_str(), o.voxels,
                 o.seconds, describe(o).c_str());
+    if (o.steps.levels_searched > 1) {
+      std::printf("%-9s   (first level: %s)\n", "", o.steps.first_level_verdict.c_str());
+    }
     std::fflush(stdout);
     outcomes.push_back(o);
   }
