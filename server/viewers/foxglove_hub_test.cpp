@@ -10,6 +10,8 @@
 #include <map>
 
 #include "common/time.hpp"
+#include "proto/pose_fields.hpp"
+#include "server/interop/foxglove_session.hpp"
 #include "testing/synthetic.hpp"
 
 namespace stereomap::viewers {
@@ -173,6 +175,53 @@ TEST_F(FlyingSession, SubscribersGetTheNewestAtOnceThenWhatChangesUntilTheyUnsub
   drain(hub, id, got);
   EXPECT_EQ(got.data.size(), before);
   EXPECT_TRUE(got.ofOp("status").empty());
+}
+
+// A vehicle in its own frame: its clouds reach no subscriber while it is held apart (nowhere in
+// the map's frame yet); once it joins they come, placed by its alignment.
+TEST_F(FlyingSession, AHeldVehiclesCloudsWaitForItsJoinAndComePlaced) {
+  const auto session = server.find("s");
+  ASSERT_FALSE(session->holdApart("v2", true)) << "v1 is in the map: v2 is no reference";
+  auto v2Frame = [&](int i) {
+    return testing::planeFrame("v2", "s", static_cast<uint64_t>(100 + i),
+                               testing::planeCloud(2.0 + 0.2 * i, 0.5, 0.03));
+  };
+  ASSERT_TRUE(server.ingest(v2Frame(0)));
+  session->waitUntilIdle();
+  const auto id = hub.connect("s", 0);
+  Received got;
+  drain(hub, id, got);
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  ASSERT_TRUE(got.channels.count("/vehicles/v2/cloud")) << "advertised: it is flying";
+  hub.receive(id, subscribe(7, got.channels.at("/vehicles/v2/cloud")), 0);
+  ASSERT_TRUE(server.ingest(v2Frame(1)));
+  session->waitUntilIdle();
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  EXPECT_EQ(got.from(7), 0u) << "held apart: none of its clouds";
+  EXPECT_FALSE(interop::framePlacement(*session, "v2"));
+  EXPECT_TRUE(interop::framePlacement(*session, "v1")->translation.isZero());
+
+  const common::Rigid3 T{common::Quat(Eigen::AngleAxisd(1.0, common::Vec3::UnitZ())),
+                         common::Vec3(4.0, -3.0, 0.5)};
+  session->join("v2", T, 0.5, 0.01, /*refuse=*/true);
+  ASSERT_TRUE(server.ingest(v2Frame(2)));
+  session->waitUntilIdle();
+  hub.poll(common::nowNs());
+  drain(hub, id, got);
+  EXPECT_GE(got.from(7), 1u) << "joined: its clouds come";
+  const auto placed = interop::framePlacement(*session, "v2");
+  ASSERT_TRUE(placed);
+  EXPECT_TRUE(placed->translation.isApprox(T.translation));
+  // Placed: the message is the one a vehicle in the session's frame would have sent.
+  auto frame = v2Frame(3);
+  auto moved = frame;
+  proto::fieldsFromRigid(
+      T * proto::rigidFromFields(frame.sensor_position, frame.sensor_orientation),
+      moved.sensor_position, moved.sensor_orientation);
+  EXPECT_EQ(interop::cloudMessage(frame, *placed)->bytes, interop::cloudMessage(moved)->bytes);
+  EXPECT_NE(interop::cloudMessage(frame)->bytes, interop::cloudMessage(moved)->bytes);
 }
 
 TEST_F(FlyingSession, HostileMessagesAreAnsweredThenTheClientIsClosed) {
