@@ -18,6 +18,12 @@ bool ownFrame(const proto::SessionEventMsg& event) {
          event.frame == proto::VehicleFrame::kOwn;
 }
 
+// `T` applied to a pose stored as position + x y z w quaternion.
+void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
+                   std::array<double, 4>& orientation) {
+  proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
+}
+
 }  // namespace
 
 uint64_t replayPosesAndCorrections(core::MapServer& server,
@@ -91,16 +97,6 @@ common::Result<std::shared_ptr<core::Session>> replayUntil(const std::string& id
   (*created)->waitUntilIdle();
   return scratch.unload(id);
 }
-
-namespace {
-
-// `T` applied to a pose stored as position + x y z w quaternion.
-void transformPose(const common::Rigid3& T, std::array<double, 3>& position,
-                   std::array<double, 4>& orientation) {
-  proto::fieldsFromRigid(T * proto::rigidFromFields(position, orientation), position, orientation);
-}
-
-}  // namespace
 
 void SourceVehicles::note(const proto::journal::JournalRecord& record) {
   std::visit([&](const auto& m) { all.insert(m.vehicle_id); }, record);
