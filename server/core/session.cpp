@@ -299,7 +299,7 @@ bool Session::holdApart(const std::string& vehicle, bool live) {
 }
 
 std::vector<std::string> Session::alignmentsDue() const {
-  std::vector<std::pair<std::string, size_t>> held;
+  std::vector<std::pair<std::string, bool>> held;  // (vehicle, a pose found waits confirming)
   {
     std::lock_guard lock(state_mutex_);
     if (options_.read_only) return {};
@@ -307,13 +307,16 @@ std::vector<std::string> Session::alignmentsDue() const {
       const size_t new_frames = state.candidate ? kMinNewConfirmingFrames : kMinNewHeldFrames;
       if (!state.status.aligned &&
           state.status.held_frames >= state.frames_at_attempt + new_frames) {
-        held.emplace_back(vehicle, state.status.held_frames);
+        held.emplace_back(vehicle, state.candidate.has_value());
       }
     }
   }
+  // Confirmations first: one attempt from a join, they need not wait behind a vehicle that
+  // overlaps nothing (whose refusals take longest).
+  std::stable_partition(held.begin(), held.end(), [](const auto& h) { return h.second; });
   std::vector<std::string> due;
   std::lock_guard lock(map_mutex_);
-  for (const auto& [vehicle, frames] : held) {
+  for (const auto& [vehicle, confirming] : held) {
     const auto map = held_maps_.find(vehicle);
     if (map != held_maps_.end() && map->second->occupiedCount() >= kMinHeldVoxels) {
       due.push_back(vehicle);
