@@ -210,27 +210,37 @@ cv::Mat featureRows(const reg::Feature& feature) {
 
 // Each row's nearest row of `in` (approximate: randomized k-d trees, whose draws come from
 // OpenCV's thread-local generator, seeded here so that the same maps give the same matches).
-cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed) {
+cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, int k) {
   cv::theRNG() = cv::RNG(seed);
   cv::flann::Index index(in, cv::flann::KDTreeIndexParams(4));
   cv::Mat nearest, distances;
-  index.knnSearch(queries, nearest, distances, 1, cv::flann::SearchParams(64));
+  index.knnSearch(queries, nearest, distances, k, cv::flann::SearchParams(64));
   return nearest;
 }
 
-// Mutual nearest neighbours in feature space (B's cell i, A's cell j); one-way when too few
-// are mutual (a repetitive scene). Exact search in 33 dimensions took a second for 13k cells.
-reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa,
-                                      uint32_t seed) {
+constexpr int kWiderNeighbours = 3;
+
+// Mutual nearest neighbours in feature space (B's cell i, A's cell j), each among the other's
+// `k` nearest; one-way nearest when too few are mutual (a repetitive scene). Exact search in
+// 33 dimensions took a second for 13k cells.
+reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa, uint32_t seed,
+                                      int k) {
   const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
-  const cv::Mat b_to_a = nearestRows(rows_a, rows_b, seed);
-  const cv::Mat a_to_b = nearestRows(rows_b, rows_a, seed);
+  const cv::Mat b_to_a = nearestRows(rows_a, rows_b, seed, k);
+  const cv::Mat a_to_b = nearestRows(rows_b, rows_a, seed, k);
   reg::CorrespondenceSet one_way, mutual;
   for (int i = 0; i < b_to_a.rows; ++i) {
-    const int j = b_to_a.at<int>(i, 0);
-    if (j < 0 || j >= a_to_b.rows) continue;
-    one_way.emplace_back(i, j);
-    if (a_to_b.at<int>(j, 0) == i) mutual.emplace_back(i, j);
+    for (int n = 0; n < k; ++n) {
+      const int j = b_to_a.at<int>(i, n);
+      if (j < 0 || j >= a_to_b.rows) continue;
+      if (n == 0) one_way.emplace_back(i, j);
+      for (int m = 0; m < k; ++m) {
+        if (a_to_b.at<int>(j, m) == i) {
+          mutual.emplace_back(i, j);
+          break;
+        }
+      }
+    }
   }
   return mutual.size() >= 30 ? mutual : one_way;
 }
@@ -434,7 +444,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     const KDTreeSearchParamHybrid feature_search(5.0 * cell, 50);
     const auto feature_a = reg::ComputeFPFHFeature(*side_a.cloud, feature_search);
     const auto feature_b = reg::ComputeFPFHFeature(*side_b.cloud, feature_search);
-    auto remaining = featureMatches(*feature_b, *feature_a, options.seed);
+    auto remaining = featureMatches(*feature_b, *feature_a, options.seed, 1);
     out.matches += remaining.size();
     progress("matching " + std::to_string(remaining.size()) + " features");
     lap(out.steps.features);
@@ -459,45 +469,64 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
       lap(out.steps.hypotheses);
       return T;
     };
-    for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
-      // RANSAC scores each draw on every source point: give it only the matched ones. The
-      // first search may need many draws (little overlap); later ones look for a rival.
-      PointCloud matched_b;
-      reg::CorrespondenceSet compact;
-      compact.reserve(remaining.size());
-      for (const auto& c : remaining) {
-        compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
-        matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
-      }
-      // Each search its own seed: what one draws does not change what another finds.
-      open3d::utility::random::Seed(static_cast<int>(options.seed + 1000 * d + k));
-      const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
-          matched_b, *side_a.cloud, compact, 1.5 * cell,
-          reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
-          reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
-      if (ransac.correspondence_set_.size() < 3) break;
-      const Eigen::Matrix4d refined = consider(ransac.transformation_);
-      // Matches this pose explains (before or after refinement) are not drawn from again.
-      const auto explained = [&](const Eigen::Vector2i& c) {
-        for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), refined}) {
-          const Eigen::Vector3d q =
-              M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
-          if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * cell) return true;
-        }
-        return false;
-      };
-      std::erase_if(remaining, explained);
-      lap(out.steps.ransac);
-    }
-    lap(out.steps.ransac);  // the last RANSAC, that found too few inliers
-    // The coarser level's best pose passes every gate: the finer search is not needed.
-    if (d < score_depth && !poses.empty()) {
+    // The best pose so far, judged; "" when it passes every gate.
+    const auto verdict = [&] {
       std::vector<Hypothesis> sorted = poses;
       std::sort(sorted.begin(), sorted.end(), [](const Hypothesis& x, const Hypothesis& y) {
         return x.score.value() > y.score.value();
       });
-      out.steps.first_level_verdict =
-          judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted));
+      return sorted.empty()
+                 ? std::string("no pose")
+                 : judge(sorted.front().T, sorted.front().score.value(), rivalOf(sorted));
+    };
+    // Mutual nearest matches first; when their best pose does not pass, matches among each
+    // other's 3 nearest too (more true pairs where little overlaps, more false ones too).
+    for (const int neighbours : {1, kWiderNeighbours}) {
+      if (neighbours > 1) {
+        const bool passes = verdict().empty();
+        lap(out.steps.judging);
+        if (passes) break;
+        remaining = featureMatches(*feature_b, *feature_a, options.seed, neighbours);
+        out.matches += remaining.size();
+        progress("matching " + std::to_string(remaining.size()) + " features, wider");
+        lap(out.steps.features);
+      }
+      for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
+        // RANSAC scores each draw on every source point: give it only the matched ones. The
+        // first search may need many draws (little overlap); later ones look for a rival.
+        PointCloud matched_b;
+        reg::CorrespondenceSet compact;
+        compact.reserve(remaining.size());
+        for (const auto& c : remaining) {
+          compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
+          matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
+        }
+        // Each search its own seed: what one draws does not change what another finds.
+        open3d::utility::random::Seed(
+            static_cast<int>(options.seed + 1000 * d + k + (neighbours > 1 ? 500 : 0)));
+        const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
+            matched_b, *side_a.cloud, compact, 1.5 * cell,
+            reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
+            reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
+        if (ransac.correspondence_set_.size() < 3) break;
+        const Eigen::Matrix4d refined = consider(ransac.transformation_);
+        // Matches this pose explains (before or after refinement) are not drawn from again.
+        const auto explained = [&](const Eigen::Vector2i& c) {
+          for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), refined}) {
+            const Eigen::Vector3d q =
+                M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
+            if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * cell) return true;
+          }
+          return false;
+        };
+        std::erase_if(remaining, explained);
+        lap(out.steps.ransac);
+      }
+      lap(out.steps.ransac);  // the last RANSAC, that found too few inliers
+    }
+    // The coarser level's best pose passes every gate: the finer search is not needed.
+    if (d < score_depth && !poses.empty()) {
+      out.steps.first_level_verdict = verdict();
       lap(out.steps.judging);
       if (out.steps.first_level_verdict.empty()) break;
     }
