@@ -8,7 +8,8 @@
 //  2. At each level, FPFH features, mutual nearest matches (OpenCV's FLANN), then RANSAC over
 //     those matches (Open3D). RANSAC keeps only its best pose, so it is run again on the
 //     matches the poses found so far do not explain: `hypotheses` poses per level, each
-//     refined by ICP and scored at the finer level.
+//     refined by ICP and scored at the finer level. When their best does not pass the gates,
+//     matches among each other's 3 nearest add as many poses (low overlap: more true pairs).
 //  3. Each pose is scored by what both maps say: occupied cells that land on the other map's
 //     occupied cells agree; those that land in its free space contradict it (unknown space
 //     says nothing). The best pose is refined level by level down to the finest voxels.
