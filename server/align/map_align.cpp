@@ -483,6 +483,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     // other's 3 nearest too (more true pairs where little overlaps, more false ones too).
     for (const int neighbours : {1, kWiderNeighbours}) {
       if (neighbours > 1) {
+        if (!options.wider_matches) break;
         const bool passes = verdict().empty();
         lap(out.steps.judging);
         if (passes) break;

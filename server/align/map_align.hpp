@@ -56,6 +56,10 @@ struct AlignOptions {
   // that passed every other gate 0.96-1.11 (a floor and one wall, a road slid along).
   double max_slide = 0.9;
   int hypotheses = 4;  // RANSAC runs per search level
+  // When the mutual matches' best pose does not pass, matches among each other's 3 nearest
+  // too: more pairs of little overlap found, refusals twice the work. The live aligner, which
+  // tries again as a map grows and must not fall behind, goes without.
+  bool wider_matches = true;
   uint32_t seed = 1;
   // OpenMP threads of the feature and registration steps. More than one makes Open3D's RANSAC
   // draw differently from run to run: the same maps may then get different answers.

@@ -26,7 +26,10 @@ class FrameAligner {
     // session's map, rotation in degrees.
     double agree_voxels = 1.0;
     double agree_deg = 0.5;
-    align::AlignOptions align;  // one thread: the aligner is background work beside fusion
+    // One thread: the aligner is background work beside fusion. Without the wider matches:
+    // a vehicle of another place is refused in half the time, and the vehicle that overlaps
+    // gets its confirming attempt before its flight ends (a loaded test run missed it).
+    align::AlignOptions align{.wider_matches = false};
   };
   FrameAligner(MapServer& server, Options options);
   ~FrameAligner();
