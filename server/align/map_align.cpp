@@ -23,6 +23,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <vector>
 
 namespace stereomap::align {
@@ -481,12 +482,14 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     };
     // Mutual nearest matches first; when their best pose does not pass, matches among each
     // other's 3 nearest too (more true pairs where little overlaps, more false ones too).
+    std::optional<std::string> level_verdict;  // the poses' verdict, while still current
     for (const int neighbours : {1, kWiderNeighbours}) {
       if (neighbours > 1) {
         if (!options.wider_matches) break;
-        const bool passes = verdict().empty();
+        level_verdict = verdict();
         lap(out.steps.judging);
-        if (passes) break;
+        if (level_verdict->empty()) break;
+        level_verdict.reset();  // more poses come: judged again below
         remaining = featureMatches(*feature_b, *feature_a, options.seed, neighbours);
         out.matches += remaining.size();
         progress("matching " + std::to_string(remaining.size()) + " features, wider");
@@ -527,7 +530,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     }
     // The coarser level's best pose passes every gate: the finer search is not needed.
     if (d < score_depth && !poses.empty()) {
-      out.steps.first_level_verdict = verdict();
+      out.steps.first_level_verdict = level_verdict ? *level_verdict : verdict();
       lap(out.steps.judging);
       if (out.steps.first_level_verdict.empty()) break;
     }
