@@ -2,12 +2,18 @@
 // from a real OctoMap map, and what must be refused (unrelated rooms, a corridor, a repeated
 // pattern) or is an error (empty maps, one voxel, different resolutions).
 #include <gtest/gtest.h>
+#include <omp.h>
 
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <random>
 
+#include <open3d/pipelines/registration/Feature.h>
+
+#include "server/align/fpfh.hpp"
 #include "server/align/map_align.hpp"
+#include "server/align/space_raster.hpp"
 #include "tests/support/align_pairs.hpp"
 
 namespace stereomap {
@@ -59,6 +65,85 @@ TEST(Align, TheSameMapsGiveTheSameAnswer) {
   EXPECT_EQ(first->T_a_b.translation, second->T_a_b.translation);
   EXPECT_EQ(first->T_a_b.rotation.coeffs(), second->T_a_b.rotation.coeffs());
   EXPECT_EQ(first->matches, second->matches);
+}
+
+// The rasters answer exactly what a search of every occupied cell and the octree answer: at
+// points on and off the map, near its cells' centres and on their faces, inside and outside
+// the cached box.
+TEST(Align, RastersAnswerAsTheMapDoes) {
+  const auto room = sim::Scene::makeRoom({.seed = 4});
+  const auto map = testing::flyRoom(room, {}, 0, 20, poseOf(17, Vec3(0.3, -0.2, 0.04)), 0.1);
+  const common::Box3 bounds = map->occupiedBounds();
+  std::mt19937 random(7);
+  const auto pointsAround = [&](double margin) {
+    std::vector<Vec3> points;
+    for (int i = 0; i < 20000; ++i) {
+      Vec3 p;
+      for (int axis = 0; axis < 3; ++axis) {
+        std::uniform_real_distribution<double> along(bounds.min[axis] - margin,
+                                                     bounds.max[axis] + margin);
+        p[axis] = along(random);
+      }
+      points.push_back(p);
+    }
+    return points;
+  };
+  for (const unsigned depth : {15u, 16u}) {
+    SCOPED_TRACE(depth);
+    const double edge = map->cellSize(depth);
+    const int32_t offset = fusion::kKeyOffset >> (fusion::kTreeDepth - depth);
+    std::vector<uint64_t> codes;
+    std::vector<Vec3> centres;
+    for (const auto& c : map->occupiedCells(depth)) {
+      codes.push_back(fusion::mortonOfKeys(c.x + offset, c.y + offset, c.z + offset));
+      centres.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
+    }
+    const align::CellRaster cells(codes, depth, edge);
+    size_t near = 0;
+    for (const Vec3& p : pointsAround(1.0)) {
+      double nearest = -1;
+      for (const Vec3& c : centres) {
+        const double d2 = (c - p).squaredNorm();
+        if (d2 <= 2.25 * edge * edge && (nearest < 0 || d2 < nearest)) nearest = d2;
+      }
+      ASSERT_EQ(cells.nearest2(p, 1.5 * edge), nearest) << p.transpose();
+      ASSERT_EQ(cells.near(p, 1.5 * edge), nearest >= 0);
+      near += nearest >= 0;
+    }
+    EXPECT_GT(near, 400u);  // the points test both answers
+  }
+  const align::ClassRaster space(*map, 0.5);
+  size_t counted[3] = {0, 0, 0};
+  for (const Vec3& p : pointsAround(3.0)) {
+    ASSERT_EQ(space.at(p), map->query(p)) << p.transpose();
+    ++counted[static_cast<int>(map->query(p))];
+  }
+  EXPECT_GT(counted[static_cast<int>(fusion::Occupancy::kFree)], 400u);
+  EXPECT_GT(counted[static_cast<int>(fusion::Occupancy::kOccupied)], 10u);
+}
+
+// Our FPFH (one neighbour search a point) gives Open3D's features, on a map's cells with their
+// normals, at one thread and at two.
+TEST(Align, FeaturesAreOpen3dsFpfh) {
+  const auto room = sim::Scene::makeRoom({.seed = 6});
+  const auto map = testing::flyRoom(room, {}, 0, 20, poseOf(-40, Vec3(0.1, 0.2, 0.03)), 0.1);
+  const double edge = map->cellSize(15);
+  open3d::geometry::PointCloud cloud;
+  for (const auto& c : map->occupiedCells(15)) {
+    cloud.points_.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
+  }
+  cloud.EstimateNormals(open3d::geometry::KDTreeSearchParamHybrid(2.5 * edge, 30));
+  const open3d::geometry::KDTreeFlann tree(cloud);
+  const auto theirs = open3d::pipelines::registration::ComputeFPFHFeature(
+      cloud, open3d::geometry::KDTreeSearchParamHybrid(5.0 * edge, 50));
+  for (const int threads : {1, 2}) {
+    omp_set_num_threads(threads);
+    const align::FpfhFeatures ours = align::fpfhFeatures(cloud, tree, 5.0 * edge, 50);
+    ASSERT_EQ(ours.cols(), theirs->data_.cols());
+    EXPECT_LT((ours - theirs->data_).cwiseAbs().maxCoeff(), 1e-9);
+    EXPECT_GT(ours.cwiseAbs().sum(), 1000.0);  // not all zero
+  }
+  omp_set_num_threads(1);
 }
 
 std::unique_ptr<fusion::OccupancyMap> loadSample(const char* name) {

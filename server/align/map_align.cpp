@@ -1,5 +1,8 @@
 #include "server/align/map_align.hpp"
 
+#include "server/align/fpfh.hpp"
+#include "server/align/space_raster.hpp"
+
 #include <omp.h>
 
 #include <opencv2/core.hpp>
@@ -7,14 +10,12 @@
 
 #include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
-#include <open3d/pipelines/registration/CorrespondenceChecker.h>
-#include <open3d/pipelines/registration/Feature.h>
 #include <open3d/pipelines/registration/Registration.h>
 #include <open3d/pipelines/registration/TransformationEstimation.h>
 #include <open3d/utility/Logging.h>
-#include <open3d/utility/Random.h>
 
 #include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
 
 #include <algorithm>
 #include <chrono>
@@ -24,6 +25,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <random>
 #include <vector>
 
 namespace stereomap::align {
@@ -36,8 +38,7 @@ using open3d::geometry::PointCloud;
 namespace reg = open3d::pipelines::registration;
 using fusion::OccupancyMap;
 
-// Open3D's random generator and OpenMP's thread count are process-wide: one alignment at a
-// time.
+// OpenMP's thread count is process-wide: one alignment at a time.
 std::mutex g_align_mutex;
 
 // A map's occupied cells at every depth, as sorted Morton codes: a parent's code is its
@@ -71,6 +72,7 @@ class Pyramid {
     return cloud;
   }
   const OccupancyMap& map() const { return map_; }
+  const std::vector<uint64_t>& codes(unsigned depth) const { return codes_[depth]; }
 
  private:
   const OccupancyMap& map_;
@@ -79,12 +81,12 @@ class Pyramid {
 
 // Normals point out of the surface, towards the free space the sensor saw it from: FPFH
 // compares normals' directions, and a map carries no per-voxel viewpoint.
-void orientTowardsFreeSpace(PointCloud& cloud, const OccupancyMap& map, double edge) {
+void orientTowardsFreeSpace(PointCloud& cloud, const ClassRaster& space, double edge) {
   for (size_t i = 0; i < cloud.points_.size(); ++i) {
     const Eigen::Vector3d& p = cloud.points_[i];
     Eigen::Vector3d& n = cloud.normals_[i];
-    const bool free_ahead = map.query(p + n * edge) == fusion::Occupancy::kFree;
-    const bool free_behind = map.query(p - n * edge) == fusion::Occupancy::kFree;
+    const bool free_ahead = space.at(p + n * edge) == fusion::Occupancy::kFree;
+    const bool free_behind = space.at(p - n * edge) == fusion::Occupancy::kFree;
     if (free_behind && !free_ahead) n = -n;
   }
 }
@@ -102,26 +104,30 @@ std::shared_ptr<PointCloud> thinned(std::shared_ptr<PointCloud> cloud, size_t at
   return out;
 }
 
-// One map at one level: its occupied cells' centres with normals, a k-d tree over them, and
-// an even share of them to count agreement with (the whole set is needed only as a target).
+// One map at one level: its occupied cells' centres with normals, a k-d tree and a raster over
+// them, the map's space classes, and an even share of the cells to count agreement with (the
+// whole set is needed only as a target).
 struct Side {
-  const OccupancyMap* map = nullptr;
+  const ClassRaster* space = nullptr;
   std::shared_ptr<PointCloud> cloud, sample;
   std::unique_ptr<KDTreeFlann> tree;
+  std::unique_ptr<CellRaster> cells;
 };
 
 // What a side needs its normals for: features (oriented), a target of point-to-plane ICP
 // and of the constraint measure (any sign), or nothing (a source only).
 enum class Normals { kOriented, kUnoriented, kNone };
 
-Side sideAt(const Pyramid& pyramid, unsigned depth, size_t sample, Normals normals) {
-  Side side{&pyramid.map(), pyramid.cloud(depth), nullptr, nullptr};
+Side sideAt(const Pyramid& pyramid, const ClassRaster& space, unsigned depth, size_t sample,
+            Normals normals) {
+  Side side{&space, pyramid.cloud(depth), nullptr, nullptr, nullptr};
   const double edge = pyramid.map().cellSize(depth);
   if (normals != Normals::kNone) {
     side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
   }
-  if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, pyramid.map(), edge);
+  if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, space, edge);
   side.tree = std::make_unique<KDTreeFlann>(*side.cloud);
+  side.cells = std::make_unique<CellRaster>(pyramid.codes(depth), depth, edge);
   side.sample = thinned(side.cloud, sample);
   return side;
 }
@@ -145,16 +151,13 @@ struct Score {
 // cells) or contradicting (in `onto`'s free space); the rest fall in unknown space.
 void countInto(const Side& from, const Side& onto, const Eigen::Matrix4d& T, double edge,
                size_t& agree, size_t& contradict) {
-  const double reach2 = (1.5 * edge) * (1.5 * edge);
-  std::vector<int> index(1);
-  std::vector<double> distance2(1);
   const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
   const Eigen::Vector3d t = T.block<3, 1>(0, 3);
   for (const auto& p : from.sample->points_) {
     const Eigen::Vector3d q = R * p + t;
-    if (onto.tree->SearchKNN(q, 1, index, distance2) > 0 && distance2[0] <= reach2) {
+    if (onto.cells->near(q, 1.5 * edge)) {
       ++agree;
-    } else if (onto.map->query(q) == fusion::Occupancy::kFree) {
+    } else if (onto.space->at(q) == fusion::Occupancy::kFree) {
       ++contradict;
     }
   }
@@ -200,11 +203,10 @@ Constraint constraintOf(const Side& a, const Side& b, const Eigen::Matrix4d& T_a
 }
 
 // Features as rows of floats, for OpenCV's FLANN.
-cv::Mat featureRows(const reg::Feature& feature) {
-  cv::Mat rows(static_cast<int>(feature.Num()), static_cast<int>(feature.Dimension()), CV_32F);
+cv::Mat featureRows(const FpfhFeatures& feature) {
+  cv::Mat rows(static_cast<int>(feature.cols()), static_cast<int>(feature.rows()), CV_32F);
   for (int i = 0; i < rows.rows; ++i) {
-    for (int d = 0; d < rows.cols; ++d)
-      rows.at<float>(i, d) = static_cast<float>(feature.data_(d, i));
+    for (int d = 0; d < rows.cols; ++d) rows.at<float>(i, d) = static_cast<float>(feature(d, i));
   }
   return rows;
 }
@@ -220,11 +222,13 @@ cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, in
 }
 
 constexpr int kWiderNeighbours = 3;
+// A cell's feature describes at most this many of its neighbours within 5 cells.
+constexpr int kFeatureNeighbours = 50;
 
 // Mutual nearest neighbours in feature space (B's cell i, A's cell j), each among the other's
 // `k` nearest; one-way nearest when too few are mutual (a repetitive scene). Exact search in
 // 33 dimensions took a second for 13k cells.
-reg::CorrespondenceSet featureMatches(const reg::Feature& fb, const reg::Feature& fa, uint32_t seed,
+reg::CorrespondenceSet featureMatches(const FpfhFeatures& fb, const FpfhFeatures& fa, uint32_t seed,
                                       int k) {
   const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
   const cv::Mat b_to_a = nearestRows(rows_a, rows_b, seed, k);
@@ -280,10 +284,79 @@ std::shared_ptr<PointCloud> near(const PointCloud& a, const PointCloud& b, const
   return out;
 }
 
+// RANSAC over feature matches (B's cell from_b[i] seen as A's to_a[i]), as Open3D's: the same
+// edge-length (0.9) and distance checks, a pose counted by the matches it brings within `reach`,
+// the same stop; and at the end, the matched B cells the best pose brings within `reach` of any
+// A cell. But it draws three distinct matches, checks their lengths before fitting, and gives
+// up on a count that can no longer win: a hundredth of Open3D's time (docs/BENCHMARKS.md).
+struct RansacPose {
+  Eigen::Matrix4d T = Eigen::Matrix4d::Identity();
+  size_t matches = 0;  // within reach of their partner
+  double error2 = 0;   // their squared distances, summed
+  size_t landing = 0;  // matched B cells within reach of any A cell
+};
+
+RansacPose ransacOf(const std::vector<Eigen::Vector3d>& from_b,
+                    const std::vector<Eigen::Vector3d>& to_a, const CellRaster& cells_a,
+                    double reach, int max_draws, uint64_t seed) {
+  constexpr double kConfidence = 0.999;
+  constexpr double kSimilarLength = 0.9;
+  const size_t n = from_b.size();
+  RansacPose best;
+  if (n < 3) return best;
+  std::mt19937_64 random(seed);
+  std::uniform_int_distribution<size_t> pick(0, n - 1);
+  const double reach2 = reach * reach;
+  double draws_needed = max_draws;
+  for (int draw = 0; draw < max_draws && draw < draws_needed; ++draw) {
+    const size_t chosen[3] = {pick(random), pick(random), pick(random)};
+    if (chosen[0] == chosen[1] || chosen[1] == chosen[2] || chosen[0] == chosen[2]) continue;
+    bool similar = true;
+    for (const auto& [u, v] : {std::pair{0, 1}, {1, 2}, {0, 2}}) {
+      const double length_b = (from_b[chosen[u]] - from_b[chosen[v]]).norm();
+      const double length_a = (to_a[chosen[u]] - to_a[chosen[v]]).norm();
+      if (length_b < kSimilarLength * length_a || length_a < kSimilarLength * length_b) {
+        similar = false;
+        break;
+      }
+    }
+    if (!similar) continue;
+    Eigen::Matrix3d source, target;
+    for (int c = 0; c < 3; ++c) {
+      source.col(c) = from_b[chosen[c]];
+      target.col(c) = to_a[chosen[c]];
+    }
+    const Eigen::Matrix4d T = Eigen::umeyama(source, target, false);
+    const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
+    const Eigen::Vector3d t = T.block<3, 1>(0, 3);
+    if (((R * source).colwise() + t - target).colwise().norm().maxCoeff() > reach) continue;
+    size_t matches = 0;
+    double error2 = 0;
+    for (size_t m = 0; m < n && matches + (n - m) >= best.matches; ++m) {
+      const double d2 = (R * from_b[m] + t - to_a[m]).squaredNorm();
+      if (d2 < reach2) ++matches, error2 += d2;
+    }
+    if (matches > best.matches ||
+        (matches == best.matches && matches > 0 && error2 < best.error2)) {
+      best.T = T, best.matches = matches, best.error2 = error2;
+      const double all_matches = std::pow(static_cast<double>(matches) / n, 3);
+      draws_needed =
+          std::min(draws_needed, std::ceil(std::log(1 - kConfidence) / std::log1p(-all_matches)));
+    }
+  }
+  if (best.matches == 0) return best;
+  const Eigen::Matrix3d R = best.T.block<3, 3>(0, 0);
+  const Eigen::Vector3d t = best.T.block<3, 1>(0, 3);
+  for (const auto& p : from_b) best.landing += cells_a.near(R * p + t, reach);
+  return best;
+}
+
 // Cells of each map counted for scores (an even share of them beyond this).
 constexpr size_t kScoreSample = 40000;
 // B's cells each candidate pose is refined with.
 constexpr size_t kHypothesisSample = 5000;
+// Space classes are cached this far around a map's occupied voxels (the octree answers beyond).
+constexpr double kSpaceMargin_m = 2.0;
 // How far (scoring cells) a pose is slid to see whether the match holds it.
 constexpr double kSlideCells = 3;
 
@@ -324,7 +397,6 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   }
   std::lock_guard lock(g_align_mutex);
   open3d::utility::SetVerbosityLevel(open3d::utility::VerbosityLevel::Error);
-  open3d::utility::random::Seed(static_cast<int>(options.seed));
   omp_set_num_threads(static_cast<int>(std::max(1u, options.threads)));
   const Progress progress(options);
   // Seconds since the last lap, added to one step's account.
@@ -353,10 +425,11 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const unsigned score_depth = std::min(depth + 1, fusion::kTreeDepth);
   const double edge = a.cellSize(depth), score_edge = a.cellSize(score_depth);
   out.working_cell_m = edge;
+  const ClassRaster space_a(a, kSpaceMargin_m), space_b(b, kSpaceMargin_m);
   std::map<unsigned, Side> sides_a, sides_b;
   for (unsigned d = depth; d <= score_depth; ++d) {
-    sides_a.emplace(d, sideAt(pyramid_a, d, kScoreSample, Normals::kOriented));
-    sides_b.emplace(d, sideAt(pyramid_b, d, kScoreSample, Normals::kOriented));
+    sides_a.emplace(d, sideAt(pyramid_a, space_a, d, kScoreSample, Normals::kOriented));
+    sides_b.emplace(d, sideAt(pyramid_b, space_b, d, kScoreSample, Normals::kOriented));
   }
   const Side& score_a = sides_a.at(score_depth);
   const Side& score_b = sides_b.at(score_depth);
@@ -442,15 +515,14 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     std::snprintf(step, sizeof(step), "features of %zu and %zu cells of %.2f m",
                   side_a.cloud->points_.size(), side_b.cloud->points_.size(), cell);
     progress(step);
-    const KDTreeSearchParamHybrid feature_search(5.0 * cell, 50);
-    const auto feature_a = reg::ComputeFPFHFeature(*side_a.cloud, feature_search);
-    const auto feature_b = reg::ComputeFPFHFeature(*side_b.cloud, feature_search);
-    auto remaining = featureMatches(*feature_b, *feature_a, options.seed, 1);
+    const auto feature_a =
+        fpfhFeatures(*side_a.cloud, *side_a.tree, 5.0 * cell, kFeatureNeighbours);
+    const auto feature_b =
+        fpfhFeatures(*side_b.cloud, *side_b.tree, 5.0 * cell, kFeatureNeighbours);
+    auto remaining = featureMatches(feature_b, feature_a, options.seed, 1);
     out.matches += remaining.size();
     progress("matching " + std::to_string(remaining.size()) + " features");
     lap(out.steps.features);
-    const reg::CorrespondenceCheckerBasedOnEdgeLength edge_check(0.9);
-    const reg::CorrespondenceCheckerBasedOnDistance distance_check(1.5 * cell);
     const auto hypothesis_b = thinned(side_b.cloud, kHypothesisSample);
     // A candidate pose, refined at this level and the scoring level, and scored there.
     const auto consider = [&](const Eigen::Matrix4d& initial) {
@@ -490,33 +562,29 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
         lap(out.steps.judging);
         if (level_verdict->empty()) break;
         level_verdict.reset();  // more poses come: judged again below
-        remaining = featureMatches(*feature_b, *feature_a, options.seed, neighbours);
+        remaining = featureMatches(feature_b, feature_a, options.seed, neighbours);
         out.matches += remaining.size();
         progress("matching " + std::to_string(remaining.size()) + " features, wider");
         lap(out.steps.features);
       }
       for (int k = 0; k < options.hypotheses && remaining.size() >= 3; ++k) {
-        // RANSAC scores each draw on every source point: give it only the matched ones. The
-        // first search may need many draws (little overlap); later ones look for a rival.
-        PointCloud matched_b;
-        reg::CorrespondenceSet compact;
-        compact.reserve(remaining.size());
+        std::vector<Eigen::Vector3d> from_b, to_a;
+        from_b.reserve(remaining.size());
+        to_a.reserve(remaining.size());
         for (const auto& c : remaining) {
-          compact.emplace_back(static_cast<int>(matched_b.points_.size()), c(1));
-          matched_b.points_.push_back(side_b.cloud->points_[c(0)]);
+          from_b.push_back(side_b.cloud->points_[c(0)]);
+          to_a.push_back(side_a.cloud->points_[c(1)]);
         }
-        // Each search its own seed: what one draws does not change what another finds.
-        open3d::utility::random::Seed(
-            static_cast<int>(options.seed + 1000 * d + k + (neighbours > 1 ? 500 : 0)));
-        const auto ransac = reg::RegistrationRANSACBasedOnCorrespondence(
-            matched_b, *side_a.cloud, compact, 1.5 * cell,
-            reg::TransformationEstimationPointToPoint(false), 3, {edge_check, distance_check},
-            reg::RANSACConvergenceCriteria(k == 0 ? 100000 : 30000, 0.999));
-        if (ransac.correspondence_set_.size() < 3) break;
-        const Eigen::Matrix4d refined = consider(ransac.transformation_);
+        // Each search its own seed: what one draws does not change what another finds. The
+        // first search may need many draws (little overlap); later ones look for a rival.
+        const RansacPose ransac =
+            ransacOf(from_b, to_a, *side_a.cells, 1.5 * cell, k == 0 ? 100000 : 30000,
+                     options.seed + 1000 * d + k + (neighbours > 1 ? 500 : 0));
+        if (ransac.landing < 3) break;
+        const Eigen::Matrix4d refined = consider(ransac.T);
         // Matches this pose explains (before or after refinement) are not drawn from again.
         const auto explained = [&](const Eigen::Vector2i& c) {
-          for (const Eigen::Matrix4d& M : {Eigen::Matrix4d(ransac.transformation_), refined}) {
+          for (const Eigen::Matrix4d& M : {ransac.T, refined}) {
             const Eigen::Vector3d q =
                 M.block<3, 3>(0, 0) * side_b.cloud->points_[c(0)] + M.block<3, 1>(0, 3);
             if ((q - side_a.cloud->points_[c(1)]).norm() < 3.0 * cell) return true;
