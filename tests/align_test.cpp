@@ -59,12 +59,20 @@ TEST(Align, TheSameMapsGiveTheSameAnswer) {
   const auto room = sim::Scene::makeRoom({.seed = 5});
   const auto a = testing::flyRoom(room, {}, 0, 20, poseOf(31, Vec3(0.21, 0.43, 0.05)), 0.1);
   const auto b = testing::flyRoom(room, {.radius_x = 2.5}, 10, 30, poseOf(-97, Vec3(9, 4, 0)), 0.1);
-  const auto first = align::alignMaps(*a, *b, {}), second = align::alignMaps(*a, *b, {});
-  ASSERT_TRUE(first && second);
-  EXPECT_EQ(first->found, second->found);
-  EXPECT_EQ(first->T_a_b.translation, second->T_a_b.translation);
-  EXPECT_EQ(first->T_a_b.rotation.coeffs(), second->T_a_b.rotation.coeffs());
-  EXPECT_EQ(first->matches, second->matches);
+  const auto first = align::alignMaps(*a, *b, {});
+  ASSERT_TRUE(first);
+  EXPECT_TRUE(first->found) << first->reason;
+  // Again, and on two threads: every parallel step sums in a fixed order.
+  for (const unsigned threads : {1u, 2u}) {
+    const auto second = align::alignMaps(*a, *b, {.threads = threads});
+    ASSERT_TRUE(second);
+    EXPECT_EQ(first->found, second->found);
+    EXPECT_EQ(first->T_a_b.translation, second->T_a_b.translation);
+    EXPECT_EQ(first->T_a_b.rotation.coeffs(), second->T_a_b.rotation.coeffs());
+    EXPECT_EQ(first->matches, second->matches);
+    EXPECT_EQ(first->overlap, second->overlap);
+    EXPECT_EQ(first->rmse_m, second->rmse_m);
+  }
 }
 
 // The rasters answer exactly what a search of every occupied cell and the octree answer: at

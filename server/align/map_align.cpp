@@ -1,6 +1,7 @@
 #include "server/align/map_align.hpp"
 
 #include "server/align/fpfh.hpp"
+#include "server/align/icp.hpp"
 #include "server/align/space_raster.hpp"
 
 #include <omp.h>
@@ -10,8 +11,6 @@
 
 #include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
-#include <open3d/pipelines/registration/Registration.h>
-#include <open3d/pipelines/registration/TransformationEstimation.h>
 #include <open3d/utility/Logging.h>
 
 #include <Eigen/Eigenvalues>
@@ -32,11 +31,10 @@ namespace stereomap::align {
 
 namespace {
 
+using fusion::OccupancyMap;
 using open3d::geometry::KDTreeFlann;
 using open3d::geometry::KDTreeSearchParamHybrid;
 using open3d::geometry::PointCloud;
-namespace reg = open3d::pipelines::registration;
-using fusion::OccupancyMap;
 
 // OpenMP's thread count is process-wide: one alignment at a time.
 std::mutex g_align_mutex;
@@ -82,6 +80,7 @@ class Pyramid {
 // Normals point out of the surface, towards the free space the sensor saw it from: FPFH
 // compares normals' directions, and a map carries no per-voxel viewpoint.
 void orientTowardsFreeSpace(PointCloud& cloud, const ClassRaster& space, double edge) {
+#pragma omp parallel for schedule(static)
   for (size_t i = 0; i < cloud.points_.size(); ++i) {
     const Eigen::Vector3d& p = cloud.points_[i];
     Eigen::Vector3d& n = cloud.normals_[i];
@@ -153,14 +152,19 @@ void countInto(const Side& from, const Side& onto, const Eigen::Matrix4d& T, dou
                size_t& agree, size_t& contradict) {
   const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
   const Eigen::Vector3d t = T.block<3, 1>(0, 3);
-  for (const auto& p : from.sample->points_) {
-    const Eigen::Vector3d q = R * p + t;
+  const auto& points = from.sample->points_;
+  size_t agreeing = 0, contradicting = 0;
+#pragma omp parallel for schedule(static) reduction(+ : agreeing, contradicting)
+  for (size_t i = 0; i < points.size(); ++i) {
+    const Eigen::Vector3d q = R * points[i] + t;
     if (onto.cells->near(q, 1.5 * edge)) {
-      ++agree;
+      ++agreeing;
     } else if (onto.space->at(q) == fusion::Occupancy::kFree) {
-      ++contradict;
+      ++contradicting;
     }
   }
+  agree += agreeing;
+  contradict += contradicting;
 }
 
 Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
@@ -216,8 +220,18 @@ cv::Mat featureRows(const FpfhFeatures& feature) {
 cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, int k) {
   cv::theRNG() = cv::RNG(seed);
   cv::flann::Index index(in, cv::flann::KDTreeIndexParams(4));
-  cv::Mat nearest, distances;
-  index.knnSearch(queries, nearest, distances, k, cv::flann::SearchParams(64));
+  // The queries in one part per thread: a search reads the trees only, and each query's
+  // answer is its own, so the parts give the answers one search would.
+  cv::Mat nearest(queries.rows, k, CV_32S);
+  const int parts = omp_get_max_threads();
+#pragma omp parallel for schedule(static)
+  for (int part = 0; part < parts; ++part) {
+    const int from = queries.rows * part / parts, to = queries.rows * (part + 1) / parts;
+    if (from == to) continue;
+    cv::Mat found, distances;
+    index.knnSearch(queries.rowRange(from, to), found, distances, k, cv::flann::SearchParams(64));
+    found.copyTo(nearest.rowRange(from, to));
+  }
   return nearest;
 }
 
@@ -225,15 +239,29 @@ constexpr int kWiderNeighbours = 3;
 // A cell's feature describes at most this many of its neighbours within 5 cells.
 constexpr int kFeatureNeighbours = 50;
 
+// Each cell's nearest cells of the other map in feature space, both ways: rows of the
+// kWiderNeighbours nearest, nearest first. One search serves the mutual nearest matches and
+// the wider ones (a search for 3 finds the nearest at least as well as a search for 1).
+struct FeatureNeighbours {
+  cv::Mat b_to_a, a_to_b;
+};
+
+FeatureNeighbours featureNeighbours(const FpfhFeatures& fb, const FpfhFeatures& fa, uint32_t seed) {
+  const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
+  return {nearestRows(rows_a, rows_b, seed, kWiderNeighbours),
+          nearestRows(rows_b, rows_a, seed, kWiderNeighbours)};
+}
+
 // Mutual nearest neighbours in feature space (B's cell i, A's cell j), each among the other's
 // `k` nearest; one-way nearest when too few are mutual (a repetitive scene). Exact search in
 // 33 dimensions took a second for 13k cells.
-reg::CorrespondenceSet featureMatches(const FpfhFeatures& fb, const FpfhFeatures& fa, uint32_t seed,
-                                      int k) {
-  const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
-  const cv::Mat b_to_a = nearestRows(rows_a, rows_b, seed, k);
-  const cv::Mat a_to_b = nearestRows(rows_b, rows_a, seed, k);
-  reg::CorrespondenceSet one_way, mutual;
+// (B's cell, A's cell) pairs.
+using Matches = std::vector<Eigen::Vector2i>;
+
+Matches featureMatches(const FeatureNeighbours& nearest, int k) {
+  const cv::Mat& b_to_a = nearest.b_to_a;
+  const cv::Mat& a_to_b = nearest.a_to_b;
+  Matches one_way, mutual;
   for (int i = 0; i < b_to_a.rows; ++i) {
     for (int n = 0; n < k; ++n) {
       const int j = b_to_a.at<int>(i, n);
@@ -519,7 +547,8 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
         fpfhFeatures(*side_a.cloud, *side_a.tree, 5.0 * cell, kFeatureNeighbours);
     const auto feature_b =
         fpfhFeatures(*side_b.cloud, *side_b.tree, 5.0 * cell, kFeatureNeighbours);
-    auto remaining = featureMatches(feature_b, feature_a, options.seed, 1);
+    const FeatureNeighbours nearest = featureNeighbours(feature_b, feature_a, options.seed);
+    auto remaining = featureMatches(nearest, 1);
     out.matches += remaining.size();
     progress("matching " + std::to_string(remaining.size()) + " features");
     lap(out.steps.features);
@@ -528,15 +557,13 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     const auto consider = [&](const Eigen::Matrix4d& initial) {
       lap(out.steps.ransac);
       ++out.poses_tried;
-      Eigen::Matrix4d T = reg::RegistrationICP(*hypothesis_b, *side_a.cloud, 2.0 * cell, initial,
-                                               reg::TransformationEstimationPointToPlane(),
-                                               reg::ICPConvergenceCriteria(1e-6, 1e-6, 20))
-                              .transformation_;
+      Eigen::Matrix4d T = icpPointToPlane(hypothesis_b->points_, *side_a.cloud, *side_a.tree,
+                                          2.0 * cell, initial, 20, 1e-6)
+                              .T_target_source;
       if (score_depth != d) {
-        T = reg::RegistrationICP(*hypothesis_score_b, *score_a.cloud, 2.0 * score_edge, T,
-                                 reg::TransformationEstimationPointToPlane(),
-                                 reg::ICPConvergenceCriteria(1e-6, 1e-6, 20))
-                .transformation_;
+        T = icpPointToPlane(hypothesis_score_b->points_, *score_a.cloud, *score_a.tree,
+                            2.0 * score_edge, T, 20, 1e-6)
+                .T_target_source;
       }
       poses.push_back({T, scorePose(score_a, score_b, T, score_edge)});
       lap(out.steps.hypotheses);
@@ -562,7 +589,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
         lap(out.steps.judging);
         if (level_verdict->empty()) break;
         level_verdict.reset();  // more poses come: judged again below
-        remaining = featureMatches(feature_b, feature_a, options.seed, neighbours);
+        remaining = featureMatches(nearest, neighbours);
         out.matches += remaining.size();
         progress("matching " + std::to_string(remaining.size()) + " features, wider");
         lap(out.steps.features);
@@ -627,25 +654,32 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   progress("refining");
   lap(out.steps.judging);
   Eigen::Matrix4d T = best.T;
+  // Each finer level's cells of A near B's (moved), with normals, and the ICP there; at the
+  // finest, the fit's error over B's sample is the RMSE reported (measured there without
+  // refining when the scoring level is the finest, or a level had too little to refine with).
   double rmse = 0;
-  for (unsigned d = score_depth + 1; d <= fusion::kTreeDepth; ++d) {
+  bool refining = true;
+  for (unsigned d = score_depth; d <= fusion::kTreeDepth; ++d) {
     const double cell = a.cellSize(d);
+    const bool finest = d == fusion::kTreeDepth;
+    const bool refine = refining && d > score_depth;
+    if (!refine && !finest) continue;
     auto cells_b = thinned(pyramid_b.cloud(d), kScoreSample);
     auto cells_a = near(*pyramid_a.cloud(d), *cells_b, T, 3.0 * cell);
-    if (cells_a->points_.size() < 3) break;
-    cells_a->EstimateNormals(KDTreeSearchParamHybrid(2.5 * cell, 30));
-    const auto icp = reg::RegistrationICP(*cells_b, *cells_a, 2.0 * cell, T,
-                                          reg::TransformationEstimationPointToPlane(),
-                                          reg::ICPConvergenceCriteria(1e-7, 1e-7, 50));
-    if (icp.correspondence_set_.size() < 3) break;
-    T = icp.transformation_;
-  }
-  // The fit's error at the finest level (the whole of B's sample).
-  {
-    const double cell = a.resolution();
-    auto cells_b = thinned(pyramid_b.cloud(fusion::kTreeDepth), kScoreSample);
-    auto cells_a = near(*pyramid_a.cloud(fusion::kTreeDepth), *cells_b, T, 3.0 * cell);
-    rmse = reg::EvaluateRegistration(*cells_b, *cells_a, 2.0 * cell, T).inlier_rmse_;
+    if (cells_a->points_.size() < 3) {
+      refining = false;
+      continue;
+    }
+    if (refine) cells_a->EstimateNormals(KDTreeSearchParamHybrid(2.5 * cell, 30));
+    const KDTreeFlann tree_a(*cells_a);
+    const IcpFit fit =
+        icpPointToPlane(cells_b->points_, *cells_a, tree_a, 2.0 * cell, T, refine ? 50 : 0, 1e-7);
+    if (fit.matched < 3) {
+      refining = false;
+      continue;
+    }
+    T = fit.T_target_source;
+    if (finest) rmse = fit.rmse;
   }
   out.T_a_b = rigidOf(T);
   out.rmse_m = rmse;

@@ -6,7 +6,7 @@
 //     `max_points`, and the one finer), with normals oriented towards the map's own free
 //     space.
 //  2. At each level, FPFH features, mutual nearest matches (OpenCV's FLANN), then RANSAC over
-//     those matches (Open3D). RANSAC keeps only its best pose, so it is run again on the
+//     those matches. RANSAC keeps only its best pose, so it is run again on the
 //     matches the poses found so far do not explain: `hypotheses` poses per level, each
 //     refined by ICP and scored at the finer level. When their best does not pass the gates,
 //     matches among each other's 3 nearest add as many poses (low overlap: more true pairs).
@@ -16,7 +16,10 @@
 //  4. Gates, any of which refuses: too little overlap, too many contradictions, a second
 //     distinct pose that fits nearly as well (a symmetric room, a repeated pattern), or a
 //     match that does not pin a direction of translation (a road, a plain corridor).
-// Every random draw is seeded: the same maps give the same answer.
+// Every random draw is seeded and every parallel step sums in a fixed order: the same maps give
+// the same answer, with any number of threads. Open3D supplies the k-d trees and normals; the
+// FPFH, RANSAC and ICP are ours, computed as Open3D's but on shared trees and rasters
+// (fpfh.hpp, icp.hpp, space_raster.hpp), several times faster.
 //
 //   auto aligned = align::alignMaps(a, b, {});
 //   if (!aligned) error (empty map, different resolutions...);
@@ -61,8 +64,8 @@ struct AlignOptions {
   // tries again as a map grows and must not fall behind, goes without.
   bool wider_matches = true;
   uint32_t seed = 1;
-  // OpenMP threads of the feature and registration steps. More than one makes Open3D's RANSAC
-  // draw differently from run to run: the same maps may then get different answers.
+  // OpenMP threads of the normals, features, matching, ICP and scores; the answer does not
+  // depend on them. The server keeps to one (fusion comes first); the CLI takes every core.
   unsigned threads = 1;
   // Called between steps (what is being done), for progress on long work; may be empty.
   std::function<void(const std::string&)> progress;

@@ -3,11 +3,13 @@
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <thread>
 
 #include "common/files.hpp"
 #include "common/transform_args.hpp"
@@ -119,10 +121,10 @@ common::Result<core::MergeRequest> mergeRequestOf(const Args& a) {
 
 namespace {
 
-// One thread, as the server: Open3D's RANSAC draws differently on more, and the same maps
-// must give the same answer. Progress on stderr.
+// Every core (the answer is the same on any number of threads). Progress on stderr.
 align::AlignOptions toolAlignOptions() {
-  return {.threads = 1, .progress = [](const std::string& step) {
+  return {.threads = std::max(1u, std::thread::hardware_concurrency()),
+          .progress = [](const std::string& step) {
             std::fprintf(stderr, "align: %s\n", step.c_str());
           }};
 }

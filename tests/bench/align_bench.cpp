@@ -286,6 +286,10 @@ int main(int argc, char** argv) {
                  "Experiments: AlignOptions::hypotheses (RANSAC runs per level)")
       ->capture_default_str()
       ->check(CLI::Range(1, 16));
+  app.add_option("--threads", totals.options.threads,
+                 "AlignOptions::threads (the answers are the same with any number)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
   CLI11_PARSE(app, argc, argv);
   fusion::OctomapLogRoute octomap_log;  // OctoMap's "done." lines off the table
   const auto wanted = [&](const char* kind) {
