@@ -1,6 +1,14 @@
 #include "onboard/camera/prefetch_source.hpp"
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 namespace stereomap::camera {
+
+namespace {
+constexpr int kAheadNice = 10;  // of 19; the vehicle's threads run at 0
+}  // namespace
 
 PrefetchSource::PrefetchSource(std::unique_ptr<FrameSource> inner) : inner_(std::move(inner)) {}
 
@@ -16,7 +24,14 @@ std::optional<SourceFrame> PrefetchSource::next() {
     ended_ = true;
     return std::nullopt;
   }
-  ahead_ = std::async(std::launch::async, [this] { return inner_->next(); });
+  ahead_ = std::async(std::launch::async, [this] {
+    // A camera's hardware is not the vehicle's computer: the frame made ahead takes the CPU the
+    // vehicle's work leaves (on two cores, at its priority it took the vehicle's main thread
+    // from its own frames: the landing watch's 13 ms ran 25-50 ms). Lower priority, not less
+    // work: a render that cannot keep up still shows as the vehicle waiting, then late frames.
+    setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), kAheadNice);
+    return inner_->next();
+  });
   return frame;
 }
 

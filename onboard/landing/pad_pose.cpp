@@ -3,6 +3,7 @@
 #include <ceres/ceres.h>
 
 #include <cmath>
+#include <memory>
 #include <opencv2/calib3d.hpp>
 
 #include "onboard/camera/cv_pose.hpp"
@@ -85,18 +86,35 @@ double rmsOf(const Rigid3& T_camera_pad, const std::array<cv::Point2d, 8>& image
   return std::sqrt(squared / 8);
 }
 
+// A start refined on the edge points (or the corners), its problem kept for the covariance.
+// The loss is shared by every residual (one allocation, not one per edge point).
 struct Refined {
-  Rigid3 pose;
+  Refined(const Rigid3& start, double huber_px)
+      : q(start.rotation), t(start.translation), loss(huber_px) {
+    ceres::Problem::Options problem_options;
+    problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+    problem = std::make_unique<ceres::Problem>(problem_options);
+  }
+  Refined(const Refined&) = delete;
+  Refined& operator=(const Refined&) = delete;
+
+  Rigid3 pose() const { return {q.normalized(), t}; }
+
+  Eigen::Quaterniond q;
+  Vec3 t;
+  ceres::HuberLoss loss;
+  std::unique_ptr<ceres::Problem> problem;  // its parameter blocks are q and t above
   double cost = 0;
-  Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
+  int residuals = 0;
 };
 
-Refined refine(const Rigid3& start, const PadView& left, const std::optional<PadView>& right,
-               const camera::StereoCamera& camera, const PadPoseOptions& options) {
-  Eigen::Quaterniond q = start.rotation;
-  Vec3 t = start.translation;
-  ceres::Problem problem;
-  int residuals = 0;
+std::unique_ptr<Refined> refine(const Rigid3& start, const PadView& left,
+                                const std::optional<PadView>& right,
+                                const camera::StereoCamera& camera, const PadPoseOptions& options) {
+  auto out = std::make_unique<Refined>(start, options.huber_px);
+  ceres::Problem& problem = *out->problem;
+  double* q = out->q.coeffs().data();
+  double* t = out->t.data();
   auto add = [&](const PadView& view, double shift) {
     bool edges = true;
     for (const auto& side : view.edges) edges = edges && side.size() >= 2;
@@ -105,8 +123,8 @@ Refined refine(const Rigid3& start, const PadView& left, const std::optional<Pad
         problem.AddResidualBlock(
             new ceres::AutoDiffCostFunction<CornerError, 2, 4, 3>(
                 new CornerError{view.corners[k], padModel()[k], {shift, camera}}),
-            new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
-        residuals += 2;
+            &out->loss, q, t);
+        out->residuals += 2;
       }
       return;
     }
@@ -115,35 +133,42 @@ Refined refine(const Rigid3& start, const PadView& left, const std::optional<Pad
         problem.AddResidualBlock(
             new ceres::AutoDiffCostFunction<EdgeError, 1, 4, 3>(
                 new EdgeError{point, padModel()[k], padModel()[(k + 1) % 8], {shift, camera}}),
-            new ceres::HuberLoss(options.huber_px), q.coeffs().data(), t.data());
-        ++residuals;
+            &out->loss, q, t);
+        ++out->residuals;
       }
     }
   };
   add(left, 0.0);
   if (right) add(*right, camera.baseline);
-  problem.SetManifold(q.coeffs().data(), new ceres::EigenQuaternionManifold);
+  problem.SetManifold(q, new ceres::EigenQuaternionManifold);
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::DENSE_QR;
   solver.max_num_iterations = 50;
   ceres::Solver::Summary summary;
   ceres::Solve(solver, &problem, &summary);
-  Refined out{{q.normalized(), t}, summary.final_cost};
+  out->cost = summary.final_cost;
+  return out;
+}
+
+// The pose's covariance (rotation, translation in the tangent space), for the chosen start
+// only: it costs as much as the solve.
+Eigen::Matrix<double, 6, 6> covarianceOf(Refined& refined) {
+  double* q = refined.q.coeffs().data();
+  double* t = refined.t.data();
   ceres::Covariance::Options covariance_options;
   ceres::Covariance covariance(covariance_options);
-  const std::vector<std::pair<const double*, const double*>> blocks = {
-      {q.coeffs().data(), q.coeffs().data()}, {q.coeffs().data(), t.data()}, {t.data(), t.data()}};
-  if (covariance.Compute(blocks, &problem)) {
-    Eigen::Matrix<double, 6, 6, Eigen::RowMajor> c;
-    const std::vector<const double*> order = {q.coeffs().data(), t.data()};
-    if (covariance.GetCovarianceMatrixInTangentSpace(order, c.data())) {
-      // Unit pixel noise in the solve; scaled by the residuals' own variance (no less than
-      // a tenth of a pixel: a perfect fit is not a perfect measurement).
-      const double variance = std::max(2.0 * summary.final_cost / std::max(residuals - 6, 1), 0.01);
-      out.covariance = c * variance;
-    }
+  const std::vector<std::pair<const double*, const double*>> blocks = {{q, q}, {q, t}, {t, t}};
+  if (!covariance.Compute(blocks, refined.problem.get()))
+    return Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 6, Eigen::RowMajor> c;
+  const std::vector<const double*> order = {q, t};
+  if (!covariance.GetCovarianceMatrixInTangentSpace(order, c.data())) {
+    return Eigen::Matrix<double, 6, 6>::Zero();
   }
-  return out;
+  // Unit pixel noise in the solve; scaled by the residuals' own variance (no less than a tenth
+  // of a pixel: a perfect fit is not a perfect measurement).
+  const double variance = std::max(2.0 * refined.cost / std::max(refined.residuals - 6, 1), 0.01);
+  return c * variance;
 }
 
 }  // namespace
@@ -263,24 +288,24 @@ PadPose estimatePadPose(const PadView& left_view, const std::optional<PadView>& 
     const cv::Matx33d K(camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
     std::vector<cv::Mat> rvecs, tvecs;
     cv::solvePnPGeneric(object, image, K, cv::noArray(), rvecs, tvecs, false, cv::SOLVEPNP_IPPE);
-    std::optional<Refined> best;
+    std::unique_ptr<Refined> best;
     for (size_t i = 0; i < rvecs.size(); ++i) {
       const Rigid3 start = camera::rigidFromRvecTvec(rvecs[i], tvecs[i]);
       if (start.translation.z() <= 0) continue;
-      Refined refined = refine(start, left_view, right_view, camera, options);
-      if (!best || refined.cost < best->cost) best = refined;
+      auto refined = refine(start, left_view, right_view, camera, options);
+      if (!best || refined->cost < best->cost) best = std::move(refined);
     }
     if (!best) {
       result.reason = "no pose in front of the camera fits the corners";
       return result;
     }
-    result.T_camera_pad = best->pose;
-    result.covariance = best->covariance;
+    result.T_camera_pad = best->pose();
+    result.covariance = covarianceOf(*best);
     result.stereo = right.has_value();
-    const double rms_left = rmsOf(best->pose, left, camera, 0.0);
+    const double rms_left = rmsOf(best->pose(), left, camera, 0.0);
     result.rms_px =
         right ? std::sqrt(0.5 * (rms_left * rms_left +
-                                 std::pow(rmsOf(best->pose, *right, camera, camera.baseline), 2)))
+                                 std::pow(rmsOf(best->pose(), *right, camera, camera.baseline), 2)))
               : rms_left;
   }
   result.euler_deg = eulerZyx(result.T_camera_pad.rotation) * 180.0 / M_PI;

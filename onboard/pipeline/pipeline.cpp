@@ -736,9 +736,13 @@ PipelineSummary runPipeline(camera::FrameSource& source, VehiclePublisher* publi
         ++run.summary().late_frames;
       }
     }
-    const auto frame_start = Clock::now();
+    const auto taken = Clock::now();
     auto frame = source.next();
     if (!frame) break;
+    // A live source's next() waits for its camera (the simulators render as a camera's own
+    // hardware would, see camera::PrefetchSource; the first frame too): the vehicle's work on
+    // a frame starts when the frame is in hand. Reading a recording is the vehicle's work.
+    const auto frame_start = source.live() ? Clock::now() : taken;
     run.step(*frame, frame_start);
   }
   return run.finish();
