@@ -90,7 +90,7 @@ void addFlags(CLI::App& app, Flags& f) {
       ->capture_default_str();
   app.add_option("--start", f.start_s,
                  "The simulators: seconds into the flight to begin; sim: into its 40 s loop, "
-                 "sim:deck: into its 60 s descent (50: the last 6.5 m, the final approach)")
+                 "sim:deck: into its 60 s descent (52: the last 5.3 m, the final approach)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   app.add_option("--rate", f.rate_hz, "Frames per second (0: as fast as possible)")
