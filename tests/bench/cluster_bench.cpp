@@ -14,9 +14,11 @@
 //     vehicle sends them) at --rate samples/s for --seconds into both servers: the servers'
 //     commit p99 (their /metrics, the newest 32768 commits) and the rate committed (R, rows in
 //     the database during the window).
-// The last line is the figure line.
+// The last line is the figure line. --series FILE: the failover's samples committed
+// over time, per session, as CSV (failoverSeries), for scripts/plot-benchmarks.
 //
 //   stereomap-bench-cluster [--rate 2000] [--seconds 20] [--vehicles 16] [--only failover,...]
+//                           [--series FILE]
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
@@ -24,6 +26,7 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <random>
@@ -54,6 +57,12 @@ double secondsSince(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
+// psql's answer without its trailing newline (a value to put back into a statement).
+std::string trimmed(std::string text) {
+  while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
+  return text;
+}
+
 struct Figures {
   double failover_s = -1, resumed_s = -1, viewer_s = -1;
   long lost = 0, duplicated = 0;
@@ -82,7 +91,32 @@ void countLosses(testing::ClusterHarness& cluster, int first, int count, Figures
   }
 }
 
-void failover(testing::ClusterHarness& cluster, Figures& f) {
+// The flights' samples committed per half second and session, timed from the kill
+// (`killed_at`, on the database's clock): when each session's commits stop and start again.
+// `owners`: who had each session before the kill.
+void failoverSeries(testing::ClusterHarness& cluster, const std::string& killed_at,
+                    const std::map<std::string, std::string>& owners, const std::string& victim,
+                    const std::string& path) {
+  std::ofstream out(path);
+  out << "session,on_killed_server,bin_start_s,bin_s,samples_committed\n";
+  std::istringstream rows(cluster.query(
+      "SELECT session, (floor(extract(epoch FROM committed_at - '" + killed_at +
+      "'::timestamptz) * 2) / 2)::float8 AS bin, count(*) FROM sm_journal WHERE session LIKE "
+      "'flight%' GROUP BY session, bin ORDER BY session, bin"));
+  for (std::string line; std::getline(rows, line);) {
+    std::istringstream fields(line);
+    std::string session, bin, count;
+    std::getline(fields, session, '|');
+    std::getline(fields, bin, '|');
+    std::getline(fields, count);
+    const auto owner = owners.find(session);
+    out << session << ',' << (owner != owners.end() && owner->second == victim) << ',' << bin
+        << ",0.5," << count << '\n';
+  }
+  if (!out) std::fprintf(stderr, "failover: cannot write %s\n", path.c_str());
+}
+
+void failover(testing::ClusterHarness& cluster, Figures& f, const std::string& series_path) {
   cluster.startServer(kDomain, "a");
   cluster.startServer(kDomain, "b");
   std::string why;
@@ -99,8 +133,11 @@ void failover(testing::ClusterHarness& cluster, Figures& f) {
   }
   const std::string victim = cluster.owners()["flight0"];
   const std::string survivor = victim == "a" ? "b" : "a";
+  const auto owners = cluster.owners();
   size_t taken = 0;
-  for (const auto& [session, owner] : cluster.owners()) taken += owner == victim;
+  for (const auto& [session, owner] : owners) taken += owner == victim;
+  // The kill's moment on the commits' clock (the database's), for --series.
+  const std::string killed_at = trimmed(cluster.query("SELECT clock_timestamp()"));
   cluster.server(victim).process().kill9();
   const auto killed = Clock::now();
   std::atomic<bool> seen{false};
@@ -134,6 +171,7 @@ void failover(testing::ClusterHarness& cluster, Figures& f) {
   if (!cluster.waitForVehicles(180s, &why))
     std::fprintf(stderr, "a vehicle failed: %s\n", why.c_str());
   countLosses(cluster, 0, 4, f);
+  if (!series_path.empty()) failoverSeries(cluster, killed_at, owners, victim, series_path);
 }
 
 void fenced(testing::ClusterHarness& cluster, Figures& f) {
@@ -311,14 +349,10 @@ void load(testing::ClusterHarness& cluster,
   const double sent_s = secondsSince(start);
   std::this_thread::sleep_for(1s);  // what was sent last, committed
   const std::string t1 = cluster.query("SELECT clock_timestamp()");
-  auto trim = [](std::string text) {
-    while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
-    return text;
-  };
   const std::string committed = cluster.query(
       "SELECT count(*), extract(epoch FROM max(committed_at) - min(committed_at)) FROM sm_journal "
       "WHERE session LIKE 'load%' AND committed_at BETWEEN '" +
-      trim(t0) + "' AND '" + trim(t1) + "'");
+      trimmed(t0) + "' AND '" + trimmed(t1) + "'");
   const auto bar = committed.find('|');
   if (bar != std::string::npos) {
     const double rows = std::stod(committed.substr(0, bar));
@@ -362,6 +396,9 @@ int main(int argc, char** argv) {
   app.add_option("--only", only, "Comma-separated phases: failover,fenced,tiles,load")
       ->capture_default_str();
   app.add_option("--campus", campus, "The campus map for the tile phase")->capture_default_str();
+  std::string series_path;
+  app.add_option("--series", series_path,
+                 "Write the failover's samples committed per session over time to this CSV file");
   CLI11_PARSE(app, argc, argv);
   auto want = [&](const char* phase) { return only.find(phase) != std::string::npos; };
 
@@ -372,7 +409,8 @@ int main(int argc, char** argv) {
     return 1;
   }
   Figures f;
-  if (want("failover") || want("load")) failover(*cluster, f);  // load replays its flight
+  if (want("failover") || want("load"))
+    failover(*cluster, f, series_path);  // load replays its flight
   if (want("fenced")) fenced(*cluster, f);
   if (want("tiles")) {
     if (std::filesystem::exists(campus)) {

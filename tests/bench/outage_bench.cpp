@@ -11,10 +11,11 @@
 //   - restart: the vehicle killed (SIGKILL) during an outage and started again on its spool; every
 //     sample the first process sent must be journaled.
 //   - spool: bytes the spool writes per minute of flight, thinned and whole clouds.
-// The last line is the issue's figure line.
+// The last line is the issue's figure line. --series FILE: the outage's flight second by second
+// as CSV (FlightSeries), for scripts/plot-benchmarks.
 //
 //   stereomap-bench-outage [--down 60] [--flight 180] [--at 60] [--only outage,overload,...]
-//                          [--secured]
+//                          [--secured] [--series FILE]
 #include <spdlog/fmt/fmt.h>
 #include <CLI/CLI.hpp>
 
@@ -22,13 +23,16 @@
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <optional>
 #include <sstream>
+#include <stdexcept>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "proto/dds.hpp"
 #include "tests/support/secure_deployment.hpp"
 #include "tests/support/server_fixture.hpp"
 #include "tests/support/stream_count.hpp"
@@ -94,6 +98,57 @@ std::vector<std::string> vehicleArgs(int frames, double rate, const std::string&
   return argv;
 }
 
+// The outage's flight second by second: the vehicle's own counters (its once-a-second
+// VehicleStatus, read here on DDS as a server reads it, so they go on through the outage) and
+// the poses the server holds while it is up. Empty cells: not known that second. Without
+// --secured only: the bench's participant has no identity in a secured domain.
+class FlightSeries {
+ public:
+  explicit FlightSeries(const std::string& path) : out_(path), start_(Clock::now()) {
+    if (!out_) throw std::runtime_error("cannot write " + path);
+    out_ << "seconds,server_up,vehicle_frames,spool_samples,spool_bytes,server_poses,"
+            "pose_age_p95_ms\n";
+    auto participant =
+        proto::Participant::create({.domain_id = kDomain, .config_file = STEREOMAP_DDS_CONFIG});
+    if (!participant) return;
+    participant_ = *participant;
+    auto reader = proto::Reader<proto::VehicleStatusMsg>::create(participant_,
+                                                                 {proto::kEverySessionPartition});
+    if (reader) reader_ = std::move(reader).value();
+  }
+  // A row for now; `server` is null while it is away, `age_ms` the live poses' age p95.
+  void sample(const testing::ServerProcess* server, std::optional<double> age_ms) {
+    std::vector<proto::VehicleStatusMsg> statuses;
+    if (reader_) reader_->take(statuses, std::chrono::milliseconds(0));
+    for (const auto& status : statuses) {
+      if (!latest_ || status.stamp_ns > latest_->stamp_ns) latest_ = status;
+    }
+    out_ << fmt::format("{:.1f},{:d},",
+                        std::chrono::duration<double>(Clock::now() - start_).count(),
+                        server != nullptr);
+    if (latest_) {
+      out_ << fmt::format("{},{},{},", latest_->frames, latest_->spool_samples,
+                          latest_->spool_bytes);
+    } else {
+      out_ << ",,,";
+    }
+    const double poses = server ? testing::numberIn(server->get("/api/sessions/" + kSession).body,
+                                                    R"("poses":([0-9]+))")
+                                : -1;
+    if (poses >= 0) out_ << fmt::format("{:.0f}", poses);
+    out_ << ',';
+    if (age_ms) out_ << fmt::format("{:.0f}", *age_ms);
+    out_ << '\n' << std::flush;
+  }
+
+ private:
+  std::ofstream out_;
+  Clock::time_point start_;
+  std::shared_ptr<proto::Participant> participant_;
+  std::unique_ptr<proto::Reader<proto::VehicleStatusMsg>> reader_;
+  std::optional<proto::VehicleStatusMsg> latest_;
+};
+
 struct OutageRun {
   double down_s = 0;
   size_t poses = 0, poses_sent = 0, clouds = 0, clouds_sent = 0, repeated = 0, duplicates = 0;
@@ -102,9 +157,11 @@ struct OutageRun {
   double spool_mib = 0, flight_s = 0;
 };
 
-// One flight with the server away `down_s` seconds from `at_s` on.
+// One flight with the server away `down_s` seconds from `at_s` on; `series`, when given, gets
+// a row a second until the vehicle is done.
 OutageRun outage(double flight_s, double at_s, double down_s,
-                 const std::vector<std::string>& extra = {}, const std::string& label = "") {
+                 const std::vector<std::string>& extra = {}, const std::string& label = "",
+                 FlightSeries* series = nullptr) {
   OutageRun run{.down_s = down_s, .flight_s = flight_s};
   const std::string store = testing::makeTempDir("stereomap-outage-store");
   const std::string spool = store + ".spool";
@@ -112,20 +169,39 @@ OutageRun outage(double flight_s, double at_s, double down_s,
   auto server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store);
   testing::ChildProcess vehicle(vehicleArgs(static_cast<int>(flight_s * 10), 10, spool, extra),
                                 vehicle_log);
+  // The live poses' age p95 at the server (ms), while it is up and has one.
+  auto live_age_ms = [&]() -> std::optional<double> {
+    const auto age = server ? poseAgeP95(*server) : std::nullopt;
+    return age ? std::optional(*age * 1000) : std::nullopt;
+  };
+  // Waits `seconds`, a row of the series a second meanwhile.
+  auto wait = [&](double seconds) {
+    const auto end = Clock::now() + std::chrono::duration<double>(seconds);
+    for (auto next = Clock::now(); next < end; next += 1s) {
+      std::this_thread::sleep_until(next);
+      if (series) series->sample(server.get(), live_age_ms());
+    }
+    std::this_thread::sleep_until(end);
+  };
   if (down_s > 0) {
-    std::this_thread::sleep_for(std::chrono::duration<double>(at_s));
+    wait(at_s);
     server->process().kill9();
     server.reset();
-    std::this_thread::sleep_for(std::chrono::duration<double>(down_s));
+    wait(down_s);
     server = std::make_unique<testing::ServerProcess>(kDomain, serverArgs(), store, true, 120s);
   }
-  // Live poses' age while the vehicle catches up (it says when it has).
-  while (vehicle.running() &&
-         testing::readText(vehicle_log).find("link: caught up") == std::string::npos) {
-    if (const auto age = poseAgeP95(*server)) {
-      run.live_age_p95_ms = std::max(run.live_age_p95_ms, *age * 1000);
-      std::fprintf(stderr, "catching up: live pose age p95 %.0f ms\n", *age * 1000);
+  // Live poses' age while the vehicle catches up (it says when it has); the series goes on to
+  // the flight's end.
+  while (vehicle.running()) {
+    const bool caught_up =
+        testing::readText(vehicle_log).find("link: caught up") != std::string::npos;
+    if (caught_up && !series) break;
+    const auto age_ms = live_age_ms();
+    if (age_ms && !caught_up) {
+      run.live_age_p95_ms = std::max(run.live_age_p95_ms, *age_ms);
+      std::fprintf(stderr, "catching up: live pose age p95 %.0f ms\n", *age_ms);
     }
+    if (series) series->sample(server.get(), age_ms);
     std::this_thread::sleep_for(1s);
   }
   const auto code = vehicle.waitExit(std::chrono::seconds(static_cast<int>(flight_s) + 300));
@@ -250,6 +326,10 @@ int main(int argc, char** argv) {
   bool secured = false;
   app.add_flag("--secured", secured,
                "Server and vehicle with DDS Security (a deployment made by stereomap-certs)");
+  std::string series_path;
+  app.add_option("--series", series_path,
+                 "Write the outage's flight second by second to this CSV file")
+      ->excludes("--secured");
   CLI11_PARSE(app, argc, argv);
   if (secured) {
     g_deployment = testing::makeDeployment({"sim-1"});
@@ -276,7 +356,14 @@ int main(int argc, char** argv) {
         "received again | caught up (s) | live pose age p95 during catch-up (ms) | spool MB per "
         "minute |\n"
         "|---|---|---|---|---|---|---|---|\n");
-    main_run = outage(flight_s, at_s, down_s);
+    std::optional<FlightSeries> series;
+    try {
+      if (!series_path.empty()) series.emplace(series_path);
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "--series: %s\n", e.what());
+      return 1;
+    }
+    main_run = outage(flight_s, at_s, down_s, {}, "", series ? &*series : nullptr);
   }
   if (wanted("spool")) {
     std::printf(
