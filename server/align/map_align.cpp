@@ -6,6 +6,8 @@
 
 #include <omp.h>
 
+#include <unordered_map>
+
 #include <opencv2/core.hpp>
 #include <opencv2/flann.hpp>
 
@@ -177,6 +179,50 @@ Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, doub
   score.overlap = std::max(static_cast<double>(agree_a) / a.sample->points_.size(),
                            static_cast<double>(agree_b) / b.sample->points_.size());
   return score;
+}
+
+// Which of a side's sample cells lie off its large planes: a cell is on one when many cells
+// share its plane (normal direction to about 15 degrees, offset to about two cells), as a
+// floor's or a wall's do; a box's face, an edge or clutter is not.
+std::vector<char> offPlanes(const Side& side, double edge) {
+  const auto key = [&](const Eigen::Vector3d& n, const Eigen::Vector3d& p, int shift) {
+    const Eigen::Vector3d d = (n * 4.0).array().round();
+    const long offset = std::lround(n.dot(p) / (2.0 * edge)) + shift;
+    return std::to_string(static_cast<int>(d.x())) + "," + std::to_string(static_cast<int>(d.y())) +
+           "," + std::to_string(static_cast<int>(d.z())) + "," + std::to_string(offset);
+  };
+  std::unordered_map<std::string, size_t> planes;
+  const auto& cloud = *side.cloud;
+  for (size_t i = 0; i < cloud.points_.size(); ++i)
+    ++planes[key(cloud.normals_[i], cloud.points_[i], 0)];
+  const size_t large = std::max<size_t>(50, cloud.points_.size() / 50);
+  const auto& sample = *side.sample;
+  std::vector<char> off(sample.points_.size());
+  for (size_t i = 0; i < sample.points_.size(); ++i) {
+    size_t on = 0;
+    for (const int shift : {-1, 0, 1}) {
+      const auto found = planes.find(key(sample.normals_[i], sample.points_[i], shift));
+      if (found != planes.end()) on += found->second;
+    }
+    off[i] = on < large;
+  }
+  return off;
+}
+
+// countInto over the cells off `from`'s large planes only.
+void countOffPlanes(const Side& from, const std::vector<char>& off, const Side& onto,
+                    const Eigen::Matrix4d& T, double edge, size_t& agree, size_t& contradict) {
+  const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
+  const Eigen::Vector3d t = T.block<3, 1>(0, 3);
+  for (size_t i = 0; i < from.sample->points_.size(); ++i) {
+    if (!off[i]) continue;
+    const Eigen::Vector3d q = R * from.sample->points_[i] + t;
+    if (onto.cells->near(q, 1.5 * edge)) {
+      ++agree;
+    } else if (onto.space->at(q) == fusion::Occupancy::kFree) {
+      ++contradict;
+    }
+  }
 }
 
 // How the matched cells' normals constrain translation (point-to-plane: each match pins its
@@ -499,6 +545,15 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
       slid = std::max(slid, scorePose(score_a, score_b, moved, score_edge).value());
     }
     out.slide = score.value() > 0 ? slid / score.value() : 1.0;
+    size_t off_agree = 0, off_contradict = 0;
+    countOffPlanes(score_b, offPlanes(score_b, score_edge), score_a, T, score_edge, off_agree,
+                   off_contradict);
+    countOffPlanes(score_a, offPlanes(score_a, score_edge), score_b, T.inverse(), score_edge,
+                   off_agree, off_contradict);
+    out.structure_agreement =
+        off_agree + off_contradict > 0
+            ? static_cast<double>(off_agree) / static_cast<double>(off_agree + off_contradict)
+            : 0.0;
     char reason[200];
     if (out.overlap < options.min_overlap) {
       std::snprintf(reason, sizeof(reason),
@@ -525,6 +580,11 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                     "degenerate: slid %.0f cells along its weakest direction the match holds "
                     "%.0f%% of its score (a road, a corridor, a floor and one wall)",
                     kSlideCells, 100 * out.slide);
+    } else if (out.structure_agreement < options.min_structure_agreement) {
+      std::snprintf(reason, sizeof(reason),
+                    "another place like it: floors and walls match, but %.0f%% of what stands "
+                    "off them (boxes, edges, clutter) falls in the other map's free space",
+                    100 * (1 - out.structure_agreement));
     } else {
       reason[0] = '\0';
     }

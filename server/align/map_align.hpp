@@ -58,6 +58,12 @@ struct AlignOptions {
   // Measured (stereomap-bench-align): poses found right 0-0.83 (a road: 0.70-0.83), wrong ones
   // that passed every other gate 0.96-1.11 (a floor and one wall, a road slid along).
   double max_slide = 0.9;
+  // The cells off each map's large planes (boxes, edges, clutter) that fall in the other's
+  // free space: floors and walls agree under a wrong pose in a room like the right one, the
+  // rest does not. Measured (stereomap-bench-align): poses found right 0.955-1.000 (KITTI's
+  // parked and passing cars the lowest), a stretch of a room placed in a similar room
+  // 0.761-0.800 (--only small; every other gate passed).
+  double min_structure_agreement = 0.9;
   int hypotheses = 4;  // RANSAC runs per search level
   // When the mutual matches' best pose does not pass, matches among each other's 3 nearest
   // too: more pairs of little overlap found, refusals twice the work. The live aligner, which
@@ -84,6 +90,7 @@ struct Alignment {
   // The score of the pose slid 3 cells along its weakest direction, over its own: near 1
   // when the match does not pin that direction. See AlignOptions::max_slide.
   double slide = 0;
+  double structure_agreement = 0;  // 0..1, see AlignOptions::min_structure_agreement
   double working_cell_m = 0;
   size_t voxels_a = 0, voxels_b = 0;  // occupied, finest
   size_t matches = 0;                 // feature matches RANSAC started from
