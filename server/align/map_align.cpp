@@ -185,13 +185,14 @@ Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, doub
 // share its plane (normal direction to about 15 degrees, offset to about two cells), as a
 // floor's or a wall's do; a box's face, an edge or clutter is not.
 std::vector<char> offPlanes(const Side& side, double edge) {
+  // The plane's bin: the normal rounded to quarters (each component -4..4) and the offset in
+  // steps of two cells, packed in one integer.
   const auto key = [&](const Eigen::Vector3d& n, const Eigen::Vector3d& p, int shift) {
-    const Eigen::Vector3d d = (n * 4.0).array().round();
-    const long offset = std::lround(n.dot(p) / (2.0 * edge)) + shift;
-    return std::to_string(static_cast<int>(d.x())) + "," + std::to_string(static_cast<int>(d.y())) +
-           "," + std::to_string(static_cast<int>(d.z())) + "," + std::to_string(offset);
+    const Eigen::Vector3i d = (n * 4.0).array().round().cast<int>() + 4;
+    const int64_t offset = std::lround(n.dot(p) / (2.0 * edge)) + shift;
+    return ((offset * 9 + d.x()) * 9 + d.y()) * 9 + d.z();
   };
-  std::unordered_map<std::string, size_t> planes;
+  std::unordered_map<int64_t, size_t> planes;
   const auto& cloud = *side.cloud;
   for (size_t i = 0; i < cloud.points_.size(); ++i)
     ++planes[key(cloud.normals_[i], cloud.points_[i], 0)];
