@@ -148,16 +148,18 @@ struct Score {
   static constexpr double kContradictionWeight = 10;
 };
 
-// Cells of `from` moved by T into `onto`: agreeing (an occupied cell of `onto` within 1.5
-// cells) or contradicting (in `onto`'s free space); the rest fall in unknown space.
+// Cells of `from` moved by T into `onto` (those `only` marks, when given): agreeing (an occupied
+// cell of `onto` within 1.5 cells) or contradicting (in `onto`'s free space); the rest fall in
+// unknown space.
 void countInto(const Side& from, const Side& onto, const Eigen::Matrix4d& T, double edge,
-               size_t& agree, size_t& contradict) {
+               size_t& agree, size_t& contradict, const std::vector<char>* only = nullptr) {
   const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
   const Eigen::Vector3d t = T.block<3, 1>(0, 3);
   const auto& points = from.sample->points_;
   size_t agreeing = 0, contradicting = 0;
 #pragma omp parallel for schedule(static) reduction(+ : agreeing, contradicting)
   for (size_t i = 0; i < points.size(); ++i) {
+    if (only && !(*only)[i]) continue;
     const Eigen::Vector3d q = R * points[i] + t;
     if (onto.cells->near(q, 1.5 * edge)) {
       ++agreeing;
@@ -181,49 +183,60 @@ Score scorePose(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, doub
   return score;
 }
 
-// Which of a side's sample cells lie off its large planes: a cell is on one when many cells
-// share its plane (normal direction to about 15 degrees, offset to about two cells), as a
-// floor's or a wall's do; a box's face, an edge or clutter is not.
+// Which of a side's sample cells lie off its large planes (floors, walls, facades, a road):
+// a plane is large when at least 2 % of the cells (50 at the least) lie within 1.5 cells of it.
+// Planes are found by position, not by the cells' normals, which stereo's noise scatters: one
+// at a time, the best of planes through a cell along its normal (counted on an even share of
+// the cells), fitted again to the cells it holds, and its cells taken out.
 std::vector<char> offPlanes(const Side& side, double edge) {
-  // The plane's bin: the normal rounded to quarters (each component -4..4) and the offset in
-  // steps of two cells, packed in one integer.
-  const auto key = [&](const Eigen::Vector3d& n, const Eigen::Vector3d& p, int shift) {
-    const Eigen::Vector3i d = (n * 4.0).array().round().cast<int>() + 4;
-    const int64_t offset = std::lround(n.dot(p) / (2.0 * edge)) + shift;
-    return ((offset * 9 + d.x()) * 9 + d.y()) * 9 + d.z();
-  };
-  std::unordered_map<int64_t, size_t> planes;
-  const auto& cloud = *side.cloud;
-  for (size_t i = 0; i < cloud.points_.size(); ++i)
-    ++planes[key(cloud.normals_[i], cloud.points_[i], 0)];
-  const size_t large = std::max<size_t>(50, cloud.points_.size() / 50);
-  const auto& sample = *side.sample;
-  std::vector<char> off(sample.points_.size());
-  for (size_t i = 0; i < sample.points_.size(); ++i) {
-    size_t on = 0;
-    for (const int shift : {-1, 0, 1}) {
-      const auto found = planes.find(key(sample.normals_[i], sample.points_[i], shift));
-      if (found != planes.end()) on += found->second;
+  constexpr int kMaxPlanes = 16;
+  constexpr size_t kProbes = 2000, kSeeds = 200;
+  const auto& cells = side.sample->points_;
+  const auto& normals = side.sample->normals_;
+  const size_t n = cells.size();
+  const size_t large = std::max<size_t>(50, n / 50);
+  const double reach = 1.5 * edge;
+  std::vector<char> off(n, 1);
+  std::vector<size_t> probes;  // an even share of the cells still off every plane found
+  for (size_t k = 0, step = std::max<size_t>(1, n / kProbes); k < n; k += step) probes.push_back(k);
+  for (int plane = 0; plane < kMaxPlanes && probes.size() >= 3; ++plane) {
+    const auto holds = [&](const Eigen::Vector3d& normal, double offset, const Eigen::Vector3d& p) {
+      return std::abs(normal.dot(p) - offset) <= reach;
+    };
+    size_t best_count = 0;
+    Eigen::Vector3d best_normal = Eigen::Vector3d::UnitZ();
+    double best_offset = 0;
+    for (size_t s = 0, step = std::max<size_t>(1, probes.size() / kSeeds); s < probes.size();
+         s += step) {
+      if (normals[probes[s]].norm() < 0.5) continue;  // a cell too isolated to have one
+      const Eigen::Vector3d normal = normals[probes[s]].normalized();
+      const double offset = normal.dot(cells[probes[s]]);
+      size_t count = 0;
+      for (const size_t i : probes) count += holds(normal, offset, cells[i]);
+      if (count > best_count) best_count = count, best_normal = normal, best_offset = offset;
     }
-    off[i] = on < large;
+    // The plane fitted to the probes it holds (their centroid and least-varying direction).
+    Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+    std::vector<size_t> held;
+    for (const size_t i : probes) {
+      if (holds(best_normal, best_offset, cells[i])) held.push_back(i), centroid += cells[i];
+    }
+    if (held.size() < 3) break;
+    centroid /= static_cast<double>(held.size());
+    Eigen::Matrix3d spread = Eigen::Matrix3d::Zero();
+    for (const size_t i : held) spread += (cells[i] - centroid) * (cells[i] - centroid).transpose();
+    const Eigen::Vector3d normal =
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(spread).eigenvectors().col(0);
+    const double offset = normal.dot(centroid);
+    size_t count = 0;
+    for (size_t i = 0; i < n; ++i) count += off[i] && holds(normal, offset, cells[i]);
+    if (count < large) break;
+    for (size_t i = 0; i < n; ++i) {
+      if (holds(normal, offset, cells[i])) off[i] = 0;
+    }
+    std::erase_if(probes, [&](size_t i) { return !off[i]; });
   }
   return off;
-}
-
-// countInto over the cells off `from`'s large planes only.
-void countOffPlanes(const Side& from, const std::vector<char>& off, const Side& onto,
-                    const Eigen::Matrix4d& T, double edge, size_t& agree, size_t& contradict) {
-  const Eigen::Matrix3d R = T.block<3, 3>(0, 0);
-  const Eigen::Vector3d t = T.block<3, 1>(0, 3);
-  for (size_t i = 0; i < from.sample->points_.size(); ++i) {
-    if (!off[i]) continue;
-    const Eigen::Vector3d q = R * from.sample->points_[i] + t;
-    if (onto.cells->near(q, 1.5 * edge)) {
-      ++agree;
-    } else if (onto.space->at(q) == fusion::Occupancy::kFree) {
-      ++contradict;
-    }
-  }
 }
 
 // How the matched cells' normals constrain translation (point-to-plane: each match pins its
@@ -511,6 +524,8 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const Eigen::Vector3d centre_b = score_b.cloud->GetCenter();
   // Poses are told apart on a share of B's cells; only the best is refined on all of them.
   const auto hypothesis_score_b = thinned(score_b.cloud, kHypothesisSample);
+  const std::vector<char> off_planes_a = offPlanes(score_a, score_edge),
+                          off_planes_b = offPlanes(score_b, score_edge);
   lap(out.steps.levels);
 
   // The best score among poses distinct from the best (sorted, best first).
@@ -547,15 +562,14 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     }
     out.slide = score.value() > 0 ? slid / score.value() : 1.0;
     size_t off_agree = 0, off_contradict = 0;
-    countOffPlanes(score_b, offPlanes(score_b, score_edge), score_a, T, score_edge, off_agree,
-                   off_contradict);
-    countOffPlanes(score_a, offPlanes(score_a, score_edge), score_b, T.inverse(), score_edge,
-                   off_agree, off_contradict);
+    countInto(score_b, score_a, T, score_edge, off_agree, off_contradict, &off_planes_b);
+    countInto(score_a, score_b, T.inverse(), score_edge, off_agree, off_contradict, &off_planes_a);
+    out.structure_cells = off_agree + off_contradict;
     out.structure_agreement =
         off_agree + off_contradict > 0
             ? static_cast<double>(off_agree) / static_cast<double>(off_agree + off_contradict)
             : 0.0;
-    char reason[200];
+    char reason[256];
     if (out.overlap < options.min_overlap) {
       std::snprintf(reason, sizeof(reason),
                     "the maps do not overlap enough: %.0f%% of the smaller one matches at "
@@ -581,6 +595,12 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                     "degenerate: slid %.0f cells along its weakest direction the match holds "
                     "%.0f%% of its score (a road, a corridor, a floor and one wall)",
                     kSlideCells, 100 * out.slide);
+    } else if (out.structure_cells < options.min_structure_cells) {
+      std::snprintf(reason, sizeof(reason),
+                    "too little to tell this place from another like it: %zu cells off the "
+                    "large planes (boxes, edges, clutter) checked, %zu needed (a map of little "
+                    "more than floors and walls)",
+                    out.structure_cells, options.min_structure_cells);
     } else if (out.structure_agreement < options.min_structure_agreement) {
       std::snprintf(reason, sizeof(reason),
                     "another place like it: floors and walls match, but %.0f%% of what stands "

@@ -58,12 +58,16 @@ struct AlignOptions {
   // Measured (stereomap-bench-align): poses found right 0-0.83 (a road: 0.70-0.83), wrong ones
   // that passed every other gate 0.96-1.11 (a floor and one wall, a road slid along).
   double max_slide = 0.9;
-  // The cells off each map's large planes (boxes, edges, clutter) that fall in the other's
-  // free space: floors and walls agree under a wrong pose in a room like the right one, the
-  // rest does not. Measured (stereomap-bench-align): poses found right 0.955-1.000 (KITTI's
-  // parked and passing cars the lowest), a stretch of a room placed in a similar room
-  // 0.761-0.800 (--only small; every other gate passed).
-  double min_structure_agreement = 0.9;
+  // Floors and walls agree under a wrong pose in a room like the right one; what stands off
+  // them (boxes, edges, clutter) does not. So the cells off each map's large planes that the
+  // other map saw (occupied or free) must number at least min_structure_cells, and at least
+  // min_structure_agreement of them must agree. Measured (stereomap-bench-align, --only small
+  // and a real clip): poses found right 341-1141 cells (KITTI 432-888), agreement 0.86-1.00
+  // (a 1-s stretch of a sim flight the lowest, KITTI 0.94-0.99); a stretch of a room placed in
+  // a similar room, every other gate passed, 0.00-0.11; the EuRoC clip (3 clouds: little
+  // more than three planes) in a sim room 54 cells, 0.98.
+  size_t min_structure_cells = 150;
+  double min_structure_agreement = 0.7;
   int hypotheses = 4;  // RANSAC runs per search level
   // When the mutual matches' best pose does not pass, matches among each other's 3 nearest
   // too: more pairs of little overlap found, refusals twice the work. The live aligner, which
@@ -90,7 +94,9 @@ struct Alignment {
   // The score of the pose slid 3 cells along its weakest direction, over its own: near 1
   // when the match does not pin that direction. See AlignOptions::max_slide.
   double slide = 0;
-  double structure_agreement = 0;  // 0..1, see AlignOptions::min_structure_agreement
+  // See AlignOptions::min_structure_cells and min_structure_agreement.
+  size_t structure_cells = 0;
+  double structure_agreement = 0;  // 0..1
   double working_cell_m = 0;
   size_t voxels_a = 0, voxels_b = 0;  // occupied, finest
   size_t matches = 0;                 // feature matches RANSAC started from

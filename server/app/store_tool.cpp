@@ -141,11 +141,12 @@ std::optional<align::Alignment> alignAndReport(const core::SessionMapSource& map
   }
   if (found->found) {
     std::printf(
-        "confidence %.2f, agreement %.0f%% (%.0f%% off the large planes), %zu and %zu occupied "
-        "voxels, cells of %.2f m for the search, %zu feature matches, %d poses compared\n",
+        "confidence %.2f, agreement %.0f%% (%.0f%% of %zu cells off the large planes), %zu and %zu "
+        "occupied voxels, cells of %.2f m for the search, %zu feature matches, %d poses "
+        "compared\n",
         found->confidence, 100 * found->agreement, 100 * found->structure_agreement,
-        found->voxels_a, found->voxels_b, found->working_cell_m, found->matches,
-        found->poses_tried);
+        found->structure_cells, found->voxels_a, found->voxels_b, found->working_cell_m,
+        found->matches, found->poses_tried);
   }
   std::printf("%s\n", align::alignLine(a, b, *found).c_str());
   std::fflush(stdout);

@@ -60,7 +60,7 @@ struct Outcome {
   double rotation_deg = std::numeric_limits<double>::infinity();
   double voxel = 0, overlap = 0, seconds = 0, agreement = 0, confidence = 0, constraint = 0,
          slide = 0, structure = 0;
-  size_t voxels = 0;
+  size_t voxels = 0, structure_cells = 0;
   std::string reason;
   testing::PoseError pose_error;
   align::Alignment::Steps steps;
@@ -72,7 +72,7 @@ std::string percent(double share) {
 
 // What became of a pair, for its line of the table.
 std::string describe(const Outcome& o) {
-  char text[160];
+  char text[192];
   if (!o.found) {
     if (!o.related) return "refused: " + o.reason;
     std::snprintf(text, sizeof(text),
@@ -82,17 +82,17 @@ std::string describe(const Outcome& o) {
   }
   if (!o.related) {
     std::snprintf(text, sizeof(text),
-                  "FOUND A TRANSFORM (wrong): overlap %s, agreement %.3f, off planes %.3f, "
-                  "confidence %.2f, constraint %.3f, slide %.3f",
-                  percent(o.overlap).c_str(), o.agreement, o.structure, o.confidence, o.constraint,
-                  o.slide);
+                  "FOUND A TRANSFORM (wrong): overlap %s, agreement %.3f, off planes %.3f of "
+                  "%zu, confidence %.2f, constraint %.3f, slide %.3f",
+                  percent(o.overlap).c_str(), o.agreement, o.structure, o.structure_cells,
+                  o.confidence, o.constraint, o.slide);
     return text;
   }
   std::snprintf(text, sizeof(text),
-                "%.4f m, %.3f deg, overlap %s, agreement %.3f, off planes %.3f, constraint %.3f, "
-                "slide %.3f",
+                "%.4f m, %.3f deg, overlap %s, agreement %.3f, off planes %.3f of %zu, "
+                "constraint %.3f, slide %.3f",
                 o.translation_m, o.rotation_deg, percent(o.overlap).c_str(), o.agreement,
-                o.structure, o.constraint, o.slide);
+                o.structure, o.structure_cells, o.constraint, o.slide);
   return text;
 }
 
@@ -113,6 +113,7 @@ struct Totals {
       o.overlap = result->overlap;
       o.agreement = result->agreement;
       o.structure = result->structure_agreement;
+      o.structure_cells = result->structure_cells;
       o.confidence = result->confidence;
       o.constraint = result->constraint_ratio;
       o.slide = result->slide;
