@@ -86,7 +86,8 @@ void addFlags(CLI::App& app, Flags& f) {
                  "Stereo calibration (ours, OpenCV stereo_calib, KITTI calib.txt); overrides "
                  "the source's own")
       ->check(CLI::ExistingFile);
-  app.add_option("--frames", f.frames, "Stop after N frames (0: run until Ctrl-C)")
+  app.add_option("--frames", f.frames,
+                 "Stop after N frames (0: until a recording's last frame, else until Ctrl-C)")
       ->capture_default_str();
   app.add_option("--start", f.start_s,
                  "The simulators: seconds into the flight to begin; sim: into its 40 s loop, "
@@ -501,6 +502,15 @@ bool openSpool(const Flags& f, std::unique_ptr<link::Spool>& spool) {
   return true;
 }
 
+// How long a flight with no --frames runs: a recording ends by itself; the simulators loop and
+// cameras stream until stopped.
+std::string untilText(const std::string& source) {
+  for (const char* recording : {"kitti:", "euroc:", "folder:"}) {
+    if (source.starts_with(recording)) return ", until the recording's last frame";
+  }
+  return ", until Ctrl-C";
+}
+
 bool makePublisher(const Flags& f, const camera::FrameSource& source,
                    std::shared_ptr<proto::Participant>& participant,
                    std::unique_ptr<pipeline::VehiclePublisher>& publisher) {
@@ -529,10 +539,10 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
     return false;
   }
   publisher = std::move(made).value();
-  spdlog::info(
-      "vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
-      f.pipeline.vehicle_id, f.pipeline.session_id, f.dds.domain_id, source.describe(), f.rate_hz,
-      f.frames > 0 ? fmt::format(", {} frames", f.frames) : std::string(", until Ctrl-C"), f.vo);
+  spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
+               f.pipeline.vehicle_id, f.pipeline.session_id, f.dds.domain_id, source.describe(),
+               f.rate_hz, f.frames > 0 ? fmt::format(", {} frames", f.frames) : untilText(f.source),
+               f.vo);
   return true;
 }
 

@@ -81,8 +81,8 @@ void addFlags(CLI::App& app, Flags& f) {
   app.add_option("--tokens", f.tokens_file,
                  "Access list: one token per line, 'viewer|operator sha256:HEX NAME' (made by "
                  "stereomap-certs token). Viewers read maps, /ws, Foxglove and exports; "
-                 "operators also open, close, delete, merge and import. A token is required "
-                 "when --http is not a loopback address")
+                 "operators also open, close, delete, merge, align and make sites. A token is "
+                 "required when --http is not a loopback address")
       ->check(CLI::ExistingFile);
   app.add_option("--tls-cert", f.tls_cert,
                  "Serve https and wss with this PEM certificate (chain); needs --tls-key")

@@ -1,7 +1,7 @@
 // Who may do what over HTTP and the WebSockets: tokens with a role and a name, kept as SHA-256
 // hashes (a stolen list gives no token), checked in time that does not depend on which entry or
 // how much of it matched. Two roles: a viewer reads (tiles, /ws, Foxglove live, exports); an
-// operator also changes (open, close, delete, merge, import: every POST and DELETE under
+// operator also changes (open, close, delete, merge, align, site: every POST and DELETE under
 // /api/sessions). Several tokens per role at once, so one can be rotated without a gap.
 //
 // The list's file, one token per line (# starts a comment; stereomap-certs token makes lines):

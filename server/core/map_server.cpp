@@ -445,8 +445,9 @@ bool MapServer::ingest(const proto::SessionEventMsg& event, Origin origin) {
         "its map is aligned with the session's",
         event.session_id, event.vehicle_id);
   }
+  if (event.kind == proto::SessionEventKind::kStarted) session->markStarted(event.vehicle_id);
   if (event.kind == proto::SessionEventKind::kEnded) {
-    session->markEnded();
+    session->markEnded(event.vehicle_id);
     spdlog::info("session '{}': vehicle '{}' ended its flight", event.session_id, event.vehicle_id);
   }
   return true;

@@ -516,8 +516,19 @@ void Session::swapInRefused() {
   queue_changed_.notify_all();
 }
 
-void Session::markEnded() {
+void Session::markStarted(const std::string& vehicle) {
   std::lock_guard lock(state_mutex_);
+  flying_.insert(vehicle);
+  if (ended_by_ == "vehicle") ended_ = false, ended_by_.clear();
+}
+
+void Session::markEnded(const std::string& vehicle) {
+  std::lock_guard lock(state_mutex_);
+  flying_.erase(vehicle);
+  // A vehicle whose start was never heard (lost, or before the journal's start) ends the
+  // session only when no other is known to fly; one that never ends is caught by silence
+  // (endIfSilent).
+  if (!flying_.empty()) return;
   ended_ = true;
   ended_by_ = "vehicle";
 }

@@ -213,7 +213,10 @@ class Session {
   // corrections before it fuses).
   void correct(const std::string& vehicle, std::shared_ptr<const PoseCorrection> correction,
                bool refuse);
-  void markEnded();  // by its vehicle's end event
+  // A vehicle's start and end events: the session has ended (by its vehicles) once every
+  // vehicle that started has ended, and is live again when one starts.
+  void markStarted(const std::string& vehicle);
+  void markEnded(const std::string& vehicle);
 
   // Vehicles in their own frame (VehicleFrameStatus). holdApart: vehicle `vehicle` announced
   // its own frame; from now its frames go to its held map. `live`: a frame of it already in the
@@ -376,7 +379,8 @@ class Session {
   double snapshot_stall_max_seconds_ = 0;
   bool ended_ = false;
   std::string ended_by_;
-  int64_t last_live_ns_ = 0;  // the last live sample (or the session's creation)
+  std::set<std::string> flying_;  // vehicles started and not ended
+  int64_t last_live_ns_ = 0;      // the last live sample (or the session's creation)
   uint64_t bytes_received_ = 0;
   std::string store_error_;
   uint64_t samples_refused_ = 0;

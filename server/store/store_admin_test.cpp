@@ -62,9 +62,9 @@ proto::PoseMsg pose(const std::string& session, uint64_t seq, const std::string&
   return p;
 }
 
-proto::SessionEventMsg ended(const std::string& session) {
+proto::SessionEventMsg ended(const std::string& session, const std::string& vehicle = "v1") {
   proto::SessionEventMsg e;
-  e.vehicle_id = "v1";
+  e.vehicle_id = vehicle;
   e.session_id = session;
   e.stamp_ns = 9'000'000'000;
   e.kind = proto::SessionEventKind::kEnded;
@@ -285,6 +285,36 @@ TEST_F(StoreAdminTest, DeleteRefusesLiveSessionsAndRemovesEverything) {
   EXPECT_TRUE((*catalog)->list()->empty());
   // The id is free again: a new flight may use it.
   EXPECT_TRUE(server.map->ingest(wallFrame("gone", 0)));
+}
+
+// Two vehicles in one session: the first one's end does not end the session while the other
+// flies (an operator could delete it under the second vehicle); the last one's does, and the
+// catalog keeps it so.
+TEST_F(StoreAdminTest, ASessionEndsWhenItsLastVehicleEnds) {
+  {
+    Server server(root_, 0.1);
+    for (const char* vehicle : {"v1", "v2"}) {
+      auto started = ended("pair", vehicle);
+      started.stamp_ns = 500'000'000;
+      started.kind = proto::SessionEventKind::kStarted;
+      ASSERT_TRUE(server.map->ingest(started));
+    }
+    fly(*server.map, "pair", 3);
+    ASSERT_TRUE(server.map->ingest(ended("pair", "v1")));
+    EXPECT_FALSE(server.map->find("pair")->status().ended);
+    EXPECT_EQ(server.admin->remove("pair").error().code, ErrorCode::kConflict);  // v2 flies
+    ASSERT_TRUE(server.map->ingest(ended("pair", "v2")));
+    const auto status = server.map->find("pair")->status();
+    EXPECT_TRUE(status.ended);
+    EXPECT_EQ(status.ended_by, "vehicle");
+    server.admin->checkpoint(true);
+  }
+  auto catalog = Catalog::openReadOnly(root_);
+  ASSERT_TRUE(catalog.ok());
+  const auto rows = (*catalog)->list();
+  ASSERT_TRUE(rows.ok());
+  ASSERT_EQ(rows->size(), 1u);
+  EXPECT_EQ(rows->front().state, "ended");
 }
 
 // The time slider: a session as it was at a moment, fused from its journal; the loaded
