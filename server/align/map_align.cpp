@@ -6,8 +6,6 @@
 
 #include <omp.h>
 
-#include <unordered_map>
-
 #include <opencv2/core.hpp>
 #include <opencv2/flann.hpp>
 
@@ -215,6 +213,7 @@ std::vector<char> offPlanes(const Side& side, double edge) {
       for (const size_t i : probes) count += holds(normal, offset, cells[i]);
       if (count > best_count) best_count = count, best_normal = normal, best_offset = offset;
     }
+    if (best_count < 3) break;
     // The plane fitted to the probes it holds (their centroid and least-varying direction).
     Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
     std::vector<size_t> held;

@@ -205,9 +205,9 @@ std::optional<HttpAnswer> answerApi(const MapServer& server, const SessionAdmin*
   const auto parts = segments(target);
   if (method != "GET" && method != "HEAD") {
     return error(405,
-                 "use GET here (POST .../open, .../close, /api/sessions/merge and "
-                 "/api/sessions/site, "
-                 "DELETE /api/sessions/{id} manage sessions)");
+                 "use GET here (POST .../open, .../close, /api/sessions/merge, "
+                 "/api/sessions/align and /api/sessions/site, DELETE /api/sessions/{id} manage "
+                 "sessions)");
   }
 
   if (parts[0] == "healthz") {

@@ -108,8 +108,9 @@ struct SessionStatus {
   // vehicles, as this server counted them since it loaded the session (proto/wire_size.hpp).
   uint64_t bytes_received = 0;
   bool ended = false;
-  // Who ended it: "vehicle" (its end event) or "silence" (no samples for the server's
-  // --vehicle-timeout: the vehicle stopped unseen, e.g. while the server was down).
+  // Who ended it: "vehicle" (the end events of every vehicle that started) or "silence" (no
+  // samples for the server's --vehicle-timeout: the vehicles stopped unseen, e.g. while the
+  // server was down).
   std::string ended_by;
   bool read_only = false;     // opened from the store: takes no new samples
   bool closed = false;        // kept in the store only (not loaded)
@@ -143,7 +144,8 @@ struct SessionStatus {
   std::vector<VehicleFrameStatus> vehicle_frames;  // vehicles in their own frame only
 };
 
-// "live", "ended" (its vehicle said so), "opened" (read-only from the store) or "closed".
+// "live", "ended" (its vehicles said so, or fell silent), "opened" (read-only from the store) or
+// "closed".
 const char* stateName(const SessionStatus& status);
 
 class Session {

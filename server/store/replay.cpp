@@ -64,7 +64,13 @@ void replayFrameOrEvent(core::MapServer& server, const proto::journal::JournalRe
         server.ingest(*frame, covered ? core::Origin::kCovered : core::Origin::kReplay, number);
     snapshot_frames += covered;
   } else if (const auto* event = std::get_if<proto::SessionEventMsg>(&record)) {
-    if (!ownFrame(*event)) server.ingest(*event, core::Origin::kReplay);  // else taken before
+    if (!ownFrame(*event)) {
+      server.ingest(*event, core::Origin::kReplay);
+    } else if (const auto session = server.find(event->session_id)) {
+      // Taken before (held apart before its frames come); its place among the ends counts:
+      // a vehicle that ended and started again is flying.
+      session->markStarted(event->vehicle_id);
+    }
   }
 }
 

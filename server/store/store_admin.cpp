@@ -500,9 +500,10 @@ common::Status StoreAdmin::remove(const std::string& id) {
   if (session) {
     const auto status = session->status();
     if (!status.ended && !status.read_only) {
-      return makeError(ErrorCode::kConflict, "session '" + id +
-                                                 "' is live (its vehicle has not ended it): "
-                                                 "close it first");
+      return makeError(ErrorCode::kConflict,
+                       "session '" + id +
+                           "' is live (a vehicle of it has not ended its flight): "
+                           "close it first");
     }
   } else if (!fs::is_directory(dir, ec)) {
     return makeError(ErrorCode::kNotFound, "no session '" + id + "'");

@@ -302,7 +302,9 @@ TEST_F(StoreAdminTest, ASessionEndsWhenItsLastVehicleEnds) {
     fly(*server.map, "pair", 3);
     ASSERT_TRUE(server.map->ingest(ended("pair", "v1")));
     EXPECT_FALSE(server.map->find("pair")->status().ended);
-    EXPECT_EQ(server.admin->remove("pair").error().code, ErrorCode::kConflict);  // v2 flies
+    const auto removed = server.admin->remove("pair");
+    ASSERT_FALSE(removed.ok());
+    EXPECT_EQ(removed.error().code, ErrorCode::kConflict);  // v2 flies
     ASSERT_TRUE(server.map->ingest(ended("pair", "v2")));
     const auto status = server.map->find("pair")->status();
     EXPECT_TRUE(status.ended);
@@ -315,6 +317,40 @@ TEST_F(StoreAdminTest, ASessionEndsWhenItsLastVehicleEnds) {
   ASSERT_TRUE(rows.ok());
   ASSERT_EQ(rows->size(), 1u);
   EXPECT_EQ(rows->front().state, "ended");
+}
+
+// A vehicle in its own frame that ended and flies again: its session is live, and stays so
+// through a restart (recovery takes own-frame starts before the frames, but counts each in
+// its place among the ends).
+TEST_F(StoreAdminTest, AVehicleThatFliesAgainKeepsItsSessionLiveThroughARestart) {
+  {
+    Server server(root_, 0.1);
+    // Its first run (stream 1) starts and ends; its second (stream 2) starts.
+    auto started = ended("again", "v1");
+    started.kind = proto::SessionEventKind::kStarted;
+    started.frame = proto::VehicleFrame::kOwn;
+    started.stream = 1;
+    started.stamp_ns = 500'000'000;
+    ASSERT_TRUE(server.map->ingest(started));
+    fly(*server.map, "again", 3);
+    auto end = ended("again", "v1");
+    end.stream = 1;
+    end.seq = 10;
+    ASSERT_TRUE(server.map->ingest(end));
+    EXPECT_TRUE(server.map->find("again")->status().ended);
+    started.stream = 2;
+    started.stamp_ns = 9'500'000'000;
+    ASSERT_TRUE(server.map->ingest(started));
+    EXPECT_FALSE(server.map->find("again")->status().ended);
+    server.admin->checkpoint(true);
+  }
+  Server again(root_, 0.1);
+  again.admin->recoverAll();
+  ASSERT_NE(again.map->find("again"), nullptr);
+  EXPECT_FALSE(again.map->find("again")->status().ended);
+  const auto removed = again.admin->remove("again");
+  ASSERT_FALSE(removed.ok());
+  EXPECT_EQ(removed.error().code, ErrorCode::kConflict);  // it flies
 }
 
 // The time slider: a session as it was at a moment, fused from its journal; the loaded
