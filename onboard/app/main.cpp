@@ -502,15 +502,6 @@ bool openSpool(const Flags& f, std::unique_ptr<link::Spool>& spool) {
   return true;
 }
 
-// How long a flight with no --frames runs: a recording ends by itself; the simulators loop and
-// cameras stream until stopped.
-std::string untilText(const std::string& source) {
-  for (const char* recording : {"kitti:", "euroc:", "folder:"}) {
-    if (source.starts_with(recording)) return ", until the recording's last frame";
-  }
-  return ", until Ctrl-C";
-}
-
 bool makePublisher(const Flags& f, const camera::FrameSource& source,
                    std::shared_ptr<proto::Participant>& participant,
                    std::unique_ptr<pipeline::VehiclePublisher>& publisher) {
@@ -541,7 +532,10 @@ bool makePublisher(const Flags& f, const camera::FrameSource& source,
   publisher = std::move(made).value();
   spdlog::info("vehicle '{}' session '{}' on DDS domain {}: {} at {} Hz{}, pose from {}",
                f.pipeline.vehicle_id, f.pipeline.session_id, f.dds.domain_id, source.describe(),
-               f.rate_hz, f.frames > 0 ? fmt::format(", {} frames", f.frames) : untilText(f.source),
+               f.rate_hz,
+               f.frames > 0    ? fmt::format(", {} frames", f.frames)
+               : source.live() ? std::string(", until Ctrl-C")  // a camera, a simulator
+                               : std::string(", until the recording's last frame"),
                f.vo);
   return true;
 }

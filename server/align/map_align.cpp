@@ -197,10 +197,10 @@ std::vector<char> offPlanes(const Side& side, double edge) {
   std::vector<char> off(n, 1);
   std::vector<size_t> probes;  // an even share of the cells still off every plane found
   for (size_t k = 0, step = std::max<size_t>(1, n / kProbes); k < n; k += step) probes.push_back(k);
+  const auto holds = [&](const Eigen::Vector3d& normal, double offset, const Eigen::Vector3d& p) {
+    return std::abs(normal.dot(p) - offset) <= reach;
+  };
   for (int plane = 0; plane < kMaxPlanes && probes.size() >= 3; ++plane) {
-    const auto holds = [&](const Eigen::Vector3d& normal, double offset, const Eigen::Vector3d& p) {
-      return std::abs(normal.dot(p) - offset) <= reach;
-    };
     size_t best_count = 0;
     Eigen::Vector3d best_normal = Eigen::Vector3d::UnitZ();
     double best_offset = 0;
