@@ -9,6 +9,7 @@
 #include <fstream>
 #include <random>
 
+#include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/pipelines/registration/Feature.h>
 
 #include "server/align/fpfh.hpp"
@@ -107,18 +108,45 @@ TEST(Align, RastersAnswerAsTheMapDoes) {
       centres.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
     }
     const align::CellRaster cells(codes, depth, edge);
+    const align::CellRaster from_centres(centres, edge);
     size_t near = 0;
     for (const Vec3& p : pointsAround(1.0)) {
-      double nearest = -1;
+      double nearest = -1, nearest_2 = -1;  // within 1.5 and 2 edges
       for (const Vec3& c : centres) {
         const double d2 = (c - p).squaredNorm();
         if (d2 <= 2.25 * edge * edge && (nearest < 0 || d2 < nearest)) nearest = d2;
+        if (d2 <= 4 * edge * edge && (nearest_2 < 0 || d2 < nearest_2)) nearest_2 = d2;
       }
       ASSERT_EQ(cells.nearest2(p, 1.5 * edge), nearest) << p.transpose();
       ASSERT_EQ(cells.near(p, 1.5 * edge), nearest >= 0);
+      double found2 = -1;
+      const int found = from_centres.nearest(p, 2.0 * edge, &found2);
+      ASSERT_EQ(found2, nearest_2) << p.transpose();
+      if (found >= 0) {
+        ASSERT_EQ((centres[found] - p).squaredNorm(), nearest_2);
+      }
       near += nearest >= 0;
     }
     EXPECT_GT(near, 400u);  // the points test both answers
+    // Each cell's 30 nearest within 2.5 edges: itself first, nearest first, and the same
+    // distances as a search of every cell (which of equally distant cells is left to each).
+    const align::NeighbourRows rows = cells.around(2.5, 30);
+    for (size_t i = 0; i < centres.size(); i += 7) {
+      std::vector<double> all;
+      for (const Vec3& c : centres) {
+        const double d2 = (c - centres[i]).squaredNorm();
+        if (d2 <= 6.25 * edge * edge) all.push_back(d2);
+      }
+      std::sort(all.begin(), all.end());
+      all.resize(std::min<size_t>(all.size(), 30));
+      ASSERT_EQ(rows.count[i], static_cast<int>(all.size()));
+      ASSERT_EQ(rows.indices(i)[0], static_cast<int>(i));
+      for (int m = 0; m < rows.count[i]; ++m) {
+        const double d2 = (centres[rows.indices(i)[m]] - centres[i]).squaredNorm();
+        ASSERT_NEAR(d2, all[m], 1e-9 * edge * edge);
+        ASSERT_NEAR(rows.distances2(i)[m], all[m], 1e-9 * edge * edge);
+      }
+    }
   }
   const align::ClassRaster space(*map, 0.5);
   size_t counted[3] = {0, 0, 0};
@@ -141,12 +169,25 @@ TEST(Align, FeaturesAreOpen3dsFpfh) {
     cloud.points_.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
   }
   cloud.EstimateNormals(open3d::geometry::KDTreeSearchParamHybrid(2.5 * edge, 30));
-  const open3d::geometry::KDTreeFlann tree(cloud);
   const auto theirs = open3d::pipelines::registration::ComputeFPFHFeature(
       cloud, open3d::geometry::KDTreeSearchParamHybrid(5.0 * edge, 50));
+  // The neighbours Open3D's search finds (the lattice's walk may order ties otherwise).
+  const open3d::geometry::KDTreeFlann tree(cloud);
+  align::NeighbourRows rows;
+  rows.width = 50;
+  rows.index.resize(cloud.points_.size() * 50);
+  rows.distance2.resize(rows.index.size());
+  for (size_t i = 0; i < cloud.points_.size(); ++i) {
+    std::vector<int> found;
+    std::vector<double> found2;
+    const int k = tree.SearchHybrid(cloud.points_[i], 5.0 * edge, 50, found, found2);
+    rows.count.push_back(k);
+    std::copy_n(found.begin(), k, rows.index.begin() + i * 50);
+    std::copy_n(found2.begin(), k, rows.distance2.begin() + i * 50);
+  }
   for (const int threads : {1, 2}) {
     omp_set_num_threads(threads);
-    const align::FpfhFeatures ours = align::fpfhFeatures(cloud, tree, 5.0 * edge, 50);
+    const align::FpfhFeatures ours = align::fpfhFeatures(cloud, rows);
     ASSERT_EQ(ours.cols(), theirs->data_.cols());
     EXPECT_LT((ours - theirs->data_).cwiseAbs().maxCoeff(), 1e-9);
     EXPECT_GT(ours.cwiseAbs().sum(), 1000.0);  // not all zero

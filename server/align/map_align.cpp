@@ -9,7 +9,6 @@
 #include <opencv2/core.hpp>
 #include <opencv2/flann.hpp>
 
-#include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/utility/Logging.h>
 
@@ -32,8 +31,6 @@ namespace stereomap::align {
 namespace {
 
 using fusion::OccupancyMap;
-using open3d::geometry::KDTreeFlann;
-using open3d::geometry::KDTreeSearchParamHybrid;
 using open3d::geometry::PointCloud;
 
 // OpenMP's thread count is process-wide: one alignment at a time.
@@ -77,6 +74,34 @@ class Pyramid {
   std::vector<uint64_t> codes_[fusion::kTreeDepth + 1];
 };
 
+// Each cell's normal: the least-varying direction of its 30 nearest cells within 2.5 edges (as
+// Open3D's EstimateNormals with that hybrid search), of any sign; (0, 0, 1) with fewer than 3.
+void estimateNormals(PointCloud& cloud, const CellRaster& cells) {
+  const NeighbourRows rows = cells.around(2.5, 30);
+  cloud.normals_.assign(cloud.points_.size(), Eigen::Vector3d::UnitZ());
+  const auto n = static_cast<ptrdiff_t>(cloud.points_.size());
+#pragma omp parallel for schedule(static)
+  for (ptrdiff_t i = 0; i < n; ++i) {
+    const int count = rows.count[i];
+    if (count < 3) continue;
+    const int* around = rows.indices(i);
+    // About the cell itself: the offsets are small, the sums well conditioned.
+    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+    Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
+    for (int m = 0; m < count; ++m) {
+      const Eigen::Vector3d d = cloud.points_[around[m]] - cloud.points_[i];
+      sum += d;
+      outer += d * d.transpose();
+    }
+    const Eigen::Vector3d mean = sum / count;
+    const Eigen::Matrix3d covariance = outer / count - mean * mean.transpose();
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+    solver.computeDirect(covariance);
+    const Eigen::Vector3d normal = solver.eigenvectors().col(0);
+    if (normal.allFinite() && normal.norm() > 0) cloud.normals_[i] = normal.normalized();
+  }
+}
+
 // Normals point out of the surface, towards the free space the sensor saw it from: FPFH
 // compares normals' directions, and a map carries no per-voxel viewpoint.
 void orientTowardsFreeSpace(PointCloud& cloud, const ClassRaster& space, double edge) {
@@ -103,13 +128,12 @@ std::shared_ptr<PointCloud> thinned(std::shared_ptr<PointCloud> cloud, size_t at
   return out;
 }
 
-// One map at one level: its occupied cells' centres with normals, a k-d tree and a raster over
-// them, the map's space classes, and an even share of the cells to count agreement with (the
-// whole set is needed only as a target).
+// One map at one level: its occupied cells' centres with normals, a raster of them (cell i at
+// cloud point i), the map's space classes, and an even share of the cells to count agreement
+// with (the whole set is needed only as a target).
 struct Side {
   const ClassRaster* space = nullptr;
   std::shared_ptr<PointCloud> cloud, sample;
-  std::unique_ptr<KDTreeFlann> tree;
   std::unique_ptr<CellRaster> cells;
 };
 
@@ -119,14 +143,11 @@ enum class Normals { kOriented, kUnoriented, kNone };
 
 Side sideAt(const Pyramid& pyramid, const ClassRaster& space, unsigned depth, size_t sample,
             Normals normals) {
-  Side side{&space, pyramid.cloud(depth), nullptr, nullptr, nullptr};
+  Side side{&space, pyramid.cloud(depth), nullptr, nullptr};
   const double edge = pyramid.map().cellSize(depth);
-  if (normals != Normals::kNone) {
-    side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
-  }
-  if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, space, edge);
-  side.tree = std::make_unique<KDTreeFlann>(*side.cloud);
   side.cells = std::make_unique<CellRaster>(pyramid.codes(depth), depth, edge);
+  if (normals != Normals::kNone) estimateNormals(*side.cloud, *side.cells);
+  if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, space, edge);
   side.sample = thinned(side.cloud, sample);
   return side;
 }
@@ -247,13 +268,11 @@ struct Constraint {
 
 Constraint constraintOf(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
   Eigen::Matrix3d sum = Eigen::Matrix3d::Zero();
-  const double reach2 = (1.5 * edge) * (1.5 * edge);
-  std::vector<int> index(1);
-  std::vector<double> distance2(1);
   for (const auto& p : b.sample->points_) {
     const Eigen::Vector3d q = T_a_b.block<3, 3>(0, 0) * p + T_a_b.block<3, 1>(0, 3);
-    if (a.tree->SearchKNN(q, 1, index, distance2) > 0 && distance2[0] <= reach2) {
-      const Eigen::Vector3d& n = a.cloud->normals_[index[0]];
+    const int nearest = a.cells->nearest(q, 1.5 * edge);
+    if (nearest >= 0) {
+      const Eigen::Vector3d& n = a.cloud->normals_[nearest];
       sum += n * n.transpose();
     }
   }
@@ -295,8 +314,9 @@ cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, in
 }
 
 constexpr int kWiderNeighbours = 3;
-// A cell's feature describes at most this many of its neighbours within 5 cells.
+// A cell's feature describes at most this many of its neighbours within this many cells.
 constexpr int kFeatureNeighbours = 50;
+constexpr double kFeatureRadius = 5.0;
 
 // Each cell's nearest cells of the other map in feature space, both ways: rows of the
 // kWiderNeighbours nearest, nearest first. One search serves the mutual nearest matches and
@@ -624,9 +644,9 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                   side_a.cloud->points_.size(), side_b.cloud->points_.size(), cell);
     progress(step);
     const auto feature_a =
-        fpfhFeatures(*side_a.cloud, *side_a.tree, 5.0 * cell, kFeatureNeighbours);
+        fpfhFeatures(*side_a.cloud, side_a.cells->around(kFeatureRadius, kFeatureNeighbours));
     const auto feature_b =
-        fpfhFeatures(*side_b.cloud, *side_b.tree, 5.0 * cell, kFeatureNeighbours);
+        fpfhFeatures(*side_b.cloud, side_b.cells->around(kFeatureRadius, kFeatureNeighbours));
     const FeatureNeighbours nearest = featureNeighbours(feature_b, feature_a, options.seed);
     auto remaining = featureMatches(nearest, 1);
     out.matches += remaining.size();
@@ -637,11 +657,11 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     const auto consider = [&](const Eigen::Matrix4d& initial) {
       lap(out.steps.ransac);
       ++out.poses_tried;
-      Eigen::Matrix4d T = icpPointToPlane(hypothesis_b->points_, *side_a.cloud, *side_a.tree,
+      Eigen::Matrix4d T = icpPointToPlane(hypothesis_b->points_, *side_a.cloud, *side_a.cells,
                                           2.0 * cell, initial, 20, 1e-6)
                               .T_target_source;
       if (score_depth != d) {
-        T = icpPointToPlane(hypothesis_score_b->points_, *score_a.cloud, *score_a.tree,
+        T = icpPointToPlane(hypothesis_score_b->points_, *score_a.cloud, *score_a.cells,
                             2.0 * score_edge, T, 20, 1e-6)
                 .T_target_source;
       }
@@ -750,10 +770,10 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
       refining = false;
       continue;
     }
-    if (refine) cells_a->EstimateNormals(KDTreeSearchParamHybrid(2.5 * cell, 30));
-    const KDTreeFlann tree_a(*cells_a);
+    const CellRaster raster_a(cells_a->points_, cell);
+    if (refine) estimateNormals(*cells_a, raster_a);
     const IcpFit fit =
-        icpPointToPlane(cells_b->points_, *cells_a, tree_a, 2.0 * cell, T, refine ? 50 : 0, 1e-7);
+        icpPointToPlane(cells_b->points_, *cells_a, raster_a, 2.0 * cell, T, refine ? 50 : 0, 1e-7);
     if (fit.matched < 3) {
       refining = false;
       continue;
