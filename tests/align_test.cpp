@@ -148,7 +148,7 @@ TEST(Align, RastersAnswerAsTheMapDoes) {
       }
     }
   }
-  const align::ClassRaster space(*map, 0.5);
+  const align::ClassRaster space(*map, map->occupiedBounds(), 0.5);
   size_t counted[3] = {0, 0, 0};
   for (const Vec3& p : pointsAround(3.0)) {
     ASSERT_EQ(space.at(p), map->query(p)) << p.transpose();

@@ -37,12 +37,26 @@ using open3d::geometry::PointCloud;
 std::mutex g_align_mutex;
 
 // A map's occupied cells at every depth, as sorted Morton codes: a parent's code is its
-// child's shifted by three bits, so each level comes from the finer one without sorting.
+// child's shifted by three bits, so each level comes from the finer one without sorting. One
+// walk of the octree gives them, their count and their bounds.
 class Pyramid {
  public:
   explicit Pyramid(const OccupancyMap& map) : map_(map) {
     auto& finest = codes_[fusion::kTreeDepth];
-    for (const auto& v : map.occupiedVoxels()) finest.push_back(fusion::voxelCode(v));
+    int32_t lo[3] = {INT32_MAX, INT32_MAX, INT32_MAX}, hi[3] = {INT32_MIN, INT32_MIN, INT32_MIN};
+    for (const auto& v : map.occupiedVoxels()) {
+      finest.push_back(fusion::voxelCode(v));
+      const int32_t key[3] = {v.x, v.y, v.z};
+      for (unsigned axis = 0; axis < 3; ++axis) {
+        lo[axis] = std::min(lo[axis], key[axis]);
+        hi[axis] = std::max(hi[axis], key[axis]);
+      }
+    }
+    if (!finest.empty()) {
+      const double r = map.resolution();
+      bounds_.extend(common::Vec3(lo[0], lo[1], lo[2]) * r);
+      bounds_.extend(common::Vec3(hi[0] + 1, hi[1] + 1, hi[2] + 1) * r);
+    }
     std::sort(finest.begin(), finest.end());
     for (unsigned d = fusion::kTreeDepth; d > kCoarsest; --d) {
       auto& coarser = codes_[d - 1];
@@ -68,10 +82,13 @@ class Pyramid {
   }
   const OccupancyMap& map() const { return map_; }
   const std::vector<uint64_t>& codes(unsigned depth) const { return codes_[depth]; }
+  // The occupied voxels' box (OccupancyMap::occupiedBounds).
+  const common::Box3& bounds() const { return bounds_; }
 
  private:
   const OccupancyMap& map_;
   std::vector<uint64_t> codes_[fusion::kTreeDepth + 1];
+  common::Box3 bounds_;
 };
 
 // Each cell's normal: the least-varying direction of its 30 nearest cells within 2.5 edges (as
@@ -293,11 +310,19 @@ cv::Mat featureRows(const FpfhFeatures& feature) {
   return rows;
 }
 
+// FLANN's randomized k-d trees and the leaves a query checks. Fewer cost less but miss more
+// true nearest features. Measured over three seeds (stereomap-bench-align --seed 1-3,
+// docs/BENCHMARKS.md "Fewer trees"): 4 trees and 64 checks found 30-32 of the 32 pairs (31.0 on
+// average); 1 and 16 found 30-31 (30.7) in 0.6-0.75 of the time, and a live join once took 9.5
+// s (5 tries; 2.5-6.8 s otherwise). The recall is kept.
+constexpr int kFeatureTrees = 4;
+constexpr int kFeatureChecks = 64;
+
 // Each row's nearest row of `in` (approximate: randomized k-d trees, whose draws come from
 // OpenCV's thread-local generator, seeded here so that the same maps give the same matches).
 cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, int k) {
   cv::theRNG() = cv::RNG(seed);
-  cv::flann::Index index(in, cv::flann::KDTreeIndexParams(4));
+  cv::flann::Index index(in, cv::flann::KDTreeIndexParams(kFeatureTrees));
   // The queries in one part per thread: a search reads the trees only, and each query's
   // answer is its own, so the parts give the answers one search would.
   cv::Mat nearest(queries.rows, k, CV_32S);
@@ -307,7 +332,8 @@ cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, in
     const int from = queries.rows * part / parts, to = queries.rows * (part + 1) / parts;
     if (from == to) continue;
     cv::Mat found, distances;
-    index.knnSearch(queries.rowRange(from, to), found, distances, k, cv::flann::SearchParams(64));
+    index.knnSearch(queries.rowRange(from, to), found, distances, k,
+                    cv::flann::SearchParams(kFeatureChecks));
     found.copyTo(nearest.rowRange(from, to));
   }
   return nearest;
@@ -484,8 +510,6 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                                     const AlignOptions& options) {
   const auto start = std::chrono::steady_clock::now();
   Alignment out;
-  out.voxels_a = a.occupiedCount();
-  out.voxels_b = b.occupiedCount();
   if (std::abs(a.resolution() - b.resolution()) > 1e-9 * a.resolution()) {
     char text[160];
     std::snprintf(text, sizeof(text),
@@ -494,6 +518,9 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                   a.resolution(), b.resolution());
     return common::makeError(common::ErrorCode::kInvalidArgument, text);
   }
+  const Pyramid pyramid_a(a), pyramid_b(b);
+  out.voxels_a = pyramid_a.size(fusion::kTreeDepth);
+  out.voxels_b = pyramid_b.size(fusion::kTreeDepth);
   for (const auto& [name, count] : {std::pair{"first", out.voxels_a}, {"second", out.voxels_b}}) {
     if (count < kMinVoxels) {
       return common::makeError(common::ErrorCode::kInvalidArgument,
@@ -523,7 +550,6 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   // 1. Two search levels: the finest whose cells number at most max_points, and the one
   //    finer (features see structure at their own scale: a road's kerbs, a building's rooms).
   //    Poses are scored at the finer one: it shows more of what contradicts a wrong pose.
-  const Pyramid pyramid_a(a), pyramid_b(b);
   unsigned depth = fusion::kTreeDepth;
   while (depth > Pyramid::kCoarsest &&
          std::max(pyramid_a.size(depth), pyramid_b.size(depth)) > options.max_points) {
@@ -532,7 +558,8 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const unsigned score_depth = std::min(depth + 1, fusion::kTreeDepth);
   const double edge = a.cellSize(depth), score_edge = a.cellSize(score_depth);
   out.working_cell_m = edge;
-  const ClassRaster space_a(a, kSpaceMargin_m), space_b(b, kSpaceMargin_m);
+  const ClassRaster space_a(a, pyramid_a.bounds(), kSpaceMargin_m),
+      space_b(b, pyramid_b.bounds(), kSpaceMargin_m);
   std::map<unsigned, Side> sides_a, sides_b;
   for (unsigned d = depth; d <= score_depth; ++d) {
     sides_a.emplace(d, sideAt(pyramid_a, space_a, d, kScoreSample, Normals::kOriented));

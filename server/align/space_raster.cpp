@@ -205,9 +205,10 @@ NeighbourRows CellRaster::around(double radius_cells, int max_neighbours) const 
   return rows;
 }
 
-ClassRaster::ClassRaster(const fusion::OccupancyMap& map, double margin_m)
+ClassRaster::ClassRaster(const fusion::OccupancyMap& map, const common::Box3& occupied,
+                         double margin_m)
     : map_(map), resolution_(map.resolution()) {
-  common::Box3 box = map.occupiedBounds();
+  common::Box3 box = occupied;
   if (box.empty()) return;
   box.min.array() -= margin_m;
   box.max.array() += margin_m;

@@ -6,7 +6,7 @@
 //   if (cells.near(p, 1.5 * edge)) ...   // an occupied cell's centre within reach of p
 //   const int j = cells.nearest(p, 2.0 * edge);   // its number, -1 when none is in reach
 //   const NeighbourRows rows = cells.around(5.0, 50);   // each cell's 50 nearest within 5
-//   const ClassRaster space(map, margin_m);
+//   const ClassRaster space(map, map.occupiedBounds(), margin_m);
 //   if (space.at(p) == fusion::Occupancy::kFree) ...   // map.query(p), cached
 #pragma once
 
@@ -75,7 +75,9 @@ class CellRaster {
 // octree answers.
 class ClassRaster {
  public:
-  ClassRaster(const fusion::OccupancyMap& map, double margin_m);
+  // `occupied`: the map's occupied bounds (OccupancyMap::occupiedBounds, when the caller has
+  // them already).
+  ClassRaster(const fusion::OccupancyMap& map, const common::Box3& occupied, double margin_m);
   static constexpr size_t kMaxCells = size_t{1} << 28;  // 64 MB at 2 bits a voxel
 
   fusion::Occupancy at(const common::Vec3& p) const;
