@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <omp.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -158,8 +159,41 @@ TEST(Align, RastersAnswerAsTheMapDoes) {
   EXPECT_GT(counted[static_cast<int>(fusion::Occupancy::kOccupied)], 10u);
 }
 
-// Our FPFH (one neighbour search a point) gives Open3D's features, on a map's cells with their
-// normals, at one thread and at two.
+// Cells far apart are hashed (their box is beyond kMaxDenseCells) and answer as a dense raster
+// does; a key far outside the cells' box, which would wrap the hash's 21-bit fields onto a
+// cell's, finds none.
+TEST(Align, AHashedRasterAnswersAsADenseOne) {
+  const double edge = 0.1;
+  std::vector<Vec3> block;  // 4 x 3 x 4 cells
+  for (int i = 0; i < 48; ++i)
+    block.push_back(Vec3(i % 4 + 0.5, i / 4 % 3 + 0.5, i / 12 + 0.5) * edge);
+  std::vector<Vec3> apart = block;
+  apart.push_back(Vec3(400.5, 400.5, 400.5) * edge);
+  const align::CellRaster dense(block, edge), hashed(apart, edge);
+  std::mt19937 random(3);
+  std::uniform_real_distribution<double> along(-0.3, 0.7);
+  for (int i = 0; i < 2000; ++i) {
+    const Vec3 p(along(random), along(random), along(random));
+    double d_dense = -1, d_hashed = -1;
+    ASSERT_EQ(dense.nearest(p, 2.0 * edge, &d_dense), hashed.nearest(p, 2.0 * edge, &d_hashed));
+    ASSERT_EQ(d_dense, d_hashed);
+  }
+  const align::NeighbourRows rows_dense = dense.around(2.5, 30);
+  const align::NeighbourRows rows_hashed = hashed.around(2.5, 30);
+  for (size_t i = 0; i < block.size(); ++i) {
+    ASSERT_EQ(rows_dense.count[i], rows_hashed.count[i]);
+    ASSERT_TRUE(std::equal(rows_dense.indices(i), rows_dense.indices(i) + rows_dense.count[i],
+                           rows_hashed.indices(i)));
+  }
+  // Key (2^21, -1, 0) hashes as key (0, 0, 0) would, were it not checked against the box.
+  const Vec3 wrapped((2097152 + 0.5) * edge, -0.5 * edge, 0.5 * edge);
+  EXPECT_EQ(hashed.nearest(wrapped, 2.0 * edge), -1);
+  EXPECT_FALSE(hashed.near(wrapped, 1.5 * edge));
+}
+
+// Our FPFH, given the neighbours Open3D's search finds, gives Open3D's features, on a map's
+// cells with their normals, at one thread and at two; and the lattice's walk finds those
+// neighbours' distances.
 TEST(Align, FeaturesAreOpen3dsFpfh) {
   const auto room = sim::Scene::makeRoom({.seed = 6});
   const auto map = testing::flyRoom(room, {}, 0, 20, poseOf(-40, Vec3(0.1, 0.2, 0.03)), 0.1);
@@ -193,6 +227,23 @@ TEST(Align, FeaturesAreOpen3dsFpfh) {
     EXPECT_GT(ours.cwiseAbs().sum(), 1000.0);  // not all zero
   }
   omp_set_num_threads(1);
+  // The lattice's walk finds as many neighbours at the same distances, but for cells exactly at
+  // the radius, which it takes and Open3D's search leaves out (or not: its cut is in float).
+  const double r2 = 25.0 * edge * edge;
+  const align::NeighbourRows lattice = align::CellRaster(cloud.points_, edge).around(5.0, 50);
+  size_t full = 0;
+  for (size_t i = 0; i < cloud.points_.size(); ++i) {
+    const int both = std::min(lattice.count[i], rows.count[i]);
+    for (int m = 0; m < both; ++m) {
+      ASSERT_NEAR(lattice.distances2(i)[m], rows.distances2(i)[m], 1e-9 * r2) << i;
+    }
+    for (int m = both; m < lattice.count[i]; ++m) {
+      ASSERT_NEAR(lattice.distances2(i)[m], r2, 1e-9 * r2) << i;
+    }
+    ASSERT_GE(lattice.count[i], rows.count[i]) << i;
+    full += rows.count[i] == 50;
+  }
+  EXPECT_GT(full, 100u);  // the cap of 50 is met, not only the radius
 }
 
 std::unique_ptr<fusion::OccupancyMap> loadSample(const char* name) {

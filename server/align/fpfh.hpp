@@ -2,7 +2,8 @@
 // Open3D's ComputeFPFHFeature computes them (33 bins: 11 for each of the three angles of a
 // Darboux frame, each point's own histogram plus its neighbours' weighted by 1 / distance^2),
 // but on neighbours the caller found once for both passes (CellRaster::around: the cells' 50
-// nearest within 5 edges, as Open3D's hybrid search of radius 5 edges and 50 neighbours).
+// nearest within 5 edges, as Open3D's hybrid search of radius 5 edges and 50, but for cells
+// exactly at 5 edges, which it leaves out).
 // Each point's feature depends on nothing but the cloud and its neighbours: any number of
 // OpenMP threads gives the same features.
 //

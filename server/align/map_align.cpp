@@ -312,17 +312,22 @@ cv::Mat featureRows(const FpfhFeatures& feature) {
 
 // FLANN's randomized k-d trees and the leaves a query checks. Fewer cost less but miss more
 // true nearest features. Measured over three seeds (stereomap-bench-align --seed 1-3,
-// docs/BENCHMARKS.md "Fewer trees"): 4 trees and 64 checks found 30-32 of the 32 pairs (31.0 on
-// average); 1 and 16 found 30-31 (30.7) in 0.6-0.75 of the time, and a live join once took 9.5
-// s (5 tries; 2.5-6.8 s otherwise). The recall is kept.
+// docs/BENCHMARKS.md "What is left: FLANN (fewer trees)"): 4 trees and 64 checks found 30-32 of
+// the 32 pairs (31.0 on average); 1 and 16 found 30-31 (30.7) in 0.6-0.75 of the time, and a
+// live join once took 9.5 s (5 tries; 2.5-4.6 s in another run). The recall is kept.
 constexpr int kFeatureTrees = 4;
 constexpr int kFeatureChecks = 64;
 
-// Each row's nearest row of `in` (approximate: randomized k-d trees, whose draws come from
-// OpenCV's thread-local generator, seeded here so that the same maps give the same matches).
-cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, int k) {
+// Randomized k-d trees over the rows. Their draws come from OpenCV's generator (cv::randShuffle
+// and FLANN's rand_int use cv::theRNG, one a thread), seeded here: the same rows give the same
+// trees on any thread.
+std::unique_ptr<cv::flann::Index> featureIndex(const cv::Mat& rows, uint32_t seed) {
   cv::theRNG() = cv::RNG(seed);
-  cv::flann::Index index(in, cv::flann::KDTreeIndexParams(kFeatureTrees));
+  return std::make_unique<cv::flann::Index>(rows, cv::flann::KDTreeIndexParams(kFeatureTrees));
+}
+
+// Each query row's k nearest rows of the index (approximate).
+cv::Mat nearestRows(cv::flann::Index& index, const cv::Mat& queries, int k) {
   // The queries in one part per thread: a search reads the trees only, and each query's
   // answer is its own, so the parts give the answers one search would.
   cv::Mat nearest(queries.rows, k, CV_32S);
@@ -353,8 +358,17 @@ struct FeatureNeighbours {
 
 FeatureNeighbours featureNeighbours(const FpfhFeatures& fb, const FpfhFeatures& fa, uint32_t seed) {
   const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
-  return {nearestRows(rows_a, rows_b, seed, kWiderNeighbours),
-          nearestRows(rows_b, rows_a, seed, kWiderNeighbours)};
+  // A build is one thread's work: both maps' trees are built at once, each as if alone.
+  std::unique_ptr<cv::flann::Index> index_a, index_b;
+#pragma omp parallel sections
+  {
+#pragma omp section
+    index_a = featureIndex(rows_a, seed);
+#pragma omp section
+    index_b = featureIndex(rows_b, seed);
+  }
+  return {nearestRows(*index_a, rows_b, kWiderNeighbours),
+          nearestRows(*index_b, rows_a, kWiderNeighbours)};
 }
 
 // Mutual nearest neighbours in feature space (B's cell i, A's cell j), each among the other's
