@@ -4,13 +4,11 @@
 #include <gtest/gtest.h>
 #include <omp.h>
 
-#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <random>
 
-#include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/pipelines/registration/Feature.h>
 
 #include "server/align/fpfh.hpp"
@@ -109,47 +107,20 @@ TEST(Align, RastersAnswerAsTheMapDoes) {
       centres.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
     }
     const align::CellRaster cells(codes, depth, edge);
-    const align::CellRaster from_centres(centres, edge);
     size_t near = 0;
     for (const Vec3& p : pointsAround(1.0)) {
-      double nearest = -1, nearest_2 = -1;  // within 1.5 and 2 edges
+      double nearest = -1;
       for (const Vec3& c : centres) {
         const double d2 = (c - p).squaredNorm();
         if (d2 <= 2.25 * edge * edge && (nearest < 0 || d2 < nearest)) nearest = d2;
-        if (d2 <= 4 * edge * edge && (nearest_2 < 0 || d2 < nearest_2)) nearest_2 = d2;
       }
       ASSERT_EQ(cells.nearest2(p, 1.5 * edge), nearest) << p.transpose();
       ASSERT_EQ(cells.near(p, 1.5 * edge), nearest >= 0);
-      double found2 = -1;
-      const int found = from_centres.nearest(p, 2.0 * edge, &found2);
-      ASSERT_EQ(found2, nearest_2) << p.transpose();
-      if (found >= 0) {
-        ASSERT_EQ((centres[found] - p).squaredNorm(), nearest_2);
-      }
       near += nearest >= 0;
     }
     EXPECT_GT(near, 400u);  // the points test both answers
-    // Each cell's 30 nearest within 2.5 edges: itself first, nearest first, and the same
-    // distances as a search of every cell (which of equally distant cells is left to each).
-    const align::NeighbourRows rows = cells.around(2.5, 30);
-    for (size_t i = 0; i < centres.size(); i += 7) {
-      std::vector<double> all;
-      for (const Vec3& c : centres) {
-        const double d2 = (c - centres[i]).squaredNorm();
-        if (d2 <= 6.25 * edge * edge) all.push_back(d2);
-      }
-      std::sort(all.begin(), all.end());
-      all.resize(std::min<size_t>(all.size(), 30));
-      ASSERT_EQ(rows.count[i], static_cast<int>(all.size()));
-      ASSERT_EQ(rows.indices(i)[0], static_cast<int>(i));
-      for (int m = 0; m < rows.count[i]; ++m) {
-        const double d2 = (centres[rows.indices(i)[m]] - centres[i]).squaredNorm();
-        ASSERT_NEAR(d2, all[m], 1e-9 * edge * edge);
-        ASSERT_NEAR(rows.distances2(i)[m], all[m], 1e-9 * edge * edge);
-      }
-    }
   }
-  const align::ClassRaster space(*map, map->occupiedBounds(), 0.5);
+  const align::ClassRaster space(*map, 0.5);
   size_t counted[3] = {0, 0, 0};
   for (const Vec3& p : pointsAround(3.0)) {
     ASSERT_EQ(space.at(p), map->query(p)) << p.transpose();
@@ -159,41 +130,8 @@ TEST(Align, RastersAnswerAsTheMapDoes) {
   EXPECT_GT(counted[static_cast<int>(fusion::Occupancy::kOccupied)], 10u);
 }
 
-// Cells far apart are hashed (their box is beyond kMaxDenseCells) and answer as a dense raster
-// does; a key far outside the cells' box, which would wrap the hash's 21-bit fields onto a
-// cell's, finds none.
-TEST(Align, AHashedRasterAnswersAsADenseOne) {
-  const double edge = 0.1;
-  std::vector<Vec3> block;  // 4 x 3 x 4 cells
-  for (int i = 0; i < 48; ++i)
-    block.push_back(Vec3(i % 4 + 0.5, i / 4 % 3 + 0.5, i / 12 + 0.5) * edge);
-  std::vector<Vec3> apart = block;
-  apart.push_back(Vec3(400.5, 400.5, 400.5) * edge);
-  const align::CellRaster dense(block, edge), hashed(apart, edge);
-  std::mt19937 random(3);
-  std::uniform_real_distribution<double> along(-0.3, 0.7);
-  for (int i = 0; i < 2000; ++i) {
-    const Vec3 p(along(random), along(random), along(random));
-    double d_dense = -1, d_hashed = -1;
-    ASSERT_EQ(dense.nearest(p, 2.0 * edge, &d_dense), hashed.nearest(p, 2.0 * edge, &d_hashed));
-    ASSERT_EQ(d_dense, d_hashed);
-  }
-  const align::NeighbourRows rows_dense = dense.around(2.5, 30);
-  const align::NeighbourRows rows_hashed = hashed.around(2.5, 30);
-  for (size_t i = 0; i < block.size(); ++i) {
-    ASSERT_EQ(rows_dense.count[i], rows_hashed.count[i]);
-    ASSERT_TRUE(std::equal(rows_dense.indices(i), rows_dense.indices(i) + rows_dense.count[i],
-                           rows_hashed.indices(i)));
-  }
-  // Key (2^21, -1, 0) hashes as key (0, 0, 0) would, were it not checked against the box.
-  const Vec3 wrapped((2097152 + 0.5) * edge, -0.5 * edge, 0.5 * edge);
-  EXPECT_EQ(hashed.nearest(wrapped, 2.0 * edge), -1);
-  EXPECT_FALSE(hashed.near(wrapped, 1.5 * edge));
-}
-
-// Our FPFH, given the neighbours Open3D's search finds, gives Open3D's features, on a map's
-// cells with their normals, at one thread and at two; and the lattice's walk finds those
-// neighbours' distances.
+// Our FPFH (one neighbour search a point) gives Open3D's features, on a map's cells with their
+// normals, at one thread and at two.
 TEST(Align, FeaturesAreOpen3dsFpfh) {
   const auto room = sim::Scene::makeRoom({.seed = 6});
   const auto map = testing::flyRoom(room, {}, 0, 20, poseOf(-40, Vec3(0.1, 0.2, 0.03)), 0.1);
@@ -203,47 +141,17 @@ TEST(Align, FeaturesAreOpen3dsFpfh) {
     cloud.points_.push_back(Vec3(c.x + 0.5, c.y + 0.5, c.z + 0.5) * edge);
   }
   cloud.EstimateNormals(open3d::geometry::KDTreeSearchParamHybrid(2.5 * edge, 30));
+  const open3d::geometry::KDTreeFlann tree(cloud);
   const auto theirs = open3d::pipelines::registration::ComputeFPFHFeature(
       cloud, open3d::geometry::KDTreeSearchParamHybrid(5.0 * edge, 50));
-  // The neighbours Open3D's search finds (the lattice's walk may order ties otherwise).
-  const open3d::geometry::KDTreeFlann tree(cloud);
-  align::NeighbourRows rows;
-  rows.width = 50;
-  rows.index.resize(cloud.points_.size() * 50);
-  rows.distance2.resize(rows.index.size());
-  for (size_t i = 0; i < cloud.points_.size(); ++i) {
-    std::vector<int> found;
-    std::vector<double> found2;
-    const int k = tree.SearchHybrid(cloud.points_[i], 5.0 * edge, 50, found, found2);
-    rows.count.push_back(k);
-    std::copy_n(found.begin(), k, rows.index.begin() + i * 50);
-    std::copy_n(found2.begin(), k, rows.distance2.begin() + i * 50);
-  }
   for (const int threads : {1, 2}) {
     omp_set_num_threads(threads);
-    const align::FpfhFeatures ours = align::fpfhFeatures(cloud, rows);
+    const align::FpfhFeatures ours = align::fpfhFeatures(cloud, tree, 5.0 * edge, 50);
     ASSERT_EQ(ours.cols(), theirs->data_.cols());
     EXPECT_LT((ours - theirs->data_).cwiseAbs().maxCoeff(), 1e-9);
     EXPECT_GT(ours.cwiseAbs().sum(), 1000.0);  // not all zero
   }
   omp_set_num_threads(1);
-  // The lattice's walk finds as many neighbours at the same distances, but for cells exactly at
-  // the radius, which it takes and Open3D's search leaves out (or not: its cut is in float).
-  const double r2 = 25.0 * edge * edge;
-  const align::NeighbourRows lattice = align::CellRaster(cloud.points_, edge).around(5.0, 50);
-  size_t full = 0;
-  for (size_t i = 0; i < cloud.points_.size(); ++i) {
-    const int both = std::min(lattice.count[i], rows.count[i]);
-    for (int m = 0; m < both; ++m) {
-      ASSERT_NEAR(lattice.distances2(i)[m], rows.distances2(i)[m], 1e-9 * r2) << i;
-    }
-    for (int m = both; m < lattice.count[i]; ++m) {
-      ASSERT_NEAR(lattice.distances2(i)[m], r2, 1e-9 * r2) << i;
-    }
-    ASSERT_GE(lattice.count[i], rows.count[i]) << i;
-    full += rows.count[i] == 50;
-  }
-  EXPECT_GT(full, 100u);  // the cap of 50 is met, not only the radius
 }
 
 std::unique_ptr<fusion::OccupancyMap> loadSample(const char* name) {

@@ -43,32 +43,45 @@ bool pairBins(const Eigen::Vector3d& p1, const Eigen::Vector3d& n1, const Eigen:
 }  // namespace
 
 FpfhFeatures fpfhFeatures(const open3d::geometry::PointCloud& cloud,
-                          const NeighbourRows& neighbours) {
+                          const open3d::geometry::KDTreeFlann& tree, double radius,
+                          int max_neighbours) {
   const auto n = static_cast<int>(cloud.points_.size());
-  const std::vector<int>& count = neighbours.count;
+  // Each point's neighbours (itself first), kept for the second pass: rows of max_neighbours.
+  std::vector<int> neighbours(static_cast<size_t>(n) * max_neighbours);
+  std::vector<double> distance2(neighbours.size());
+  std::vector<int> count(n);
   FpfhFeatures simple = FpfhFeatures::Zero(33, n);
-#pragma omp parallel for schedule(static)
-  for (int i = 0; i < n; ++i) {
-    const int k = count[i];
-    if (k <= 1) continue;
-    const int* found = neighbours.indices(i);
-    const double step = 100.0 / (k - 1);
-    for (int m = 1; m < k; ++m) {
-      const int j = found[m];
-      int bins[3];
-      if (!pairBins(cloud.points_[i], cloud.normals_[i], cloud.points_[j], cloud.normals_[j],
-                    bins)) {
-        bins[0] = bins[1] = bins[2] = kBins / 2;  // an undefined frame's angles are zero
+#pragma omp parallel
+  {
+    std::vector<int> found;
+    std::vector<double> found2;
+#pragma omp for schedule(static)
+    for (int i = 0; i < n; ++i) {
+      const int k = tree.SearchHybrid(cloud.points_[i], radius, max_neighbours, found, found2);
+      count[i] = k;
+      std::copy_n(found.begin(), k,
+                  neighbours.begin() + static_cast<ptrdiff_t>(i) * max_neighbours);
+      std::copy_n(found2.begin(), k,
+                  distance2.begin() + static_cast<ptrdiff_t>(i) * max_neighbours);
+      if (k <= 1) continue;
+      const double step = 100.0 / (k - 1);
+      for (int m = 1; m < k; ++m) {
+        const int j = found[m];
+        int bins[3];
+        if (!pairBins(cloud.points_[i], cloud.normals_[i], cloud.points_[j], cloud.normals_[j],
+                      bins)) {
+          bins[0] = bins[1] = bins[2] = kBins / 2;  // an undefined frame's angles are zero
+        }
+        for (int angle = 0; angle < 3; ++angle) simple(angle * kBins + bins[angle], i) += step;
       }
-      for (int angle = 0; angle < 3; ++angle) simple(angle * kBins + bins[angle], i) += step;
     }
   }
   FpfhFeatures features = FpfhFeatures::Zero(33, n);
 #pragma omp parallel for schedule(static)
   for (int i = 0; i < n; ++i) {
     if (count[i] <= 1) continue;
-    const int* around = neighbours.indices(i);
-    const double* around2 = neighbours.distances2(i);
+    const int* around = neighbours.data() + static_cast<ptrdiff_t>(i) * max_neighbours;
+    const double* around2 = distance2.data() + static_cast<ptrdiff_t>(i) * max_neighbours;
     double sum[3] = {0, 0, 0};
     for (int m = 1; m < count[i]; ++m) {
       if (around2[m] == 0.0) continue;

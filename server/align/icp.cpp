@@ -19,14 +19,24 @@ struct Correspondences {
   double fitness = 0, rmse = 0;
 };
 
-Correspondences correspond(const std::vector<Eigen::Vector3d>& moved, const CellRaster& cells,
-                           double reach) {
+Correspondences correspond(const std::vector<Eigen::Vector3d>& moved,
+                           const open3d::geometry::KDTreeFlann& tree, double reach) {
   // Searched in parallel, gathered in order: the same sums with any number of threads.
   const auto n = static_cast<ptrdiff_t>(moved.size());
   std::vector<int> nearest(moved.size(), -1);
   std::vector<double> nearest2(moved.size(), 0);
-#pragma omp parallel for schedule(static)
-  for (ptrdiff_t i = 0; i < n; ++i) nearest[i] = cells.nearest(moved[i], reach, &nearest2[i]);
+#pragma omp parallel
+  {
+    std::vector<int> index;
+    std::vector<double> distance2;
+#pragma omp for schedule(static)
+    for (ptrdiff_t i = 0; i < n; ++i) {
+      if (tree.SearchHybrid(moved[i], reach, 1, index, distance2) > 0) {
+        nearest[i] = index[0];
+        nearest2[i] = distance2[0];
+      }
+    }
+  }
   Correspondences out;
   double error2 = 0;
   for (size_t i = 0; i < moved.size(); ++i) {
@@ -80,20 +90,20 @@ void transform(std::vector<Eigen::Vector3d>& points, const Eigen::Matrix4d& T) {
 }  // namespace
 
 IcpFit icpPointToPlane(const std::vector<Eigen::Vector3d>& source,
-                       const open3d::geometry::PointCloud& target, const CellRaster& cells,
-                       double reach, const Eigen::Matrix4d& initial, int max_iterations,
-                       double tolerance) {
+                       const open3d::geometry::PointCloud& target,
+                       const open3d::geometry::KDTreeFlann& tree, double reach,
+                       const Eigen::Matrix4d& initial, int max_iterations, double tolerance) {
   IcpFit fit;
   fit.T_target_source = initial;
   std::vector<Eigen::Vector3d> moved = source;
   transform(moved, initial);
-  Correspondences matched = correspond(moved, cells, reach);
+  Correspondences matched = correspond(moved, tree, reach);
   for (int iteration = 0; iteration < max_iterations && !matched.pairs.empty(); ++iteration) {
     const Eigen::Matrix4d step = pointToPlaneStep(moved, target, matched);
     fit.T_target_source = step * fit.T_target_source;
     transform(moved, step);
     const Correspondences before = std::move(matched);
-    matched = correspond(moved, cells, reach);
+    matched = correspond(moved, tree, reach);
     if (std::fabs(before.fitness - matched.fitness) < tolerance &&
         std::fabs(before.rmse - matched.rmse) < tolerance) {
       break;

@@ -1,9 +1,9 @@
 // Point-to-plane ICP as Open3D's RegistrationICP runs it (the same linearised step, the same
 // correspondences: each source point's nearest target point within reach, the same stop),
-// on the target's cell raster (the target points are its cells' centres): Open3D builds a
-// k-d tree for every call, which cost more than the iterations on the alignment's many poses.
+// on a k-d tree the caller already has: Open3D builds one for every call, which cost more than
+// the iterations on the alignment's many candidate poses.
 //
-//   const auto fit = align::icpPointToPlane(points_b, cloud_a, cells_a, 2.0 * edge, T, 20, 1e-6);
+//   const auto fit = align::icpPointToPlane(points_b, cloud_a, tree_a, 2.0 * edge, T, 20, 1e-6);
 //   fit.T_target_source, fit.matched, fit.rmse
 #pragma once
 
@@ -12,9 +12,8 @@
 #include <cstddef>
 #include <vector>
 
+#include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
-
-#include "server/align/space_raster.hpp"
 
 namespace stereomap::align {
 
@@ -24,12 +23,11 @@ struct IcpFit {
   double rmse = 0;     // their distances' root mean square
 };
 
-// `target` needs normals; `cells` holds its points, cell i at target point i; `reach` is at most
-// 2.5 edges. Stops after `max_iterations`, or when
+// `target` needs normals and `tree` is built over it. Stops after `max_iterations`, or when
 // both the matched share and the RMSE change by less than `tolerance` in one iteration.
 IcpFit icpPointToPlane(const std::vector<Eigen::Vector3d>& source,
-                       const open3d::geometry::PointCloud& target, const CellRaster& cells,
-                       double reach, const Eigen::Matrix4d& initial, int max_iterations,
-                       double tolerance);
+                       const open3d::geometry::PointCloud& target,
+                       const open3d::geometry::KDTreeFlann& tree, double reach,
+                       const Eigen::Matrix4d& initial, int max_iterations, double tolerance);
 
 }  // namespace stereomap::align

@@ -9,6 +9,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/flann.hpp>
 
+#include <open3d/geometry/KDTreeFlann.h>
 #include <open3d/geometry/PointCloud.h>
 #include <open3d/utility/Logging.h>
 
@@ -31,32 +32,20 @@ namespace stereomap::align {
 namespace {
 
 using fusion::OccupancyMap;
+using open3d::geometry::KDTreeFlann;
+using open3d::geometry::KDTreeSearchParamHybrid;
 using open3d::geometry::PointCloud;
 
 // OpenMP's thread count is process-wide: one alignment at a time.
 std::mutex g_align_mutex;
 
 // A map's occupied cells at every depth, as sorted Morton codes: a parent's code is its
-// child's shifted by three bits, so each level comes from the finer one without sorting. One
-// walk of the octree gives them, their count and their bounds.
+// child's shifted by three bits, so each level comes from the finer one without sorting.
 class Pyramid {
  public:
   explicit Pyramid(const OccupancyMap& map) : map_(map) {
     auto& finest = codes_[fusion::kTreeDepth];
-    int32_t lo[3] = {INT32_MAX, INT32_MAX, INT32_MAX}, hi[3] = {INT32_MIN, INT32_MIN, INT32_MIN};
-    for (const auto& v : map.occupiedVoxels()) {
-      finest.push_back(fusion::voxelCode(v));
-      const int32_t key[3] = {v.x, v.y, v.z};
-      for (unsigned axis = 0; axis < 3; ++axis) {
-        lo[axis] = std::min(lo[axis], key[axis]);
-        hi[axis] = std::max(hi[axis], key[axis]);
-      }
-    }
-    if (!finest.empty()) {
-      const double r = map.resolution();
-      bounds_.extend(common::Vec3(lo[0], lo[1], lo[2]) * r);
-      bounds_.extend(common::Vec3(hi[0] + 1, hi[1] + 1, hi[2] + 1) * r);
-    }
+    for (const auto& v : map.occupiedVoxels()) finest.push_back(fusion::voxelCode(v));
     std::sort(finest.begin(), finest.end());
     for (unsigned d = fusion::kTreeDepth; d > kCoarsest; --d) {
       auto& coarser = codes_[d - 1];
@@ -82,42 +71,11 @@ class Pyramid {
   }
   const OccupancyMap& map() const { return map_; }
   const std::vector<uint64_t>& codes(unsigned depth) const { return codes_[depth]; }
-  // The occupied voxels' box (OccupancyMap::occupiedBounds).
-  const common::Box3& bounds() const { return bounds_; }
 
  private:
   const OccupancyMap& map_;
   std::vector<uint64_t> codes_[fusion::kTreeDepth + 1];
-  common::Box3 bounds_;
 };
-
-// Each cell's normal: the least-varying direction of its 30 nearest cells within 2.5 edges (as
-// Open3D's EstimateNormals with that hybrid search), of any sign; (0, 0, 1) with fewer than 3.
-void estimateNormals(PointCloud& cloud, const CellRaster& cells) {
-  const NeighbourRows rows = cells.around(2.5, 30);
-  cloud.normals_.assign(cloud.points_.size(), Eigen::Vector3d::UnitZ());
-  const auto n = static_cast<ptrdiff_t>(cloud.points_.size());
-#pragma omp parallel for schedule(static)
-  for (ptrdiff_t i = 0; i < n; ++i) {
-    const int count = rows.count[i];
-    if (count < 3) continue;
-    const int* around = rows.indices(i);
-    // About the cell itself: the offsets are small, the sums well conditioned.
-    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
-    Eigen::Matrix3d outer = Eigen::Matrix3d::Zero();
-    for (int m = 0; m < count; ++m) {
-      const Eigen::Vector3d d = cloud.points_[around[m]] - cloud.points_[i];
-      sum += d;
-      outer += d * d.transpose();
-    }
-    const Eigen::Vector3d mean = sum / count;
-    const Eigen::Matrix3d covariance = outer / count - mean * mean.transpose();
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
-    solver.computeDirect(covariance);
-    const Eigen::Vector3d normal = solver.eigenvectors().col(0);
-    if (normal.allFinite() && normal.norm() > 0) cloud.normals_[i] = normal.normalized();
-  }
-}
 
 // Normals point out of the surface, towards the free space the sensor saw it from: FPFH
 // compares normals' directions, and a map carries no per-voxel viewpoint.
@@ -145,12 +103,13 @@ std::shared_ptr<PointCloud> thinned(std::shared_ptr<PointCloud> cloud, size_t at
   return out;
 }
 
-// One map at one level: its occupied cells' centres with normals, a raster of them (cell i at
-// cloud point i), the map's space classes, and an even share of the cells to count agreement
-// with (the whole set is needed only as a target).
+// One map at one level: its occupied cells' centres with normals, a k-d tree and a raster over
+// them, the map's space classes, and an even share of the cells to count agreement with (the
+// whole set is needed only as a target).
 struct Side {
   const ClassRaster* space = nullptr;
   std::shared_ptr<PointCloud> cloud, sample;
+  std::unique_ptr<KDTreeFlann> tree;
   std::unique_ptr<CellRaster> cells;
 };
 
@@ -160,11 +119,14 @@ enum class Normals { kOriented, kUnoriented, kNone };
 
 Side sideAt(const Pyramid& pyramid, const ClassRaster& space, unsigned depth, size_t sample,
             Normals normals) {
-  Side side{&space, pyramid.cloud(depth), nullptr, nullptr};
+  Side side{&space, pyramid.cloud(depth), nullptr, nullptr, nullptr};
   const double edge = pyramid.map().cellSize(depth);
-  side.cells = std::make_unique<CellRaster>(pyramid.codes(depth), depth, edge);
-  if (normals != Normals::kNone) estimateNormals(*side.cloud, *side.cells);
+  if (normals != Normals::kNone) {
+    side.cloud->EstimateNormals(KDTreeSearchParamHybrid(2.5 * edge, 30));
+  }
   if (normals == Normals::kOriented) orientTowardsFreeSpace(*side.cloud, space, edge);
+  side.tree = std::make_unique<KDTreeFlann>(*side.cloud);
+  side.cells = std::make_unique<CellRaster>(pyramid.codes(depth), depth, edge);
   side.sample = thinned(side.cloud, sample);
   return side;
 }
@@ -285,11 +247,13 @@ struct Constraint {
 
 Constraint constraintOf(const Side& a, const Side& b, const Eigen::Matrix4d& T_a_b, double edge) {
   Eigen::Matrix3d sum = Eigen::Matrix3d::Zero();
+  const double reach2 = (1.5 * edge) * (1.5 * edge);
+  std::vector<int> index(1);
+  std::vector<double> distance2(1);
   for (const auto& p : b.sample->points_) {
     const Eigen::Vector3d q = T_a_b.block<3, 3>(0, 0) * p + T_a_b.block<3, 1>(0, 3);
-    const int nearest = a.cells->nearest(q, 1.5 * edge);
-    if (nearest >= 0) {
-      const Eigen::Vector3d& n = a.cloud->normals_[nearest];
+    if (a.tree->SearchKNN(q, 1, index, distance2) > 0 && distance2[0] <= reach2) {
+      const Eigen::Vector3d& n = a.cloud->normals_[index[0]];
       sum += n * n.transpose();
     }
   }
@@ -310,24 +274,11 @@ cv::Mat featureRows(const FpfhFeatures& feature) {
   return rows;
 }
 
-// FLANN's randomized k-d trees and the leaves a query checks. Fewer cost less but miss more
-// true nearest features. Measured over three seeds (stereomap-bench-align --seed 1-3,
-// docs/BENCHMARKS.md "What is left: FLANN (fewer trees)"): 4 trees and 64 checks found 30-32 of
-// the 32 pairs (31.0 on average); 1 and 16 found 30-31 (30.7) in 0.6-0.75 of the time, and a
-// live join once took 9.5 s (5 tries; 2.5-4.6 s in another run). The recall is kept.
-constexpr int kFeatureTrees = 4;
-constexpr int kFeatureChecks = 64;
-
-// Randomized k-d trees over the rows. Their draws come from OpenCV's generator (cv::randShuffle
-// and FLANN's rand_int use cv::theRNG, one a thread), seeded here: the same rows give the same
-// trees on any thread.
-std::unique_ptr<cv::flann::Index> featureIndex(const cv::Mat& rows, uint32_t seed) {
+// Each row's nearest row of `in` (approximate: randomized k-d trees, whose draws come from
+// OpenCV's thread-local generator, seeded here so that the same maps give the same matches).
+cv::Mat nearestRows(const cv::Mat& in, const cv::Mat& queries, uint32_t seed, int k) {
   cv::theRNG() = cv::RNG(seed);
-  return std::make_unique<cv::flann::Index>(rows, cv::flann::KDTreeIndexParams(kFeatureTrees));
-}
-
-// Each query row's k nearest rows of the index (approximate).
-cv::Mat nearestRows(cv::flann::Index& index, const cv::Mat& queries, int k) {
+  cv::flann::Index index(in, cv::flann::KDTreeIndexParams(4));
   // The queries in one part per thread: a search reads the trees only, and each query's
   // answer is its own, so the parts give the answers one search would.
   cv::Mat nearest(queries.rows, k, CV_32S);
@@ -337,17 +288,15 @@ cv::Mat nearestRows(cv::flann::Index& index, const cv::Mat& queries, int k) {
     const int from = queries.rows * part / parts, to = queries.rows * (part + 1) / parts;
     if (from == to) continue;
     cv::Mat found, distances;
-    index.knnSearch(queries.rowRange(from, to), found, distances, k,
-                    cv::flann::SearchParams(kFeatureChecks));
+    index.knnSearch(queries.rowRange(from, to), found, distances, k, cv::flann::SearchParams(64));
     found.copyTo(nearest.rowRange(from, to));
   }
   return nearest;
 }
 
 constexpr int kWiderNeighbours = 3;
-// A cell's feature describes at most this many of its neighbours within this many cells.
+// A cell's feature describes at most this many of its neighbours within 5 cells.
 constexpr int kFeatureNeighbours = 50;
-constexpr double kFeatureRadius = 5.0;
 
 // Each cell's nearest cells of the other map in feature space, both ways: rows of the
 // kWiderNeighbours nearest, nearest first. One search serves the mutual nearest matches and
@@ -358,17 +307,8 @@ struct FeatureNeighbours {
 
 FeatureNeighbours featureNeighbours(const FpfhFeatures& fb, const FpfhFeatures& fa, uint32_t seed) {
   const cv::Mat rows_a = featureRows(fa), rows_b = featureRows(fb);
-  // A build is one thread's work: both maps' trees are built at once, each as if alone.
-  std::unique_ptr<cv::flann::Index> index_a, index_b;
-#pragma omp parallel sections
-  {
-#pragma omp section
-    index_a = featureIndex(rows_a, seed);
-#pragma omp section
-    index_b = featureIndex(rows_b, seed);
-  }
-  return {nearestRows(*index_a, rows_b, kWiderNeighbours),
-          nearestRows(*index_b, rows_a, kWiderNeighbours)};
+  return {nearestRows(rows_a, rows_b, seed, kWiderNeighbours),
+          nearestRows(rows_b, rows_a, seed, kWiderNeighbours)};
 }
 
 // Mutual nearest neighbours in feature space (B's cell i, A's cell j), each among the other's
@@ -524,6 +464,8 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                                     const AlignOptions& options) {
   const auto start = std::chrono::steady_clock::now();
   Alignment out;
+  out.voxels_a = a.occupiedCount();
+  out.voxels_b = b.occupiedCount();
   if (std::abs(a.resolution() - b.resolution()) > 1e-9 * a.resolution()) {
     char text[160];
     std::snprintf(text, sizeof(text),
@@ -532,9 +474,6 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                   a.resolution(), b.resolution());
     return common::makeError(common::ErrorCode::kInvalidArgument, text);
   }
-  const Pyramid pyramid_a(a), pyramid_b(b);
-  out.voxels_a = pyramid_a.size(fusion::kTreeDepth);
-  out.voxels_b = pyramid_b.size(fusion::kTreeDepth);
   for (const auto& [name, count] : {std::pair{"first", out.voxels_a}, {"second", out.voxels_b}}) {
     if (count < kMinVoxels) {
       return common::makeError(common::ErrorCode::kInvalidArgument,
@@ -564,6 +503,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   // 1. Two search levels: the finest whose cells number at most max_points, and the one
   //    finer (features see structure at their own scale: a road's kerbs, a building's rooms).
   //    Poses are scored at the finer one: it shows more of what contradicts a wrong pose.
+  const Pyramid pyramid_a(a), pyramid_b(b);
   unsigned depth = fusion::kTreeDepth;
   while (depth > Pyramid::kCoarsest &&
          std::max(pyramid_a.size(depth), pyramid_b.size(depth)) > options.max_points) {
@@ -572,8 +512,7 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
   const unsigned score_depth = std::min(depth + 1, fusion::kTreeDepth);
   const double edge = a.cellSize(depth), score_edge = a.cellSize(score_depth);
   out.working_cell_m = edge;
-  const ClassRaster space_a(a, pyramid_a.bounds(), kSpaceMargin_m),
-      space_b(b, pyramid_b.bounds(), kSpaceMargin_m);
+  const ClassRaster space_a(a, kSpaceMargin_m), space_b(b, kSpaceMargin_m);
   std::map<unsigned, Side> sides_a, sides_b;
   for (unsigned d = depth; d <= score_depth; ++d) {
     sides_a.emplace(d, sideAt(pyramid_a, space_a, d, kScoreSample, Normals::kOriented));
@@ -685,9 +624,9 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
                   side_a.cloud->points_.size(), side_b.cloud->points_.size(), cell);
     progress(step);
     const auto feature_a =
-        fpfhFeatures(*side_a.cloud, side_a.cells->around(kFeatureRadius, kFeatureNeighbours));
+        fpfhFeatures(*side_a.cloud, *side_a.tree, 5.0 * cell, kFeatureNeighbours);
     const auto feature_b =
-        fpfhFeatures(*side_b.cloud, side_b.cells->around(kFeatureRadius, kFeatureNeighbours));
+        fpfhFeatures(*side_b.cloud, *side_b.tree, 5.0 * cell, kFeatureNeighbours);
     const FeatureNeighbours nearest = featureNeighbours(feature_b, feature_a, options.seed);
     auto remaining = featureMatches(nearest, 1);
     out.matches += remaining.size();
@@ -698,11 +637,11 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
     const auto consider = [&](const Eigen::Matrix4d& initial) {
       lap(out.steps.ransac);
       ++out.poses_tried;
-      Eigen::Matrix4d T = icpPointToPlane(hypothesis_b->points_, *side_a.cloud, *side_a.cells,
+      Eigen::Matrix4d T = icpPointToPlane(hypothesis_b->points_, *side_a.cloud, *side_a.tree,
                                           2.0 * cell, initial, 20, 1e-6)
                               .T_target_source;
       if (score_depth != d) {
-        T = icpPointToPlane(hypothesis_score_b->points_, *score_a.cloud, *score_a.cells,
+        T = icpPointToPlane(hypothesis_score_b->points_, *score_a.cloud, *score_a.tree,
                             2.0 * score_edge, T, 20, 1e-6)
                 .T_target_source;
       }
@@ -811,10 +750,10 @@ common::Result<Alignment> alignMaps(const OccupancyMap& a, const OccupancyMap& b
       refining = false;
       continue;
     }
-    const CellRaster raster_a(cells_a->points_, cell);
-    if (refine) estimateNormals(*cells_a, raster_a);
+    if (refine) cells_a->EstimateNormals(KDTreeSearchParamHybrid(2.5 * cell, 30));
+    const KDTreeFlann tree_a(*cells_a);
     const IcpFit fit =
-        icpPointToPlane(cells_b->points_, *cells_a, raster_a, 2.0 * cell, T, refine ? 50 : 0, 1e-7);
+        icpPointToPlane(cells_b->points_, *cells_a, tree_a, 2.0 * cell, T, refine ? 50 : 0, 1e-7);
     if (fit.matched < 3) {
       refining = false;
       continue;

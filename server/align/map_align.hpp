@@ -17,10 +17,9 @@
 //     distinct pose that fits nearly as well (a symmetric room, a repeated pattern), or a
 //     match that does not pin a direction of translation (a road, a plain corridor).
 // Every random draw is seeded and every parallel step sums in a fixed order: the same maps give
-// the same answer, with any number of threads. The FPFH, RANSAC, ICP and normals are ours,
-// computed as Open3D's, and every neighbour search walks the cells' lattice instead of a k-d
-// tree (fpfh.hpp, icp.hpp, space_raster.hpp): several times faster. OpenCV's FLANN matches
-// the features.
+// the same answer, with any number of threads. Open3D supplies the k-d trees and normals; the
+// FPFH, RANSAC and ICP are ours, computed as Open3D's but on shared trees and rasters
+// (fpfh.hpp, icp.hpp, space_raster.hpp), several times faster.
 //
 //   auto aligned = align::alignMaps(a, b, {});
 //   if (!aligned) error (empty map, different resolutions...);
@@ -107,7 +106,7 @@ struct Alignment {
   // Where the seconds went (they add up to `seconds`, but for checks and bookkeeping), and
   // how many search levels ran (2: the coarser one's best pose did not pass the gates).
   struct Steps {
-    double levels = 0;      // the pyramids, rasters, normals and their orientation
+    double levels = 0;      // the pyramids, normals and their orientation, kd-trees
     double features = 0;    // FPFH and their matching
     double ransac = 0;      // RANSAC over the matches, and which matches each pose explains
     double hypotheses = 0;  // each pose's ICP at its level and the scoring level, its score

@@ -327,10 +327,6 @@ int main(int argc, char** argv) {
                  "Experiments: AlignOptions::hypotheses (RANSAC runs per level)")
       ->capture_default_str()
       ->check(CLI::Range(1, 16));
-  app.add_option("--seed", totals.options.seed,
-                 "AlignOptions::seed (the draws of FLANN's trees and RANSAC): how much a pair's "
-                 "verdict depends on them")
-      ->capture_default_str();
   app.add_option("--threads", totals.options.threads,
                  "AlignOptions::threads (the answers are the same with any number)")
       ->capture_default_str()
